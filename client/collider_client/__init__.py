@@ -1,0 +1,1 @@
+"""Client side of the collider service: numpy + msgpack + httpx, no torch."""

@@ -1,0 +1,261 @@
+"""The one query interface every collider kind implements.
+
+A collider answers, for world-frame points, the fields a caller names:
+
+- ``distance`` : (n,) float32, world units, signed, negative inside;
+- ``normal``   : (n, 3) float32, unit outward normal (normalised SDF gradient), world frame;
+- ``contact``  : (n, 3), the point moved to the offset surface ``p + (eps - d) * normal``,
+  world frame, in the dtype of the query points (float32 or float64);
+- ``collides`` : (n,) bool, ``d < eps``.
+
+Subclasses only evaluate the SDF (and its gradient when asked) on collider-frame points inside
+their domain; this module does validation, pose handling, chunking, the out-of-domain rule and the
+assembly of the fields. Only the fields asked for are computed: no gradient work is done for
+``distance`` or ``collides`` alone.
+"""
+
+from __future__ import annotations
+
+import abc
+import dataclasses
+from dataclasses import dataclass, field
+from typing import ClassVar, Iterable
+
+import numpy as np
+
+from .pose import Pose, as_pose
+
+FIELDS = ("distance", "normal", "contact", "collides")
+GRADIENT_FIELDS = frozenset({"normal", "contact"})
+DEFAULT_EPS_METERS = 1e-3
+MAX_POINTS_PER_CALL = 200_000_000
+
+
+@dataclass
+class ColliderInfo:
+    """What a collider is; stored as JSON in its model file.
+
+    name : model name (the file stem in a model repository)
+    kind : "neural", "voxel", "mesh" or "kdtree"
+    units : length unit of the collider frame, e.g. "m"
+    meters_per_unit : metres in one unit (1.0 for metres); sets the default eps of 1 mm
+    domain_min, domain_max : (3,) corners of the box, collider frame, where the model is defined
+    source : the mesh it was made from (file name, sha256, faces, transform applied, ...)
+    settings : kind-specific settings (architecture, resolution, training or baking options)
+    accuracy : the latest evaluation against the exact SDF (filled by ``collider eval``)
+    approximate : True when the kind is not exact by construction (kdtree)
+    """
+
+    name: str
+    kind: str
+    domain_min: list[float]
+    domain_max: list[float]
+    units: str = "m"
+    meters_per_unit: float = 1.0
+    source: dict = field(default_factory=dict)
+    settings: dict = field(default_factory=dict)
+    accuracy: dict = field(default_factory=dict)
+    approximate: bool = False
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict) -> "ColliderInfo":
+        names = {f.name for f in dataclasses.fields(cls)}
+        unknown = set(data) - names
+        if unknown:
+            raise ValueError(f"unknown collider info keys: {sorted(unknown)}")
+        return cls(**data)
+
+    @property
+    def default_eps(self) -> float:
+        """1 mm expressed in the collider's units."""
+        return DEFAULT_EPS_METERS / self.meters_per_unit
+
+
+@dataclass
+class QueryResult:
+    """The fields asked for; the others are ``None``. Shapes and frames as in the module doc."""
+
+    distance: np.ndarray | None = None
+    normal: np.ndarray | None = None
+    contact: np.ndarray | None = None
+    collides: np.ndarray | None = None
+
+    def fields(self) -> dict[str, np.ndarray]:
+        """The present fields by name, in the canonical order."""
+        return {name: getattr(self, name) for name in FIELDS if getattr(self, name) is not None}
+
+
+def check_fields(fields: Iterable[str] | str) -> tuple[str, ...]:
+    """Validate a field selection; returns it as a tuple in canonical order."""
+    if isinstance(fields, str):
+        fields = [fields]
+    fields = list(fields)
+    unknown = [f for f in fields if f not in FIELDS]
+    if unknown:
+        raise ValueError(f"unknown field(s) {unknown}; valid fields are {list(FIELDS)}")
+    if not fields:
+        raise ValueError(f"no fields asked for; choose from {list(FIELDS)}")
+    return tuple(f for f in FIELDS if f in fields)
+
+
+def check_points(points) -> np.ndarray:
+    """Validate query points: an (n, 3) array of finite float32/float64 numbers."""
+    array = np.asarray(points)
+    if array.dtype.kind not in "fiu":
+        raise ValueError(f"points must be numbers, got dtype {array.dtype}")
+    if array.ndim == 1 and array.size == 0:
+        array = array.reshape(0, 3)
+    if array.ndim != 2 or array.shape[1] != 3:
+        raise ValueError(f"points must have shape (n, 3), got {array.shape}")
+    if len(array) > MAX_POINTS_PER_CALL:
+        raise ValueError(f"too many points in one call: {len(array)} > {MAX_POINTS_PER_CALL}")
+    if array.dtype not in (np.float32, np.float64):
+        array = array.astype(np.float64)
+    finite = np.isfinite(array).all(axis=1)
+    if not finite.all():
+        bad = int(np.flatnonzero(~finite)[0])
+        raise ValueError(f"points contain NaN or Inf (first at row {bad}: {array[bad].tolist()})")
+    return array
+
+
+def check_eps(eps: float) -> float:
+    try:
+        value = float(eps)
+    except (TypeError, ValueError):
+        raise ValueError(f"eps must be a number, got {eps!r}") from None
+    if not np.isfinite(value):
+        raise ValueError(f"eps must be finite, got {value}")
+    return value
+
+
+def unit_vectors(vectors: np.ndarray, fallback: np.ndarray) -> np.ndarray:
+    """Normalise rows of ``vectors``; rows of (near) zero length take the matching row of
+    ``fallback`` (already unit), so the result never holds NaN."""
+    length = np.linalg.norm(vectors, axis=1, keepdims=True)
+    degenerate = length[:, 0] < 1e-20
+    out = vectors / np.where(degenerate[:, None], 1.0, length)
+    if degenerate.any():
+        out[degenerate] = fallback[degenerate]
+    return out
+
+
+class Collider(abc.ABC):
+    """Base class of every collider kind. See the module docstring for the fields."""
+
+    kind: ClassVar[str]
+    #: Points evaluated per chunk; bounds the memory of one call whatever its size.
+    chunk_points: ClassVar[int] = 262_144
+    #: Whether points outside the domain box get the conservative clamped answer.
+    clamps_to_domain: ClassVar[bool] = True
+
+    def __init__(self, info: ColliderInfo):
+        self.info = info
+        self.domain_min = np.asarray(info.domain_min, dtype=np.float64)
+        self.domain_max = np.asarray(info.domain_max, dtype=np.float64)
+
+    # -- what a kind implements -------------------------------------------------------------
+
+    @abc.abstractmethod
+    def evaluate(self, local: np.ndarray, want_gradient: bool):
+        """SDF at collider-frame points ``local`` (m, 3) float64, inside the domain box.
+
+        Returns ``(distance (m,), gradient (m, 3) or None)`` in collider units; the gradient need
+        not be unit length and is only computed when ``want_gradient``.
+        """
+
+    @abc.abstractmethod
+    def tensors(self) -> dict[str, np.ndarray]:
+        """The arrays that, with :attr:`info`, define the collider (saved in the model file)."""
+
+    @classmethod
+    @abc.abstractmethod
+    def from_tensors(cls, info: ColliderInfo, tensors: dict[str, np.ndarray], device=None):
+        """Rebuild the collider from its saved arrays. Raises ValueError if they do not fit."""
+
+    @property
+    def device(self) -> str:
+        return "cpu"
+
+    def nbytes(self) -> int:
+        """Memory of the collider's arrays in bytes."""
+        return sum(int(a.nbytes) for a in self.tensors().values())
+
+    # -- the query ----------------------------------------------------------------------------
+
+    def query(
+        self,
+        points,
+        fields: Iterable[str] | str = ("distance",),
+        pose: "Pose | np.ndarray | None" = None,
+        eps: float | None = None,
+    ) -> QueryResult:
+        """Answer ``fields`` for world-frame ``points``.
+
+        points : (n, 3) float32 or float64, world units and frame (n may be 0)
+        fields : any of ``distance``, ``normal``, ``contact``, ``collides``
+        pose : (4, 4) collider frame -> world frame (rigid, optionally uniform scale);
+            ``None`` is the identity
+        eps : collision offset in world units; defaults to 1 mm in the collider's units
+        """
+        fields = check_fields(fields)
+        points = check_points(points)
+        pose = as_pose(pose)
+        eps = self.info.default_eps * pose.scale if eps is None else check_eps(eps)
+        want_gradient = not GRADIENT_FIELDS.isdisjoint(fields)
+
+        n = len(points)
+        distance = np.empty(n, dtype=np.float64)
+        normal = np.empty((n, 3), dtype=np.float64) if want_gradient else None
+        for start in range(0, n, self.chunk_points):
+            stop = min(start + self.chunk_points, n)
+            local = pose.to_local(points[start:stop])
+            d, g = self._evaluate_anywhere(local, want_gradient)
+            distance[start:stop] = d
+            if want_gradient:
+                normal[start:stop] = pose.to_world_directions(self._unit_normals(g, local))
+        distance *= pose.scale
+
+        result = QueryResult()
+        if "distance" in fields:
+            result.distance = distance.astype(np.float32)
+        if "normal" in fields:
+            result.normal = normal.astype(np.float32)
+        if "contact" in fields:
+            contact = points.astype(np.float64) + (eps - distance)[:, None] * normal
+            result.contact = contact.astype(points.dtype)
+        if "collides" in fields:
+            result.collides = distance < eps
+        return result
+
+    def _evaluate_anywhere(self, local: np.ndarray, want_gradient: bool):
+        """:meth:`evaluate` extended outside the domain box by a conservative rule:
+        ``d(p) = |p - c| + f(c)`` with ``c`` the point clamped into the box; its gradient is the
+        direction away from the box plus the gradient of ``f`` along the unclamped axes."""
+        if not self.clamps_to_domain:
+            return self.evaluate(local, want_gradient)
+        clamped = np.clip(local, self.domain_min, self.domain_max)
+        outside = clamped != local
+        if not outside.any():
+            return self.evaluate(local, want_gradient)
+        d, g = self.evaluate(clamped, want_gradient)
+        away = local - clamped
+        box_distance = np.linalg.norm(away, axis=1)
+        d = d + box_distance
+        if want_gradient:
+            away_unit = away / np.where(box_distance > 0, box_distance, 1.0)[:, None]
+            g_unit = unit_vectors(g, away_unit)
+            g = np.where(outside, 0.0, g_unit) + away_unit
+        return d, g
+
+    def _unit_normals(self, gradient: np.ndarray, local: np.ndarray) -> np.ndarray:
+        # Where the gradient vanishes (the medial axis, e.g. a sphere's centre) fall back on the
+        # direction from the domain centre, then +z, so a normal is always a unit vector.
+        centre = 0.5 * (self.domain_min + self.domain_max)
+        fallback = unit_vectors(local - centre, np.tile([0.0, 0.0, 1.0], (len(local), 1)))
+        return unit_vectors(gradient, fallback)
+
+    def __repr__(self) -> str:
+        return f"<{type(self).__name__} {self.info.name!r} on {self.device}>"

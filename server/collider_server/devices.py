@@ -1,0 +1,25 @@
+"""Which torch device a collider runs on: CUDA when present, else the CPU."""
+
+from __future__ import annotations
+
+
+def default_device() -> str:
+    """"cuda" when a CUDA GPU is usable, else "cpu"."""
+    import torch
+
+    return "cuda" if torch.cuda.is_available() else "cpu"
+
+
+def resolve_device(device: str | None) -> str:
+    """Validate a device name ("cpu", "cuda", "cuda:1"); ``None`` or "auto" picks the default."""
+    import torch
+
+    if device in (None, "auto"):
+        return default_device()
+    try:
+        parsed = torch.device(device)
+    except RuntimeError:
+        raise ValueError(f"unknown device {device!r}; use 'cpu', 'cuda' or 'auto'") from None
+    if parsed.type == "cuda" and not torch.cuda.is_available():
+        raise ValueError(f"device {device!r} asked for but no CUDA GPU is available")
+    return str(parsed)

@@ -1,0 +1,123 @@
+"""A dense grid of signed distances sampled from the exact SDF, read by trilinear interpolation.
+
+The grid holds ``R^3`` samples at the corners ``domain_min + i * spacing`` (i = 0..R-1 per axis)
+of a padded box. The distance is the trilinear interpolant and the normal its analytic gradient,
+so distance and normal are consistent with each other (the gradient is piecewise bilinear and
+jumps across cell faces, the price of trilinear interpolation).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..collider import Collider, ColliderInfo
+from ..devices import resolve_device
+from ..meshes import ExactSDF, Mesh
+from ..progress import progress
+
+MIN_RESOLUTION, MAX_RESOLUTION = 8, 1024
+
+
+def padded_box(mesh: Mesh, padding: float) -> tuple[np.ndarray, np.ndarray]:
+    """The mesh's bounding box grown by ``padding`` times its largest side on every face."""
+    lo, hi = mesh.bounds
+    margin = padding * float((hi - lo).max())
+    return lo - margin, hi + margin
+
+
+def bake_grid(sdf: ExactSDF, lo, hi, resolution: int, chunk_points: int = 262_144,
+              show_progress: bool = True) -> np.ndarray:
+    """Exact signed distances at the grid corners: (R, R, R) float32, indexed [x, y, z]."""
+    if not MIN_RESOLUTION <= resolution <= MAX_RESOLUTION:
+        raise ValueError(f"resolution must be in {MIN_RESOLUTION}..{MAX_RESOLUTION}, got {resolution}")
+    axes = [np.linspace(lo[i], hi[i], resolution) for i in range(3)]
+    total = resolution**3
+    grid = np.empty(total, dtype=np.float32)
+    # Walk the grid in x-slabs so no (R^3, 3) coordinate array is ever built.
+    slab = max(1, chunk_points // (resolution * resolution))
+    yz = np.stack(np.meshgrid(axes[1], axes[2], indexing="ij"), axis=-1).reshape(-1, 2)
+    with progress(total=total, desc=f"bake {resolution}^3", unit="pt", enabled=show_progress) as bar:
+        for i0 in range(0, resolution, slab):
+            xs = axes[0][i0 : i0 + slab]
+            points = np.empty((len(xs) * len(yz), 3))
+            points[:, 0] = np.repeat(xs, len(yz))
+            points[:, 1:] = np.tile(yz, (len(xs), 1))
+            start = i0 * resolution * resolution
+            grid[start : start + len(points)] = sdf.signed_distance(points)
+            bar.update(len(points))
+    return grid.reshape(resolution, resolution, resolution)
+
+
+class VoxelCollider(Collider):
+    """Trilinear signed-distance grid. ``tensors()["grid"]``: (R, R, R) float32, [x, y, z]."""
+
+    kind = "voxel"
+    chunk_points = 1_048_576
+
+    def __init__(self, info: ColliderInfo, grid: np.ndarray, device: str | None = None):
+        super().__init__(info)
+        import torch
+
+        grid = np.asarray(grid, dtype=np.float32)
+        if grid.ndim != 3 or min(grid.shape) < 2:
+            raise ValueError(f"voxel grid must be 3-D with at least 2 samples per axis, got {grid.shape}")
+        self._torch = torch
+        self._device = resolve_device(device)
+        self._shape = grid.shape
+        self._grid = torch.as_tensor(grid, device=self._device).reshape(-1)
+        self._spacing = (self.domain_max - self.domain_min) / (np.asarray(grid.shape) - 1)
+        self._strides = (grid.shape[1] * grid.shape[2], grid.shape[2], 1)
+
+    @property
+    def device(self) -> str:
+        return self._device
+
+    @property
+    def resolution(self) -> tuple[int, int, int]:
+        return tuple(self._shape)
+
+    def evaluate(self, local, want_gradient):
+        torch = self._torch
+        dev = self._device
+        # Grid coordinates in float64 (exact for far-away domains), then float32 on the device.
+        coords = (local - self.domain_min) / self._spacing
+        coords = torch.as_tensor(coords, dtype=torch.float32, device=dev)
+        upper = torch.tensor([s - 2 for s in self._shape], device=dev)
+        base = torch.minimum(coords.floor().clamp_min(0).long(), upper)
+        t = (coords - base).clamp(0.0, 1.0)
+        sx, sy, sz = self._strides
+        index = base[:, 0] * sx + base[:, 1] * sy + base[:, 2] * sz
+        g = self._grid
+        # Corner values c{ijk}, i/j/k = offset along x/y/z.
+        c000, c001 = g[index], g[index + sz]
+        c010, c011 = g[index + sy], g[index + sy + sz]
+        c100, c101 = g[index + sx], g[index + sx + sz]
+        c110, c111 = g[index + sx + sy], g[index + sx + sy + sz]
+        tx, ty, tz = t[:, 0], t[:, 1], t[:, 2]
+        # Interpolate along z, then y, then x.
+        c00 = c000 + (c001 - c000) * tz
+        c01 = c010 + (c011 - c010) * tz
+        c10 = c100 + (c101 - c100) * tz
+        c11 = c110 + (c111 - c110) * tz
+        c0 = c00 + (c01 - c00) * ty
+        c1 = c10 + (c11 - c10) * ty
+        distance = c0 + (c1 - c0) * tx
+        if not want_gradient:
+            return distance.double().cpu().numpy(), None
+        # Analytic partial derivatives of the trilinear interpolant, per unit of grid coordinate.
+        dx = c1 - c0
+        dy = (c01 - c00) * (1 - tx) + (c11 - c10) * tx
+        dz_0 = (c001 - c000) * (1 - ty) + (c011 - c010) * ty
+        dz_1 = (c101 - c100) * (1 - ty) + (c111 - c110) * ty
+        dz = dz_0 * (1 - tx) + dz_1 * tx
+        gradient = torch.stack([dx, dy, dz], dim=1).double().cpu().numpy() / self._spacing
+        return distance.double().cpu().numpy(), gradient
+
+    def tensors(self):
+        return {"grid": self._grid.reshape(self._shape).cpu().numpy()}
+
+    @classmethod
+    def from_tensors(cls, info, tensors, device=None):
+        if set(tensors) != {"grid"}:
+            raise ValueError(f"voxel model must hold exactly one tensor 'grid', found {sorted(tensors)}")
+        return cls(info, tensors["grid"], device)

@@ -1,0 +1,65 @@
+"""A model repository: a folder where every ``NAME.safetensors`` collider is found by NAME."""
+
+from __future__ import annotations
+
+import os
+import re
+from pathlib import Path
+
+from .collider import Collider, ColliderInfo
+from .modelfile import SUFFIX, load_collider, read_info
+
+NAME_PATTERN = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
+
+
+def check_name(name: str) -> str:
+    """Model names are 1-64 letters, digits, '_', '-', '.' (so they are safe file and URL parts)."""
+    if not isinstance(name, str) or not NAME_PATTERN.match(name) or name.endswith(SUFFIX):
+        raise ValueError(
+            f"invalid model name {name!r}: use 1-64 letters, digits, '_', '-' or '.', "
+            "starting with a letter or digit"
+        )
+    return name
+
+
+def default_models_dir() -> Path:
+    """``$COLLIDER_MODELS`` if set, else ``./models`` if it exists, else the project's ``models/``."""
+    if os.environ.get("COLLIDER_MODELS"):
+        return Path(os.environ["COLLIDER_MODELS"])
+    local = Path("models")
+    if local.is_dir():
+        return local
+    return Path(__file__).resolve().parents[2] / "models"
+
+
+class ModelRepository:
+    """Colliders stored as ``root/NAME.safetensors``."""
+
+    def __init__(self, root: str | Path | None = None):
+        self.root = Path(root) if root is not None else default_models_dir()
+
+    def names(self) -> list[str]:
+        """Sorted names of the model files in the folder (empty if the folder is absent)."""
+        if not self.root.is_dir():
+            return []
+        return sorted(p.name[: -len(SUFFIX)] for p in self.root.glob(f"*{SUFFIX}") if p.is_file())
+
+    def path(self, name: str) -> Path:
+        return self.root / f"{check_name(name)}{SUFFIX}"
+
+    def resolve(self, name_or_path: str) -> Path:
+        """A model name in this repository, or a path to a model file."""
+        candidate = Path(name_or_path)
+        if name_or_path.endswith(SUFFIX) or candidate.is_file():
+            return candidate
+        path = self.path(name_or_path)
+        if not path.is_file():
+            known = ", ".join(self.names()) or "none"
+            raise FileNotFoundError(f"no model named {name_or_path!r} in {self.root} (models: {known})")
+        return path
+
+    def info(self, name: str) -> ColliderInfo:
+        return read_info(self.resolve(name))
+
+    def load(self, name: str, device: str | None = None) -> Collider:
+        return load_collider(self.resolve(name), device)
