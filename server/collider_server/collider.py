@@ -205,30 +205,27 @@ class Collider(abc.ABC):
         pose = as_pose(pose)
         eps = self.info.default_eps * pose.scale if eps is None else check_eps(eps)
         want_gradient = not GRADIENT_FIELDS.isdisjoint(fields)
+        distance, normal = self.query_local(pose.to_local(points), want_gradient)
+        return assemble_result(points, pose, eps, fields, distance, normal)
 
-        n = len(points)
+    def query_local(self, local: np.ndarray, want_gradient: bool):
+        """Distance and unit normal at collider-frame points, in chunks (bounded memory).
+
+        local : (n, 3) float64, collider frame and units
+        Returns ``(distance (n,) float64, normal (n, 3) float64 unit or None)``, collider frame.
+        This is the step a batching server coalesces across requests; :func:`assemble_result`
+        then turns it into one request's fields.
+        """
+        n = len(local)
         distance = np.empty(n, dtype=np.float64)
         normal = np.empty((n, 3), dtype=np.float64) if want_gradient else None
         for start in range(0, n, self.chunk_points):
             stop = min(start + self.chunk_points, n)
-            local = pose.to_local(points[start:stop])
-            d, g = self._evaluate_anywhere(local, want_gradient)
+            d, g = self._evaluate_anywhere(local[start:stop], want_gradient)
             distance[start:stop] = d
             if want_gradient:
-                normal[start:stop] = pose.to_world_directions(self._unit_normals(g, local))
-        distance *= pose.scale
-
-        result = QueryResult()
-        if "distance" in fields:
-            result.distance = distance.astype(np.float32)
-        if "normal" in fields:
-            result.normal = normal.astype(np.float32)
-        if "contact" in fields:
-            contact = points.astype(np.float64) + (eps - distance)[:, None] * normal
-            result.contact = contact.astype(points.dtype)
-        if "collides" in fields:
-            result.collides = distance < eps
-        return result
+                normal[start:stop] = self._unit_normals(g, local[start:stop])
+        return distance, normal
 
     def _evaluate_anywhere(self, local: np.ndarray, want_gradient: bool):
         """:meth:`evaluate` extended outside the domain box by a conservative rule:
@@ -259,3 +256,24 @@ class Collider(abc.ABC):
 
     def __repr__(self) -> str:
         return f"<{type(self).__name__} {self.info.name!r} on {self.device}>"
+
+
+def assemble_result(points: np.ndarray, pose: Pose, eps: float, fields: tuple[str, ...],
+                    distance: np.ndarray, normal: np.ndarray | None) -> QueryResult:
+    """One request's fields from collider-frame ``distance`` and ``normal`` (see
+    :meth:`Collider.query_local`): distances scaled to world units, normals rotated into the
+    world frame, contacts ``p + (eps - d) * n`` computed in float64 in the world frame."""
+    distance = distance * pose.scale
+    result = QueryResult()
+    if "distance" in fields:
+        result.distance = distance.astype(np.float32)
+    if normal is not None:
+        normal = pose.to_world_directions(normal)
+    if "normal" in fields:
+        result.normal = normal.astype(np.float32)
+    if "contact" in fields:
+        contact = points.astype(np.float64) + (eps - distance)[:, None] * normal
+        result.contact = contact.astype(points.dtype)
+    if "collides" in fields:
+        result.collides = distance < eps
+    return result
