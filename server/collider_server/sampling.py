@@ -1,0 +1,40 @@
+"""Point sampling around a mesh, for training data and evaluation (all seeded, float64, the
+mesh's units and frame)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .meshes import Mesh
+
+
+def surface_points(mesh: Mesh, n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """``n`` points uniform over the surface area and their unit face normals, (n, 3) each."""
+    rng = np.random.default_rng(seed)
+    tri = mesh.vertices[mesh.faces]
+    cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    area = np.linalg.norm(cross, axis=1)
+    face = rng.choice(len(tri), size=n, p=area / area.sum())
+    # Uniform barycentric coordinates by the square-root trick.
+    r1, r2 = np.sqrt(rng.random(n)), rng.random(n)
+    a, b, c = tri[face, 0], tri[face, 1], tri[face, 2]
+    points = (1 - r1)[:, None] * a + (r1 * (1 - r2))[:, None] * b + (r1 * r2)[:, None] * c
+    normals = cross[face] / np.where(area[face] > 0, area[face], 1.0)[:, None]
+    return points, normals
+
+
+def surface_band_points(mesh: Mesh, n: int, band: float, seed: int) -> np.ndarray:
+    """``n`` points at surface samples offset along the face normal by U(-band, band): (n, 3).
+
+    Their exact signed distance is *about* the offset; take the truth from :class:`ExactSDF`.
+    """
+    points, normals = surface_points(mesh, n, seed)
+    offset = np.random.default_rng(seed + 1).uniform(-band, band, n)
+    return points + offset[:, None] * normals
+
+
+def box_points(lo, hi, n: int, seed: int) -> np.ndarray:
+    """``n`` points uniform in the box ``[lo, hi]``: (n, 3)."""
+    rng = np.random.default_rng(seed)
+    lo, hi = np.asarray(lo, dtype=np.float64), np.asarray(hi, dtype=np.float64)
+    return lo + rng.random((n, 3)) * (hi - lo)
