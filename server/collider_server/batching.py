@@ -1,0 +1,377 @@
+"""Request coalescing sized in points: one queue per model, one compute call per batch.
+
+Concurrent requests for the same model are joined into one call of a compute function
+``compute(local, want_gradient) -> (distance, normal)`` on their concatenated collider-frame
+points, the way Triton's dynamic batcher and Ray Serve's ``@serve.batch`` join requests, except
+that a batch is measured in points, not requests:
+
+- a batch closes when it holds ``max_batch_points`` points or ``max_wait_ms`` after its oldest
+  request was queued, whichever comes first;
+- a request larger than ``max_batch_points`` is split across consecutive batches and reassembled;
+- each caller gets exactly its own rows back; a failing compute call fails only the requests in
+  that batch (bad input never gets here: the web layer validates before queueing);
+- the queue is bounded (``max_queue_points``): :meth:`PointBatcher.submit` raises
+  :class:`QueueFull` at once instead of waiting;
+- a request may carry a deadline (clock seconds): when it passes, the caller gets
+  :class:`DeadlineExceeded` and the request leaves the queue; a cancelled caller (a client that
+  disconnected) leaves the queue too;
+- compute runs in a worker thread per device (:class:`DeviceWorkers`), never on the event loop.
+
+Only asyncio and numpy are used here: no HTTP. Policy (which status code "queue full" becomes) is
+the web layer's business. The clock is injected (``time.monotonic`` by default) and the loop
+waits on events and timers, never polls.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import collections
+import logging
+import math
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+
+#: ``compute(local (n, 3) float64 collider frame, want_gradient) ->
+#: (distance (n,) float64 collider units, normal (n, 3) float64 unit collider frame or None)``
+ComputeFn = Callable[[np.ndarray, bool], "tuple[np.ndarray, np.ndarray | None]"]
+
+log = logging.getLogger(__name__)
+
+
+class BatchingError(Exception):
+    """Root of the batcher's errors."""
+
+
+class QueueFull(BatchingError):
+    """The queue cannot take the request's points now; retry after ``retry_after_s`` seconds."""
+
+    def __init__(self, points: int, queued_points: int, max_queue_points: int, retry_after_s: int):
+        super().__init__(
+            f"queue full: {queued_points} points queued, {points} more would exceed "
+            f"max_queue_points={max_queue_points}"
+        )
+        self.points = points
+        self.queued_points = queued_points
+        self.max_queue_points = max_queue_points
+        self.retry_after_s = retry_after_s
+
+
+class DeadlineExceeded(BatchingError):
+    """The request's deadline passed before its answer was ready; it left the queue."""
+
+
+class BatcherClosed(BatchingError):
+    """The batcher is shutting down (or its model was unloaded) and takes no new requests."""
+
+
+class BatchContractError(BatchingError):
+    """The compute function returned arrays whose shapes do not match the batch it was given."""
+
+
+@dataclass(frozen=True)
+class BatchSettings:
+    """How requests are coalesced.
+
+    max_batch_points : most points in one compute call
+    max_wait_ms : longest time, milliseconds, a batch waits for more points after its oldest
+        request was queued (0: dispatch whatever is queued as soon as the worker is free)
+    max_queue_points : most points waiting in one model's queue; beyond it submit raises QueueFull
+    coalesce : False computes every request on its own (one request per batch, still split at
+        max_batch_points); the benchmark's "coalescing off"
+    """
+
+    max_batch_points: int = 65_536
+    max_wait_ms: float = 1.0
+    max_queue_points: int = 4_000_000
+    coalesce: bool = True
+
+    def __post_init__(self):
+        for name in ("max_batch_points", "max_queue_points"):
+            value = getattr(self, name)
+            if not isinstance(value, int) or isinstance(value, bool) or value < 1:
+                raise ValueError(f"{name} must be a positive integer, got {value!r}")
+        if not (isinstance(self.max_wait_ms, (int, float)) and math.isfinite(self.max_wait_ms)
+                and self.max_wait_ms >= 0):
+            raise ValueError(f"max_wait_ms must be a finite number >= 0, got {self.max_wait_ms!r}")
+
+
+@dataclass(frozen=True)
+class BatchStats:
+    """What one compute call did, for metrics.
+
+    points : points computed; requests : request parts in the batch;
+    queue_wait_s : per part, seconds from its request's queueing to the batch start;
+    compute_s : seconds the compute call took (in the worker thread, including hand-over)
+    """
+
+    points: int
+    requests: int
+    queue_wait_s: tuple[float, ...]
+    compute_s: float
+
+
+@dataclass(eq=False)
+class _Pending:
+    """One submitted request and the buffers its batches fill."""
+
+    local: np.ndarray
+    want_gradient: bool
+    enqueued_at: float
+    future: asyncio.Future
+    distance: np.ndarray
+    normal: np.ndarray | None
+    taken: int = 0  # points handed to batches so far
+    done: int = 0  # points whose answers are in the buffers
+    dropped: bool = False
+
+    @property
+    def size(self) -> int:
+        return len(self.local)
+
+
+@dataclass(frozen=True)
+class _Part:
+    request: _Pending
+    start: int
+    stop: int
+
+
+class DeviceWorkers:
+    """One compute thread per device, shared by every model on that device, so a device runs one
+    batch at a time (a GPU gains nothing from overlapping kernels of different models, and a CPU
+    uses its cores inside each call)."""
+
+    def __init__(self):
+        self._executors: dict[str, ThreadPoolExecutor] = {}
+
+    def executor(self, device: str) -> ThreadPoolExecutor:
+        if device not in self._executors:
+            self._executors[device] = ThreadPoolExecutor(1, thread_name_prefix=f"collider-{device}")
+        return self._executors[device]
+
+    def shutdown(self) -> None:
+        for executor in self._executors.values():
+            executor.shutdown(wait=True)
+        self._executors.clear()
+
+
+class PointBatcher:
+    """The queue and batching loop of one model. Create it inside a running event loop.
+
+    compute : see :data:`ComputeFn`; called in ``executor`` with the batch's points
+    settings : :class:`BatchSettings`
+    executor : where compute runs (``DeviceWorkers().executor(device)``)
+    clock : monotonic seconds; deadlines passed to :meth:`submit` are on this clock
+    on_batch : called on the event loop with a :class:`BatchStats` after each compute call
+    """
+
+    def __init__(self, compute: ComputeFn, settings: BatchSettings, executor, *,
+                 clock: Callable[[], float] = time.monotonic,
+                 on_batch: Callable[[BatchStats], None] | None = None):
+        self._compute = compute
+        self.settings = settings
+        self._executor = executor
+        self._clock = clock
+        self._on_batch = on_batch
+        self._queue: collections.deque[_Pending] = collections.deque()
+        self._queued_points = 0
+        self._in_flight = 0
+        self._wakeup = asyncio.Event()
+        self._closing = False
+        # Recent throughput, points per second, for the Retry-After estimate.
+        self._points_per_second = 0.0
+        self._task = asyncio.get_running_loop().create_task(self._run())
+
+    # -- state ------------------------------------------------------------------------------
+
+    @property
+    def queued_points(self) -> int:
+        """Points waiting for a batch (not yet handed to compute)."""
+        return self._queued_points
+
+    @property
+    def queued_requests(self) -> int:
+        return len(self._queue)
+
+    @property
+    def in_flight_points(self) -> int:
+        return self._in_flight
+
+    @property
+    def closed(self) -> bool:
+        return self._closing
+
+    # -- the caller's side --------------------------------------------------------------------
+
+    async def submit(self, local: np.ndarray, want_gradient: bool,
+                     deadline: float | None = None) -> tuple[np.ndarray, np.ndarray | None]:
+        """Queue ``local`` and wait for its answers.
+
+        local : (n, 3) float64, collider frame and units (already validated)
+        want_gradient : whether ``normal`` is needed
+        deadline : clock time (seconds) after which the caller no longer wants the answer
+        Returns ``(distance (n,) float64, normal (n, 3) float64 or None)`` in the collider frame.
+        Raises :class:`QueueFull`, :class:`DeadlineExceeded`, :class:`BatcherClosed`, or whatever
+        the compute call raised for the batch holding this request.
+        """
+        if self._closing:
+            raise BatcherClosed("the model is shutting down or being unloaded")
+        n = len(local)
+        if n == 0:
+            return np.empty(0), (np.empty((0, 3)) if want_gradient else None)
+        limit = self.settings.max_queue_points
+        if self._queued_points + n > limit:
+            raise QueueFull(n, self._queued_points, limit, self._retry_after_s(n))
+        now = self._clock()
+        if deadline is not None and deadline <= now:
+            raise DeadlineExceeded("the deadline passed before the request was queued")
+        request = _Pending(
+            local=local, want_gradient=want_gradient, enqueued_at=now,
+            future=asyncio.get_running_loop().create_future(),
+            distance=np.empty(n), normal=np.empty((n, 3)) if want_gradient else None,
+        )
+        self._queue.append(request)
+        self._queued_points += n
+        self._wakeup.set()
+        try:
+            if deadline is None:
+                return await request.future
+            # A timer (not a poll) ends the wait; wait_for cancels the future on expiry.
+            return await asyncio.wait_for(request.future, max(deadline - self._clock(), 0.0))
+        except asyncio.TimeoutError:
+            self._drop(request)
+            raise DeadlineExceeded(
+                f"the deadline passed with {request.done} of {n} points computed"
+            ) from None
+        except BaseException:  # the caller was cancelled (disconnected): leave the queue
+            self._drop(request)
+            raise
+
+    def _drop(self, request: _Pending) -> None:
+        request.dropped = True
+        try:
+            self._queue.remove(request)
+        except ValueError:
+            return  # already fully handed to compute; its answers will be discarded
+        self._queued_points -= request.size - request.taken
+
+    def _retry_after_s(self, points: int) -> int:
+        """Whole seconds until the queue has likely drained enough to take ``points``."""
+        if self._points_per_second <= 0:
+            return 1
+        backlog = self._queued_points + self._in_flight + points
+        return int(min(60, max(1, math.ceil(backlog / self._points_per_second))))
+
+    # -- shutdown ------------------------------------------------------------------------------
+
+    def close(self) -> None:
+        """Take no new requests; the queued ones are still answered (see :meth:`drain`)."""
+        self._closing = True
+        self._wakeup.set()
+
+    async def drain(self) -> None:
+        """Close, then wait until every accepted request has been answered."""
+        self.close()
+        await asyncio.shield(self._task)
+
+    # -- the batching loop ---------------------------------------------------------------------
+
+    async def _run(self) -> None:
+        wait_s = self.settings.max_wait_ms / 1000.0
+        while True:
+            while not self._queue:
+                if self._closing:
+                    return
+                self._wakeup.clear()
+                await self._wakeup.wait()
+            if self.settings.coalesce:
+                # Wait for more points until the batch is full or its oldest request has waited
+                # max_wait_ms; a split request's remainder is old, so it goes at once.
+                close_at = self._queue[0].enqueued_at + wait_s
+                while (self._queue and self._queued_points < self.settings.max_batch_points
+                       and not self._closing):
+                    remaining = close_at - self._clock()
+                    if remaining <= 0:
+                        break
+                    self._wakeup.clear()
+                    try:
+                        await asyncio.wait_for(self._wakeup.wait(), remaining)
+                    except asyncio.TimeoutError:
+                        break
+            parts = self._take_batch()
+            if parts:
+                await self._execute(parts)
+
+    def _take_batch(self) -> list[_Part]:
+        """Pop up to max_batch_points points off the queue head (splitting the last request)."""
+        budget = self.settings.max_batch_points
+        parts: list[_Part] = []
+        while self._queue and budget > 0:
+            request = self._queue[0]
+            count = min(request.size - request.taken, budget)
+            parts.append(_Part(request, request.taken, request.taken + count))
+            request.taken += count
+            budget -= count
+            self._queued_points -= count
+            if request.taken == request.size:
+                self._queue.popleft()
+            if not self.settings.coalesce:
+                break
+        return parts
+
+    async def _execute(self, parts: list[_Part]) -> None:
+        if len(parts) == 1:
+            part = parts[0]
+            local = part.request.local[part.start:part.stop]  # a view, no copy
+        else:
+            local = np.concatenate([p.request.local[p.start:p.stop] for p in parts])
+        want_gradient = any(p.request.want_gradient for p in parts)
+        n = len(local)
+        started = self._clock()
+        self._in_flight += n
+        loop = asyncio.get_running_loop()
+        try:
+            distance, normal = await loop.run_in_executor(
+                self._executor, self._compute, local, want_gradient)
+            _check_output(distance, normal, n, want_gradient)
+        except Exception as exc:  # compute failed: only this batch's requests see it
+            for part in parts:
+                if not part.request.future.done():
+                    part.request.future.set_exception(exc)
+            return
+        finally:
+            self._in_flight -= n
+        compute_s = max(self._clock() - started, 1e-9)
+        self._points_per_second = n / compute_s if self._points_per_second == 0 else (
+            0.8 * self._points_per_second + 0.2 * n / compute_s)
+        offset = 0
+        for part in parts:
+            request, count = part.request, part.stop - part.start
+            if not request.dropped and not request.future.done():
+                request.distance[part.start:part.stop] = distance[offset:offset + count]
+                if request.want_gradient:
+                    request.normal[part.start:part.stop] = normal[offset:offset + count]
+                request.done += count
+                if request.done == request.size:
+                    request.future.set_result((request.distance, request.normal))
+            offset += count
+        if self._on_batch is not None:
+            waits = tuple(started - p.request.enqueued_at for p in parts)
+            try:
+                self._on_batch(BatchStats(n, len(parts), waits, compute_s))
+            except Exception:  # a metrics hook must never stop the serving loop
+                log.exception("on_batch hook failed")
+
+
+def _check_output(distance, normal, n: int, want_gradient: bool) -> None:
+    """The batch contract: one distance per point, and a normal per point when asked for."""
+    if not isinstance(distance, np.ndarray) or distance.shape != (n,):
+        shape = getattr(distance, "shape", type(distance).__name__)
+        raise BatchContractError(f"compute returned distance of shape {shape} for {n} points")
+    if want_gradient and (not isinstance(normal, np.ndarray) or normal.shape != (n, 3)):
+        shape = getattr(normal, "shape", type(normal).__name__)
+        raise BatchContractError(f"compute returned normal of shape {shape} for {n} points")
