@@ -1,0 +1,272 @@
+"""Shared fixtures: the test meshes folder, procedural shapes with analytic SDFs, small colliders.
+
+Nothing here imports torch or ``collider_server`` at module import time (client tests check that
+the client stays light); heavy imports happen inside the fixtures that need them.
+
+Units: metres. Frames: every procedural shape is centred at the origin of its own frame.
+"""
+
+from __future__ import annotations
+
+import functools
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import pytest
+
+REPO_ROOT = Path(__file__).resolve().parents[1]
+#: The shared real meshes (never copied into the repository); tests skip when absent.
+MESHES_DIR = REPO_ROOT.parent / "shared" / "data" / "meshes"
+
+
+def shared_mesh_path(name: str) -> Path:
+    """Path of ``MESHES_DIR/name`` (e.g. "stanford-bunny.obj"); skips the test when absent."""
+    path = MESHES_DIR / name
+    if not path.is_file():
+        pytest.skip(f"shared test mesh {path} is absent")
+    return path
+
+
+@functools.lru_cache(maxsize=None)
+def _load_shared_mesh(name: str):
+    from collider_server.meshes import load_mesh
+
+    return load_mesh(MESHES_DIR / name)
+
+
+@pytest.fixture(scope="session")
+def meshes_dir() -> Path:
+    """The shared meshes folder; skips when it is absent."""
+    if not MESHES_DIR.is_dir():
+        pytest.skip(f"shared test meshes folder {MESHES_DIR} is absent")
+    return MESHES_DIR
+
+
+@pytest.fixture(scope="session")
+def load_shared_mesh() -> Callable:
+    """``load_shared_mesh("stanford-bunny.obj")`` -> :class:`collider_server.meshes.Mesh`
+    (cached for the session); skips when the file is absent."""
+
+    def load(name: str):
+        shared_mesh_path(name)
+        return _load_shared_mesh(name)
+
+    return load
+
+
+# -- devices ---------------------------------------------------------------------------------
+
+
+@pytest.fixture(params=["cpu", "cuda"])
+def device(request) -> str:
+    """Each torch device: "cpu" always, "cuda" only when a CUDA GPU is present."""
+    if request.param == "cuda":
+        import torch
+
+        if not torch.cuda.is_available():
+            pytest.skip("no CUDA GPU on this machine")
+    return request.param
+
+
+# -- procedural shapes with analytic signed distances ----------------------------------------
+
+
+@dataclass(frozen=True)
+class Shape:
+    """A procedural solid with its exact SDF.
+
+    mesh : :class:`collider_server.meshes.Mesh`, a high-resolution triangulation (metres)
+    sdf : (n, 3) float64 points -> (n,) float64 signed distance, negative inside
+    gradient : (n, 3) float64 points -> (n, 3) unit outward SDF gradient
+    sample : (n, seed) -> (n, 3) float64 points near the surface where the SDF is smooth
+        (off the medial axis), for accuracy checks
+    facet_error : bound on |mesh SDF - analytic SDF|, metres (the triangulation's deviation)
+    edge_length : longest mesh edge, metres
+    """
+
+    name: str
+    mesh: object
+    sdf: Callable
+    gradient: Callable
+    sample: Callable
+    facet_error: float
+    edge_length: float
+
+
+def _unit(v: np.ndarray) -> np.ndarray:
+    return v / np.linalg.norm(v, axis=-1, keepdims=True)
+
+
+def _mesh(tri, name: str):
+    from collider_server.meshes import Mesh
+
+    return Mesh(np.asarray(tri.vertices, np.float64), np.asarray(tri.faces, np.int64), name)
+
+
+def _longest_edge(mesh) -> float:
+    tri = mesh.vertices[mesh.faces]
+    return float(np.linalg.norm(tri - np.roll(tri, 1, axis=1), axis=2).max())
+
+
+SPHERE_RADIUS = 0.1
+BOX_HALF = np.array([0.1, 0.05, 0.075])
+TORUS_MAJOR, TORUS_MINOR = 0.1, 0.03
+
+
+def make_sphere() -> Shape:
+    import trimesh
+
+    mesh = _mesh(trimesh.creation.icosphere(subdivisions=5, radius=SPHERE_RADIUS), "sphere")
+
+    def sdf(p):
+        return np.linalg.norm(p, axis=1) - SPHERE_RADIUS
+
+    def sample(n, seed):
+        rng = np.random.default_rng(seed)
+        return _unit(rng.normal(size=(n, 3))) * (SPHERE_RADIUS + rng.uniform(-0.02, 0.02, n))[:, None]
+
+    # Faces of an inscribed icosphere sag by at most r (1 - cos(half the edge angle)).
+    edge = _longest_edge(mesh)
+    return Shape("sphere", mesh, sdf, _unit, sample, SPHERE_RADIUS * (edge / SPHERE_RADIUS) ** 2 / 8 * 1.5, edge)
+
+
+def make_box() -> Shape:
+    import trimesh
+
+    mesh = _mesh(trimesh.creation.box(extents=2 * BOX_HALF), "box")
+
+    def sdf(p):
+        q = np.abs(p) - BOX_HALF
+        outside = np.linalg.norm(np.maximum(q, 0.0), axis=1)
+        return outside + np.minimum(q.max(axis=1), 0.0)
+
+    def gradient(p):
+        q = np.abs(p) - BOX_HALF
+        sign = np.where(p < 0, -1.0, 1.0)
+        out = np.maximum(q, 0.0)
+        is_out = (q > 0).any(axis=1)
+        g = np.zeros_like(p)
+        g[is_out] = _unit(out[is_out]) * sign[is_out]
+        inner = ~is_out
+        axis = q[inner].argmax(axis=1)
+        g[np.flatnonzero(inner), axis] = sign[inner, axis]
+        return g
+
+    def sample(n, seed):
+        # Points over the inner 60 % of each face, +-8 mm along its normal (off the medial
+        # surface), plus points outside the corners and edges where the SDF is round.
+        rng = np.random.default_rng(seed)
+        n_face = n - n // 4
+        axis = rng.integers(0, 3, n_face)
+        side = rng.choice([-1.0, 1.0], n_face)
+        p = rng.uniform(-0.6, 0.6, (n_face, 3)) * BOX_HALF
+        p[np.arange(n_face), axis] = side * (BOX_HALF[axis] + rng.uniform(-0.008, 0.008, n_face))
+        corner = rng.choice([-1.0, 1.0], (n // 4, 3)) * BOX_HALF
+        away = np.abs(rng.normal(size=(n // 4, 3))) * np.sign(corner)
+        corner_points = corner + _unit(away) * rng.uniform(0.002, 0.02, n // 4)[:, None]
+        return np.concatenate([p, corner_points])
+
+    return Shape("box", mesh, sdf, gradient, sample, 1e-12, _longest_edge(mesh))
+
+
+def make_torus() -> Shape:
+    """A torus around the z axis."""
+    import trimesh
+
+    tri = trimesh.creation.torus(TORUS_MAJOR, TORUS_MINOR, major_sections=128, minor_sections=64)
+    mesh = _mesh(tri, "torus")
+
+    def tube(p):
+        rho = np.linalg.norm(p[:, :2], axis=1)
+        return rho, np.stack([rho - TORUS_MAJOR, p[:, 2]], axis=1)
+
+    def sdf(p):
+        return np.linalg.norm(tube(p)[1], axis=1) - TORUS_MINOR
+
+    def gradient(p):
+        rho, q = tube(p)
+        q = _unit(q)
+        return np.stack([q[:, 0] * p[:, 0] / rho, q[:, 0] * p[:, 1] / rho, q[:, 1]], axis=1)
+
+    def sample(n, seed):
+        rng = np.random.default_rng(seed)
+        theta, phi = rng.uniform(0, 2 * np.pi, (2, n))
+        r = TORUS_MINOR + rng.uniform(-0.01, 0.01, n)
+        rho = TORUS_MAJOR + r * np.cos(phi)
+        return np.stack([rho * np.cos(theta), rho * np.sin(theta), r * np.sin(phi)], axis=1)
+
+    # Sagitta of the major and minor polygons.
+    facet = TORUS_MAJOR * (1 - np.cos(np.pi / 128)) + TORUS_MINOR * (1 - np.cos(np.pi / 64))
+    return Shape("torus", mesh, sdf, gradient, sample, 1.5 * facet + 1e-6, _longest_edge(mesh))
+
+
+SHAPE_MAKERS = {"sphere": make_sphere, "box": make_box, "torus": make_torus}
+
+
+@functools.lru_cache(maxsize=None)
+def procedural_shape(name: str) -> Shape:
+    """The procedural :class:`Shape` ``name`` ("sphere", "box", "torus"), cached."""
+    return SHAPE_MAKERS[name]()
+
+
+#: Voxel resolution of the small procedural colliders (fast to bake, still accurate).
+TEST_VOXEL_RESOLUTION = 64
+
+
+@functools.lru_cache(maxsize=None)
+def _baked(shape_name: str, kind: str, resolution: int):
+    from collider_server.bake import bake_collider
+
+    return bake_collider(procedural_shape(shape_name).mesh, kind, f"{shape_name}-{kind}",
+                         resolution=resolution, device="cpu", show_progress=False)
+
+
+def make_neural_collider(domain_min, domain_max, *, seed: int = 0, device: str = "cpu",
+                         name: str = "tiny", fourier_features: int = 8, hidden_layers: int = 2,
+                         hidden_width: int = 16, fourier_scale: float = 1.0):
+    """An untrained (randomly initialised, seeded) small :class:`NeuralCollider` over the box
+    ``[domain_min, domain_max]`` (collider frame, metres): for plumbing tests, not accuracy."""
+    import torch
+
+    from collider_server.collider import ColliderInfo
+    from collider_server.kinds.neural import Architecture, NeuralCollider, build_network
+
+    arch = Architecture(fourier_features, hidden_layers, hidden_width, fourier_scale)
+    lo, hi = np.asarray(domain_min, np.float64), np.asarray(domain_max, np.float64)
+    info = ColliderInfo(name, "neural", lo.tolist(), hi.tolist(),
+                        settings={"architecture": arch.__dict__.copy()})
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(seed)
+        network = build_network(arch, 0.5 * (lo + hi), 0.5 * float((hi - lo).max()))
+    return NeuralCollider(info, network, device)
+
+
+@pytest.fixture(scope="session")
+def shape_collider() -> Callable:
+    """``shape_collider("sphere", "voxel")`` -> a CPU collider of that procedural shape, shared
+    by the session (do not mutate it). Kinds: voxel (64^3), mesh, kdtree, and neural (a tiny
+    untrained network over the voxel kind's padded domain)."""
+
+    def get(shape_name: str, kind: str, resolution: int = TEST_VOXEL_RESOLUTION):
+        if kind == "neural":
+            box = _baked(shape_name, "kdtree", resolution)
+            return make_neural_collider(box.domain_min, box.domain_max, name=f"{shape_name}-neural")
+        return _baked(shape_name, kind, resolution)
+
+    return get
+
+
+@pytest.fixture
+def small_sphere_model(tmp_path) -> Path:
+    """A saved 32^3 voxel sphere (radius 0.1 m) in a fresh model repository ``tmp_path/models``;
+    returns the file path (``.../models/sphere.safetensors``)."""
+    import trimesh
+
+    from collider_server.bake import bake_collider
+    from collider_server.modelfile import save_collider
+
+    mesh = _mesh(trimesh.creation.icosphere(subdivisions=3, radius=SPHERE_RADIUS), "sphere")
+    collider = bake_collider(mesh, "voxel", "sphere", resolution=32, show_progress=False, device="cpu")
+    return save_collider(collider, tmp_path / "models" / "sphere.safetensors")
