@@ -13,6 +13,7 @@ import sys
 
 COMMAND_MODULES = [
     "collider_server.commands.models",
+    "collider_server.commands.training",
 ]
 
 USER_ERRORS = (ValueError, FileNotFoundError, IsADirectoryError, PermissionError, KeyError)
