@@ -270,3 +270,16 @@ def small_sphere_model(tmp_path) -> Path:
     mesh = _mesh(trimesh.creation.icosphere(subdivisions=3, radius=SPHERE_RADIUS), "sphere")
     collider = bake_collider(mesh, "voxel", "sphere", resolution=32, show_progress=False, device="cpu")
     return save_collider(collider, tmp_path / "models" / "sphere.safetensors")
+
+
+@pytest.fixture(scope="session")
+def analytic_shape() -> Callable:
+    """``analytic_shape("sphere" | "box" | "torus")`` -> :class:`Shape` (mesh + exact SDF)."""
+    return procedural_shape
+
+
+@pytest.fixture(scope="session")
+def tiny_neural_collider() -> Callable:
+    """:func:`make_neural_collider`: ``tiny_neural_collider(domain_min, domain_max, seed=0,
+    device="cpu", ...)`` -> an untrained small NeuralCollider (plumbing tests only)."""
+    return make_neural_collider
