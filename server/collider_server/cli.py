@@ -14,6 +14,7 @@ import sys
 COMMAND_MODULES = [
     "collider_server.commands.models",
     "collider_server.commands.training",
+    "collider_server.commands.serve",
 ]
 
 USER_ERRORS = (ValueError, FileNotFoundError, IsADirectoryError, PermissionError, KeyError)

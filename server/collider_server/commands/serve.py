@@ -1,0 +1,83 @@
+"""``collider serve``: the HTTP service over every model in a repository."""
+
+from __future__ import annotations
+
+import argparse
+import ipaddress
+import logging
+import sys
+from pathlib import Path
+
+
+def register(subparsers) -> None:
+    serve = subparsers.add_parser(
+        "serve", help="serve every model of a repository over HTTP (msgpack or JSON)",
+        description="Settings come from, lowest priority first: defaults, --config FILE (TOML or "
+                    "JSON), COLLIDER_* environment variables (COLLIDER_TOKEN, "
+                    "COLLIDER_ADMIN_TOKEN, COLLIDER_MAX_WAIT_MS, ...), these flags.")
+    serve.add_argument("--host", default=None, help="address to listen on (default 127.0.0.1)")
+    serve.add_argument("--port", type=int, default=None, help="port (default 8000; 0 = any free)")
+    serve.add_argument("--models", type=Path, default=None, help="model repository (default models/)")
+    serve.add_argument("--device", default=None, help="cpu, cuda, cuda:N or auto (default)")
+    serve.add_argument("--config", type=Path, default=None, help="settings file, .toml or .json")
+    knobs = serve.add_argument_group("coalescing and limits")
+    knobs.add_argument("--max-batch-points", type=int, default=None,
+                       help="most points in one compute call (default 65536)")
+    knobs.add_argument("--max-wait-ms", type=float, default=None,
+                       help="longest wait for more points before a batch closes, ms (default 1)")
+    knobs.add_argument("--max-queue-points", type=int, default=None,
+                       help="most points queued per model; beyond it 429 (default 4000000)")
+    knobs.add_argument("--coalesce", action=argparse.BooleanOptionalAction, default=None,
+                       help="join concurrent requests into one batch (default on)")
+    knobs.add_argument("--max-request-points", type=int, default=None,
+                       help="most points in one request; beyond it 413 (default 1000000)")
+    knobs.add_argument("--max-body-bytes", type=int, default=None,
+                       help="largest request body; beyond it 413 (default 64 MiB)")
+    knobs.add_argument("--max-scene-colliders", type=int, default=None,
+                       help="most colliders in one scene query (default 64)")
+    knobs.add_argument("--default-deadline-ms", type=float, default=None,
+                       help="deadline of requests that give none, ms (default none)")
+    serve.add_argument("--cors-origin", action="append", default=None, dest="cors_origins",
+                       help="allow this CORS origin (repeatable; default CORS off)")
+    serve.add_argument("--no-warmup", action="store_const", const=False, default=None,
+                       dest="warmup", help="skip the warm-up query per model")
+    serve.add_argument("--log-level", default=None, choices=["critical", "error", "warning",
+                                                             "info", "debug"])
+    serve.set_defaults(func=run_serve)
+
+
+SETTING_FLAGS = ("host", "port", "models", "device", "max_batch_points", "max_wait_ms",
+                 "max_queue_points", "coalesce", "max_request_points", "max_body_bytes",
+                 "max_scene_colliders", "default_deadline_ms", "cors_origins", "warmup",
+                 "log_level")
+
+
+def is_loopback(host: str) -> bool:
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+def run_serve(args) -> int:
+    import uvicorn
+
+    from ..service import create_app, load_settings
+
+    settings = load_settings(args.config, **{k: getattr(args, k) for k in SETTING_FLAGS})
+    if settings.models is not None and not settings.models.is_dir():
+        raise FileNotFoundError(f"model repository {settings.models} is not a folder")
+    if not is_loopback(settings.host) and not settings.token:
+        print(f"collider serve: warning: listening on {settings.host} without COLLIDER_TOKEN: "
+              "anyone who can reach this port can query it", file=sys.stderr)
+    logging.basicConfig(level=settings.log_level.upper(), format="%(levelname)s:     %(message)s")
+    app = create_app(settings)
+    config = uvicorn.Config(app, host=settings.host, port=settings.port,
+                            log_level=settings.log_level, access_log=False,
+                            timeout_graceful_shutdown=None)
+    # uvicorn handles SIGINT/SIGTERM: it stops accepting, answers every open request, then runs
+    # the app's shutdown (which drains the batchers) and returns.
+    uvicorn.Server(config).run()
+    return 0

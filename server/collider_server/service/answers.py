@@ -1,0 +1,110 @@
+"""From validated queries to fields: move points to each collider's frame, queue them on its
+batcher, and assemble each request's answer (plain functions; the routers only translate HTTP)."""
+
+from __future__ import annotations
+
+import asyncio
+import time
+
+import numpy as np
+
+from ..batching import BatcherClosed, DeadlineExceeded, QueueFull
+from ..collider import GRADIENT_FIELDS, QueryResult, assemble_result
+from ..pose import Pose
+from .bodies import QuerySpec, SceneSpec
+from .problems import Problem
+from .registry import LoadedModel
+
+
+def absolute_deadline(deadline_ms: float | None, default_ms: float | None) -> float | None:
+    """A relative deadline in ms as a ``time.monotonic`` time (the batchers' clock)."""
+    ms = deadline_ms if deadline_ms is not None else default_ms
+    return None if ms is None else time.monotonic() + ms / 1000.0
+
+
+def resolve_eps(model: LoadedModel, pose: Pose, eps: float | None) -> float:
+    """The request's eps in world units: its own, checked against ``[0, domain diagonal]``,
+    or 1 mm (the collider's default, scaled by the pose)."""
+    if eps is None:
+        return model.collider.info.default_eps * pose.scale
+    limit = model.domain_diagonal * pose.scale
+    if not 0 <= eps <= limit:
+        raise Problem(422, "eps-out-of-range",
+                      f"eps={eps} is outside [0, {limit:.6g}] (world units; the upper bound is "
+                      f"the diagonal of model {model.name!r}'s domain box)")
+    return eps
+
+
+async def compute(model: LoadedModel, points: np.ndarray, pose: Pose, want_gradient: bool,
+                  deadline: float | None):
+    """Collider-frame ``(distance, normal)`` of world-frame ``points`` through the batcher,
+    with the batcher's errors as problems (429, 503, 504)."""
+    local = pose.to_local(points)
+    try:
+        return await model.batcher.submit(local, want_gradient, deadline)
+    except QueueFull as exc:
+        raise Problem(429, "queue-full", f"model {model.name!r}: {exc}",
+                      {"Retry-After": str(exc.retry_after_s)}) from None
+    except DeadlineExceeded as exc:
+        raise Problem(504, "deadline-exceeded", f"model {model.name!r}: {exc}") from None
+    except BatcherClosed as exc:
+        raise Problem(503, "unavailable", f"model {model.name!r}: {exc}",
+                      {"Retry-After": "1"}) from None
+
+
+async def answer_query(model: LoadedModel, spec: QuerySpec, deadline: float | None) -> QueryResult:
+    eps = resolve_eps(model, spec.pose, spec.eps)
+    want_gradient = not GRADIENT_FIELDS.isdisjoint(spec.fields)
+    distance, normal = await compute(model, spec.points, spec.pose, want_gradient, deadline)
+    return assemble_result(spec.points, spec.pose, eps, spec.fields, distance, normal)
+
+
+async def answer_scene(models: list[LoadedModel], spec: SceneSpec,
+                       deadline: float | None) -> tuple[QueryResult, np.ndarray]:
+    """Per point, the fields of the collider with the smallest world-frame signed distance, and
+    that collider's index ``(n,) int32`` into ``spec.colliders``."""
+    poses = [pose for _, pose in spec.colliders]
+    eps = [resolve_eps(m, pose, spec.eps) for m, pose in zip(models, poses)]
+    want_gradient = not GRADIENT_FIELDS.isdisjoint(spec.fields)
+    answers = await asyncio.gather(*(
+        compute(m, spec.points, pose, want_gradient, deadline) for m, pose in zip(models, poses)))
+    # World-frame distances of every collider, (k, n); the nearest wins each point.
+    world = np.stack([d * pose.scale for (d, _), pose in zip(answers, poses)])
+    nearest = np.argmin(world, axis=0).astype(np.int32) if len(spec.points) else np.zeros(0, np.int32)
+    n = len(spec.points)
+    dtypes = {"distance": np.float32, "normal": np.float32, "contact": spec.points.dtype,
+              "collides": np.bool_}
+    out = {f: np.empty((n, 3) if f in ("normal", "contact") else n, dtypes[f]) for f in spec.fields}
+    for i, ((distance, normal), pose) in enumerate(zip(answers, poses)):
+        rows = np.flatnonzero(nearest == i)
+        if not len(rows):
+            continue
+        part = assemble_result(spec.points[rows], pose, eps[i], spec.fields, distance[rows],
+                               None if normal is None else normal[rows])
+        for name, values in part.fields().items():
+            out[name][rows] = values
+    return QueryResult(**out), nearest
+
+
+async def wait_for_disconnect(receive) -> None:
+    """Returns when the client has gone (the body must already be read)."""
+    while True:
+        message = await receive()
+        if message["type"] == "http.disconnect":
+            return
+
+
+async def unless_disconnected(receive, coro):
+    """Run ``coro``; if the client disconnects first, cancel it (its request leaves the queue)
+    and raise a 499-style problem that nobody will read."""
+    work = asyncio.ensure_future(coro)
+    gone = asyncio.ensure_future(wait_for_disconnect(receive))
+    try:
+        await asyncio.wait({work, gone}, return_when=asyncio.FIRST_COMPLETED)
+    finally:
+        if not work.done():
+            work.cancel()
+        gone.cancel()
+    if work.cancelled() or not work.done():
+        raise Problem(499, "client-closed", "the client disconnected before the answer was ready")
+    return work.result()

@@ -1,0 +1,66 @@
+"""The FastAPI application: wiring only (routers, error handlers, metrics, lifespan)."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+
+from fastapi import FastAPI
+
+from ..batching import DeviceWorkers
+from ..devices import resolve_device
+from ..repository import ModelRepository
+from .metrics import RequestCounter, ServiceMetrics
+from .problems import install_handlers
+from .registry import ModelRegistry
+from .routers import admin, health, models, scene
+from .settings import ServiceSettings
+from .state import ServiceState
+
+log = logging.getLogger("collider_server.service")
+
+DESCRIPTION = """Signed distance, normal, contact and collision answers for batches of points.
+
+Bodies are msgpack (`application/msgpack`, the fast path) or JSON. Arrays in msgpack are maps
+`{dtype, shape, data}` with raw little-endian bytes; in JSON, nested lists. Lengths are in the
+collider's units (metres for the shipped models), points and answers in the world frame, a pose
+maps the collider frame to the world frame. Errors are `application/problem+json`."""
+
+
+def create_app(settings: ServiceSettings | None = None) -> FastAPI:
+    """The service for ``settings``. Models load in the background after start-up;
+    ``/readyz`` answers 200 once all are loaded and warmed up."""
+    settings = settings or ServiceSettings()
+    metrics = ServiceMetrics()
+
+    @contextlib.asynccontextmanager
+    async def lifespan(app: FastAPI):
+        workers = DeviceWorkers()
+        registry = ModelRegistry(ModelRepository(settings.models), resolve_device(settings.device),
+                                 settings.batch_settings(), workers, metrics, settings.warmup)
+        state = ServiceState(settings, metrics, workers, registry)
+        app.state.collider = state
+        loading = asyncio.create_task(registry.load_all())
+        try:
+            yield
+        finally:
+            # uvicorn has stopped accepting and answered every open request by now.
+            state.shutting_down = True
+            loading.cancel()
+            await registry.close()
+            await asyncio.to_thread(workers.shutdown)
+            log.info("stopped")
+
+    app = FastAPI(title="neural-collider", version="1", description=DESCRIPTION, lifespan=lifespan)
+    install_handlers(app)
+    for router in (health.router, models.router, scene.router, admin.router):
+        app.include_router(router)
+    if settings.cors_origins:
+        from fastapi.middleware.cors import CORSMiddleware
+
+        app.add_middleware(CORSMiddleware, allow_origins=settings.cors_origins,
+                           allow_methods=["GET", "POST", "PUT", "DELETE"],
+                           allow_headers=["Authorization", "Content-Type", "X-Deadline-Ms"])
+    app.add_middleware(RequestCounter, metrics=metrics)
+    return app

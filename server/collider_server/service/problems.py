@@ -1,0 +1,76 @@
+"""Errors as RFC 9457 problem documents: ``application/problem+json`` bodies
+``{"type": short-code, "title": ..., "status": N, "detail": what is wrong and where}``."""
+
+from __future__ import annotations
+
+import json
+import logging
+
+from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
+from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.responses import Response
+
+PROBLEM_JSON = "application/problem+json"
+log = logging.getLogger("collider_server.service")
+
+TITLES = {
+    400: "Malformed request body",
+    401: "Unauthorized",
+    403: "Forbidden",
+    404: "Not found",
+    405: "Method not allowed",
+    409: "Conflict",
+    413: "Request too large",
+    415: "Unsupported media type",
+    422: "Invalid request",
+    429: "Too many requests",
+    500: "Internal server error",
+    503: "Service unavailable",
+    504: "Deadline exceeded",
+}
+
+
+class Problem(Exception):
+    """An error answer: ``status`` code, ``type`` short code (e.g. ``"bad-points"``), ``detail``
+    saying what is wrong and where, and extra response ``headers`` (``Retry-After``)."""
+
+    def __init__(self, status: int, type: str, detail: str, headers: dict[str, str] | None = None):
+        super().__init__(detail)
+        self.status = status
+        self.type = type
+        self.detail = detail
+        self.headers = headers or {}
+
+    def response(self) -> Response:
+        body = {"type": self.type, "title": TITLES.get(self.status, "Error"),
+                "status": self.status, "detail": self.detail}
+        return Response(json.dumps(body), status_code=self.status, headers=self.headers,
+                        media_type=PROBLEM_JSON)
+
+
+def install_handlers(app: FastAPI) -> None:
+    """Every error the app can produce, including unknown routes and crashes, as a problem."""
+
+    @app.exception_handler(Problem)
+    async def _problem(request: Request, exc: Problem):
+        return exc.response()
+
+    @app.exception_handler(StarletteHTTPException)
+    async def _http(request: Request, exc: StarletteHTTPException):
+        code = {404: "not-found", 405: "method-not-allowed"}.get(exc.status_code, "http-error")
+        detail = exc.detail if isinstance(exc.detail, str) else json.dumps(exc.detail)
+        if exc.status_code == 404 and detail == "Not Found":
+            detail = f"no route {request.method} {request.url.path}"
+        return Problem(exc.status_code, code, detail, dict(exc.headers or {})).response()
+
+    @app.exception_handler(RequestValidationError)
+    async def _validation(request: Request, exc: RequestValidationError):
+        detail = "; ".join(
+            f"{'.'.join(str(p) for p in e['loc'])}: {e['msg']}" for e in exc.errors())
+        return Problem(422, "invalid-request", detail).response()
+
+    @app.exception_handler(Exception)
+    async def _crash(request: Request, exc: Exception):
+        log.exception("unhandled error on %s %s", request.method, request.url.path)
+        return Problem(500, "internal-error", f"{type(exc).__name__}: {exc}").response()

@@ -1,0 +1,127 @@
+"""The models a service holds: loading (off the event loop), warm-up, unloading, readiness."""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..batching import BatchSettings, DeviceWorkers, PointBatcher
+from ..collider import Collider
+from ..repository import ModelRepository, check_name
+from .metrics import ServiceMetrics
+
+log = logging.getLogger("collider_server.service")
+
+
+@dataclass
+class LoadedModel:
+    """A model being served: its collider, its batcher, and its public info (``GET
+    /v1/models/{name}``)."""
+
+    name: str
+    collider: Collider
+    batcher: PointBatcher
+    info: dict
+
+    @property
+    def domain_diagonal(self) -> float:
+        """Length of the domain box diagonal, collider units."""
+        return float(np.linalg.norm(self.collider.domain_max - self.collider.domain_min))
+
+
+def public_info(name: str, collider: Collider, size_bytes: int) -> dict:
+    info = collider.info
+    return {
+        "name": name, "kind": info.kind, "units": info.units,
+        "meters_per_unit": info.meters_per_unit,
+        "domain_min": list(info.domain_min), "domain_max": list(info.domain_max),
+        "bytes": size_bytes, "approximate": info.approximate, "accuracy": info.accuracy,
+        "source": info.source, "settings": info.settings, "device": collider.device,
+    }
+
+
+def warm_up(collider: Collider) -> None:
+    """One small query with gradient, so the first real request pays no lazy initialisation."""
+    centre = 0.5 * (collider.domain_min + collider.domain_max)
+    collider.query_local(np.tile(centre, (64, 1)), True)
+
+
+class ModelRegistry:
+    """Models by name. Only :meth:`load`, :meth:`unload` and :meth:`close` change it; lookups
+    are plain dict reads on the event loop."""
+
+    def __init__(self, repository: ModelRepository, device: str, batch: BatchSettings,
+                 workers: DeviceWorkers, metrics: ServiceMetrics, warmup: bool = True):
+        self.repository = repository
+        self.device = device
+        self.batch = batch
+        self.workers = workers
+        self.metrics = metrics
+        self.warmup = warmup
+        self.models: dict[str, LoadedModel] = {}
+        self.errors: dict[str, str] = {}  # models that failed to load at start-up, and why
+        self.ready = False
+
+    def get(self, name: str) -> LoadedModel | None:
+        return self.models.get(name)
+
+    async def load_all(self) -> None:
+        """Load every model of the repository, then become ready. A model that fails to load
+        is logged and listed in ``errors``; the others are served."""
+        for name in self.repository.names():
+            try:
+                await self.load(name)
+            except Exception as exc:  # a broken file must not keep the others from serving
+                self.errors[name] = str(exc)
+                log.error("model %s not loaded: %s", name, exc)
+        self.ready = True
+        log.info("ready: %d model(s) loaded (%s)", len(self.models), ", ".join(self.models) or "none")
+
+    async def load(self, name: str) -> LoadedModel:
+        """Load (or reload) ``name`` from the repository in a thread; the old version, if any,
+        answers its queued requests before it goes. Raises ValueError / FileNotFoundError /
+        ModelFileError."""
+        check_name(name)
+        path = self.repository.path(name)
+        if not path.is_file():
+            raise FileNotFoundError(f"no model file {path.name} in {self.repository.root}")
+        collider = await asyncio.to_thread(self._load_and_warm, path)
+        batcher = PointBatcher(collider.query_local, self.batch,
+                               self.workers.executor(collider.device),
+                               on_batch=self.metrics.batch_observer(name))
+        model = LoadedModel(name, collider, batcher, public_info(name, collider, path.stat().st_size))
+        old = self.models.get(name)
+        self.models[name] = model
+        self.errors.pop(name, None)
+        self.metrics.models_loaded.set(len(self.models))
+        if old is not None:
+            await old.batcher.drain()
+        log.info("loaded %s (%s on %s)", name, collider.info.kind, collider.device)
+        return model
+
+    def _load_and_warm(self, path) -> Collider:
+        from ..modelfile import load_collider
+
+        collider = load_collider(path, self.device)
+        if self.warmup:
+            warm_up(collider)
+        return collider
+
+    async def unload(self, name: str) -> bool:
+        """Stop serving ``name``: new requests get 404 at once, queued ones are answered."""
+        model = self.models.pop(name, None)
+        if model is None:
+            return False
+        self.metrics.models_loaded.set(len(self.models))
+        await model.batcher.drain()
+        self.metrics.forget(name)
+        log.info("unloaded %s", name)
+        return True
+
+    async def close(self) -> None:
+        """Answer everything queued, then stop every batcher."""
+        self.ready = False
+        await asyncio.gather(*(m.batcher.drain() for m in self.models.values()))

@@ -1,0 +1,33 @@
+"""Admin routes (admin token): load or reload, and unload, a model while others keep serving."""
+
+from __future__ import annotations
+
+from fastapi import APIRouter, Depends, Request
+
+from ...modelfile import ModelFileError
+from ..auth import require_admin
+from ..problems import Problem
+from ..state import get_state
+
+router = APIRouter(prefix="/v1/admin", tags=["admin"], dependencies=[Depends(require_admin)])
+
+
+@router.put("/models/{name}", summary="load (or reload) a model from the repository")
+async def load_model(name: str, request: Request):
+    registry = get_state(request).registry
+    try:
+        model = await registry.load(name)
+    except FileNotFoundError as exc:
+        raise Problem(404, "unknown-model", str(exc)) from None
+    except ModelFileError as exc:
+        raise Problem(422, "bad-model-file", str(exc)) from None
+    except ValueError as exc:
+        raise Problem(422, "bad-model-name", str(exc)) from None
+    return {"loaded": name, "info": model.info}
+
+
+@router.delete("/models/{name}", summary="unload a model (queued requests are still answered)")
+async def unload_model(name: str, request: Request):
+    if not await get_state(request).registry.unload(name):
+        raise Problem(404, "unknown-model", f"no model named {name!r} is loaded")
+    return {"unloaded": name}

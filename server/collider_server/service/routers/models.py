@@ -1,0 +1,41 @@
+"""``GET /v1/models``, ``GET /v1/models/{name}``, ``POST /v1/models/{name}/query``."""
+
+from __future__ import annotations
+
+from fastapi import APIRouter, Depends, Request
+
+from ..answers import absolute_deadline, answer_query, unless_disconnected
+from ..auth import require_token
+from ..bodies import encode_response, parse_body, parse_query, read_body, request_media_type, \
+    response_media_type
+from ..openapi import QUERY_BODY, QUERY_RESPONSES
+from ..state import get_state, serving_model
+
+router = APIRouter(prefix="/v1/models", tags=["models"], dependencies=[Depends(require_token)])
+
+
+@router.get("", summary="the models being served")
+async def list_models(request: Request):
+    registry = get_state(request).registry
+    return {"models": [registry.models[name].info for name in sorted(registry.models)]}
+
+
+@router.get("/{name}", summary="one model: kind, units, domain box, size, recorded accuracy")
+async def model_info(name: str, request: Request):
+    return serving_model(get_state(request), name).info
+
+
+@router.post("/{name}/query", summary="distance / normal / contact / collides of points",
+             openapi_extra=QUERY_BODY, responses=QUERY_RESPONSES)
+async def query(name: str, request: Request):
+    """Points in the world frame, an optional pose (collider -> world), the fields to return and
+    eps (world units). The response holds one entry per field plus ``"model"``."""
+    state = get_state(request)
+    settings = state.settings
+    media = request_media_type(request)
+    model = serving_model(state, name)
+    body = parse_body(await read_body(request, settings.max_body_bytes), media)
+    spec = parse_query(body, request, settings.max_request_points)
+    deadline = absolute_deadline(spec.deadline_ms, settings.default_deadline_ms)
+    result = await unless_disconnected(request.receive, answer_query(model, spec, deadline))
+    return encode_response({**result.fields(), "model": name}, response_media_type(request, media))

@@ -1,0 +1,29 @@
+"""``POST /v1/scene/query``: several colliders, each with its own pose; per point the nearest."""
+
+from __future__ import annotations
+
+from fastapi import APIRouter, Depends, Request
+
+from ..answers import absolute_deadline, answer_scene, unless_disconnected
+from ..auth import require_token
+from ..bodies import encode_response, parse_body, parse_scene, read_body, request_media_type, \
+    response_media_type
+from ..openapi import SCENE_BODY, QUERY_RESPONSES
+from ..state import get_state, serving_model
+
+router = APIRouter(prefix="/v1/scene", tags=["scene"], dependencies=[Depends(require_token)])
+
+
+@router.post("/query", summary="per point, the fields of the nearest collider and its index",
+             openapi_extra=SCENE_BODY, responses=QUERY_RESPONSES)
+async def scene_query(request: Request):
+    state = get_state(request)
+    settings = state.settings
+    media = request_media_type(request)
+    body = parse_body(await read_body(request, settings.max_body_bytes), media)
+    spec = parse_scene(body, request, settings.max_request_points, settings.max_scene_colliders)
+    models = [serving_model(state, name) for name, _ in spec.colliders]
+    deadline = absolute_deadline(spec.deadline_ms, settings.default_deadline_ms)
+    result, nearest = await unless_disconnected(request.receive, answer_scene(models, spec, deadline))
+    return encode_response({**result.fields(), "collider": nearest},
+                           response_media_type(request, media))

@@ -1,0 +1,102 @@
+"""The service's settings: defaults < config file < ``COLLIDER_*`` environment < CLI flags."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+from pydantic import Field, model_validator
+from pydantic_settings import BaseSettings, EnvSettingsSource, SettingsConfigDict
+
+from ..batching import BatchSettings
+
+
+class ServiceSettings(BaseSettings):
+    """Everything ``collider serve`` can be told. Environment variables are the field names in
+    upper case prefixed ``COLLIDER_`` (``COLLIDER_MAX_WAIT_MS=2``)."""
+
+    model_config = SettingsConfigDict(env_prefix="COLLIDER_", extra="forbid")
+
+    host: str = Field("127.0.0.1", description="address to listen on; loopback only by default")
+    port: int = Field(8000, ge=0, le=65535)
+    models: Path | None = Field(None, description="model repository (default: ./models)")
+    device: str = Field("auto", description="cpu, cuda, cuda:N or auto")
+    token: str | None = Field(None, description="bearer token required on every route but "
+                                                "/livez and /readyz; unset: no auth")
+    admin_token: str | None = Field(None, description="bearer token of the admin routes; "
+                                                      "unset: admin routes disabled")
+    cors_origins: list[str] = Field(default_factory=list, description="allowed CORS origins; "
+                                                                      "empty: CORS off")
+    # Coalescing (see collider_server.batching).
+    max_batch_points: int = Field(65_536, ge=1, description="most points in one compute call")
+    max_wait_ms: float = Field(1.0, ge=0, description="longest wait for more points, ms")
+    max_queue_points: int = Field(4_000_000, ge=1, description="most points queued per model")
+    coalesce: bool = Field(True, description="False computes every request on its own")
+    # Limits of one request.
+    max_request_points: int = Field(1_000_000, ge=1, description="most points in one request")
+    max_body_bytes: int = Field(64 * 1024 * 1024, ge=1024, description="largest body, bytes")
+    max_scene_colliders: int = Field(64, ge=1, description="most colliders in a scene query")
+    default_deadline_ms: float | None = Field(None, gt=0, description="deadline of requests "
+                                                                      "that give none, ms")
+    warmup: bool = Field(True, description="run one small query per model before ready")
+    log_level: str = Field("info")
+
+    @model_validator(mode="after")
+    def _request_fits_queue(self) -> "ServiceSettings":
+        if self.max_request_points > self.max_queue_points:
+            raise ValueError(
+                f"max_request_points ({self.max_request_points}) must not exceed "
+                f"max_queue_points ({self.max_queue_points}): such a request could never queue"
+            )
+        return self
+
+    def batch_settings(self) -> BatchSettings:
+        return BatchSettings(self.max_batch_points, self.max_wait_ms, self.max_queue_points,
+                             self.coalesce)
+
+
+def read_config_file(path: str | Path) -> dict[str, Any]:
+    """A TOML (``.toml``) or JSON (``.json``) file of settings, keys as the field names; a TOML
+    file may put them under a ``[serve]`` table."""
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except OSError as exc:
+        raise ValueError(f"{path}: cannot read config file ({exc.strerror})") from None
+    try:
+        if path.suffix == ".json":
+            data = json.loads(text)
+        elif path.suffix == ".toml":
+            import tomllib
+
+            data = tomllib.loads(text)
+            data = data.get("serve", data)
+        else:
+            raise ValueError(f"{path}: config file must be .toml or .json")
+    except (json.JSONDecodeError, ValueError) as exc:
+        if str(exc).startswith(str(path)):
+            raise
+        raise ValueError(f"{path}: malformed config file ({exc})") from None
+    if not isinstance(data, dict):
+        raise ValueError(f"{path}: config file must hold a table/object of settings")
+    return data
+
+
+def load_settings(config_file: str | Path | None = None, **overrides: Any) -> ServiceSettings:
+    """Settings from, lowest priority first: defaults, ``config_file``, ``COLLIDER_*``
+    environment variables, ``overrides`` (the CLI flags that were given; ``None`` = not given).
+
+    Raises ValueError naming the bad setting and where it came from."""
+    from pydantic import ValidationError
+
+    values: dict[str, Any] = read_config_file(config_file) if config_file else {}
+    values.update(EnvSettingsSource(ServiceSettings)())
+    values.update({k: v for k, v in overrides.items() if v is not None})
+    try:
+        return ServiceSettings(**values)
+    except ValidationError as exc:
+        problems = "; ".join(
+            f"{'.'.join(str(p) for p in e['loc']) or 'settings'}: {e['msg']}" for e in exc.errors()
+        )
+        raise ValueError(f"invalid settings: {problems}") from None

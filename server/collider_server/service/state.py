@@ -1,0 +1,46 @@
+"""What one server process holds (the only global state, and it lives on ``app.state``)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from fastapi import Request
+
+from ..batching import DeviceWorkers
+from .metrics import ServiceMetrics
+from .problems import Problem
+from .registry import LoadedModel, ModelRegistry
+from .settings import ServiceSettings
+
+
+@dataclass
+class ServiceState:
+    settings: ServiceSettings
+    metrics: ServiceMetrics
+    workers: DeviceWorkers
+    registry: ModelRegistry
+    shutting_down: bool = False
+    background: set = field(default_factory=set)
+
+
+def get_state(request: Request) -> ServiceState:
+    return request.app.state.collider
+
+
+def get_settings(request: Request) -> ServiceSettings:
+    """The app's settings (a dependency; tests may override it)."""
+    return request.app.state.collider.settings
+
+
+def serving_model(state: ServiceState, name: str) -> LoadedModel:
+    """The loaded model ``name``, else 503 while starting or stopping, else 404."""
+    if state.shutting_down:
+        raise Problem(503, "shutting-down", "the server is shutting down", {"Retry-After": "5"})
+    model = state.registry.get(name)
+    if model is not None:
+        return model
+    if not state.registry.ready:
+        raise Problem(503, "not-ready", "models are still loading; retry shortly",
+                      {"Retry-After": "1"})
+    known = ", ".join(sorted(state.registry.models)) or "none"
+    raise Problem(404, "unknown-model", f"no model named {name!r} is loaded (models: {known})")
