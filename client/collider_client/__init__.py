@@ -1,1 +1,72 @@
-"""Client side of the collider service: numpy + msgpack + httpx, no torch."""
+"""Client side of the collider service: numpy + msgpack + httpx, no torch.
+
+>>> from collider_client import Client
+>>> with Client("http://127.0.0.1:8000") as client:      # remote: a running `collider serve`
+...     result = client.query("bunny", points, fields=["distance", "contact"])
+>>> client = Client(models="models/")                     # embedded: the engine in process
+
+Points and results are world frame, metres. See :mod:`collider_client.response` for the
+collision response a simulator applies after its step.
+"""
+
+from ._base import USE_CLIENT_DEFAULT, RetryPolicy, SceneCollider, UseClientDefault
+from ._client import AsyncClient, Client
+from ._exceptions import (
+    BadRequestError,
+    ColliderError,
+    ConnectError,
+    DeadlineExceededError,
+    InvalidValueError,
+    ModelNotFoundError,
+    PayloadTooLargeError,
+    ProtocolError,
+    QueueFullError,
+    ServerError,
+    ServiceUnavailableError,
+    TimeoutError,
+    TransportError,
+    UnauthorizedError,
+    UnsupportedMediaTypeError,
+    error_for_status,
+)
+from ._models import FIELDS, ModelInfo, QueryResult
+from .response import (
+    ColliderPlacement,
+    CollisionHook,
+    collider_velocity,
+    project_to_contacts,
+    respond_velocities,
+)
+
+__all__ = [
+    "AsyncClient",
+    "BadRequestError",
+    "Client",
+    "ColliderError",
+    "ColliderPlacement",
+    "CollisionHook",
+    "ConnectError",
+    "DeadlineExceededError",
+    "FIELDS",
+    "InvalidValueError",
+    "ModelInfo",
+    "ModelNotFoundError",
+    "PayloadTooLargeError",
+    "ProtocolError",
+    "QueryResult",
+    "QueueFullError",
+    "RetryPolicy",
+    "SceneCollider",
+    "ServerError",
+    "ServiceUnavailableError",
+    "TimeoutError",
+    "TransportError",
+    "USE_CLIENT_DEFAULT",
+    "UnauthorizedError",
+    "UnsupportedMediaTypeError",
+    "UseClientDefault",
+    "collider_velocity",
+    "error_for_status",
+    "project_to_contacts",
+    "respond_velocities",
+]

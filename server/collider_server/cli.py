@@ -14,6 +14,7 @@ import sys
 COMMAND_MODULES = [
     "collider_server.commands.models",
     "collider_server.commands.training",
+    "collider_client.sim.command",
     "collider_server.commands.serve",
 ]
 

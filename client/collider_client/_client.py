@@ -1,0 +1,317 @@
+"""``Client`` (sync) and ``AsyncClient`` (asyncio): one API, two backends.
+
+- remote: ``Client("http://127.0.0.1:8000")`` talks msgpack over HTTP to ``collider serve`` with a
+  pooled connection (httpx), a timeout and retries with backoff on 429/503 (``Retry-After``
+  honoured) and on refused connections;
+- embedded: ``Client()`` or ``Client(models="models/")`` runs the engine in this process (needs the
+  ``server`` extras).
+
+Both give the same answers for the same calls. All points and results are world frame, metres.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from pathlib import Path
+from typing import Any, Iterable, Sequence
+
+import httpx
+import numpy as np
+
+from . import wire
+from ._base import (
+    RETRY_STATUSES, USE_CLIENT_DEFAULT, RetryPolicy, UseClientDefault, as_points, as_scene,
+    check_fields, decode_models, decode_query, query_body, raise_for_problem, scene_body,
+)
+from ._exceptions import ConnectError, ProtocolError, ServerError, TimeoutError, TransportError
+from ._models import ModelInfo, QueryResult
+
+DEFAULT_TIMEOUT_S = 30.0
+
+
+class _Settings:
+    """What both clients hold: the backend choice and the per-call defaults."""
+
+    def __init__(self, server: str | None, models, device, token, timeout_s, eps, fields,
+                 retry: RetryPolicy | None):
+        if server is not None and models is not None:
+            raise ValueError("give either server= (remote) or models= (embedded), not both")
+        if not (timeout_s is None or timeout_s > 0):
+            raise ValueError(f"timeout_s must be > 0 or None, got {timeout_s}")
+        self.server = server.rstrip("/") if server else None
+        self.models = models
+        self.device = device
+        self.token = token
+        self.timeout_s = timeout_s
+        self.eps = eps
+        self.fields = check_fields(fields)
+        self.retry = retry or RetryPolicy()
+
+    @property
+    def remote(self) -> bool:
+        return self.server is not None
+
+    def headers(self) -> dict[str, str]:
+        headers = {"Content-Type": wire.MSGPACK, "Accept": wire.MSGPACK}
+        if self.token:
+            headers["Authorization"] = f"Bearer {self.token}"
+        return headers
+
+    def resolve(self, fields, eps):
+        fields = self.fields if isinstance(fields, UseClientDefault) else check_fields(fields)
+        eps = self.eps if isinstance(eps, UseClientDefault) else eps
+        return fields, eps
+
+
+def _decode_response(response: httpx.Response) -> dict[str, Any]:
+    content_type = response.headers.get("content-type", "")
+    if response.status_code >= 400:
+        raise_for_problem(response.status_code, response.content, content_type,
+                          response.headers.get("retry-after"))
+    try:
+        return wire.loads(response.content, content_type)
+    except wire.WireError as exc:
+        raise ProtocolError(f"{response.request.method} {response.request.url.path}: {exc}") from None
+
+
+def _transport_error(exc: httpx.TransportError, url: str) -> TransportError:
+    if isinstance(exc, httpx.TimeoutException):
+        return TimeoutError(f"{url}: timed out ({type(exc).__name__})")
+    if isinstance(exc, httpx.ConnectError):
+        return ConnectError(f"{url}: cannot connect ({exc})")
+    return TransportError(f"{url}: {type(exc).__name__}: {exc}")
+
+
+class Client:
+    """Collision queries, synchronous. Use as a context manager or call :meth:`close`.
+
+    server : URL of a running ``collider serve`` (remote backend); ``None`` = embedded
+    models : model repository folder for the embedded backend (default ``models/``)
+    device : embedded backend's torch device ("cpu", "cuda", None = CUDA if present)
+    token : bearer token sent as ``Authorization: Bearer <token>`` (remote)
+    timeout_s : seconds per HTTP request (connect, read, write), None = no limit
+    eps : default collision offset, world units (None = 1 mm)
+    fields : default fields
+    retry : :class:`RetryPolicy` for 429/503 and refused connections
+    transport : an ``httpx.BaseTransport`` (e.g. ``httpx.ASGITransport`` cannot be used here;
+        tests and special networks only)
+    """
+
+    def __init__(self, server: str | None = None, *, models: str | Path | None = None,
+                 device: str | None = None, token: str | None = None,
+                 timeout_s: float | None = DEFAULT_TIMEOUT_S, eps: float | None = None,
+                 fields: Iterable[str] = ("distance",), retry: RetryPolicy | None = None,
+                 transport: httpx.BaseTransport | None = None):
+        self._settings = _Settings(server, models, device, token, timeout_s, eps, fields, retry)
+        self._http: httpx.Client | None = None
+        self._embedded = None
+        if self._settings.remote:
+            self._http = httpx.Client(base_url=self._settings.server, timeout=timeout_s,
+                                      headers=self._settings.headers(), transport=transport)
+        else:
+            from ._embedded import EmbeddedBackend
+
+            self._embedded = EmbeddedBackend(models, device)
+
+    @property
+    def remote(self) -> bool:
+        """True when talking to a server, False when the engine runs in this process."""
+        return self._settings.remote
+
+    # -- the API --------------------------------------------------------------------------------
+
+    def query(self, model: str, points, fields: Iterable[str] | UseClientDefault = USE_CLIENT_DEFAULT,
+              pose=None, eps: float | None | UseClientDefault = USE_CLIENT_DEFAULT,
+              deadline_ms: float | None = None) -> QueryResult:
+        """The ``fields`` of one collider at ``points``.
+
+        points : (n, 3) float32/float64, world frame, metres
+        pose : (4, 4) collider frame -> world frame, None = identity
+        eps : collision offset, world units; ``None`` = 1 mm; not given = the client's default
+        deadline_ms : how long the server may take (remote only; it answers 504 after that)
+        """
+        fields, eps = self._settings.resolve(fields, eps)
+        points = as_points(points)
+        if self._embedded is not None:
+            return self._embedded.query(model, points, fields, pose, eps)
+        body = self._post(f"/v1/models/{model}/query",
+                          query_body(points, fields, pose, eps, deadline_ms))
+        return decode_query(body, fields, scene=False)
+
+    def scene_query(self, colliders: Sequence, points,
+                    fields: Iterable[str] | UseClientDefault = USE_CLIENT_DEFAULT,
+                    eps: float | None | UseClientDefault = USE_CLIENT_DEFAULT,
+                    deadline_ms: float | None = None) -> QueryResult:
+        """Per point, the ``fields`` of the nearest of several colliders (smallest signed
+        distance) and ``collider``, its index in ``colliders``.
+
+        colliders : model names, ``(model, pose)`` pairs, ``{"model", "pose"}`` dicts or
+            :class:`SceneCollider`; poses are 4x4 collider -> world
+        """
+        fields, eps = self._settings.resolve(fields, eps)
+        scene = as_scene(colliders)
+        points = as_points(points)
+        if self._embedded is not None:
+            return self._embedded.scene_query(scene, points, fields, eps)
+        body = self._post("/v1/scene/query", scene_body(points, scene, fields, eps, deadline_ms))
+        return decode_query(body, fields, scene=True)
+
+    def list_models(self) -> list[ModelInfo]:
+        """Every model the server (or the embedded repository) can answer for."""
+        if self._embedded is not None:
+            return self._embedded.list_models()
+        return decode_models(self._send("GET", "/v1/models", None))
+
+    def ready(self) -> bool:
+        """True when the server answers ``/readyz`` with 200 (always True when embedded)."""
+        if self._embedded is not None:
+            return True
+        try:
+            return self._http.get("/readyz").status_code == 200
+        except httpx.TransportError:
+            return False
+
+    def close(self) -> None:
+        """Release the connection pool (remote) or the loaded models (embedded)."""
+        if self._http is not None:
+            self._http.close()
+        if self._embedded is not None:
+            self._embedded.close()
+
+    def __enter__(self) -> "Client":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    # -- transport --------------------------------------------------------------------------------
+
+    def _post(self, path: str, body: dict) -> dict:
+        return self._send("POST", path, wire.dumps(body, wire.MSGPACK))
+
+    def _send(self, method: str, path: str, content: bytes | None) -> dict:
+        retry = self._settings.retry
+        for attempt in range(retry.max_retries + 1):
+            last = attempt == retry.max_retries
+            try:
+                response = self._http.request(method, path, content=content)
+            except httpx.ConnectError as exc:
+                if last:
+                    raise _transport_error(exc, self._settings.server + path) from None
+                time.sleep(retry.delay_s(attempt, None))
+                continue
+            except httpx.TransportError as exc:
+                raise _transport_error(exc, self._settings.server + path) from None
+            try:
+                return _decode_response(response)
+            except ServerError as exc:
+                if last or exc.status not in RETRY_STATUSES:
+                    raise
+                time.sleep(retry.delay_s(attempt, exc.retry_after_s))
+        raise AssertionError("unreachable")  # the loop always returns or raises
+
+
+class AsyncClient:
+    """:class:`Client` for asyncio: the same methods, awaited; ``aclose()`` and ``async with``.
+
+    The embedded backend runs the engine in a worker thread so the event loop stays free.
+    """
+
+    def __init__(self, server: str | None = None, *, models: str | Path | None = None,
+                 device: str | None = None, token: str | None = None,
+                 timeout_s: float | None = DEFAULT_TIMEOUT_S, eps: float | None = None,
+                 fields: Iterable[str] = ("distance",), retry: RetryPolicy | None = None,
+                 transport: httpx.AsyncBaseTransport | None = None):
+        self._settings = _Settings(server, models, device, token, timeout_s, eps, fields, retry)
+        self._http: httpx.AsyncClient | None = None
+        self._embedded = None
+        if self._settings.remote:
+            self._http = httpx.AsyncClient(base_url=self._settings.server, timeout=timeout_s,
+                                           headers=self._settings.headers(), transport=transport)
+        else:
+            from ._embedded import EmbeddedBackend
+
+            self._embedded = EmbeddedBackend(models, device)
+
+    @property
+    def remote(self) -> bool:
+        return self._settings.remote
+
+    async def query(self, model: str, points,
+                    fields: Iterable[str] | UseClientDefault = USE_CLIENT_DEFAULT, pose=None,
+                    eps: float | None | UseClientDefault = USE_CLIENT_DEFAULT,
+                    deadline_ms: float | None = None) -> QueryResult:
+        """See :meth:`Client.query`."""
+        fields, eps = self._settings.resolve(fields, eps)
+        points = as_points(points)
+        if self._embedded is not None:
+            return await asyncio.to_thread(self._embedded.query, model, points, fields, pose, eps)
+        body = await self._post(f"/v1/models/{model}/query",
+                                query_body(points, fields, pose, eps, deadline_ms))
+        return decode_query(body, fields, scene=False)
+
+    async def scene_query(self, colliders: Sequence, points,
+                          fields: Iterable[str] | UseClientDefault = USE_CLIENT_DEFAULT,
+                          eps: float | None | UseClientDefault = USE_CLIENT_DEFAULT,
+                          deadline_ms: float | None = None) -> QueryResult:
+        """See :meth:`Client.scene_query`."""
+        fields, eps = self._settings.resolve(fields, eps)
+        scene = as_scene(colliders)
+        points = as_points(points)
+        if self._embedded is not None:
+            return await asyncio.to_thread(self._embedded.scene_query, scene, points, fields, eps)
+        body = await self._post("/v1/scene/query",
+                                scene_body(points, scene, fields, eps, deadline_ms))
+        return decode_query(body, fields, scene=True)
+
+    async def list_models(self) -> list[ModelInfo]:
+        """See :meth:`Client.list_models`."""
+        if self._embedded is not None:
+            return await asyncio.to_thread(self._embedded.list_models)
+        return decode_models(await self._send("GET", "/v1/models", None))
+
+    async def ready(self) -> bool:
+        """See :meth:`Client.ready`."""
+        if self._embedded is not None:
+            return True
+        try:
+            return (await self._http.get("/readyz")).status_code == 200
+        except httpx.TransportError:
+            return False
+
+    async def aclose(self) -> None:
+        if self._http is not None:
+            await self._http.aclose()
+        if self._embedded is not None:
+            self._embedded.close()
+
+    async def __aenter__(self) -> "AsyncClient":
+        return self
+
+    async def __aexit__(self, *exc) -> None:
+        await self.aclose()
+
+    async def _post(self, path: str, body: dict) -> dict:
+        return await self._send("POST", path, wire.dumps(body, wire.MSGPACK))
+
+    async def _send(self, method: str, path: str, content: bytes | None) -> dict:
+        retry = self._settings.retry
+        for attempt in range(retry.max_retries + 1):
+            last = attempt == retry.max_retries
+            try:
+                response = await self._http.request(method, path, content=content)
+            except httpx.ConnectError as exc:
+                if last:
+                    raise _transport_error(exc, self._settings.server + path) from None
+                await asyncio.sleep(retry.delay_s(attempt, None))
+                continue
+            except httpx.TransportError as exc:
+                raise _transport_error(exc, self._settings.server + path) from None
+            try:
+                return _decode_response(response)
+            except ServerError as exc:
+                if last or exc.status not in RETRY_STATUSES:
+                    raise
+                await asyncio.sleep(retry.delay_s(attempt, exc.retry_after_s))
+        raise AssertionError("unreachable")

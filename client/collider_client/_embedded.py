@@ -1,0 +1,123 @@
+"""The embedded backend: the engine in this process (needs the ``server`` extras: torch, ...).
+
+``collider_server`` is imported on first use only, so ``import collider_client`` stays light.
+Answers are the ones the HTTP service gives for the same request: the same engine code, the same
+defaults (eps 1 mm in world units) and the same rule for scene queries (per point, the fields of
+the collider with the smallest signed distance; ties go to the first in the list).
+"""
+
+from __future__ import annotations
+
+import threading
+from pathlib import Path
+
+import numpy as np
+
+from ._exceptions import InvalidValueError, ModelNotFoundError
+from ._models import GRADIENT_FIELDS, ModelInfo, QueryResult
+from ._base import SceneCollider
+
+
+class EmbeddedBackend:
+    """Colliders loaded from a model repository folder (``models``, default ``models/``) on
+    ``device`` ("cpu", "cuda", None = CUDA if present). Loaded models are kept for reuse."""
+
+    def __init__(self, models: str | Path | None = None, device: str | None = None):
+        try:
+            from collider_server.repository import ModelRepository
+        except ImportError as exc:  # the light install has no engine
+            raise ImportError(
+                "the embedded backend needs the engine: pip install 'neural-collider[server]' "
+                f"(or give a server URL to use a running `collider serve`) [{exc}]"
+            ) from None
+        self.repository = ModelRepository(models)
+        self.device = device
+        self._colliders: dict[str, object] = {}
+        self._lock = threading.Lock()
+
+    def collider(self, name: str):
+        """The loaded engine collider ``name`` (loads it on first use)."""
+        with self._lock:
+            if name not in self._colliders:
+                try:
+                    self._colliders[name] = self.repository.load(name, self.device)
+                except FileNotFoundError as exc:
+                    raise ModelNotFoundError(str(exc)) from None
+                except ValueError as exc:  # an invalid name is as unknown as a missing file
+                    raise ModelNotFoundError(str(exc)) from None
+            return self._colliders[name]
+
+    def query(self, model: str, points: np.ndarray, fields: list[str], pose,
+              eps: float | None) -> QueryResult:
+        collider = self.collider(model)
+        try:
+            result = collider.query(points, fields, pose=pose, eps=eps)
+        except ValueError as exc:  # PoseError is a ValueError too
+            raise InvalidValueError(str(exc)) from None
+        return QueryResult(**result.fields(), model=model)
+
+    def scene_query(self, colliders: list[SceneCollider], points: np.ndarray, fields: list[str],
+                    eps: float | None) -> QueryResult:
+        from collider_server.collider import assemble_result, check_eps, check_fields, check_points
+        from collider_server.pose import as_pose
+
+        try:
+            fields_t = check_fields(fields)
+            points = check_points(points)
+            poses = [as_pose(c.pose) for c in colliders]
+        except ValueError as exc:
+            raise InvalidValueError(str(exc)) from None
+        engines = [self.collider(c.model) for c in colliders]
+        want_gradient = not GRADIENT_FIELDS.isdisjoint(fields_t)
+        n = len(points)
+        best = np.full(n, np.inf)
+        best_index = np.zeros(n, dtype=np.int32)
+        normal = np.zeros((n, 3)) if want_gradient else None
+        eps_per_point = np.empty(n)
+        for i, (engine, pose) in enumerate(zip(engines, poses)):
+            d_local, n_local = engine.query_local(pose.to_local(points), want_gradient)
+            d_world = d_local * pose.scale
+            # Compare in float32, the precision the wire reports, so ties resolve as the server's.
+            closer = d_world.astype(np.float32) < best.astype(np.float32)
+            if i == 0:
+                closer[:] = True
+            best = np.where(closer, d_world, best)
+            best_index[closer] = i
+            if want_gradient:
+                normal[closer] = pose.to_world_directions(n_local[closer])
+            e = engine.info.default_eps * pose.scale if eps is None else check_eps(eps)
+            eps_per_point[closer] = e
+        result = assemble_result(points, _WORLD, eps_per_point, fields_t, best, normal)
+        return QueryResult(**result.fields(), collider=best_index)
+
+    def list_models(self) -> list[ModelInfo]:
+        from collider_server.modelfile import read_info
+
+        out = []
+        for name in self.repository.names():
+            path = self.repository.path(name)
+            info = read_info(path).to_dict()
+            info.update(bytes=path.stat().st_size, device=self._device_name())
+            out.append(ModelInfo.from_dict(info))
+        return out
+
+    def _device_name(self) -> str:
+        from collider_server.devices import resolve_device
+
+        return resolve_device(self.device)
+
+    def close(self) -> None:
+        self._colliders.clear()
+
+
+class _World:
+    """The identity pose for :func:`assemble_result` on points already in the world frame."""
+
+    scale = 1.0
+
+    @staticmethod
+    def to_world_directions(vectors):
+        return vectors
+
+
+_WORLD = _World()

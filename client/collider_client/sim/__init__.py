@@ -1,0 +1,1 @@
+"""The reference Verlet cloth simulator behind ``collider simulate SCENE`` (numpy only)."""

@@ -1,0 +1,86 @@
+"""``collider simulate SCENE``: run a scene file with the reference Verlet cloth simulator."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+SCENES_DIR = Path(__file__).resolve().parents[1] / "scenes"
+
+
+def shipped_scenes() -> list[str]:
+    """Names of the scenes shipped with the package (``collider simulate NAME`` finds them)."""
+    return sorted(p.stem for p in SCENES_DIR.glob("*.toml"))
+
+
+def resolve_scene(name_or_path: str) -> Path:
+    path = Path(name_or_path)
+    if path.is_file():
+        return path
+    shipped = SCENES_DIR / f"{name_or_path}.toml"
+    if shipped.is_file():
+        return shipped
+    raise FileNotFoundError(f"no scene file {name_or_path!r}; shipped scenes: "
+                            f"{', '.join(shipped_scenes())}")
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser(
+        "simulate", help="run a cloth scene (TOML) against the colliders",
+        description="Simulate a cloth scene with the reference Verlet simulator. SCENE is a TOML "
+                    f"file or a shipped scene name ({', '.join(shipped_scenes())}). Writes "
+                    "OBJ + PC2 (Blender: import the OBJ, add a Mesh Cache modifier with the PC2), "
+                    "a PNG preview and a report.")
+    p.add_argument("scene", help="scene file or shipped scene name")
+    p.add_argument("--server", default=None,
+                   help="URL of a running `collider serve` (default: the engine in process)")
+    p.add_argument("--token", default=None, help="bearer token for --server")
+    p.add_argument("--models", type=Path, default=None, help="model repository (embedded; default models/)")
+    p.add_argument("--device", default=None, help="embedded engine device: cpu, cuda, auto")
+    p.add_argument("--output", type=Path, default=Path("out"), help="output folder (default out/)")
+    p.add_argument("--steps", type=int, default=None, help="simulate only this many steps")
+    p.add_argument("--no-preview", action="store_true", help="skip the PNG")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--check-mesh", action="append", default=[], metavar="MODEL=MESH",
+                   help="also measure penetration of every output frame against the exact SDF of "
+                        "MESH (collider frame) for collider MODEL; repeatable")
+    p.set_defaults(func=run_simulate)
+
+
+def run_simulate(args: argparse.Namespace) -> int:
+    from .. import Client
+    from .run import run_scene
+    from .scene import load_scene
+
+    scene = load_scene(resolve_scene(args.scene))
+    if args.steps is not None and args.steps < 1:
+        raise ValueError(f"--steps must be >= 1, got {args.steps}")
+    checks = {}
+    for item in args.check_mesh:
+        model, sep, mesh = item.partition("=")
+        if not sep or not model or not mesh:
+            raise ValueError(f"--check-mesh wants MODEL=MESH, got {item!r}")
+        checks[model] = Path(mesh)
+    client = None
+    if scene.colliders:
+        client = Client(args.server, token=args.token) if args.server else Client(
+            models=args.models, device=args.device)
+    try:
+        report, frames = run_scene(scene, client, args.output, show_progress=not args.quiet,
+                                   steps=args.steps, preview=not args.no_preview,
+                                   backend="remote" if args.server else "embedded")
+    finally:
+        if client is not None:
+            client.close()
+    if checks:
+        from .exact import exact_penetration
+
+        report.exact_check = exact_penetration(scene, frames, checks)
+        import json
+        stem = scene.path.stem
+        (args.output / f"{stem}.report.json").write_text(json.dumps(report.to_dict(), indent=2,
+                                                                    default=float))
+    print(report.text())
+    stem = scene.path.stem
+    print(f"wrote {args.output / (stem + '.obj')}, .pc2, .png, .report.json")
+    return 0

@@ -1,0 +1,100 @@
+"""What a run writes: OBJ (the cloth's first frame, quads) + PC2 (every frame), a PNG preview.
+
+PC2 is the point cache Blender reads with its Mesh Cache modifier: a 32-byte header
+(``b"POINTCACHE2\\0"``, int32 version 1, int32 points, float32 start frame, float32 sample rate,
+int32 samples) then float32 x, y, z per point per frame, little-endian. Coordinates are metres,
+world frame (z up in the shipped scenes; Blender is z-up too).
+"""
+
+from __future__ import annotations
+
+import struct
+from pathlib import Path
+
+import numpy as np
+
+PC2_MAGIC = b"POINTCACHE2\0"
+
+
+def write_obj(path: Path, vertices: np.ndarray, faces: np.ndarray, name: str = "cloth") -> None:
+    """OBJ with ``vertices`` (n, 3) metres and 0-based ``faces`` (F, k) written 1-based."""
+    with open(path, "w") as f:
+        f.write(f"# neural-collider cloth, metres, world frame\no {name}\n")
+        np.savetxt(f, vertices, fmt="v %.7g %.7g %.7g")
+        np.savetxt(f, faces + 1, fmt="f" + " %d" * faces.shape[1])
+
+
+class PC2Writer:
+    """Appends frames of (n, 3) positions to a PC2 file; the sample count is fixed on close."""
+
+    def __init__(self, path: Path, points: int, frame_rate_hz: float):
+        self.path = Path(path)
+        self.points = points
+        self.samples = 0
+        self._file = open(self.path, "wb")
+        self._file.write(struct.pack("<12siiffi", PC2_MAGIC, 1, points, 0.0, 1.0, 0))
+        self.frame_rate_hz = frame_rate_hz
+
+    def write(self, vertices: np.ndarray) -> None:
+        if vertices.shape != (self.points, 3):
+            raise ValueError(f"frame must be ({self.points}, 3), got {vertices.shape}")
+        self._file.write(np.ascontiguousarray(vertices, dtype="<f4").tobytes())
+        self.samples += 1
+
+    def close(self) -> None:
+        if self._file.closed:
+            return
+        self._file.seek(28)
+        self._file.write(struct.pack("<i", self.samples))
+        self._file.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+
+def read_pc2(path: Path) -> np.ndarray:
+    """(frames, n, 3) float32 from a PC2 file (for tests and the exact check)."""
+    data = Path(path).read_bytes()
+    magic, version, points, _start, _rate, samples = struct.unpack("<12siiffi", data[:32])
+    if magic != PC2_MAGIC:
+        raise ValueError(f"{path}: not a PC2 file")
+    return np.frombuffer(data[32:], dtype="<f4").reshape(samples, points, 3)
+
+
+def write_preview(path: Path, frames: dict[int, np.ndarray], width: int, height: int,
+                  times_s: dict[int, float], title: str,
+                  collider_points: list[np.ndarray] | None = None) -> None:
+    """PNG with one 3-D panel per chosen frame: the cloth surface (and collider surface points,
+    world frame, when given). ``frames`` maps frame index -> (W*H, 3) positions."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    count = len(frames)
+    fig = plt.figure(figsize=(4.2 * count, 4.4))
+    stride = max(1, max(width, height) // 60)  # plot_surface is slow above ~60 x 60 cells
+    all_points = np.concatenate(list(frames.values()) + (collider_points or []))
+    lo, hi = all_points.min(axis=0), all_points.max(axis=0)
+    centre, half = (lo + hi) / 2, max(float((hi - lo).max()) / 2, 1e-6)
+    for k, (index, vertices) in enumerate(sorted(frames.items())):
+        ax = fig.add_subplot(1, count, k + 1, projection="3d")
+        grid = vertices.reshape(height, width, 3)[::stride, ::stride]
+        ax.plot_surface(grid[..., 0], grid[..., 1], grid[..., 2], color="#4a90d9",
+                        edgecolor="#1f4e79", linewidth=0.2, alpha=0.9, shade=True)
+        for pts in collider_points or []:
+            ax.scatter(pts[:, 0], pts[:, 1], pts[:, 2], s=0.3, c="#c0392b", alpha=0.4)
+        for axis, set_lim in zip(range(3), (ax.set_xlim, ax.set_ylim, ax.set_zlim)):
+            set_lim(centre[axis] - half, centre[axis] + half)
+        ax.set_title(f"frame {index}, t = {times_s[index]:.3f} s", fontsize=9)
+        ax.set_xlabel("x (m)", fontsize=7)
+        ax.set_ylabel("y (m)", fontsize=7)
+        ax.set_zlabel("z (m)", fontsize=7)
+        ax.tick_params(labelsize=6)
+    fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)

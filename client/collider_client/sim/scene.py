@@ -1,0 +1,373 @@
+"""Scene files: TOML declaring the cloth, the colliders and the effects to simulate.
+
+Units are in the key names (``_m``, ``_s``, ``_kg_m2``, ``_deg``). Frames: the world frame has
+gravity along -z by default; a collider's ``position_m``/``rotation_deg`` place its frame in the
+world (collider -> world). Only the tables under ``[effects]`` that a file declares are simulated.
+Every error names the file and the key.
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+EFFECTS = ("gravity", "wind", "damping", "stretch", "shear", "bend", "pins", "collisions",
+           "friction")
+
+
+class SceneError(ValueError):
+    """A scene file that cannot be simulated; the message names the file and the key."""
+
+
+@dataclass
+class Motion:
+    """How a collider moves. kind: "static", "velocity" (constant linear and angular velocity,
+    world frame, about the collider's origin) or "keyframes" (piecewise linear)."""
+
+    kind: str = "static"
+    velocity_m_s: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    angular_velocity_deg_s: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    times_s: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    positions_m: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    rotations_deg: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+
+
+@dataclass
+class ColliderSpec:
+    model: str
+    position_m: np.ndarray
+    rotation_deg: np.ndarray  # extrinsic x, then y, then z (degrees), collider -> world
+    motion: Motion
+
+
+@dataclass
+class ClothSpec:
+    """A W x H grid of vertices (quads) in the plane through ``origin_m`` spanned by ``axes``."""
+
+    width: int
+    height: int
+    spacing_m: float
+    origin_m: np.ndarray
+    axes: str  # "xy" (horizontal), "xz" or "yz" (vertical)
+    density_kg_m2: float
+
+
+@dataclass
+class Scene:
+    path: Path
+    name: str
+    duration_s: float
+    dt_s: float
+    frame_every: int
+    preview_frames: list[int]
+    cloth: ClothSpec
+    colliders: list[ColliderSpec]
+    effects: dict[str, dict[str, Any]]
+
+    @property
+    def steps(self) -> int:
+        return int(round(self.duration_s / self.dt_s))
+
+    def has(self, effect: str) -> bool:
+        return effect in self.effects
+
+
+# -- readers that name the key -------------------------------------------------------------------
+
+class _Table:
+    """A TOML table that remembers where it is, so each error names file and key."""
+
+    def __init__(self, data: dict, where: str, path: Path):
+        if not isinstance(data, dict):
+            raise SceneError(f"{path}: [{where}] must be a table, got {type(data).__name__}")
+        self.data, self.where, self.path, self.used = data, where, path, set()
+
+    def key(self, name: str) -> str:
+        return f"{self.where}.{name}" if self.where else name
+
+    def fail(self, name: str, message: str):
+        raise SceneError(f"{self.path}: {self.key(name)}: {message}")
+
+    def get(self, name: str, default=None, required: bool = False):
+        self.used.add(name)
+        if name not in self.data:
+            if required:
+                self.fail(name, "missing (required)")
+            return default
+        return self.data[name]
+
+    def number(self, name, default=None, required=False, minimum=None, positive=False,
+               integer=False, maximum=None):
+        value = self.get(name, default, required)
+        if value is None:
+            return None
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or (
+                integer and not isinstance(value, int)):
+            self.fail(name, f"must be {'an integer' if integer else 'a number'}, "
+                            f"got {type(value).__name__} {value!r}")
+        if not math.isfinite(value):
+            self.fail(name, f"must be finite, got {value}")
+        if positive and not value > 0:
+            self.fail(name, f"must be > 0, got {value}")
+        if minimum is not None and value < minimum:
+            self.fail(name, f"must be >= {minimum}, got {value}")
+        if maximum is not None and value > maximum:
+            self.fail(name, f"must be <= {maximum}, got {value}")
+        return value
+
+    def vector(self, name, default=None, required=False, length=3) -> np.ndarray | None:
+        value = self.get(name, default, required)
+        if value is None:
+            return None
+        if (not isinstance(value, list) or len(value) != length or any(
+                isinstance(v, bool) or not isinstance(v, (int, float)) for v in value)):
+            self.fail(name, f"must be a list of {length} numbers, got {value!r}")
+        array = np.asarray(value, dtype=np.float64)
+        if not np.isfinite(array).all():
+            self.fail(name, f"must be finite, got {value!r}")
+        return array
+
+    def string(self, name, default=None, required=False, choices=None):
+        value = self.get(name, default, required)
+        if value is None:
+            return None
+        if not isinstance(value, str):
+            self.fail(name, f"must be a string, got {type(value).__name__} {value!r}")
+        if choices is not None and value not in choices:
+            self.fail(name, f"must be one of {list(choices)}, got {value!r}")
+        return value
+
+    def table(self, name, required=False) -> "_Table | None":
+        value = self.get(name, None, required)
+        if value is None:
+            return None
+        return _Table(value, self.key(name), self.path)
+
+    def done(self):
+        unknown = sorted(set(self.data) - self.used)
+        if unknown:
+            raise SceneError(f"{self.path}: unknown key(s) {[self.key(u) for u in unknown]}"
+                             f"; known here: {sorted(self.used)}")
+
+
+# -- the scene -----------------------------------------------------------------------------------
+
+def load_scene(path: str | Path) -> Scene:
+    """Read and validate a scene file. Raises :class:`SceneError` (a ValueError) or
+    FileNotFoundError. Model names are checked later against the repository or server."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no such scene file")
+    try:
+        data = tomllib.loads(path.read_text())
+    except tomllib.TOMLDecodeError as exc:
+        raise SceneError(f"{path}: not valid TOML: {exc}") from None
+    root = _Table(data, "", path)
+
+    run = root.table("scene", required=True)
+    name = run.string("name", default=path.stem)
+    duration_s = run.number("duration_s", required=True, positive=True)
+    dt_s = run.number("dt_s", required=True, positive=True)
+    if dt_s > duration_s:
+        run.fail("dt_s", f"is longer than duration_s ({dt_s} > {duration_s})")
+    frame_every = run.number("frame_every_steps", default=100, integer=True, minimum=1)
+    preview = run.get("preview_frames", [0, -1])
+    if not isinstance(preview, list) or not all(isinstance(i, int) and not isinstance(i, bool)
+                                                for i in preview):
+        run.fail("preview_frames", f"must be a list of frame indices (negative from the end), got {preview!r}")
+    run.done()
+
+    c = root.table("cloth", required=True)
+    cloth = ClothSpec(
+        width=c.number("width", required=True, integer=True, minimum=2, maximum=4096),
+        height=c.number("height", required=True, integer=True, minimum=2, maximum=4096),
+        spacing_m=c.number("spacing_m", required=True, positive=True),
+        origin_m=c.vector("origin_m", default=[0.0, 0.0, 0.0]),
+        axes=c.string("axes", default="xy", choices=("xy", "xz", "yz")),
+        density_kg_m2=c.number("density_kg_m2", default=0.5, positive=True),
+    )
+    c.done()
+
+    colliders = []
+    entries = root.get("colliders", [])
+    if not isinstance(entries, list):
+        root.fail("colliders", "must be an array of tables ([[colliders]])")
+    for i, entry in enumerate(entries):
+        t = _Table(entry, f"colliders[{i}]", path)
+        model = t.string("model", required=True)
+        position = t.vector("position_m", default=[0.0, 0.0, 0.0])
+        rotation = t.vector("rotation_deg", default=[0.0, 0.0, 0.0])
+        motion = _motion(t.table("motion"), path, f"colliders[{i}].motion")
+        t.done()
+        colliders.append(ColliderSpec(model, position, rotation, motion))
+
+    effects_table = root.table("effects", required=True)
+    effects: dict[str, dict[str, Any]] = {}
+    for effect in EFFECTS:
+        t = effects_table.table(effect)
+        if t is not None:
+            effects[effect] = _EFFECT_READERS[effect](t, cloth)
+            t.done()
+    effects_table.done()
+    root.done()
+
+    scene = Scene(path, name, duration_s, dt_s, frame_every, preview, cloth, colliders, effects)
+    _check_consistency(scene)
+    return scene
+
+
+def _motion(t: _Table | None, path: Path, where: str) -> Motion:
+    if t is None:
+        return Motion()
+    kind = t.string("kind", default="static", choices=("static", "velocity", "keyframes"))
+    motion = Motion(kind=kind)
+    if kind == "velocity":
+        motion.velocity_m_s = t.vector("velocity_m_s", default=[0.0, 0.0, 0.0])
+        motion.angular_velocity_deg_s = t.vector("angular_velocity_deg_s", default=[0.0, 0.0, 0.0])
+    elif kind == "keyframes":
+        times = t.get("times_s", required=True)
+        if (not isinstance(times, list) or len(times) < 2 or any(
+                isinstance(v, bool) or not isinstance(v, (int, float)) for v in times)):
+            t.fail("times_s", f"must be a list of at least 2 numbers, got {times!r}")
+        times = np.asarray(times, dtype=np.float64)
+        if np.any(np.diff(times) <= 0):
+            t.fail("times_s", f"must increase strictly, got {times.tolist()}")
+        motion.times_s = times
+        for key in ("positions_m", "rotations_deg"):
+            value = t.get(key, [[0.0, 0.0, 0.0]] * len(times))
+            try:
+                array = np.asarray(value, dtype=np.float64)
+            except (TypeError, ValueError):
+                t.fail(key, f"must be a list of [x, y, z] lists, got {value!r}")
+            if array.shape != (len(times), 3) or not np.isfinite(array).all():
+                t.fail(key, f"must hold {len(times)} finite [x, y, z] rows (one per time), "
+                            f"got shape {array.shape}")
+            setattr(motion, key, array)
+    t.done()
+    return motion
+
+
+def _gravity(t, cloth):
+    return {"acceleration_m_s2": t.vector("acceleration_m_s2", default=[0.0, 0.0, -9.81])}
+
+
+def _wind(t, cloth):
+    return {"velocity_m_s": t.vector("velocity_m_s", required=True),
+            "drag_1_s": t.number("drag_1_s", default=1.0, minimum=0.0)}
+
+
+def _damping(t, cloth):
+    return {"coefficient_1_s": t.number("coefficient_1_s", required=True, minimum=0.0)}
+
+
+def _spring(t, cloth):
+    return {"stiffness_n_m": t.number("stiffness_n_m", required=True, positive=True)}
+
+
+def _pins(t, cloth):
+    corners = t.get("corners", [])
+    valid = ("top-left", "top-right", "bottom-left", "bottom-right")
+    if not isinstance(corners, list) or any(c not in valid for c in corners):
+        t.fail("corners", f"must be a list of {list(valid)}, got {corners!r}")
+    vertices = t.get("vertices", [])
+    if not isinstance(vertices, list) or any(
+            not (isinstance(v, list) and len(v) == 2 and all(isinstance(i, int) for i in v))
+            for v in vertices):
+        t.fail("vertices", f"must be a list of [column, row] integer pairs, got {vertices!r}")
+    for col, row in vertices:
+        if not (0 <= col < cloth.width and 0 <= row < cloth.height):
+            t.fail("vertices", f"[{col}, {row}] is outside the {cloth.width} x {cloth.height} cloth")
+    if not corners and not vertices:
+        t.fail("corners", "pins need at least one of corners or vertices")
+    return {"corners": corners, "vertices": vertices}
+
+
+def _collisions(t, cloth):
+    return {"eps_m": t.number("eps_m", default=1e-3, positive=True)}
+
+
+def _friction(t, cloth):
+    return {"coefficient": t.number("coefficient", required=True, minimum=0.0),
+            "restitution": t.number("restitution", default=0.0, minimum=0.0, maximum=1.0)}
+
+
+_EFFECT_READERS = {"gravity": _gravity, "wind": _wind, "damping": _damping, "stretch": _spring,
+                   "shear": _spring, "bend": _spring, "pins": _pins, "collisions": _collisions,
+                   "friction": _friction}
+
+
+def _check_consistency(scene: Scene) -> None:
+    path = scene.path
+    if scene.colliders and not scene.has("collisions"):
+        raise SceneError(f"{path}: colliders are declared but [effects.collisions] is absent; "
+                         "add it or remove the [[colliders]]")
+    if scene.has("collisions") and not scene.colliders:
+        raise SceneError(f"{path}: effects.collisions needs at least one [[colliders]] entry")
+    if scene.has("friction") and not scene.has("collisions"):
+        raise SceneError(f"{path}: effects.friction needs effects.collisions")
+    # Explicit integration of springs is stable while dt < 2 / omega_max; the stiffest grid mode
+    # is about (4 per declared spring family) * k / m. Refuse runs that would blow up.
+    mass = scene.cloth.density_kg_m2 * scene.cloth.spacing_m ** 2
+    k_total = sum(4.0 * scene.effects[s]["stiffness_n_m"] for s in ("stretch", "shear", "bend")
+                  if scene.has(s))
+    if k_total:
+        dt_max = 2.0 / math.sqrt(k_total / mass)
+        if scene.dt_s >= dt_max:
+            raise SceneError(
+                f"{path}: scene.dt_s = {scene.dt_s} is unstable for these springs (vertex mass "
+                f"{mass:.3g} kg from cloth.density_kg_m2, stiffness sum {k_total / 4:g} N/m): "
+                f"use dt_s < {dt_max:.3g}, softer springs or a denser cloth")
+
+
+def euler_matrix(rotation_deg: np.ndarray) -> np.ndarray:
+    """(3, 3) rotation: about x, then y, then z (extrinsic), angles in degrees."""
+    ax, ay, az = np.radians(rotation_deg)
+    rx = np.array([[1, 0, 0], [0, np.cos(ax), -np.sin(ax)], [0, np.sin(ax), np.cos(ax)]])
+    ry = np.array([[np.cos(ay), 0, np.sin(ay)], [0, 1, 0], [-np.sin(ay), 0, np.cos(ay)]])
+    rz = np.array([[np.cos(az), -np.sin(az), 0], [np.sin(az), np.cos(az), 0], [0, 0, 1]])
+    return rz @ ry @ rx
+
+
+def axis_angle_matrix(rotation_vector_rad: np.ndarray) -> np.ndarray:
+    """(3, 3) rotation by ``|r|`` radians about ``r / |r|`` (Rodrigues)."""
+    angle = float(np.linalg.norm(rotation_vector_rad))
+    if angle < 1e-15:
+        return np.eye(3)
+    k = np.asarray(rotation_vector_rad) / angle
+    kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.eye(3) + math.sin(angle) * kx + (1 - math.cos(angle)) * kx @ kx
+
+
+def pose_function(spec: ColliderSpec):
+    """``t -> (4, 4)`` collider -> world pose for a collider spec, or None when it never moves
+    from the identity (static with no placement)."""
+    base = np.eye(4)
+    base[:3, :3] = euler_matrix(spec.rotation_deg)
+    base[:3, 3] = spec.position_m
+    motion = spec.motion
+    if motion.kind == "static":
+        return lambda t: base
+
+    if motion.kind == "velocity":
+        def at(t: float) -> np.ndarray:
+            m = np.eye(4)
+            m[:3, :3] = axis_angle_matrix(np.radians(motion.angular_velocity_deg_s) * t) @ base[:3, :3]
+            m[:3, 3] = base[:3, 3] + motion.velocity_m_s * t
+            return m
+        return at
+
+    def keyed(t: float) -> np.ndarray:
+        # Keyframes are offsets added to the base placement, linear in time, held at the ends.
+        times = motion.times_s
+        position = np.array([np.interp(t, times, motion.positions_m[:, i]) for i in range(3)])
+        rotation = np.array([np.interp(t, times, motion.rotations_deg[:, i]) for i in range(3)])
+        m = np.eye(4)
+        m[:3, :3] = euler_matrix(rotation) @ base[:3, :3]
+        m[:3, 3] = base[:3, 3] + position
+        return m
+    return keyed
