@@ -103,7 +103,10 @@ def check_fields(fields: Iterable[str] | str) -> tuple[str, ...]:
 
 def check_points(points) -> np.ndarray:
     """Validate query points: an (n, 3) array of finite float32/float64 numbers."""
-    array = np.asarray(points)
+    try:
+        array = np.asarray(points)
+    except (TypeError, ValueError) as exc:  # ragged nested lists, objects numpy cannot convert
+        raise ValueError(f"points must be an (n, 3) array of numbers: {exc}") from None
     if array.dtype.kind not in "fiu":
         raise ValueError(f"points must be numbers, got dtype {array.dtype}")
     if array.ndim == 1 and array.size == 0:
