@@ -69,10 +69,17 @@ def load_mesh(path: str | Path, max_faces: int = MAX_FACES) -> Mesh:
     import trimesh
 
     path = Path(path)
+    if path.is_dir():
+        raise MeshError(f"{path}: is a directory, not a mesh file")
     if not path.is_file():
         raise MeshError(f"{path}: no such mesh file")
     try:
         loaded = trimesh.load(path, process=False, force="mesh")
+    except ImportError:
+        # trimesh guesses the encoding of text that is not UTF-8 with an optional package; a
+        # binary blob named .obj ends up here, so say what is wrong with the file instead.
+        raise MeshError(f"{path}: cannot read mesh (not UTF-8 text, so not a valid "
+                        f"{path.suffix or 'mesh'} file)") from None
     except Exception as exc:  # trimesh raises many types for broken files
         raise MeshError(f"{path}: cannot read mesh ({type(exc).__name__}: {exc})") from None
     if not isinstance(loaded, trimesh.Trimesh):
