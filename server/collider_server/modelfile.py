@@ -73,6 +73,8 @@ def save_collider(collider: Collider, path: str | Path) -> Path:
 def _read_header(path: Path) -> tuple[dict, ColliderInfo]:
     from safetensors import safe_open
 
+    if path.is_dir():
+        raise ModelFileError(path, "is a directory, not a model file")
     if not path.is_file():
         raise ModelFileError(path, "no such model file")
     try:
