@@ -1,0 +1,260 @@
+"""The service under load and change, against real servers: coalescing and splitting, 429 when
+the queue is full, 504 at the deadline, disconnected callers leaving the queue, auth, admin
+load/unload while others query, metrics, and a graceful shutdown on SIGTERM."""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import shutil
+import signal
+import subprocess
+import sys
+import threading
+import time
+from concurrent.futures import ThreadPoolExecutor
+
+import httpx
+import numpy as np
+import pytest
+from collider_client import wire
+
+from .conftest import ADMIN_TOKEN, ServerThread, free_port, make_repo, wait_ready
+from .test_queries import decode, post, sample_points
+
+
+def metric(url: str, name: str, headers=None) -> float:
+    text = httpx.get(f"{url}/metrics", headers=headers).text
+    found = re.search(rf"^{re.escape(name)} ([0-9.e+-]+)$", text, re.M)
+    return float(found.group(1)) if found else 0.0
+
+
+def test_concurrent_callers_are_coalesced_and_each_gets_its_own_answers(repo, engine):
+    with ServerThread(models=repo, device="cpu", max_wait_ms=50) as server:
+        inputs = [sample_points(100 + i, 100 + i) for i in range(24)]
+        barrier = threading.Barrier(len(inputs))
+
+        def call(i):
+            barrier.wait()
+            return decode(post(f"{server.url}/v1/models/sphere/query",
+                               {"points": inputs[i], "fields": ["distance", "normal"]}))
+
+        with ThreadPoolExecutor(len(inputs)) as pool:
+            results = list(pool.map(call, range(len(inputs))))
+        for points, got in zip(inputs, results):
+            want = engine["sphere"].query(points, ["distance", "normal"])
+            np.testing.assert_array_equal(got["distance"], want.distance)
+            np.testing.assert_array_equal(got["normal"], want.normal)
+        batches = metric(server.url, 'collider_batch_points_count{model="sphere"}')
+        points = metric(server.url, 'collider_batch_points_sum{model="sphere"}')
+        assert points == sum(len(p) for p in inputs) + 0  # every point computed exactly once
+        assert batches < len(inputs) / 2, f"{batches} batches for {len(inputs)} requests"
+
+
+def test_large_request_is_split_across_batches(repo, engine):
+    with ServerThread(models=repo, device="cpu", max_batch_points=256) as server:
+        points = sample_points(2000, 7)
+        got = decode(post(f"{server.url}/v1/models/sphere/query",
+                          {"points": points, "fields": ["distance", "contact"]}))
+        want = engine["sphere"].query(points, ["distance", "contact"])
+        np.testing.assert_array_equal(got["distance"], want.distance)
+        np.testing.assert_array_equal(got["contact"], want.contact)
+        assert metric(server.url, 'collider_batch_points_count{model="sphere"}') == 8
+
+
+@pytest.fixture(scope="module")
+def slow_server(repo):
+    """A batch waits 10 s for more points and the queue holds 1,000 points: a request of 800
+    sits in the queue, deterministically, until its deadline or its client goes."""
+    with ServerThread(models=repo, device="cpu", max_wait_ms=10_000, max_queue_points=1000,
+                      max_request_points=1000) as server:
+        yield server
+
+
+def background_post(url: str, body: dict, timeout: float = 30):
+    pool = ThreadPoolExecutor(1)
+    future = pool.submit(lambda: httpx.post(url, content=wire.dumps(body),
+                                            headers={"content-type": wire.MSGPACK}, timeout=timeout))
+    pool.shutdown(wait=False)
+    return future
+
+
+def test_queue_full_answers_429_at_once_and_deadlines_504(slow_server):
+    url = f"{slow_server.url}/v1/models/sphere/query"
+    first = background_post(url, {"points": sample_points(800, 1), "deadline_ms": 1500})
+    time.sleep(0.4)  # let it reach the queue
+    start = time.monotonic()
+    full = post(url, {"points": sample_points(800, 2), "deadline_ms": 1000})
+    assert time.monotonic() - start < 0.5  # refused at once, no waiting
+    assert full.status_code == 429 and full.json()["type"] == "queue-full"
+    assert int(full.headers["retry-after"]) >= 1
+    assert "max_queue_points=1000" in full.json()["detail"]
+    timed_out = first.result(10)
+    assert timed_out.status_code == 504 and timed_out.json()["type"] == "deadline-exceeded"
+    # The expired request left the queue: a new one fits again (and expires too).
+    header = post(url, {"points": sample_points(900, 3)}, headers={"X-Deadline-Ms": "200"})
+    assert header.status_code == 504
+
+
+def test_disconnected_client_leaves_the_queue(slow_server):
+    url = f"{slow_server.url}/v1/models/small/query"
+    with pytest.raises(httpx.ReadTimeout):
+        httpx.post(url, content=wire.dumps({"points": sample_points(900, 4)}),
+                   headers={"content-type": wire.MSGPACK}, timeout=0.5)
+    time.sleep(0.2)
+    # Were the 900 points still queued, 900 more would be refused with 429.
+    again = post(url, {"points": sample_points(900, 5), "deadline_ms": 300})
+    assert again.status_code == 504, again.text
+
+
+def test_auth_on(repo, engine):
+    with ServerThread(models=repo, device="cpu", token="s3cret", admin_token=ADMIN_TOKEN) as server:
+        url = f"{server.url}/v1/models/sphere/query"
+        body = {"points": sample_points(10, 8)}
+        missing = post(url, body)
+        assert missing.status_code == 401 and missing.headers["www-authenticate"].startswith("Bearer")
+        assert missing.headers["content-type"] == "application/problem+json"
+        wrong = post(url, body, headers={"Authorization": "Bearer nope"})
+        assert wrong.status_code == 401 and "not valid" in wrong.json()["detail"]
+        ok = decode(post(url, body, headers={"Authorization": "Bearer s3cret"}))
+        np.testing.assert_array_equal(ok["distance"], engine["sphere"].query(body["points"]).distance)
+        for path in ("/v1/models", "/v1/models/sphere", "/metrics"):
+            assert httpx.get(server.url + path).status_code == 401
+            assert httpx.get(server.url + path, headers={"Authorization": "Bearer s3cret"}).status_code == 200
+        assert post(f"{server.url}/v1/scene/query", {**body, "colliders": [{"model": "sphere"}]}).status_code == 401
+        for path in ("/livez", "/readyz"):
+            assert httpx.get(server.url + path).status_code == 200
+        # Admin routes take the admin token, not the service token.
+        user = httpx.delete(f"{server.url}/v1/admin/models/small", headers={"Authorization": "Bearer s3cret"})
+        assert user.status_code == 401
+
+
+def test_auth_off_by_default_and_admin_disabled(server):
+    assert httpx.get(f"{server.url}/v1/models").status_code == 200
+    response = httpx.delete(f"{server.url}/v1/admin/models/sphere",
+                            headers={"Authorization": f"Bearer {ADMIN_TOKEN}"})
+    assert response.status_code == 403 and "COLLIDER_ADMIN_TOKEN" in response.json()["detail"]
+    assert httpx.get(f"{server.url}/v1/models/sphere").status_code == 200
+
+
+def test_admin_load_and_unload_while_others_query(tmp_path, model_files, engine):
+    repo = make_repo(tmp_path / "models", model_files, names=["sphere"])
+    admin = {"Authorization": f"Bearer {ADMIN_TOKEN}"}
+    with ServerThread(models=repo, device="cpu", admin_token=ADMIN_TOKEN) as server:
+        stop = threading.Event()
+        statuses: list[int] = []
+        points = sample_points(500, 9)
+        want = engine["sphere"].query(points).distance
+
+        def keep_querying():
+            with httpx.Client(timeout=30) as client:
+                while not stop.is_set():
+                    r = client.post(f"{server.url}/v1/models/sphere/query",
+                                    content=wire.dumps({"points": points}),
+                                    headers={"content-type": wire.MSGPACK})
+                    statuses.append(r.status_code)
+                    np.testing.assert_array_equal(decode(r)["distance"], want)
+
+        thread = threading.Thread(target=keep_querying)
+        thread.start()
+        try:
+            assert post(f"{server.url}/v1/models/late/query", {"points": points}).status_code == 404
+            shutil.copy(model_files["small"], repo / "late.safetensors")
+            loaded = httpx.put(f"{server.url}/v1/admin/models/late", headers=admin, timeout=60)
+            assert loaded.status_code == 200 and loaded.json()["info"]["name"] == "late"
+            got = decode(post(f"{server.url}/v1/models/late/query", {"points": points}))
+            np.testing.assert_array_equal(got["distance"], engine["small"].query(points).distance)
+            assert metric(server.url, "collider_models_loaded") == 2
+            reloaded = httpx.put(f"{server.url}/v1/admin/models/sphere", headers=admin, timeout=60)
+            assert reloaded.status_code == 200
+            assert httpx.delete(f"{server.url}/v1/admin/models/late", headers=admin).status_code == 200
+            assert post(f"{server.url}/v1/models/late/query", {"points": points}).status_code == 404
+            assert httpx.delete(f"{server.url}/v1/admin/models/late", headers=admin).status_code == 404
+            missing = httpx.put(f"{server.url}/v1/admin/models/ghost", headers=admin)
+            assert missing.status_code == 404 and "ghost" in missing.json()["detail"]
+            (repo / "broken.safetensors").write_bytes(b"not a model")
+            broken = httpx.put(f"{server.url}/v1/admin/models/broken", headers=admin)
+            assert broken.status_code == 422 and broken.json()["type"] == "bad-model-file"
+            time.sleep(0.2)
+        finally:
+            stop.set()
+            thread.join(30)
+        assert statuses and set(statuses) == {200}, set(statuses)
+
+
+def test_metrics_count_requests_by_status(server):
+    post(f"{server.url}/v1/models/sphere/query", {"points": sample_points(10, 1)})
+    httpx.post(f"{server.url}/v1/models/sphere/query", content=b"x", headers={"content-type": "text/csv"})
+    text = httpx.get(f"{server.url}/metrics").text
+    assert re.search(r'collider_requests_total\{method="POST",route="/v1/models/\{name\}/query",'
+                     r'status="415"\} [1-9]', text)
+    for name in ("collider_queue_seconds_bucket", "collider_compute_seconds_sum",
+                 "collider_points_total", "collider_points_per_second", "collider_models_loaded"):
+        assert name in text
+
+
+def serve_subprocess(repo, *args, env=None):
+    port = free_port()
+    process = subprocess.Popen(
+        [sys.executable, "-m", "collider_server.cli", "serve", "--models", str(repo), "--port",
+         str(port), "--device", "cpu", *args],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+        env={**os.environ, **(env or {})})
+    url = f"http://127.0.0.1:{port}"
+    try:
+        wait_ready(url)
+    except TimeoutError:
+        process.kill()
+        raise AssertionError(process.communicate()[0])
+    return process, url
+
+
+def test_graceful_shutdown_answers_every_accepted_request(repo, engine):
+    # Batches wait 1.5 s, so the requests are still queued when SIGTERM arrives.
+    process, url = serve_subprocess(repo, "--max-wait-ms", "1500")
+    try:
+        inputs = [sample_points(50 + i, 200 + i) for i in range(8)]
+        with ThreadPoolExecutor(len(inputs)) as pool:
+            futures = [pool.submit(post, f"{url}/v1/models/sphere/query", {"points": p})
+                       for p in inputs]
+            time.sleep(0.6)
+            process.send_signal(signal.SIGTERM)
+            results = [f.result(30) for f in futures]
+        for points, response in zip(inputs, results):
+            np.testing.assert_array_equal(decode(response)["distance"],
+                                          engine["sphere"].query(points).distance)
+        # uvicorn re-raises the signal after its clean shutdown (the conventional exit status).
+        assert process.wait(30) in (0, -signal.SIGTERM)
+        with pytest.raises(httpx.ConnectError):
+            httpx.get(f"{url}/livez")
+    finally:
+        if process.poll() is None:
+            process.kill()
+        output = process.communicate()[0]
+    assert "Application shutdown complete" in output
+
+
+def test_settings_from_config_file_env_and_flags(tmp_path, monkeypatch):
+    from collider_server.service import load_settings
+
+    config = tmp_path / "serve.toml"
+    config.write_text("[serve]\nmax_wait_ms = 5.0\nmax_batch_points = 1000\nport = 9001\n")
+    monkeypatch.setenv("COLLIDER_MAX_BATCH_POINTS", "2000")
+    settings = load_settings(config, port=9002, max_wait_ms=None)
+    assert (settings.max_wait_ms, settings.max_batch_points, settings.port) == (5.0, 2000, 9002)
+    (tmp_path / "bad.json").write_text(json.dumps({"max_wait_mss": 1}))
+    with pytest.raises(ValueError, match="max_wait_mss"):
+        load_settings(tmp_path / "bad.json")
+
+
+def test_serve_cli_user_errors_are_one_line(tmp_path):
+    result = subprocess.run(
+        [sys.executable, "-m", "collider_server.cli", "serve", "--models", str(tmp_path / "none")],
+        capture_output=True, text=True, timeout=60)
+    assert result.returncode == 2 and "is not a folder" in result.stderr
+    assert "Traceback" not in result.stderr and len(result.stderr.strip().splitlines()) == 1
+    result = subprocess.run(
+        [sys.executable, "-m", "collider_server.cli", "serve", "--max-wait-ms", "-1"],
+        capture_output=True, text=True, timeout=60)
+    assert result.returncode == 2 and "max_wait_ms" in result.stderr
