@@ -1,0 +1,61 @@
+"""Pose validation and the float64 moves between world and collider frames."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from collider_server.pose import IDENTITY, Pose, PoseError, as_pose
+
+
+def random_rotation(seed) -> np.ndarray:
+    q, r = np.linalg.qr(np.random.default_rng(seed).normal(size=(3, 3)))
+    q *= np.sign(np.diag(r))
+    return q if np.linalg.det(q) > 0 else -q
+
+
+def matrix(rotation, translation, scale=1.0):
+    m = np.eye(4)
+    m[:3, :3] = scale * rotation
+    m[:3, 3] = translation
+    return m
+
+
+def test_none_is_the_identity_and_a_pose_passes_through():
+    assert as_pose(None) is IDENTITY and IDENTITY.is_identity
+    pose = as_pose(np.eye(4))
+    assert pose.is_identity and as_pose(pose) is pose
+
+
+@pytest.mark.parametrize("scale", [1.0, 2.5, 1e-3])
+def test_to_local_inverts_the_pose(scale):
+    rotation = random_rotation(0)
+    translation = np.array([1.2e4, -3.0e3, 7.5e3])
+    pose = as_pose(matrix(rotation, translation, scale))
+    assert pose.scale == pytest.approx(scale, rel=1e-12)
+    np.testing.assert_allclose(pose.rotation, rotation, atol=1e-12)
+    local = np.random.default_rng(1).uniform(-0.2, 0.2, (100, 3))
+    world = local @ (scale * rotation).T + translation
+    # float64 throughout: 1e4 m away the round trip is good to ~1e-12 m.
+    np.testing.assert_allclose(pose.to_local(world), local, rtol=0, atol=1e-11 / min(scale, 1.0))
+    np.testing.assert_allclose(pose.matrix(), matrix(rotation, translation, scale), atol=1e-12)
+    # Directions are rotated only (row i of the result is R e_i): no translation, no scale.
+    np.testing.assert_allclose(pose.to_world_directions(np.eye(3)), rotation.T, atol=1e-12)
+
+
+def test_float32_rotations_are_accepted_and_reorthonormalised():
+    rotation = random_rotation(2).astype(np.float32)
+    pose = as_pose(matrix(rotation.astype(np.float64), [0, 0, 0]).astype(np.float32))
+    assert pose.scale == 1.0
+    np.testing.assert_allclose(pose.rotation.T @ pose.rotation, np.eye(3), atol=1e-14)
+    assert isinstance(pose, Pose)
+
+
+@pytest.mark.parametrize("block, message", [
+    (np.diag([1.0, 1.0, 1.001]), "not rigid"),
+    (np.diag([-1.0, -1.0, -1.0]), "reflection"),
+    ([[0, 1, 0], [1, 0, 0], [0, 0, 1]], "reflection"),
+])
+def test_near_misses_are_rejected(block, message):
+    with pytest.raises(PoseError, match=message):
+        as_pose(matrix(np.asarray(block, float), [0, 0, 0]))
