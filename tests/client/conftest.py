@@ -1,0 +1,95 @@
+"""Client test fixtures: a small model repository and a real ``collider serve`` on loopback.
+
+Colliders are baked into a temporary folder (a voxel sphere of radius 0.1 m and a voxel box), so
+these tests need no shared meshes and no trained models. Units: metres.
+"""
+
+from __future__ import annotations
+
+import os
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+SPHERE_RADIUS_M = 0.1
+
+
+def _bake(kind_shape: str, root: Path) -> None:
+    import trimesh
+
+    from collider_server.bake import bake_collider
+    from collider_server.meshes import Mesh
+    from collider_server.modelfile import save_collider
+
+    if kind_shape == "sphere":
+        shape = trimesh.creation.icosphere(subdivisions=4, radius=SPHERE_RADIUS_M)
+    else:
+        shape = trimesh.creation.box(extents=(0.2, 0.1, 0.05))
+    collider = bake_collider(Mesh(np.asarray(shape.vertices), np.asarray(shape.faces), kind_shape),
+                             "voxel", kind_shape, resolution=32, show_progress=False)
+    save_collider(collider, root / f"{kind_shape}.safetensors")
+
+
+@pytest.fixture(scope="session")
+def models_dir(tmp_path_factory) -> Path:
+    """A model repository with ``sphere`` (radius 0.1 m at the origin) and ``box``
+    (0.2 x 0.1 x 0.05 m at the origin), voxel colliders, metres."""
+    pytest.importorskip("collider_server", reason="the engine (server extras) is not installed")
+    root = tmp_path_factory.mktemp("models")
+    _bake("sphere", root)
+    _bake("box", root)
+    return root
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.fixture(scope="session")
+def server_url(models_dir):
+    """URL of a real ``collider serve`` subprocess over ``models_dir`` on a free loopback port."""
+    try:
+        import collider_server.service  # noqa: F401
+    except ImportError as exc:
+        pytest.skip(f"collider_server.service is missing ({exc}); the remote backend cannot be "
+                    "tested against a real server")
+    port = _free_port()
+    env = dict(os.environ, COLLIDER_TOKEN="", PYTHONUNBUFFERED="1")
+    env.pop("COLLIDER_TOKEN")
+    process = subprocess.Popen(
+        [sys.executable, "-m", "collider_server.cli", "serve", "--host", "127.0.0.1",
+         "--port", str(port), "--models", str(models_dir), "--device", "cpu",
+         "--log-level", "warning"],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, env=env)
+    url = f"http://127.0.0.1:{port}"
+    import httpx
+
+    deadline = time.monotonic() + 90
+    try:
+        while True:
+            if process.poll() is not None:
+                out = process.stdout.read().decode(errors="replace")
+                pytest.fail(f"collider serve exited with {process.returncode}:\n{out[-3000:]}")
+            try:
+                if httpx.get(url + "/readyz", timeout=1.0).status_code == 200:
+                    break
+            except httpx.TransportError:
+                pass
+            if time.monotonic() > deadline:
+                pytest.fail("collider serve did not become ready within 90 s")
+            time.sleep(0.2)
+        yield url
+    finally:
+        process.terminate()
+        try:
+            process.wait(timeout=20)
+        except subprocess.TimeoutExpired:
+            process.kill()
+            process.wait()
