@@ -38,7 +38,7 @@ class ModelFileError(ValueError):
 def content_hash(info_json: str, tensors: dict[str, np.ndarray]) -> str:
     digest = hashlib.sha256(info_json.encode())
     for name in sorted(tensors):
-        array = np.ascontiguousarray(tensors[name])
+        array = np.ascontiguousarray(tensors[name]).reshape(np.shape(tensors[name]))
         digest.update(f"{name}|{array.dtype.str}|{array.shape}|".encode())
         digest.update(array.tobytes())
     return digest.hexdigest()
@@ -51,7 +51,9 @@ def save_collider(collider: Collider, path: str | Path) -> Path:
     path = Path(path)
     if path.suffix != SUFFIX:
         path = path.with_name(path.name + SUFFIX)
-    tensors = {k: np.ascontiguousarray(v) for k, v in collider.tensors().items()}
+    # np.ascontiguousarray turns a 0-d array (the neural kind's radius) into shape (1,): keep
+    # every array's own shape so the file loads back into the same module.
+    tensors = {k: np.ascontiguousarray(v).reshape(np.shape(v)) for k, v in collider.tensors().items()}
     info_json = json.dumps(collider.info.to_dict(), sort_keys=True)
     metadata = {
         "format": FORMAT,

@@ -130,6 +130,10 @@ class NeuralCollider(Collider):
             arch = Architecture(**info.settings["architecture"])
         except (KeyError, TypeError) as exc:
             raise ValueError(f"neural settings lack a valid architecture: {exc}") from None
+        tensors = dict(tensors)
+        if np.shape(tensors.get("radius")) == (1,):
+            # Files written before scalars kept their shape hold the radius as (1,).
+            tensors["radius"] = np.asarray(tensors["radius"]).reshape(())
         network = build_network(arch, tensors.get("centre", np.zeros(3)), 1.0)
         expected = {k: tuple(v.shape) for k, v in network.state_dict().items()}
         found = {k: tuple(v.shape) for k, v in tensors.items()}
