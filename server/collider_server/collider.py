@@ -145,6 +145,17 @@ def unit_vectors(vectors: np.ndarray, fallback: np.ndarray) -> np.ndarray:
     return out
 
 
+def _domain_corner(value, name: str) -> np.ndarray:
+    """A domain corner from (untrusted) metadata: (3,) float64, finite."""
+    try:
+        corner = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        corner = None
+    if corner is None or corner.shape != (3,) or not np.isfinite(corner).all():
+        raise ValueError(f"{name} must be 3 finite numbers, got {value!r}")
+    return corner
+
+
 class Collider(abc.ABC):
     """Base class of every collider kind. See the module docstring for the fields."""
 
@@ -156,8 +167,13 @@ class Collider(abc.ABC):
 
     def __init__(self, info: ColliderInfo):
         self.info = info
-        self.domain_min = np.asarray(info.domain_min, dtype=np.float64)
-        self.domain_max = np.asarray(info.domain_max, dtype=np.float64)
+        self.domain_min = _domain_corner(info.domain_min, "domain_min")
+        self.domain_max = _domain_corner(info.domain_max, "domain_max")
+        if not (self.domain_min < self.domain_max).all():
+            raise ValueError(f"domain_min must be below domain_max on every axis, got "
+                             f"{self.domain_min.tolist()} and {self.domain_max.tolist()}")
+        if not (isinstance(info.meters_per_unit, (int, float)) and info.meters_per_unit > 0):
+            raise ValueError(f"meters_per_unit must be a number > 0, got {info.meters_per_unit!r}")
 
     # -- what a kind implements -------------------------------------------------------------
 
