@@ -39,19 +39,24 @@ class ModelRepository:
         self.root = Path(root) if root is not None else default_models_dir()
 
     def names(self) -> list[str]:
-        """Sorted names of the model files in the folder (empty if the folder is absent)."""
+        """Sorted names of the model files in the folder (empty if the folder is absent).
+
+        Files whose stem is not a valid model name (hidden files, spaces, ...) are not models:
+        callers pass every name to :meth:`path`, which would refuse them."""
         if not self.root.is_dir():
             return []
-        return sorted(p.name[: -len(SUFFIX)] for p in self.root.glob(f"*{SUFFIX}") if p.is_file())
+        stems = (p.name[: -len(SUFFIX)] for p in self.root.glob(f"*{SUFFIX}") if p.is_file())
+        return sorted(stem for stem in stems if NAME_PATTERN.match(stem))
 
     def path(self, name: str) -> Path:
         return self.root / f"{check_name(name)}{SUFFIX}"
 
     def resolve(self, name_or_path: str) -> Path:
-        """A model name in this repository, or a path to a model file."""
-        candidate = Path(name_or_path)
-        if name_or_path.endswith(SUFFIX) or candidate.is_file():
-            return candidate
+        """A model name in this repository, or a path to a model file (one that ends in
+        ``.safetensors`` or has a directory part). A bare name is always a repository name, even
+        when a file of that name happens to exist in the working directory."""
+        if name_or_path.endswith(SUFFIX) or Path(name_or_path).name != name_or_path:
+            return Path(name_or_path)
         path = self.path(name_or_path)
         if not path.is_file():
             known = ", ".join(self.names()) or "none"
