@@ -283,3 +283,49 @@ def tiny_neural_collider() -> Callable:
     """:func:`make_neural_collider`: ``tiny_neural_collider(domain_min, domain_max, seed=0,
     device="cpu", ...)`` -> an untrained small NeuralCollider (plumbing tests only)."""
     return make_neural_collider
+
+
+def closest_point_brute_force(triangles: np.ndarray, point: np.ndarray) -> tuple[float, np.ndarray]:
+    """Slow, obviously correct reference: the closest point to ``point`` (3,) over every one of
+    ``triangles`` (f, 3, 3), by Ericson's Voronoi-region test per triangle (Real-Time Collision
+    Detection, 5.1.5), float64. Returns ``(distance, closest (3,))``.
+
+    (trimesh.triangles.closest_point is not used: on thin triangles it can return a point on an
+    edge although an interior point is closer.)"""
+    a, b, c = triangles[:, 0], triangles[:, 1], triangles[:, 2]
+    p = np.asarray(point, np.float64)[None, :]
+    ab, ac, ap, bp, cp = b - a, c - a, p - a, p - b, p - c
+
+    def dot(u, v):
+        return np.einsum("ij,ij->i", u, v)
+
+    d1, d2, d3, d4, d5, d6 = dot(ab, ap), dot(ac, ap), dot(ab, bp), dot(ac, bp), dot(ab, cp), dot(ac, cp)
+    va, vb, vc = d3 * d6 - d5 * d4, d5 * d2 - d1 * d6, d1 * d4 - d3 * d2
+    with np.errstate(divide="ignore", invalid="ignore"):
+        on_ab = a + (d1 / (d1 - d3))[:, None] * ab
+        on_ac = a + (d2 / (d2 - d6))[:, None] * ac
+        on_bc = b + ((d4 - d3) / ((d4 - d3) + (d5 - d6)))[:, None] * (c - b)
+        denom = 1.0 / (va + vb + vc)
+        inside = a + (vb * denom)[:, None] * ab + (vc * denom)[:, None] * ac
+    conditions = [
+        (d1 <= 0) & (d2 <= 0),
+        (d3 >= 0) & (d4 <= d3),
+        (vc <= 0) & (d1 >= 0) & (d3 <= 0),
+        (d6 >= 0) & (d5 <= d6),
+        (vb <= 0) & (d2 >= 0) & (d6 <= 0),
+        (va <= 0) & (d4 - d3 >= 0) & (d5 - d6 >= 0),
+    ]
+    choices = [a, b, on_ab, c, on_ac, on_bc]
+    closest = inside.copy()
+    for condition, choice in reversed(list(zip(conditions, choices))):  # first match wins
+        closest[condition] = choice[condition]
+    distance = np.linalg.norm(closest - p, axis=1)
+    best = int(np.nanargmin(distance))
+    return float(distance[best]), closest[best]
+
+
+@pytest.fixture(scope="session")
+def brute_force_closest_point() -> Callable:
+    """:func:`closest_point_brute_force`: ``(triangles (f, 3, 3), point (3,)) -> (distance,
+    closest (3,))``, the slow reference for exact-distance tests."""
+    return closest_point_brute_force
