@@ -145,12 +145,16 @@ class DeviceWorkers:
     batch at a time (a GPU gains nothing from overlapping kernels of different models, and a CPU
     uses its cores inside each call)."""
 
-    def __init__(self):
+    def __init__(self, initializer: Callable[[], None] | None = None):
+        """initializer : run once in each worker thread before its first batch (e.g. to set
+        the compute library's thread count, which some libraries keep per thread)."""
         self._executors: dict[str, ThreadPoolExecutor] = {}
+        self._initializer = initializer
 
     def executor(self, device: str) -> ThreadPoolExecutor:
         if device not in self._executors:
-            self._executors[device] = ThreadPoolExecutor(1, thread_name_prefix=f"collider-{device}")
+            self._executors[device] = ThreadPoolExecutor(
+                1, thread_name_prefix=f"collider-{device}", initializer=self._initializer)
         return self._executors[device]
 
     def shutdown(self) -> None:

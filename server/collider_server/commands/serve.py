@@ -37,6 +37,8 @@ def register(subparsers) -> None:
                        help="most colliders in one scene query (default 64)")
     knobs.add_argument("--default-deadline-ms", type=float, default=None,
                        help="deadline of requests that give none, ms (default none)")
+    knobs.add_argument("--compute-threads", type=int, default=None,
+                       help="CPU threads per compute call (default 0: all cores but one)")
     serve.add_argument("--cors-origin", action="append", default=None, dest="cors_origins",
                        help="allow this CORS origin (repeatable; default CORS off)")
     serve.add_argument("--no-warmup", action="store_const", const=False, default=None,
@@ -48,7 +50,7 @@ def register(subparsers) -> None:
 
 SETTING_FLAGS = ("host", "port", "models", "device", "max_batch_points", "max_wait_ms",
                  "max_queue_points", "coalesce", "max_request_points", "max_body_bytes",
-                 "max_scene_colliders", "default_deadline_ms", "cors_origins", "warmup",
+                 "max_scene_colliders", "default_deadline_ms", "compute_threads", "cors_origins", "warmup",
                  "log_level")
 
 

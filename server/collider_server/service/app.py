@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import functools
 import logging
 
 from fastapi import FastAPI
@@ -28,6 +29,13 @@ collider's units (metres for the shipped models), points and answers in the worl
 maps the collider frame to the world frame. Errors are `application/problem+json`."""
 
 
+def set_compute_threads(threads: int) -> None:
+    """torch's CPU thread count for the calling thread (and torch's global default)."""
+    import torch
+
+    torch.set_num_threads(threads)
+
+
 def create_app(settings: ServiceSettings | None = None) -> FastAPI:
     """The service for ``settings``. Models load in the background after start-up;
     ``/readyz`` answers 200 once all are loaded and warmed up."""
@@ -36,7 +44,9 @@ def create_app(settings: ServiceSettings | None = None) -> FastAPI:
 
     @contextlib.asynccontextmanager
     async def lifespan(app: FastAPI):
-        workers = DeviceWorkers()
+        threads = settings.resolved_compute_threads()
+        workers = DeviceWorkers(functools.partial(set_compute_threads, threads))
+        set_compute_threads(threads)  # loading and warm-up run in other threads
         registry = ModelRegistry(ModelRepository(settings.models), resolve_device(settings.device),
                                  settings.batch_settings(), workers, metrics, settings.warmup)
         state = ServiceState(settings, metrics, workers, registry)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 from typing import Any
 
@@ -39,6 +40,8 @@ class ServiceSettings(BaseSettings):
     max_scene_colliders: int = Field(64, ge=1, description="most colliders in a scene query")
     default_deadline_ms: float | None = Field(None, gt=0, description="deadline of requests "
                                                                       "that give none, ms")
+    compute_threads: int = Field(0, ge=0, description="CPU threads of one compute call; 0: "
+                                                      "auto, all cores but one (the event loop's)")
     warmup: bool = Field(True, description="run one small query per model before ready")
     log_level: str = Field("info")
 
@@ -50,6 +53,13 @@ class ServiceSettings(BaseSettings):
                 f"max_queue_points ({self.max_queue_points}): such a request could never queue"
             )
         return self
+
+    def resolved_compute_threads(self) -> int:
+        if self.compute_threads:
+            return self.compute_threads
+        # Leave a core to the event loop: on a busy CPU, compute threads that spin-wait on each
+        # other while the loop needs the core cost ~10x (measured on 2 cores, docs/service.md).
+        return max(1, (os.cpu_count() or 2) - 1)
 
     def batch_settings(self) -> BatchSettings:
         return BatchSettings(self.max_batch_points, self.max_wait_ms, self.max_queue_points,

@@ -1,0 +1,221 @@
+"""Coalescing benchmark and transport overhead of ``collider serve``, in one run on one machine.
+
+1. Coalescing: K concurrent clients (K = 1, 8, 32, 128), each sending 1,000-point
+   ``distance + normal + contact`` msgpack queries back to back for ``--duration`` seconds, against
+   a server with coalescing on and one with it off (``--no-coalesce``), for the voxel bunny and
+   the neural bunny. Reported: points/s and p50/p99 latency; and, as the ceiling, one client
+   sending the same K x 1,000 points in one request.
+   Targets (voxel, K = 32): on >= 4x off, and on >= 70 % of the one-batch client.
+2. Transport overhead: one 40,000-point ``distance + normal + contact`` query (the paper's cloth)
+   through HTTP/msgpack on loopback (client encode + round trip + client decode) minus the same
+   query in process (``Collider.query``), voxel bunny, medians of interleaved repetitions.
+   Target: at most 5 ms.
+
+Server and clients share the machine's cores (the clients are one asyncio process with a lean
+HTTP/1.1 client, see ``service_common``). Run from the repository root:
+
+    python benchmarks/coalescing.py                         # ~3 minutes
+    python benchmarks/coalescing.py --duration 2 --kinds voxel --clients 1,32   # quick look
+
+The models are made in ``--models`` (default ``out/bench-models``, not committed): the bunny
+baked to a 128^3 voxel grid, and models/bunny.safetensors or, until it exists, an untrained
+network of the paper's bunny architecture (identical compute per point).
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from service_common import (  # noqa: E402
+    REPO,
+    LeanConnection,
+    bunny_points,
+    decode_response,
+    machine_note,
+    percentiles_ms,
+    prepare_models,
+    query_body,
+    serve,
+)
+
+FIELDS = ("distance", "normal", "contact")
+
+
+async def run_clients(port: int, model: str, bodies: list[bytes], points_each: int,
+                      duration_s: float) -> dict:
+    """len(bodies) clients, each posting its body back to back for ``duration_s``."""
+    path = f"/v1/models/{model}/query"
+    latencies: list[float] = []
+    errors: dict[int, int] = {}
+    connections = [LeanConnection("127.0.0.1", port) for _ in bodies]
+    # One request each first, so connections are open before the clock starts.
+    await asyncio.gather(*(c.post(path, b) for c, b in zip(connections, bodies)))
+    start = time.perf_counter()
+    end = start + duration_s
+
+    async def client(connection: LeanConnection, body: bytes):
+        while time.perf_counter() < end:
+            sent = time.perf_counter()
+            status, _ = await connection.post(path, body)
+            if status == 200:
+                latencies.append(time.perf_counter() - sent)
+            else:
+                errors[status] = errors.get(status, 0) + 1
+
+    await asyncio.gather(*(client(c, b) for c, b in zip(connections, bodies)))
+    elapsed = time.perf_counter() - start
+    await asyncio.gather(*(c.close() for c in connections))
+    return {"points_per_s": len(latencies) * points_each / elapsed, "requests": len(latencies),
+            "errors": errors, **percentiles_ms(latencies)}
+
+
+async def coalescing(models: Path, model: str, collider, clients: list[int], points_each: int,
+                     duration_s: float, server_flags: tuple[str, ...] = ()) -> list[dict]:
+    rows = []
+    max_k = max(clients)
+    bodies = [query_body(bunny_points(collider, points_each, seed), FIELDS) for seed in range(max_k)]
+    for mode in ("on", "off"):
+        flag = "--coalesce" if mode == "on" else "--no-coalesce"
+        with serve(models, flag, *server_flags) as port:
+            for k in clients:
+                result = await run_clients(port, model, bodies[:k], points_each, duration_s)
+                rows.append({"model": model, "coalescing": mode, "clients": k, **result})
+                print(f"  {model:<13} coalescing {mode:<3} K={k:<4} "
+                      f"{result['points_per_s']:>12,.0f} points/s  p50 {result['p50_ms']:8.1f} ms"
+                      f"  p99 {result['p99_ms']:8.1f} ms  errors {result['errors'] or 0}",
+                      flush=True)
+            if mode == "on":
+                for k in clients:
+                    body = query_body(bunny_points(collider, k * points_each, 10_000 + k), FIELDS)
+                    result = await run_clients(port, model, [body], k * points_each, duration_s)
+                    rows.append({"model": model, "coalescing": "one-batch", "clients": k, **result})
+                    print(f"  {model:<13} one client, {k} x {points_each} points in one request "
+                          f"{result['points_per_s']:>12,.0f} points/s  p50 {result['p50_ms']:8.1f} ms",
+                          flush=True)
+    return rows
+
+
+async def transport(models: Path, collider, model: str, n: int, repetitions: int,
+                    server_flags: tuple[str, ...] = ()) -> dict:
+    """Median HTTP/msgpack round trip (client encode and decode included) minus median
+    in-process ``Collider.query``, interleaved so load drift hits both alike."""
+    points = bunny_points(collider, n, 123)
+    expected = collider.query(points, FIELDS)
+    in_process, over_http = [], []
+    with serve(models, *server_flags) as port:
+        connection = LeanConnection("127.0.0.1", port)
+        path = f"/v1/models/{model}/query"
+        for i in range(repetitions + 2):
+            t0 = time.perf_counter()
+            collider.query(points, FIELDS)
+            t1 = time.perf_counter()
+            status, data = await connection.post(path, query_body(points, FIELDS))
+            got = decode_response(data)
+            t2 = time.perf_counter()
+            assert status == 200, data[:300]
+            if i >= 2:  # the first two warm both paths up
+                in_process.append(t1 - t0)
+                over_http.append(t2 - t1)
+        await connection.close()
+    for name in FIELDS:
+        np.testing.assert_array_equal(got[name], getattr(expected, name))
+    a, b = statistics.median(in_process) * 1e3, statistics.median(over_http) * 1e3
+    return {"points": n, "fields": list(FIELDS), "in_process_ms": a, "http_msgpack_ms": b,
+            "overhead_ms": b - a, "repetitions": repetitions}
+
+
+def plot(rows: list[dict], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    models = sorted({r["model"] for r in rows}, reverse=True)
+    fig, axes = plt.subplots(1, len(models), figsize=(5.5 * len(models), 4), squeeze=False)
+    for ax, model in zip(axes[0], models):
+        for mode, style in (("on", "o-"), ("off", "s--"), ("one-batch", "k:")):
+            sel = [r for r in rows if r["model"] == model and r["coalescing"] == mode]
+            label = {"on": "coalescing on", "off": "coalescing off",
+                     "one-batch": "one client, K x 1000 points per request"}[mode]
+            ax.plot([r["clients"] for r in sel], [r["points_per_s"] for r in sel], style, label=label)
+        ax.set_xscale("log", base=2)
+        ax.set_yscale("log")
+        ax.set_xlabel("K concurrent clients (1,000 points per request)")
+        ax.set_ylabel("points / s")
+        ax.set_title(model)
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend(fontsize=8)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--models", type=Path, default=REPO / "out" / "bench-models")
+    parser.add_argument("--kinds", default="voxel,neural")
+    parser.add_argument("--clients", default="1,8,32,128")
+    parser.add_argument("--points", type=int, default=1000, help="points per request")
+    parser.add_argument("--duration", type=float, default=3.0, help="seconds per measurement")
+    parser.add_argument("--transport-repetitions", type=int, default=15)
+    parser.add_argument("--server-flags", default="",
+                        help="extra `collider serve` flags, e.g. '--max-wait-ms 0'")
+    parser.add_argument("--output", type=Path, default=REPO / "out" / "coalescing.json")
+    parser.add_argument("--plot", type=Path, default=REPO / "out" / "service-coalescing.png")
+    args = parser.parse_args()
+
+    import torch
+
+    from collider_server.modelfile import load_collider
+    from collider_server.service.settings import ServiceSettings
+
+    # The in-process reference runs with the server's compute thread count, so the transport
+    # figure compares like with like.
+    torch.set_num_threads(ServiceSettings().resolved_compute_threads())
+    flags = tuple(args.server_flags.split())
+
+    print(f"machine: {machine_note()}", flush=True)
+    notes = prepare_models(args.models)
+    clients = [int(k) for k in args.clients.split(",")]
+    results = {"machine": machine_note(), "models": notes, "server_flags": list(flags),
+               "compute_threads": torch.get_num_threads(), "coalescing": []}
+    for kind in args.kinds.split(","):
+        model = f"bunny-{kind}"
+        collider = load_collider(args.models / f"{model}.safetensors", "cpu")
+        print(f"{model}: {notes[model]}", flush=True)
+        if kind == "voxel":
+            results["transport"] = asyncio.run(
+                transport(args.models, collider, model, 40_000, args.transport_repetitions, flags))
+            t = results["transport"]
+            print(f"  transport, 40,000 points distance+normal+contact: in process "
+                  f"{t['in_process_ms']:.1f} ms, HTTP/msgpack {t['http_msgpack_ms']:.1f} ms, "
+                  f"overhead {t['overhead_ms']:.1f} ms (target <= 5 ms)", flush=True)
+        results["coalescing"] += asyncio.run(
+            coalescing(args.models, model, collider, clients, args.points, args.duration, flags))
+
+    for model in {r["model"] for r in results["coalescing"]}:
+        by = {(r["coalescing"], r["clients"]): r["points_per_s"]
+              for r in results["coalescing"] if r["model"] == model}
+        for k in clients:
+            if ("off", k) in by and ("one-batch", k) in by:
+                print(f"{model} K={k}: on/off {by['on', k] / by['off', k]:.2f}x, "
+                      f"on/one-batch {100 * by['on', k] / by['one-batch', k]:.0f} %")
+    args.output.parent.mkdir(parents=True, exist_ok=True)
+    args.output.write_text(json.dumps(results, indent=2))
+    plot(results["coalescing"], args.plot)
+    print(f"wrote {args.output} and {args.plot}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

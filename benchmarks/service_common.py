@@ -1,0 +1,187 @@
+"""Shared by the service benchmarks: a lean keep-alive HTTP/1.1 client on asyncio streams, a
+``collider serve`` subprocess, the benchmark models, and latency percentiles.
+
+Why a hand-written client: on a 2-core machine the client shares the CPU with the server, and a
+general-purpose async client (httpx) spends ~1 ms of Python per request, which would measure the
+client instead of the server. This one writes the request bytes and reads ``Content-Length``
+bytes back, nothing more (loopback only, no TLS, no chunked responses: the server sends none).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import dataclasses
+import os
+import shutil
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+MESHES = REPO.parent / "shared" / "data" / "meshes"
+sys.path.insert(0, str(REPO / "client"))
+
+from collider_client import wire  # noqa: E402
+
+
+class HTTPError(Exception):
+    def __init__(self, status: int, body: bytes):
+        super().__init__(f"HTTP {status}: {body[:300]!r}")
+        self.status = status
+        self.body = body
+
+
+class LeanConnection:
+    """One keep-alive HTTP/1.1 connection; one request at a time."""
+
+    def __init__(self, host: str, port: int, token: str | None = None):
+        self.host, self.port = host, port
+        self.auth = f"Authorization: Bearer {token}\r\n" if token else ""
+        self.reader = self.writer = None
+
+    async def post(self, path: str, body: bytes, media: str = wire.MSGPACK,
+                   headers: str = "") -> tuple[int, bytes]:
+        if self.writer is None:
+            self.reader, self.writer = await asyncio.open_connection(self.host, self.port)
+            sock = self.writer.get_extra_info("socket")
+            sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        head = (f"POST {path} HTTP/1.1\r\nHost: {self.host}\r\nContent-Type: {media}\r\n"
+                f"Content-Length: {len(body)}\r\n{self.auth}{headers}\r\n").encode()
+        self.writer.write(head + body)
+        status_line = await self.reader.readline()
+        if not status_line:
+            raise ConnectionError("server closed the connection")
+        status = int(status_line.split()[1])
+        length = 0
+        while True:
+            line = await self.reader.readline()
+            if line in (b"\r\n", b""):
+                break
+            name, _, value = line.partition(b":")
+            if name.strip().lower() == b"content-length":
+                length = int(value)
+        return status, await self.reader.readexactly(length)
+
+    async def close(self) -> None:
+        if self.writer is not None:
+            self.writer.close()
+            with contextlib.suppress(Exception):
+                await self.writer.wait_closed()
+
+
+def query_body(points: np.ndarray, fields, **extra) -> bytes:
+    return wire.dumps({"points": points, "fields": list(fields), **extra}, wire.MSGPACK)
+
+
+def decode_response(data: bytes) -> dict:
+    body = wire.loads(data, wire.MSGPACK)
+    return {k: wire.decode_array(v, k) for k, v in body.items() if k != "model"}
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@contextlib.contextmanager
+def serve(models: Path, *flags: str, env: dict | None = None):
+    """``collider serve`` on a free loopback port until the block ends; yields its port."""
+    port = free_port()
+    process = subprocess.Popen(
+        [sys.executable, "-m", "collider_server.cli", "serve", "--models", str(models),
+         "--port", str(port), "--device", "cpu", "--log-level", "warning", *flags],
+        env={**os.environ, **(env or {})})
+    try:
+        wait_ready(port, process)
+        yield port
+    finally:
+        process.terminate()
+        try:
+            process.wait(30)
+        except subprocess.TimeoutExpired:
+            process.kill()
+
+
+def wait_ready(port: int, process, timeout_s: float = 120.0) -> None:
+    import httpx
+
+    end = time.monotonic() + timeout_s
+    while time.monotonic() < end:
+        if process.poll() is not None:
+            raise RuntimeError(f"collider serve exited with {process.returncode}")
+        with contextlib.suppress(httpx.TransportError):
+            if httpx.get(f"http://127.0.0.1:{port}/readyz", timeout=2).status_code == 200:
+                return
+        time.sleep(0.1)
+    raise TimeoutError(f"server on port {port} not ready after {timeout_s} s")
+
+
+def prepare_models(root: Path, resolution: int = 128) -> dict[str, str]:
+    """The benchmark models in ``root``: ``bunny-voxel`` (the Stanford bunny baked at
+    ``resolution``^3) and ``bunny-neural`` (``models/bunny.safetensors`` when it exists, else an
+    untrained network of the paper's bunny architecture: the same compute per point).
+    Returns ``{name: description}``."""
+    from collider_server.bake import bake_collider
+    from collider_server.meshes import load_mesh
+    from collider_server.modelfile import load_collider, save_collider
+
+    root.mkdir(parents=True, exist_ok=True)
+    notes = {}
+    voxel = root / "bunny-voxel.safetensors"
+    if not voxel.is_file():
+        mesh = load_mesh(MESHES / "stanford-bunny.obj")
+        save_collider(bake_collider(mesh, "voxel", "bunny-voxel", resolution=resolution,
+                                    device="cpu"), voxel)
+    notes["bunny-voxel"] = f"voxel, stanford-bunny.obj baked at {resolution}^3"
+    neural = root / "bunny-neural.safetensors"
+    trained = REPO / "models" / "bunny.safetensors"
+    if trained.is_file():
+        shutil.copy(trained, neural)
+        notes["bunny-neural"] = "neural, the trained models/bunny.safetensors"
+    elif not neural.is_file():
+        save_collider(untrained_paper_bunny(load_collider(voxel, "cpu")), neural)
+    if "bunny-neural" not in notes:
+        notes["bunny-neural"] = ("neural, UNTRAINED network of the paper-bunny architecture "
+                                 "(K=128, 3x256; same compute per point as the trained one)")
+    return notes
+
+
+def untrained_paper_bunny(voxel):
+    import torch
+
+    from collider_server.collider import ColliderInfo
+    from collider_server.kinds.neural import PRESETS, NeuralCollider, build_network
+
+    arch = PRESETS["paper-bunny"]
+    lo, hi = voxel.domain_min, voxel.domain_max
+    info = ColliderInfo("bunny-neural", "neural", lo.tolist(), hi.tolist(),
+                        settings={"architecture": dataclasses.asdict(arch)},
+                        source={"note": "untrained; benchmark stand-in"})
+    torch.manual_seed(0)
+    network = build_network(arch, 0.5 * (lo + hi), 0.5 * float((hi - lo).max()))
+    return NeuralCollider(info, network, "cpu")
+
+
+def percentiles_ms(latencies_s: list[float]) -> dict[str, float]:
+    if not latencies_s:
+        return {"p50_ms": float("nan"), "p90_ms": float("nan"), "p99_ms": float("nan")}
+    a = np.asarray(latencies_s) * 1e3
+    return {"p50_ms": float(np.percentile(a, 50)), "p90_ms": float(np.percentile(a, 90)),
+            "p99_ms": float(np.percentile(a, 99))}
+
+
+def bunny_points(collider, n: int, seed: int) -> np.ndarray:
+    """(n, 3) float32 points in the collider's domain box (collider frame = world frame here)."""
+    rng = np.random.default_rng(seed)
+    return rng.uniform(collider.domain_min, collider.domain_max, (n, 3)).astype(np.float32)
+
+
+def machine_note() -> str:
+    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
+    return f"{os.cpu_count()} CPU cores, load average {load:.1f} at start"
