@@ -34,6 +34,9 @@ def bake_collider(mesh: Mesh, kind: str, name: str, *, resolution: int = 256, pa
     """
     if kind not in BAKED_KINDS:
         raise ValueError(f"cannot bake kind {kind!r}; bake one of {list(BAKED_KINDS)} (neural is trained)")
+    # Checked before any work: a bad padding would otherwise surface only after the bake.
+    if not (np.isfinite(padding) and padding >= 0):
+        raise ValueError(f"padding must be a finite number >= 0 (fraction of the largest side), got {padding}")
     lo, hi = padded_box(mesh, padding)
     info = ColliderInfo(
         name=name, kind=kind, domain_min=lo.tolist(), domain_max=hi.tolist(), units=units,
