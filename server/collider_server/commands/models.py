@@ -142,8 +142,12 @@ def run_info(args) -> int:
         names = repo.names()
         print(f"{repo.root}: {len(names)} model(s)")
         for name in names:
-            info = read_info(repo.path(name))
-            print(f"  {name:<20} {info.kind:<7} {repo.path(name).stat().st_size:>12,} bytes")
+            size = repo.path(name).stat().st_size
+            try:
+                kind = read_info(repo.path(name)).kind
+            except ValueError as exc:  # one damaged file must not hide the others
+                kind = f"unreadable: {getattr(exc, 'problem', exc)}"
+            print(f"  {name:<20} {size:>12,} bytes  {kind}")
         return 0
     path = repo.resolve(args.model)
     info = read_info(path)
