@@ -1,0 +1,160 @@
+"""``collider bake``, ``collider query`` and ``collider info`` as a new user would try them:
+success, and for every bad input one clear error line, exit code 2, no traceback."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from collider_server.cli import main
+
+
+@pytest.fixture(scope="module")
+def sphere_obj(tmp_path_factory):
+    """A 0.1 m icosphere as an OBJ file (metres)."""
+    import trimesh
+
+    path = tmp_path_factory.mktemp("meshes") / "ball.obj"
+    trimesh.creation.icosphere(subdivisions=3, radius=0.1).export(path)
+    return path
+
+
+@pytest.fixture
+def models(small_sphere_model):
+    """A model repository holding ``sphere`` (voxel 32^3, radius 0.1 m)."""
+    return small_sphere_model.parent
+
+
+def run(capsys, *argv):
+    """``collider *argv`` in-process: (exit code, stdout, stderr)."""
+    try:
+        code = main([str(a) for a in argv])
+    except SystemExit as exit_:  # argparse's own usage errors
+        code = exit_.code
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def assert_user_error(capsys, argv, message):
+    code, out, err = run(capsys, *argv)
+    assert code == 2, (code, out, err)
+    assert "Traceback" not in err
+    last = err.strip().splitlines()[-1]
+    assert last.startswith("collider"), err
+    assert message in last, last
+    return last
+
+
+@pytest.mark.parametrize("kind", ["voxel", "mesh", "kdtree"])
+def test_bake_each_kind_then_query_and_info(capsys, tmp_path, sphere_obj, kind):
+    code, out, err = run(capsys, "bake", sphere_obj, "--kind", kind, "--name", "ball",
+                         "--resolution", 24, "--models", tmp_path, "--quiet")
+    assert code == 0, err
+    path = tmp_path / "ball.safetensors"
+    assert path.is_file() and f"wrote {path}" in out and f"kind {kind}" in out
+    code, out, err = run(capsys, "query", "ball", 0, 0, 0.2, 0, 0, -0.095, "--models", tmp_path)
+    assert code == 0, err
+    lines = out.strip().splitlines()
+    assert len(lines) == 2
+    distance = float(lines[0].split("distance=")[1].split()[0])
+    assert abs(distance - 0.1) < (1e-3 if kind != "voxel" else 3e-3)
+    assert "normal=" in lines[0] and "contact=" in lines[0] and "collides=False" in lines[0]
+    assert "collides=True" in lines[1]  # inside the sphere
+    code, out, err = run(capsys, "info", "ball", "--models", tmp_path)
+    assert code == 0, err
+    assert f"kind        {kind}" in out and f"{path.stat().st_size:,} bytes" in out
+    assert "domain" in out and "accuracy" in out
+    assert ("(approximate)" in out) == (kind == "kdtree")
+
+
+def test_query_from_a_points_file_with_fields_pose_and_output(capsys, tmp_path, models):
+    points = np.array([[0.0, 0.0, 0.3], [1.0, 0.0, 0.0]])
+    np.save(tmp_path / "points.npy", points)
+    pose = np.eye(4)
+    pose[:3, 3] = [0.0, 0.0, 0.2]
+    (tmp_path / "pose.json").write_text(json.dumps(pose.tolist()))
+    code, out, err = run(capsys, "query", "sphere", "--points", tmp_path / "points.npy",
+                         "--fields", "distance,collides", "--pose", tmp_path / "pose.json",
+                         "--eps", 0.002, "--output", tmp_path / "out.npz", "--models", models)
+    assert code == 0, err
+    saved = np.load(tmp_path / "out.npz")
+    assert sorted(saved.files) == ["collides", "distance"]
+    assert abs(saved["distance"][0] - 0.0) < 3e-3  # (0, 0, 0.3) is on the moved sphere
+    assert saved["distance"][1] > 0.9 and not saved["collides"][1]
+
+
+def test_query_accepts_a_model_path_and_negative_coordinates(capsys, models):
+    code, out, err = run(capsys, "query", models / "sphere.safetensors", -0.2, 0, 0, "--fields", "distance")
+    assert code == 0, err
+    assert out.startswith("point [-0.2, 0.0, 0.0]  distance=0.1")
+
+
+def test_info_lists_the_repository_and_prints_json(capsys, models):
+    (models / "broken.safetensors").write_bytes(b"not a model at all")
+    code, out, err = run(capsys, "info", "--models", models)
+    assert code == 0, err
+    assert "2 model(s)" in out and "sphere" in out and "voxel" in out
+    assert "broken" in out and "unreadable" in out
+    code, out, err = run(capsys, "info", "sphere", "--json", "--models", models)
+    assert code == 0, err
+    data = json.loads(out)
+    assert data["kind"] == "voxel" and data["bytes"] == (models / "sphere.safetensors").stat().st_size
+    assert data["settings"]["resolution"] == 32
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["bake", "{tmp}/missing.obj", "--name", "x"], "no such mesh file"),
+    (["bake", "{tmp}/blob.obj", "--name", "x"], "cannot read mesh"),
+    (["bake", "{tmp}/empty.obj", "--name", "x"], "mesh is empty"),
+    (["bake", "{tmp}/flat.obj", "--name", "x"], "mesh is flat"),
+    (["bake", "{tmp}", "--name", "x"], "is a directory"),
+    (["bake", "{ball}", "--name", "../evil"], "invalid model name"),
+    (["bake", "{ball}", "--name", "x", "--resolution", "4"], "resolution must be in 8..1024"),
+    (["bake", "{ball}", "--name", "x", "--scale", "0"], "--scale must be > 0"),
+    (["bake", "{ball}", "--name", "x", "--units", "parsec"], "unknown --units 'parsec'"),
+    (["bake", "{ball}", "--name", "x", "--padding", "-1"], "padding must be a finite number >= 0"),
+    (["bake", "{ball}", "--name", "x", "--kind", "neural"], "invalid choice: 'neural'"),
+    (["bake", "{ball}", "--name", "x", "--resolution", "many"], "invalid int value: 'many'"),
+    (["bake", "{ball}"], "required: --name"),
+    (["query", "nosuch", "0", "0", "0", "--models", "{models}"], "no model named 'nosuch'"),
+    (["query", "sphere", "0", "0", "--models", "{models}"], "give x y z triples (got 2 numbers)"),
+    (["query", "sphere", "--models", "{models}"], "give x y z triples (got 0 numbers)"),
+    (["query", "sphere", "0", "0", "0", "--points", "{tmp}/p.npy", "--models", "{models}"], "not both"),
+    (["query", "sphere", "--points", "{tmp}/missing.npy", "--models", "{models}"], "cannot read points"),
+    (["query", "sphere", "--points", "{tmp}/flat.npy", "--models", "{models}"], "points must have shape (n, 3)"),
+    (["query", "sphere", "nan", "0", "0", "--models", "{models}"], "NaN or Inf"),
+    (["query", "sphere", "0", "0", "0", "--fields", "distance,speed", "--models", "{models}"], "unknown field(s) ['speed']"),
+    (["query", "sphere", "0", "0", "0", "--eps", "nan", "--models", "{models}"], "eps must be finite"),
+    (["query", "sphere", "0", "0", "0", "--pose", "{tmp}/mirror.json", "--models", "{models}"], "reflection"),
+    (["query", "sphere", "0", "0", "0", "--pose", "{tmp}/missing.json", "--models", "{models}"], "cannot read pose"),
+    (["query", "sphere", "0", "0", "0", "--device", "tpu", "--models", "{models}"], "unknown device 'tpu'"),
+    (["query", "sphere", "x", "0", "0", "--models", "{models}"], "invalid float value: 'x'"),
+    (["info", "nosuch", "--models", "{models}"], "no model named 'nosuch'"),
+    (["info", "{tmp}/blob.safetensors"], "not a readable safetensors file"),
+    (["info", "bad name!", "--models", "{models}"], "invalid model name"),
+])
+def test_bad_input_gives_one_clear_line_and_exit_2(capsys, tmp_path, sphere_obj, models, argv, message):
+    (tmp_path / "blob.obj").write_bytes(bytes(range(256)) * 4)
+    (tmp_path / "empty.obj").write_text("# nothing\n")
+    (tmp_path / "flat.obj").write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
+    (tmp_path / "blob.safetensors").write_bytes(b"\x00" * 5)
+    (tmp_path / "mirror.json").write_text(json.dumps(np.diag([1.0, 1.0, -1.0, 1.0]).tolist()))
+    np.save(tmp_path / "p.npy", np.zeros((1, 3)))
+    np.save(tmp_path / "flat.npy", np.zeros(6))
+    argv = [a.format(tmp=tmp_path, ball=sphere_obj, models=models) for a in argv]
+    assert_user_error(capsys, argv, message)
+
+
+def test_the_installed_entry_point_runs_without_traceback(tmp_path):
+    """Through a real process: ``python -m collider_server.cli`` (what ``collider`` runs)."""
+    ok = subprocess.run([sys.executable, "-m", "collider_server.cli", "info", "--models", str(tmp_path)],
+                        capture_output=True, text=True, timeout=120)
+    assert ok.returncode == 0 and "0 model(s)" in ok.stdout
+    bad = subprocess.run([sys.executable, "-m", "collider_server.cli", "query", "ghost", "0", "0", "0",
+                          "--models", str(tmp_path)], capture_output=True, text=True, timeout=120)
+    assert bad.returncode == 2 and "Traceback" not in bad.stderr
+    assert bad.stderr.strip() == f"collider query: error: no model named 'ghost' in {tmp_path} (models: none)"
