@@ -51,57 +51,76 @@ from service_common import (  # noqa: E402
 FIELDS = ("distance", "normal", "contact")
 
 
+class Slices:
+    """Latencies and points of one configuration, gathered over several time slices."""
+
+    def __init__(self):
+        self.latencies: list[float] = []
+        self.points = 0
+        self.seconds = 0.0
+        self.errors: dict[int, int] = {}
+
+    def result(self) -> dict:
+        return {"points_per_s": self.points / self.seconds, "requests": len(self.latencies),
+                "errors": self.errors, **percentiles_ms(self.latencies)}
+
+
 async def run_clients(port: int, model: str, bodies: list[bytes], points_each: int,
-                      duration_s: float) -> dict:
+                      duration_s: float, into: Slices) -> None:
     """len(bodies) clients, each posting its body back to back for ``duration_s``."""
     path = f"/v1/models/{model}/query"
-    latencies: list[float] = []
-    errors: dict[int, int] = {}
     connections = [LeanConnection("127.0.0.1", port) for _ in bodies]
     # One request each first, so connections are open before the clock starts.
     await asyncio.gather(*(c.post(path, b) for c, b in zip(connections, bodies)))
     start = time.perf_counter()
     end = start + duration_s
+    done = [0]
 
     async def client(connection: LeanConnection, body: bytes):
         while time.perf_counter() < end:
             sent = time.perf_counter()
             status, _ = await connection.post(path, body)
             if status == 200:
-                latencies.append(time.perf_counter() - sent)
+                into.latencies.append(time.perf_counter() - sent)
+                done[0] += 1
             else:
-                errors[status] = errors.get(status, 0) + 1
+                into.errors[status] = into.errors.get(status, 0) + 1
 
     await asyncio.gather(*(client(c, b) for c, b in zip(connections, bodies)))
-    elapsed = time.perf_counter() - start
+    into.seconds += time.perf_counter() - start
+    into.points += done[0] * points_each
     await asyncio.gather(*(c.close() for c in connections))
-    return {"points_per_s": len(latencies) * points_each / elapsed, "requests": len(latencies),
-            "errors": errors, **percentiles_ms(latencies)}
 
 
 async def coalescing(models: Path, model: str, collider, clients: list[int], points_each: int,
-                     duration_s: float, server_flags: tuple[str, ...] = ()) -> list[dict]:
+                     duration_s: float, server_flags: tuple[str, ...] = (),
+                     slices: int = 4) -> list[dict]:
+    """Both servers (coalescing on and off) run side by side; each K is measured in ``slices``
+    alternating slices of on / off / one-batch, so load drift on a shared machine hits all
+    three alike."""
     rows = []
     max_k = max(clients)
     bodies = [query_body(bunny_points(collider, points_each, seed), FIELDS) for seed in range(max_k)]
-    for mode in ("on", "off"):
-        flag = "--coalesce" if mode == "on" else "--no-coalesce"
-        with serve(models, flag, *server_flags) as port:
-            for k in clients:
-                result = await run_clients(port, model, bodies[:k], points_each, duration_s)
+    with serve(models, "--coalesce", *server_flags) as on_port, \
+            serve(models, "--no-coalesce", *server_flags) as off_port:
+        for k in clients:
+            one_body = [query_body(bunny_points(collider, k * points_each, 10_000 + k), FIELDS)]
+            runs = {"on": Slices(), "off": Slices(), "one-batch": Slices()}
+            for _ in range(slices):
+                await run_clients(on_port, model, bodies[:k], points_each, duration_s / slices,
+                                  runs["on"])
+                await run_clients(off_port, model, bodies[:k], points_each, duration_s / slices,
+                                  runs["off"])
+                await run_clients(on_port, model, one_body, k * points_each, duration_s / slices,
+                                  runs["one-batch"])
+            for mode, run in runs.items():
+                result = run.result()
                 rows.append({"model": model, "coalescing": mode, "clients": k, **result})
-                print(f"  {model:<13} coalescing {mode:<3} K={k:<4} "
-                      f"{result['points_per_s']:>12,.0f} points/s  p50 {result['p50_ms']:8.1f} ms"
-                      f"  p99 {result['p99_ms']:8.1f} ms  errors {result['errors'] or 0}",
-                      flush=True)
-            if mode == "on":
-                for k in clients:
-                    body = query_body(bunny_points(collider, k * points_each, 10_000 + k), FIELDS)
-                    result = await run_clients(port, model, [body], k * points_each, duration_s)
-                    rows.append({"model": model, "coalescing": "one-batch", "clients": k, **result})
-                    print(f"  {model:<13} one client, {k} x {points_each} points in one request "
-                          f"{result['points_per_s']:>12,.0f} points/s  p50 {result['p50_ms']:8.1f} ms",
-                          flush=True)
+                label = (f"coalescing {mode:<3} K={k:<4}" if mode != "one-batch"
+                         else f"one request of {k} x {points_each} points")
+                print(f"  {model:<13} {label:<34} {result['points_per_s']:>12,.0f} points/s"
+                      f"  p50 {result['p50_ms']:8.1f} ms  p99 {result['p99_ms']:8.1f} ms"
+                      f"  errors {result['errors'] or 0}", flush=True)
     return rows
 
 

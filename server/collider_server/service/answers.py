@@ -86,25 +86,30 @@ async def answer_scene(models: list[LoadedModel], spec: SceneSpec,
     return QueryResult(**out), nearest
 
 
-async def wait_for_disconnect(receive) -> None:
-    """Returns when the client has gone (the body must already be read)."""
+async def _cancel_on_disconnect(receive, task: asyncio.Task, gone: list) -> None:
+    """Cancel ``task`` when the client disconnects (the body must already be read)."""
     while True:
         message = await receive()
         if message["type"] == "http.disconnect":
+            gone.append(True)
+            task.cancel()
             return
 
 
 async def unless_disconnected(receive, coro):
-    """Run ``coro``; if the client disconnects first, cancel it (its request leaves the queue)
-    and raise a 499-style problem that nobody will read."""
-    work = asyncio.ensure_future(coro)
-    gone = asyncio.ensure_future(wait_for_disconnect(receive))
+    """Await ``coro``; if the client disconnects first, cancel it (its request leaves the queue)
+    and raise a 499-style problem that nobody will read. One watcher task per request: the work
+    itself runs in the request's own task."""
+    task = asyncio.current_task()
+    gone: list = []
+    watcher = asyncio.get_running_loop().create_task(_cancel_on_disconnect(receive, task, gone))
     try:
-        await asyncio.wait({work, gone}, return_when=asyncio.FIRST_COMPLETED)
-    finally:
-        if not work.done():
-            work.cancel()
-        gone.cancel()
-    if work.cancelled() or not work.done():
+        return await coro
+    except asyncio.CancelledError:
+        if not gone:
+            raise
+        if hasattr(task, "uncancel"):  # Python >= 3.11: this cancellation is handled here
+            task.uncancel()
         raise Problem(499, "client-closed", "the client disconnected before the answer was ready")
-    return work.result()
+    finally:
+        watcher.cancel()

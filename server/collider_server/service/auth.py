@@ -25,14 +25,15 @@ def _check(request: Request, expected: str, what: str) -> None:
                       {"WWW-Authenticate": 'Bearer error="invalid_token"'})
 
 
-def require_token(request: Request) -> None:
-    """The service token (``COLLIDER_TOKEN``), when one is set."""
+async def require_token(request: Request) -> None:
+    """The service token (``COLLIDER_TOKEN``), when one is set. (``async`` so FastAPI runs it on
+    the event loop: a plain ``def`` dependency costs a thread hop per request.)"""
     expected = request.app.state.collider.settings.token
     if expected:
         _check(request, expected, "this route needs the service token")
 
 
-def require_admin(request: Request) -> None:
+async def require_admin(request: Request) -> None:
     """The admin token (``COLLIDER_ADMIN_TOKEN``); admin routes are off when it is unset."""
     expected = request.app.state.collider.settings.admin_token
     if not expected:
