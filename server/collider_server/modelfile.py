@@ -65,6 +65,9 @@ def save_collider(collider: Collider, path: str | Path) -> Path:
     os.close(fd)
     try:
         save_file(tensors, tmp, metadata=metadata)
+        # mkstemp creates the file private (0600); a model file is meant to be shared (a server
+        # or container running as another user reads it), so give it the usual 0644.
+        os.chmod(tmp, 0o644)
         os.replace(tmp, path)
     finally:
         if os.path.exists(tmp):
