@@ -47,6 +47,8 @@ def test_round_trip_is_bit_identical(shape_collider, tmp_path, kind):
 def test_save_is_atomic_and_leaves_no_temporary_files(small_sphere_model):
     folder = small_sphere_model.parent
     assert [p.name for p in folder.iterdir()] == ["sphere.safetensors"]
+    # Readable by other users (a server in a container), not the private 0600 of a temp file.
+    assert small_sphere_model.stat().st_mode & 0o777 == 0o644
 
 
 def expect_error(path, message):
