@@ -111,7 +111,11 @@ def load_collider(path: str | Path, device: str | None = None) -> Collider:
 
     from .kinds import KINDS
 
+    from .devices import resolve_device
+
     path = Path(path)
+    # A bad device is the caller's mistake, not the file's: say so before reading the file.
+    device = resolve_device(device) if device is not None else None
     metadata, info = _read_header(path)
     if info.kind not in KINDS:
         raise ModelFileError(path, f"unknown collider kind {info.kind!r}; known kinds are {sorted(KINDS)}")
