@@ -207,3 +207,9 @@ def test_neural_scalar_radius_keeps_its_shape_and_old_files_still_load(tmp_path,
     points = query_points(1)
     np.testing.assert_array_equal(load_collider(old, "cpu").query(points).distance,
                                   collider.query(points).distance)
+
+
+def test_a_bad_device_is_not_blamed_on_the_file(small_sphere_model):
+    with pytest.raises(ValueError, match="unknown device 'tpu'") as caught:
+        load_collider(small_sphere_model, "tpu")
+    assert not isinstance(caught.value, ModelFileError)
