@@ -42,6 +42,8 @@ class MeshCollider(Collider):
         faces = np.asarray(tensors["faces"], dtype=np.int64)
         if vertices.ndim != 2 or vertices.shape[1] != 3 or faces.ndim != 2 or faces.shape[1] != 3:
             raise ValueError(f"mesh arrays have wrong shapes: vertices {vertices.shape}, faces {faces.shape}")
-        if len(faces) and (faces.min() < 0 or faces.max() >= len(vertices)):
+        if len(faces) == 0:
+            raise ValueError("mesh model holds no faces")
+        if faces.min() < 0 or faces.max() >= len(vertices):
             raise ValueError("mesh faces index vertices that do not exist")
         return cls(info, Mesh(vertices, faces, info.source.get("mesh", "mesh")))
