@@ -124,6 +124,8 @@ def test_plain_safetensors_without_metadata(tmp_path):
     ("mesh", {"vertices": np.zeros((4, 3)), "faces": np.array([[0, 1, 9]], np.int32)}, "do not exist"),
     ("mesh", {"grid": np.zeros((4, 4, 4), np.float32)}, "'vertices' and 'faces'"),
     ("kdtree", {"vertices": np.zeros((4, 3)), "normals": np.zeros((5, 3))}, r"must both be \(v, 3\)"),
+    ("kdtree", {"vertices": np.zeros((0, 3)), "normals": np.zeros((0, 3))}, "no vertices"),
+    ("mesh", {"vertices": np.zeros((4, 3)), "faces": np.zeros((0, 3), np.int32)}, "no faces"),
     ("neural", {"fourier": np.zeros((3, 8), np.float32)}, "lack a valid architecture"),
     ("teapot", {"grid": np.zeros((4, 4, 4), np.float32)}, "unknown collider kind 'teapot'"),
 ])
