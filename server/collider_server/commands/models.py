@@ -118,8 +118,10 @@ def run_query(args) -> int:
     result = collider.query(points, fields, pose=load_pose(args.pose), eps=args.eps)
     values = result.fields()
     if args.output is not None:
-        np.savez(args.output, **values)
-        print(f"wrote {args.output} ({len(points)} points)")
+        # np.savez appends ".npz" when it is missing; report the file it really writes.
+        output = args.output if args.output.suffix == ".npz" else args.output.with_name(args.output.name + ".npz")
+        np.savez(output, **values)
+        print(f"wrote {output} ({len(points)} points)")
         return 0
     units = collider.info.units
     np.set_printoptions(precision=6, suppress=True)
