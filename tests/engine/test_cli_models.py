@@ -158,3 +158,11 @@ def test_the_installed_entry_point_runs_without_traceback(tmp_path):
                           "--models", str(tmp_path)], capture_output=True, text=True, timeout=120)
     assert bad.returncode == 2 and "Traceback" not in bad.stderr
     assert bad.stderr.strip() == f"collider query: error: no model named 'ghost' in {tmp_path} (models: none)"
+
+
+def test_query_output_names_the_file_it_writes(capsys, models, tmp_path):
+    code, out, err = run(capsys, "query", "sphere", 0, 0, 0, "--output", tmp_path / "result",
+                         "--models", models)
+    assert code == 0, err
+    assert out.strip() == f"wrote {tmp_path / 'result.npz'} (1 points)"
+    assert np.load(tmp_path / "result.npz")["distance"][0] < 0
