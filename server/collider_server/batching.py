@@ -240,7 +240,10 @@ class PointBatcher:
         )
         self._queue.append(request)
         self._queued_points += n
-        self._wakeup.set()
+        # Wake the loop only when this changes its plan: the first request of an empty queue,
+        # or a batch that is now full. Other arrivals just join the queue (no wake-up per request).
+        if len(self._queue) == 1 or self._queued_points >= self.settings.max_batch_points:
+            self._wakeup.set()
         try:
             if deadline is None:
                 return await request.future
@@ -296,16 +299,18 @@ class PointBatcher:
                 # Wait for more points until the batch is full or its oldest request has waited
                 # max_wait_ms; a split request's remainder is old, so it goes at once.
                 close_at = self._queue[0].enqueued_at + wait_s
+                loop = asyncio.get_running_loop()
                 while (self._queue and self._queued_points < self.settings.max_batch_points
                        and not self._closing):
                     remaining = close_at - self._clock()
                     if remaining <= 0:
                         break
                     self._wakeup.clear()
+                    timer = loop.call_later(remaining, self._wakeup.set)
                     try:
-                        await asyncio.wait_for(self._wakeup.wait(), remaining)
-                    except asyncio.TimeoutError:
-                        break
+                        await self._wakeup.wait()
+                    finally:
+                        timer.cancel()
             parts = self._take_batch()
             if parts:
                 await self._execute(parts)
