@@ -89,17 +89,18 @@ class Client:
     server : URL of a running ``collider serve`` (remote backend); ``None`` = embedded
     models : model repository folder for the embedded backend (default ``models/``)
     device : embedded backend's torch device ("cpu", "cuda", None = CUDA if present)
+    threads : embedded backend's torch CPU threads (process-wide; None = torch's default)
     token : bearer token sent as ``Authorization: Bearer <token>`` (remote)
     timeout_s : seconds per HTTP request (connect, read, write), None = no limit
     eps : default collision offset, world units (None = 1 mm)
     fields : default fields
     retry : :class:`RetryPolicy` for 429/503 and refused connections
-    transport : an ``httpx.BaseTransport`` (e.g. ``httpx.ASGITransport`` cannot be used here;
-        tests and special networks only)
+    transport : an ``httpx.BaseTransport`` for special networks (remote only)
     """
 
     def __init__(self, server: str | None = None, *, models: str | Path | None = None,
-                 device: str | None = None, token: str | None = None,
+                 device: str | None = None, threads: int | None = None,
+                 token: str | None = None,
                  timeout_s: float | None = DEFAULT_TIMEOUT_S, eps: float | None = None,
                  fields: Iterable[str] = ("distance",), retry: RetryPolicy | None = None,
                  transport: httpx.BaseTransport | None = None):
@@ -112,7 +113,7 @@ class Client:
         else:
             from ._embedded import EmbeddedBackend
 
-            self._embedded = EmbeddedBackend(models, device)
+            self._embedded = EmbeddedBackend(models, device, threads)
 
     @property
     def remote(self) -> bool:
@@ -219,7 +220,8 @@ class AsyncClient:
     """
 
     def __init__(self, server: str | None = None, *, models: str | Path | None = None,
-                 device: str | None = None, token: str | None = None,
+                 device: str | None = None, threads: int | None = None,
+                 token: str | None = None,
                  timeout_s: float | None = DEFAULT_TIMEOUT_S, eps: float | None = None,
                  fields: Iterable[str] = ("distance",), retry: RetryPolicy | None = None,
                  transport: httpx.AsyncBaseTransport | None = None):
@@ -232,7 +234,7 @@ class AsyncClient:
         else:
             from ._embedded import EmbeddedBackend
 
-            self._embedded = EmbeddedBackend(models, device)
+            self._embedded = EmbeddedBackend(models, device, threads)
 
     @property
     def remote(self) -> bool:

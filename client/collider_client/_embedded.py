@@ -20,9 +20,15 @@ from ._base import SceneCollider
 
 class EmbeddedBackend:
     """Colliders loaded from a model repository folder (``models``, default ``models/``) on
-    ``device`` ("cpu", "cuda", None = CUDA if present). Loaded models are kept for reuse."""
+    ``device`` ("cpu", "cuda", None = CUDA if present). Loaded models are kept for reuse.
 
-    def __init__(self, models: str | Path | None = None, device: str | None = None):
+    threads : torch CPU threads for the engine (process-wide, as torch's setting is); None
+        leaves torch's default. On a busy CPU, fewer threads than cores avoid spin-waiting
+        (``collider serve`` uses cores - 1 for the same reason).
+    """
+
+    def __init__(self, models: str | Path | None = None, device: str | None = None,
+                 threads: int | None = None):
         try:
             from collider_server.repository import ModelRepository
         except ImportError as exc:  # the light install has no engine
@@ -30,6 +36,12 @@ class EmbeddedBackend:
                 "the embedded backend needs the engine: pip install 'neural-collider[server]' "
                 f"(or give a server URL to use a running `collider serve`) [{exc}]"
             ) from None
+        if threads is not None:
+            if threads < 1:
+                raise ValueError(f"threads must be >= 1, got {threads}")
+            import torch
+
+            torch.set_num_threads(threads)
         self.repository = ModelRepository(models)
         self.device = device
         self._colliders: dict[str, object] = {}

@@ -151,6 +151,8 @@ class CollisionHook:
     friction : Coulomb coefficient; ``None`` = no velocity response: colliding points take the
         collider's velocity (inelastic and sticky), which needs no normals from the service
     restitution : 0..1, used with friction
+    cull : send only the points inside a collider's inflated box (True); False sends every point
+        (for benchmarks that show what culling saves)
 
     Call :meth:`apply` after each integration step (or substep). Only points inside a collider's
     inflated world box are sent, and only the fields the response needs are asked for.
@@ -158,7 +160,7 @@ class CollisionHook:
 
     def __init__(self, client, colliders: Sequence[ColliderPlacement], eps: float = 1e-3,
                  friction: float | None = None, restitution: float = 0.0,
-                 infos: dict[str, ModelInfo] | None = None):
+                 infos: dict[str, ModelInfo] | None = None, cull: bool = True):
         if not eps > 0:
             raise ValueError(f"eps must be > 0, got {eps}")
         if not colliders:
@@ -168,6 +170,7 @@ class CollisionHook:
         self.eps = float(eps)
         self.friction = friction
         self.restitution = float(restitution)
+        self.cull = cull
         if infos is None:
             infos = {m.name: m for m in client.list_models()}
         missing = sorted({c.model for c in self.colliders} - set(infos))
@@ -192,8 +195,8 @@ class CollisionHook:
         n = len(positions)
         poses = [c.pose(t) for c in self.colliders]
         margin = self.eps + 1e-9
-        near = np.zeros(n, dtype=bool)
-        for placement, pose in zip(self.colliders, poses):
+        near = np.full(n, not self.cull)
+        for placement, pose in zip(self.colliders, poses) if self.cull else ():
             lo, hi = world_box(self.infos[placement.model], pose, margin)
             near |= np.all((positions >= lo) & (positions <= hi), axis=1)
         index = np.flatnonzero(near)

@@ -37,6 +37,8 @@ def register(subparsers) -> None:
     p.add_argument("--token", default=None, help="bearer token for --server")
     p.add_argument("--models", type=Path, default=None, help="model repository (embedded; default models/)")
     p.add_argument("--device", default=None, help="embedded engine device: cpu, cuda, auto")
+    p.add_argument("--threads", type=int, default=None,
+                   help="embedded engine CPU threads (default: cores - 1, at least 1, as the server)")
     p.add_argument("--output", type=Path, default=Path("out"), help="output folder (default out/)")
     p.add_argument("--steps", type=int, default=None, help="simulate only this many steps")
     p.add_argument("--no-preview", action="store_true", help="skip the PNG")
@@ -63,8 +65,13 @@ def run_simulate(args: argparse.Namespace) -> int:
         checks[model] = Path(mesh)
     client = None
     if scene.colliders:
-        client = Client(args.server, token=args.token) if args.server else Client(
-            models=args.models, device=args.device)
+        if args.server:
+            client = Client(args.server, token=args.token)
+        else:
+            import os
+
+            threads = args.threads or max(1, (os.cpu_count() or 2) - 1)
+            client = Client(models=args.models, device=args.device, threads=threads)
     try:
         report, frames = run_scene(scene, client, args.output, show_progress=not args.quiet,
                                    steps=args.steps, preview=not args.no_preview,
