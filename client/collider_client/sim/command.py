@@ -63,6 +63,17 @@ def run_simulate(args: argparse.Namespace) -> int:
         if not sep or not model or not mesh:
             raise ValueError(f"--check-mesh wants MODEL=MESH, got {item!r}")
         checks[model] = Path(mesh)
+    # The exact meshes also show the colliders in the PNG (a few thousand surface vertices).
+    shown = {}
+    if checks:
+        import numpy as np
+        from collider_server.meshes import load_mesh
+
+        for model, mesh_path in checks.items():
+            vertices = load_mesh(mesh_path).vertices
+            pick = np.random.default_rng(0).choice(len(vertices), min(4000, len(vertices)),
+                                                   replace=False)
+            shown[model] = np.asarray(vertices[pick], dtype=np.float64)
     client = None
     if scene.colliders:
         if args.server:
@@ -75,7 +86,8 @@ def run_simulate(args: argparse.Namespace) -> int:
     try:
         report, frames = run_scene(scene, client, args.output, show_progress=not args.quiet,
                                    steps=args.steps, preview=not args.no_preview,
-                                   backend="remote" if args.server else "embedded")
+                                   backend="remote" if args.server else "embedded",
+                                   collider_points=shown)
     finally:
         if client is not None:
             client.close()
