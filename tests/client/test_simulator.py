@@ -86,6 +86,16 @@ def test_drop_on_sphere_stays_outside(tmp_path, models_dir):
     assert frames[-1][1][:, 2].min() < 0.09     # its edges fell past the top, draping
     assert client.fields == {"distance", "contact"}  # no friction: no normals asked for
     assert client.calls == report.queries > 0
+    # The same check through the exact mesh SDF that `--check-mesh` uses.
+    import trimesh
+
+    from collider_client.sim.exact import exact_penetration
+
+    mesh_path = tmp_path / "sphere.obj"
+    trimesh.creation.icosphere(subdivisions=5, radius=SPHERE_RADIUS_M).export(mesh_path)
+    check = exact_penetration(scene, frames, {"sphere": mesh_path})
+    assert check["max_depth_m"] < 1e-3 and check["frames"] == 13
+    assert check["min_distance_m"] < 2.5e-3  # it rests on the sphere, about eps away
     # Outputs: OBJ (quads), PC2 (every frame), PNG, report.
     obj = (tmp_path / "out" / "drop.obj").read_text().splitlines()
     assert sum(line.startswith("v ") for line in obj) == 256

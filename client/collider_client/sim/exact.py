@@ -13,11 +13,14 @@ def exact_penetration(scene: Scene, frames: list, meshes: dict[str, Path]) -> di
     """Deepest penetration (metres, >= 0) of any vertex in any frame into each collider's exact
     mesh (``meshes``: model name -> mesh file, in the collider frame), at the frame's pose.
 
-    Returns ``{"max_depth_m": ..., "frames": ..., "by_model": {model: depth_m}}``.
+    Returns ``{"max_depth_m": ..., "min_distance_m": ..., "frames": ..., "by_model": {model:
+    depth_m}}``; ``min_distance_m`` is the smallest signed distance of any vertex (negative:
+    inside), which shows how close the cloth came (about eps when it rests on the collider).
     """
     from collider_server.meshes import ExactSDF, load_mesh
 
     by_model = {}
+    closest = float("inf")
     for spec in scene.colliders:
         if spec.model not in meshes:
             continue
@@ -29,9 +32,11 @@ def exact_penetration(scene: Scene, frames: list, meshes: dict[str, Path]) -> di
             local = (vertices.astype(np.float64) - pose[:3, 3]) @ pose[:3, :3]
             distance = sdf.query(local)[0]
             worst = max(worst, float(-distance.min()))
+            closest = min(closest, float(distance.min()))
         by_model[spec.model] = max(by_model.get(spec.model, 0.0), worst)
     unknown = sorted(set(meshes) - {s.model for s in scene.colliders})
     if unknown:
         raise ValueError(f"--check-mesh names model(s) {unknown} that the scene does not use")
-    return {"max_depth_m": max(by_model.values(), default=0.0), "frames": len(frames),
+    return {"max_depth_m": max(by_model.values(), default=0.0), "min_distance_m": closest,
+            "frames": len(frames),
             "by_model": by_model}
