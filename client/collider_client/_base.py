@@ -191,8 +191,6 @@ def decode_query(body: dict[str, Any], fields: list[str], scene: bool) -> QueryR
             result.collider = wire.decode_array(body["collider"], "collider")
     except wire.WireError as exc:
         raise ProtocolError(str(exc)) from None
-    if scene is False and result.model is None:
-        result.model = body.get("model")
     # JSON answers come as nested lists; give them the dtypes the wire format promises.
     if result.collides is not None and result.collides.dtype != np.bool_:
         result.collides = result.collides.astype(bool)

@@ -110,3 +110,16 @@ def test_cli_rejects_a_missing_model_before_the_run(tmp_path, models_dir):
     assert "colliders[].model ['teapot'] not found" in out.stderr
     assert "box" in out.stderr and "sphere" in out.stderr
     assert not (tmp_path / "out" / "scene.pc2").exists()  # rejected before anything ran
+
+
+def test_cli_runs_a_shipped_scene_without_colliders(tmp_path):
+    # No colliders: runs with no model repository and no server at all.
+    out = subprocess.run([sys.executable, "-m", "collider_server.cli", "simulate", "flag_in_wind",
+                          "--steps", "250", "--quiet", "--models", str(tmp_path / "absent"),
+                          "--output", str(tmp_path / "out")], capture_output=True, text=True,
+                         timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert "fields asked     none (no collisions)" in out.stdout
+    assert "points sent      0 of 0" in out.stdout
+    for suffix in (".obj", ".pc2", ".png", ".report.json"):
+        assert (tmp_path / "out" / f"flag_in_wind{suffix}").is_file()
