@@ -126,8 +126,8 @@ async def coalescing(models: Path, model: str, collider, clients: list[int], poi
 
 async def transport(models: Path, collider, model: str, n: int, repetitions: int,
                     server_flags: tuple[str, ...] = ()) -> dict:
-    """Median HTTP/msgpack round trip (client encode and decode included) minus median
-    in-process ``Collider.query``, interleaved so load drift hits both alike."""
+    """HTTP/msgpack round trip (client encode and decode included) minus in-process
+    ``Collider.query``, interleaved so load drift hits both alike."""
     points = bunny_points(collider, n, 123)
     expected = collider.query(points, FIELDS)
     in_process, over_http = [], []
@@ -149,8 +149,11 @@ async def transport(models: Path, collider, model: str, n: int, repetitions: int
     for name in FIELDS:
         np.testing.assert_array_equal(got[name], getattr(expected, name))
     a, b = statistics.median(in_process) * 1e3, statistics.median(over_http) * 1e3
+    # The overhead is the median of paired differences: each HTTP call minus the in-process call
+    # just before it, so slow drifts of a shared machine's load cancel out.
+    paired = statistics.median(h - p for h, p in zip(over_http, in_process)) * 1e3
     return {"points": n, "fields": list(FIELDS), "in_process_ms": a, "http_msgpack_ms": b,
-            "overhead_ms": b - a, "repetitions": repetitions}
+            "overhead_ms": paired, "repetitions": repetitions}
 
 
 def plot(rows: list[dict], path: Path) -> None:
@@ -186,7 +189,7 @@ def main() -> int:
     parser.add_argument("--clients", default="1,8,32,128")
     parser.add_argument("--points", type=int, default=1000, help="points per request")
     parser.add_argument("--duration", type=float, default=3.0, help="seconds per measurement")
-    parser.add_argument("--transport-repetitions", type=int, default=15)
+    parser.add_argument("--transport-repetitions", type=int, default=40)
     parser.add_argument("--server-flags", default="",
                         help="extra `collider serve` flags, e.g. '--max-wait-ms 0'")
     parser.add_argument("--output", type=Path, default=REPO / "out" / "coalescing.json")
@@ -213,12 +216,17 @@ def main() -> int:
         collider = load_collider(args.models / f"{model}.safetensors", "cpu")
         print(f"{model}: {notes[model]}", flush=True)
         if kind == "voxel":
-            results["transport"] = asyncio.run(
-                transport(args.models, collider, model, 40_000, args.transport_repetitions, flags))
-            t = results["transport"]
-            print(f"  transport, 40,000 points distance+normal+contact: in process "
-                  f"{t['in_process_ms']:.1f} ms, HTTP/msgpack {t['http_msgpack_ms']:.1f} ms, "
-                  f"overhead {t['overhead_ms']:.1f} ms (target <= 5 ms)", flush=True)
+            # With the default batching wait, and with none (a lone request then goes at once).
+            results["transport"] = []
+            for extra in ((), ("--max-wait-ms", "0")):
+                t = asyncio.run(transport(args.models, collider, model, 40_000,
+                                          args.transport_repetitions, flags + extra))
+                t["server_flags"] = list(flags + extra)
+                results["transport"].append(t)
+                print(f"  transport, 40,000 points distance+normal+contact {' '.join(extra)}: "
+                      f"in process {t['in_process_ms']:.1f} ms, HTTP/msgpack "
+                      f"{t['http_msgpack_ms']:.1f} ms, overhead {t['overhead_ms']:.1f} ms "
+                      f"(target <= 5 ms)", flush=True)
         results["coalescing"] += asyncio.run(
             coalescing(args.models, model, collider, clients, args.points, args.duration, flags))
 

@@ -235,3 +235,13 @@ def test_size_limits_answer_413(repo):
         assert scene.status_code == 413 and scene.json()["type"] == "too-many-colliders"
         ok = post(f"{server.url}/v1/models/sphere/query", {"points": np.zeros((100, 3), np.float32)})
         assert ok.status_code == 200
+
+
+def test_openapi_page_documents_the_routes_and_bodies(server):
+    schema = httpx.get(f"{server.url}/openapi.json").json()
+    assert {"/v1/models", "/v1/models/{name}", "/v1/models/{name}/query", "/v1/scene/query",
+            "/v1/admin/models/{name}", "/livez", "/readyz", "/metrics"} <= set(schema["paths"])
+    body = schema["paths"]["/v1/models/{name}/query"]["post"]["requestBody"]["content"]
+    assert set(body) == {"application/msgpack", "application/json"}
+    assert "points" in body["application/msgpack"]["schema"]["required"]
+    assert httpx.get(f"{server.url}/docs").status_code == 200

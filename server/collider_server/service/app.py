@@ -12,6 +12,7 @@ from fastapi import FastAPI
 from ..batching import DeviceWorkers
 from ..devices import resolve_device
 from ..repository import ModelRepository
+from .fastpath import QueryFastPath
 from .metrics import RequestCounter, ServiceMetrics
 from .problems import install_handlers
 from .registry import ModelRegistry
@@ -66,6 +67,7 @@ def create_app(settings: ServiceSettings | None = None) -> FastAPI:
     install_handlers(app)
     for router in (health.router, models.router, scene.router, admin.router):
         app.include_router(router)
+    app.add_middleware(QueryFastPath)
     if settings.cors_origins:
         from fastapi.middleware.cors import CORSMiddleware
 
