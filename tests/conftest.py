@@ -127,9 +127,10 @@ def make_sphere() -> Shape:
         rng = np.random.default_rng(seed)
         return _unit(rng.normal(size=(n, 3))) * (SPHERE_RADIUS + rng.uniform(-0.02, 0.02, n))[:, None]
 
-    # Faces of an inscribed icosphere sag by at most r (1 - cos(half the edge angle)).
+    # A face of an inscribed icosphere sags below the sphere by about e^2 / (6 r) at its centre
+    # (e the edge, r the radius); bound it by e^2 / (5 r).
     edge = _longest_edge(mesh)
-    return Shape("sphere", mesh, sdf, _unit, sample, SPHERE_RADIUS * (edge / SPHERE_RADIUS) ** 2 / 8 * 1.5, edge)
+    return Shape("sphere", mesh, sdf, _unit, sample, edge**2 / (5 * SPHERE_RADIUS), edge)
 
 
 def make_box() -> Shape:
