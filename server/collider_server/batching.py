@@ -85,7 +85,7 @@ class BatchSettings:
     """
 
     max_batch_points: int = 65_536
-    max_wait_ms: float = 1.0
+    max_wait_ms: float = 0.0
     max_queue_points: int = 4_000_000
     coalesce: bool = True
 

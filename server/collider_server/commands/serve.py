@@ -24,7 +24,8 @@ def register(subparsers) -> None:
     knobs.add_argument("--max-batch-points", type=int, default=None,
                        help="most points in one compute call (default 65536)")
     knobs.add_argument("--max-wait-ms", type=float, default=None,
-                       help="longest wait for more points before a batch closes, ms (default 1)")
+                       help="longest wait for more points before a batch closes, ms (default 0: "
+                            "a batch takes what queued while the previous one ran)")
     knobs.add_argument("--max-queue-points", type=int, default=None,
                        help="most points queued per model; beyond it 429 (default 4000000)")
     knobs.add_argument("--coalesce", action=argparse.BooleanOptionalAction, default=None,

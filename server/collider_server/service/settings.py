@@ -31,7 +31,9 @@ class ServiceSettings(BaseSettings):
                                                                       "empty: CORS off")
     # Coalescing (see collider_server.batching).
     max_batch_points: int = Field(65_536, ge=1, description="most points in one compute call")
-    max_wait_ms: float = Field(1.0, ge=0, description="longest wait for more points, ms")
+    # 0 as in Triton's dynamic batcher: whatever queued while the worker was busy forms the next
+    # batch, and a lone request pays no timer (measured: 1 ms cost +2.4 ms p50 at K=1 on 2 cores).
+    max_wait_ms: float = Field(0.0, ge=0, description="longest wait for more points, ms")
     max_queue_points: int = Field(4_000_000, ge=1, description="most points queued per model")
     coalesce: bool = Field(True, description="False computes every request on its own")
     # Limits of one request.
