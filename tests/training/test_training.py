@@ -85,7 +85,7 @@ def test_evaluation_of_the_exact_kind_is_exact(sphere_mesh):
         assert report[key]["distance_max_mm"] < 1e-4  # float32 rounding of ~0.1 m values
         assert report[key]["sign_errors_percent"] == 0.0
         assert report[key]["contact_p99_mm"] < 1e-3
-    assert report["band_1mm"]["normal_p99_deg"] < 0.01
+    assert report["band_1mm"]["normal_p99_deg"] < 0.05  # float32 normals
 
 
 def run_cli(*args, cwd=None):
