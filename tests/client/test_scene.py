@@ -123,3 +123,17 @@ def test_cli_runs_a_shipped_scene_without_colliders(tmp_path):
     assert "points sent      0 of 0" in out.stdout
     for suffix in (".obj", ".pc2", ".png", ".report.json"):
         assert (tmp_path / "out" / f"flag_in_wind{suffix}").is_file()
+
+
+def test_cli_unreachable_server_is_one_line(tmp_path):
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    path = write(tmp_path, BASE + "[effects.collisions]\n[[colliders]]\nmodel = 'sphere'\n")
+    out = subprocess.run([sys.executable, "-m", "collider_server.cli", "simulate", str(path),
+                          "--server", f"http://127.0.0.1:{port}", "--output", str(tmp_path)],
+                         capture_output=True, text=True, timeout=120)
+    assert out.returncode == 2
+    assert "Traceback" not in out.stderr and "cannot connect" in out.stderr

@@ -83,11 +83,15 @@ def run_simulate(args: argparse.Namespace) -> int:
 
             threads = args.threads or max(1, (os.cpu_count() or 2) - 1)
             client = Client(models=args.models, device=args.device, threads=threads)
+    from .._exceptions import ColliderError
+
     try:
         report, frames = run_scene(scene, client, args.output, show_progress=not args.quiet,
                                    steps=args.steps, preview=not args.no_preview,
                                    backend="remote" if args.server else "embedded",
                                    collider_points=shown)
+    except ColliderError as exc:  # a server that is down or refuses: one line, no traceback
+        raise ValueError(str(exc)) from None
     finally:
         if client is not None:
             client.close()
