@@ -189,6 +189,7 @@ class PointBatcher:
         # Recent throughput, points per second, for the Retry-After estimate.
         self._points_per_second = 0.0
         self._task = asyncio.get_running_loop().create_task(self._run())
+        self._task.add_done_callback(self._loop_ended)
 
     # -- state ------------------------------------------------------------------------------
 
@@ -287,6 +288,21 @@ class PointBatcher:
 
     # -- the batching loop ---------------------------------------------------------------------
 
+    def _loop_ended(self, task: asyncio.Task) -> None:
+        """If the loop ever dies (a bug, or cancellation), nobody waits forever: every queued
+        request fails with :class:`BatcherClosed` (the batch in flight fails in
+        :meth:`_execute`) and new ones are refused."""
+        error = "cancelled" if task.cancelled() else task.exception()
+        if error is None:
+            return
+        log.error("batching loop ended: %s", error)
+        self._closing = True
+        for request in self._queue:
+            if not request.future.done():
+                request.future.set_exception(BatcherClosed(f"the batching loop ended ({error})"))
+        self._queue.clear()
+        self._queued_points = 0
+
     async def _run(self) -> None:
         wait_s = self.settings.max_wait_ms / 1000.0
         while True:
@@ -347,10 +363,16 @@ class PointBatcher:
             distance, normal = await loop.run_in_executor(
                 self._executor, self._compute, local, want_gradient)
             _check_output(distance, normal, n, want_gradient)
-        except Exception as exc:  # compute failed: only this batch's requests see it
+        except BaseException as exc:
+            # Compute failed: only this batch's requests see it. (If the loop itself is being
+            # cancelled, they learn that the batcher is gone.)
+            error = exc if isinstance(exc, Exception) else BatcherClosed(
+                "the batching loop ended (cancelled)")
             for part in parts:
                 if not part.request.future.done():
-                    part.request.future.set_exception(exc)
+                    part.request.future.set_exception(error)
+            if not isinstance(exc, Exception):
+                raise
             return
         finally:
             self._in_flight -= n

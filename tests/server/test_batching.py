@@ -331,3 +331,23 @@ def test_empty_request_needs_no_batch(workers):
 def test_settings_are_validated(kwargs, message):
     with pytest.raises(ValueError, match=message):
         BatchSettings(**kwargs)
+
+
+def test_a_dead_loop_fails_its_waiting_requests_instead_of_hanging(workers):
+    compute = GatedCompute(gated=True)
+
+    async def main():
+        batcher = PointBatcher(compute, BatchSettings(), workers.executor("cpu"))
+        busy = asyncio.create_task(batcher.submit(points(3, 0), False))
+        await compute.wait_started()
+        queued = asyncio.create_task(batcher.submit(points(3, 1), False))
+        await asyncio.sleep(0)
+        batcher._task.cancel()  # stands for a bug that kills the loop
+        for waiting in (busy, queued):
+            with pytest.raises(BatcherClosed, match="loop ended"):
+                await waiting
+        with pytest.raises(BatcherClosed):
+            await batcher.submit(points(3, 2), False)
+        compute.gate.set()
+
+    run(main())

@@ -258,3 +258,12 @@ def test_serve_cli_user_errors_are_one_line(tmp_path):
         [sys.executable, "-m", "collider_server.cli", "serve", "--max-wait-ms", "-1"],
         capture_output=True, text=True, timeout=60)
     assert result.returncode == 2 and "max_wait_ms" in result.stderr
+
+
+def test_cors_is_off_by_default_and_on_when_configured(server, repo):
+    preflight = {"Origin": "http://sim.example", "Access-Control-Request-Method": "POST"}
+    closed = httpx.options(f"{server.url}/v1/models/sphere/query", headers=preflight)
+    assert "access-control-allow-origin" not in closed.headers
+    with ServerThread(models=repo, device="cpu", cors_origins=["http://sim.example"]) as open_server:
+        allowed = httpx.options(f"{open_server.url}/v1/models/sphere/query", headers=preflight)
+        assert allowed.headers["access-control-allow-origin"] == "http://sim.example"
