@@ -191,6 +191,8 @@ def main() -> int:
     parser.add_argument("--points", type=int, default=1000, help="points per request")
     parser.add_argument("--duration", type=float, default=3.0, help="seconds per measurement")
     parser.add_argument("--transport-repetitions", type=int, default=40)
+    parser.add_argument("--device", default="auto",
+                        help="device of the server and of the in-process reference (cpu, cuda, auto)")
     parser.add_argument("--server-flags", default="",
                         help="extra `collider serve` flags, e.g. '--max-wait-ms 0'")
     parser.add_argument("--output", type=Path, default=REPO / "out" / "coalescing.json")
@@ -205,7 +207,7 @@ def main() -> int:
     # The in-process reference runs with the server's compute thread count, so the transport
     # figure compares like with like.
     torch.set_num_threads(ServiceSettings().resolved_compute_threads())
-    flags = tuple(args.server_flags.split())
+    flags = ("--device", args.device, *args.server_flags.split())
 
     print(f"machine: {machine_note()}", flush=True)
     notes = prepare_models(args.models)
@@ -214,7 +216,7 @@ def main() -> int:
                "compute_threads": torch.get_num_threads(), "coalescing": []}
     for kind in args.kinds.split(","):
         model = f"bunny-{kind}"
-        collider = load_collider(args.models / f"{model}.safetensors", "cpu")
+        collider = load_collider(args.models / f"{model}.safetensors", args.device)
         print(f"{model}: {notes[model]}", flush=True)
         if kind == "voxel":
             # With the default batching (no wait), and with a 1 ms wait for more points.

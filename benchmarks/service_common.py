@@ -91,11 +91,12 @@ def free_port() -> int:
 
 @contextlib.contextmanager
 def serve(models: Path, *flags: str, env: dict | None = None):
-    """``collider serve`` on a free loopback port until the block ends; yields its port."""
+    """``collider serve`` on a free loopback port until the block ends; yields its port.
+    ``flags`` may hold ``--device``; the server's default is ``auto`` (CUDA when present)."""
     port = free_port()
     process = subprocess.Popen(
         [sys.executable, "-m", "collider_server.cli", "serve", "--models", str(models),
-         "--port", str(port), "--device", "cpu", "--log-level", "warning", *flags],
+         "--port", str(port), "--log-level", "warning", *flags],
         env={**os.environ, **(env or {})})
     try:
         wait_ready(port, process)
