@@ -47,6 +47,10 @@ class ServerThread:
 
         self.port = free_port()
         self.url = f"http://127.0.0.1:{self.port}"
+        import torch
+
+        # Keep the test process's torch thread count as it is (the server sets it process-wide).
+        settings.setdefault("compute_threads", torch.get_num_threads())
         self.settings = ServiceSettings(host="127.0.0.1", port=self.port, **settings)
         self.app = create_app(self.settings)
         config = uvicorn.Config(self.app, host="127.0.0.1", port=self.port, log_level="warning")

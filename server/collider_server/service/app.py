@@ -31,7 +31,7 @@ maps the collider frame to the world frame. Errors are `application/problem+json
 
 
 def set_compute_threads(threads: int) -> None:
-    """torch's CPU thread count for the calling thread (and torch's global default)."""
+    """torch's CPU thread count (for the calling thread, and torch's default)."""
     import torch
 
     torch.set_num_threads(threads)
@@ -46,8 +46,8 @@ def create_app(settings: ServiceSettings | None = None) -> FastAPI:
     @contextlib.asynccontextmanager
     async def lifespan(app: FastAPI):
         threads = settings.resolved_compute_threads()
+        # Set from the compute thread itself: with OpenMP the count can be a per-thread setting.
         workers = DeviceWorkers(functools.partial(set_compute_threads, threads))
-        set_compute_threads(threads)  # loading and warm-up run in other threads
         registry = ModelRegistry(ModelRepository(settings.models), resolve_device(settings.device),
                                  settings.batch_settings(), workers, metrics, settings.warmup)
         state = ServiceState(settings, metrics, workers, registry)
