@@ -267,3 +267,25 @@ def test_cors_is_off_by_default_and_on_when_configured(server, repo):
     with ServerThread(models=repo, device="cpu", cors_origins=["http://sim.example"]) as open_server:
         allowed = httpx.options(f"{open_server.url}/v1/models/sphere/query", headers=preflight)
         assert allowed.headers["access-control-allow-origin"] == "http://sim.example"
+
+
+def test_server_keeps_answering_while_a_batch_computes(tmp_path, tiny_neural_collider):
+    from collider_server.modelfile import save_collider
+
+    # A paper-sized network: 60,000 points with normals take about a second on a small CPU.
+    collider = tiny_neural_collider([-0.2] * 3, [0.2] * 3, name="net", fourier_features=128,
+                                    hidden_layers=3, hidden_width=256)
+    save_collider(collider, tmp_path / "models" / "net.safetensors")
+    with ServerThread(models=tmp_path / "models", device="cpu") as server:
+        points = sample_points(60_000, 11).astype(np.float32)
+        start = time.monotonic()
+        big = background_post(f"{server.url}/v1/models/net/query",
+                              {"points": points, "fields": ["distance", "normal"]})
+        time.sleep(0.3)
+        assert httpx.get(f"{server.url}/livez").status_code == 200
+        assert httpx.get(f"{server.url}/v1/models").status_code == 200
+        answered = time.monotonic() - start
+        assert not big.done(), "the big query finished too soon to show anything"
+        response = big.result(120)
+        assert response.status_code == 200
+        assert time.monotonic() - start > answered
