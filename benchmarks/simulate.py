@@ -32,7 +32,8 @@ VARIANTS = {
 }
 
 
-def run_variant(variant: str, client, steps: int, cloth: int | None) -> dict:
+def run_variant(variant: str, client, steps: int, cloth: int | None,
+                start: np.ndarray | None = None) -> dict:
     scene = load_scene(SCENES_DIR / VARIANTS[variant][0])
     if cloth is not None:  # a coarser cloth of the same physical size
         scale = scene.cloth.width / cloth
@@ -40,6 +41,9 @@ def run_variant(variant: str, client, steps: int, cloth: int | None) -> dict:
         scene.cloth.spacing_m *= scale
     infos = {m.name: m for m in client.list_models()}
     sim = Simulator(scene, client, infos)
+    if start is not None:  # resume from a saved frame (e.g. the draped cloth), at rest
+        sim.x = start.reshape(sim.x.shape).astype(np.float64)
+        sim.x_prev = sim.x.copy()
     if variant != "needed":
         sim.hook.fields = list(FIELDS)
     if variant == "all-nocull":
@@ -58,6 +62,7 @@ def run_variant(variant: str, client, steps: int, cloth: int | None) -> dict:
             "total": 1e3 * wall / steps, "integration": 1e3 * t.integration_s / steps,
             "collision": 1e3 * t.collision_s / steps, "query": 1e3 * t.query_s / steps,
             "sent": (sim.hook.stats.points_sent - sent_before) / steps,
+            "colliding": sim.hook.stats.colliding_last,
             "fields": ",".join(sim.hook.fields), "effects": ",".join(sim.effects)}
 
 
@@ -114,6 +119,9 @@ def main(argv=None) -> int:
                         help="also time through a `collider serve` started on loopback")
     parser.add_argument("--server", default=None, help="also time through this running server")
     parser.add_argument("--variants", default=",".join(VARIANTS))
+    parser.add_argument("--start", type=Path, default=None,
+                        help="start from the last frame of this PC2 (e.g. out/drape_bunny.pc2 "
+                             "of a full run), so the timed steps are in contact")
     parser.add_argument("--plot", type=Path, default=None, help="write a PNG bar chart here")
     args = parser.parse_args(argv)
 
@@ -124,6 +132,11 @@ def main(argv=None) -> int:
         backends.append(("remote", url))
     elif args.server:
         backends.append(("remote", args.server))
+    start = None
+    if args.start is not None:
+        from collider_client.sim.output import read_pc2
+
+        start = np.array(read_pc2(args.start)[-1])
     rows = []
     try:
         for backend, url in backends:
@@ -131,7 +144,7 @@ def main(argv=None) -> int:
                 models=args.models, threads=max(1, (os.cpu_count() or 2) - 1))
             with client:
                 for variant in args.variants.split(","):
-                    row = run_variant(variant, client, args.steps, args.cloth)
+                    row = run_variant(variant, client, args.steps, args.cloth, start)
                     row["backend"] = backend
                     rows.append(row)
     finally:
@@ -140,11 +153,11 @@ def main(argv=None) -> int:
             process.wait(timeout=30)
 
     print(f"{'variant':<11} {'backend':<9} {'verts':>6} {'total':>8} {'integr':>8} {'collis':>8} "
-          f"{'query':>8} {'sent/step':>10}  fields")
+          f"{'query':>8} {'sent/step':>10} {'contacts':>8}  fields")
     for r in rows:
         print(f"{r['variant']:<11} {r['backend']:<9} {r['vertices']:>6} {r['total']:>8.2f} "
               f"{r['integration']:>8.2f} {r['collision']:>8.2f} {r['query']:>8.2f} "
-              f"{r['sent']:>10.0f}  {r['fields']}")
+              f"{r['sent']:>10.0f} {r['colliding']:>8}  {r['fields']}")
     by = {(r["variant"], r["backend"]): r for r in rows}
     for backend, _ in backends:
         base = by.get(("needed", backend))
