@@ -181,6 +181,11 @@ BAD_BODIES = {
     "bad-deadline": ("application/json", b'{"points": [[0,0,0]], "deadline_ms": -5}', 422,
                      "bad-deadline-ms", "deadline_ms"),
     "text-plain": ("text/plain", b"0 0 0", 415, "unsupported-media-type", "text/plain"),
+    # JSON integers have no size limit; one too large for a float is still a number error.
+    "huge-int-eps": ("application/json", b'{"points": [[0,0,0]], "eps": 1' + b"0" * 400 + b"}", 422,
+                     "bad-eps", "finite"),
+    "huge-int-deadline": ("application/json", b'{"points": [[0,0,0]], "deadline_ms": 1' + b"0" * 400
+                          + b"}", 422, "bad-deadline-ms", "finite"),
 }
 
 
@@ -197,6 +202,14 @@ def test_bad_input_gets_a_problem_and_the_server_keeps_serving(server, engine, c
     points = sample_points(5, 6)
     got = decode(post(f"{server.url}/v1/models/sphere/query", {"points": points}))
     np.testing.assert_array_equal(got["distance"], engine["sphere"].query(points).distance)
+
+
+@pytest.mark.parametrize("header, words", [("soon", "number"), ("-5", "> 0"), ("inf", "finite")])
+def test_bad_deadline_header_is_bad_deadline_ms(server, header, words):
+    response = httpx.post(f"{server.url}/v1/models/sphere/query", content=b'{"points": [[0,0,0]]}',
+                          headers={"content-type": "application/json", "X-Deadline-Ms": header})
+    assert response.status_code == 422 and response.json()["type"] == "bad-deadline-ms"
+    assert words in response.json()["detail"] and "X-Deadline-Ms" in response.json()["detail"]
 
 
 def test_unknown_model_and_route(server):

@@ -149,14 +149,23 @@ def parse_fields(value) -> tuple[str, ...]:
         raise Problem(422, "unknown-field", str(exc)) from None
 
 
-def parse_number(value, name: str, positive: bool = False) -> float | None:
+def parse_number(value, name: str, positive: bool = False, code: str | None = None) -> float | None:
+    """``value`` as a finite float (``None`` stays ``None``); else 422 ``code`` (default
+    ``bad-<name>``) naming ``name``."""
     if value is None:
         return None
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-        raise Problem(422, f"bad-{name.replace('_', '-')}", f"{name} must be a finite number, got {value!r}")
-    if positive and value <= 0:
-        raise Problem(422, f"bad-{name.replace('_', '-')}", f"{name} must be > 0, got {value!r}")
-    return float(value)
+    code = code or f"bad-{name.replace('_', '-')}"
+    number = None
+    if isinstance(value, (int, float)) and not isinstance(value, bool):
+        try:
+            number = float(value)
+        except OverflowError:  # a JSON integer with hundreds of digits
+            number = None
+    if number is None or not math.isfinite(number):
+        raise Problem(422, code, f"{name} must be a finite number, got {value!r:.60}")
+    if positive and number <= 0:
+        raise Problem(422, code, f"{name} must be > 0, got {value!r}")
+    return number
 
 
 def parse_deadline(body: dict, request: Request) -> float | None:
@@ -168,7 +177,7 @@ def parse_deadline(body: dict, request: Request) -> float | None:
             value = float(header)
         except ValueError:
             raise Problem(422, "bad-deadline-ms", f"X-Deadline-Ms must be a number, got {header!r}") from None
-        deadlines.append(parse_number(value, "X-Deadline-Ms", positive=True))
+        deadlines.append(parse_number(value, "X-Deadline-Ms", positive=True, code="bad-deadline-ms"))
     given = [d for d in deadlines if d is not None]
     return min(given) if given else None
 
