@@ -282,9 +282,13 @@ class PointBatcher:
         self._wakeup.set()
 
     async def drain(self) -> None:
-        """Close, then wait until every accepted request has been answered."""
+        """Close, then wait until every accepted request has been answered (or failed, if the
+        loop died). Never raises the loop's own end: a dead or cancelled loop must not fail, or
+        look like a cancellation of, the caller that is shutting the batcher down."""
         self.close()
-        await asyncio.shield(self._task)
+        # asyncio.wait neither cancels the loop when this caller is cancelled nor re-raises its
+        # exception (``await shield(task)`` would do the latter).
+        await asyncio.wait({self._task})
 
     # -- the batching loop ---------------------------------------------------------------------
 
