@@ -137,25 +137,45 @@ def validation_sets(mesh: Mesh, sdf: ExactSDF, n: int, seed: int, meters_per_uni
 # -- checkpoints (safetensors: weights, Adam state, progress; no pickle) --------------------------
 
 def save_checkpoint(path: Path, network, optimizer, state: dict) -> None:
+    import torch
     from safetensors.torch import save_file
 
     tensors = {f"model.{k}": v.detach().cpu().contiguous() for k, v in network.state_dict().items()}
     for index, param_state in optimizer.state_dict()["state"].items():
         for key, value in param_state.items():
-            tensors[f"adam.{index}.{key}"] = (value if hasattr(value, "cpu") else __import__("torch").tensor(value)).detach().cpu().contiguous()
+            value = value if torch.is_tensor(value) else torch.tensor(value)  # Adam's step count
+            tensors[f"adam.{index}.{key}"] = value.detach().cpu().contiguous()
     tmp = path.with_suffix(".tmp")
     save_file(tensors, str(tmp), metadata={"state": json.dumps(state)})
     os.replace(tmp, path)
 
 
 def load_checkpoint(path: Path, network, optimizer) -> dict:
+    """Restore ``network`` and ``optimizer`` from ``path``; returns the saved progress state.
+
+    Raises ValueError naming the file when it is unreadable or was written for another
+    architecture (a stale checkpoint of an earlier run under the same name)."""
     from safetensors import safe_open
     from safetensors.torch import load_file
 
-    with safe_open(str(path), framework="pt") as fh:
-        state = json.loads(fh.metadata()["state"])
-    tensors = load_file(str(path))
-    network.load_state_dict({k[6:]: v for k, v in tensors.items() if k.startswith("model.")})
+    try:
+        with safe_open(str(path), framework="pt") as fh:
+            state = json.loads((fh.metadata() or {})["state"])
+        tensors = load_file(str(path))
+    except Exception as exc:  # safetensors' own error type, JSON errors, a missing "state"
+        raise ValueError(f"{path}: not a readable training checkpoint ({type(exc).__name__}: "
+                         f"{exc}); delete it to start over") from None
+    weights = {k[6:]: v for k, v in tensors.items() if k.startswith("model.")}
+    expected = {k: tuple(v.shape) for k, v in network.state_dict().items()}
+    found = {k: tuple(v.shape) for k, v in weights.items()}
+    if found != expected:
+        differ = sorted(set(found) ^ set(expected)) or [
+            k for k in sorted(expected) if found[k] != expected[k]]
+        key = differ[0]
+        raise ValueError(f"{path}: checkpoint of another network architecture ({key}: checkpoint "
+                         f"{found.get(key, 'absent')}, this run {expected.get(key, 'absent')}); "
+                         "delete it or pass another --checkpoint")
+    network.load_state_dict(weights)
     opt_state = optimizer.state_dict()
     restored: dict = {}
     for key, value in tensors.items():

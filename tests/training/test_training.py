@@ -67,6 +67,19 @@ def test_training_resumes_from_its_checkpoint(sphere_mesh, tmp_path):
     assert [h["step"] for h in resumed.history] == [10, 20, 30]
 
 
+def test_a_stale_checkpoint_of_another_architecture_is_a_clear_error(sphere_mesh, tmp_path):
+    checkpoint = tmp_path / "run.ckpt.safetensors"
+    train_neural(sphere_mesh, "s", small_config(samples=5000, steps=2, validate_every=1),
+                 checkpoint=checkpoint, show_progress=False)
+    wider = small_config(samples=5000, steps=4, architecture={**SMALL, "hidden_width": 32})
+    with pytest.raises(ValueError, match=r"another network architecture .*delete it"):
+        train_neural(sphere_mesh, "s", wider, checkpoint=checkpoint, show_progress=False)
+    checkpoint.write_bytes(b"not a checkpoint")
+    with pytest.raises(ValueError, match="not a readable training checkpoint"):
+        train_neural(sphere_mesh, "s", small_config(samples=5000, steps=4), checkpoint=checkpoint,
+                     show_progress=False)
+
+
 def test_bad_training_settings_are_rejected():
     with pytest.raises(ValueError, match="unknown preset"):
         TrainConfig(preset="nope").check()
