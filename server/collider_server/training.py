@@ -267,14 +267,16 @@ def train_neural(mesh: Mesh, name: str, config: TrainConfig, *, units: str = "m"
                 group["lr"] = lr
             index = torch.randint(0, len(points), (config.batch_size,), generator=generator).to(device)
             x = points[index]
-            want_normals = config.normal_weight > 0
+            mask = near[index]
+            # The normal term lives on the near samples only; a batch without any (possible with
+            # a small near_fraction) would make its mean, and the logged loss, NaN.
+            want_normals = config.normal_weight > 0 and bool(mask.any())
             if want_normals:
                 x.requires_grad_(True)
             prediction = network(x)
             loss = (prediction - target[index]).abs().mean() / radius
             if want_normals:
                 (grad,) = torch.autograd.grad(prediction.sum(), x, create_graph=True)
-                mask = near[index]
                 cosine = torch.nn.functional.cosine_similarity(grad[mask], target_gradient[index][mask], dim=1)
                 loss = loss + config.normal_weight * (1 - cosine).mean()
             optimizer.zero_grad(set_to_none=True)

@@ -80,6 +80,13 @@ def test_a_stale_checkpoint_of_another_architecture_is_a_clear_error(sphere_mesh
                      show_progress=False)
 
 
+def test_training_without_near_samples_logs_finite_losses(sphere_mesh):
+    # near_fraction=0: no batch holds a near sample, so the normal term has nothing to average.
+    result = train_neural(sphere_mesh, "s", small_config(samples=2000, steps=3, validate_every=1,
+                                                         near_fraction=0.0), show_progress=False)
+    assert all(np.isfinite(h["loss"]) for h in result.history)
+
+
 def test_bad_training_settings_are_rejected():
     with pytest.raises(ValueError, match="unknown preset"):
         TrainConfig(preset="nope").check()
