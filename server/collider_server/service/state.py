@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 from fastapi import Request
 
@@ -15,21 +15,18 @@ from .settings import ServiceSettings
 
 @dataclass
 class ServiceState:
+    """The app's settings, metrics, compute threads and models; ``shutting_down`` turns true when
+    uvicorn has stopped accepting (new queries then get 503)."""
+
     settings: ServiceSettings
     metrics: ServiceMetrics
     workers: DeviceWorkers
     registry: ModelRegistry
     shutting_down: bool = False
-    background: set = field(default_factory=set)
 
 
 def get_state(request: Request) -> ServiceState:
     return request.app.state.collider
-
-
-def get_settings(request: Request) -> ServiceSettings:
-    """The app's settings (a dependency; tests may override it)."""
-    return request.app.state.collider.settings
 
 
 def serving_model(state: ServiceState, name: str) -> LoadedModel:
