@@ -137,3 +137,28 @@ def test_cli_unreachable_server_is_one_line(tmp_path):
                          capture_output=True, text=True, timeout=120)
     assert out.returncode == 2
     assert "Traceback" not in out.stderr and "cannot connect" in out.stderr
+
+
+def test_collider_poses_from_motion():
+    import numpy as np
+
+    from collider_client.sim.scene import ColliderSpec, Motion, euler_matrix, pose_function
+
+    # +90 deg about x turns a Y-up model Z-up: x stays, y -> z, z -> -y.
+    np.testing.assert_allclose(euler_matrix(np.array([90.0, 0, 0])),
+                               [[1, 0, 0], [0, 0, -1], [0, 1, 0]], atol=1e-15)
+    static = pose_function(ColliderSpec("m", np.array([1.0, 2, 3]), np.zeros(3), Motion()))
+    np.testing.assert_allclose(static(7.0)[:3, 3], [1, 2, 3])
+    moving = pose_function(ColliderSpec("m", np.zeros(3), np.zeros(3), Motion(
+        kind="velocity", velocity_m_s=np.array([0.0, 0, 0.1]),
+        angular_velocity_deg_s=np.array([0.0, 0, 90.0]))))
+    pose = moving(1.0)
+    np.testing.assert_allclose(pose[:3, 3], [0, 0, 0.1])
+    np.testing.assert_allclose(pose[:3, :3] @ [1, 0, 0], [0, 1, 0], atol=1e-12)  # 90 deg about z
+    keyed = pose_function(ColliderSpec("m", np.array([0.0, 0, 1]), np.zeros(3), Motion(
+        kind="keyframes", times_s=np.array([0.0, 2.0]),
+        positions_m=np.array([[0.0, 0, 0], [2.0, 0, 0]]),
+        rotations_deg=np.array([[0.0, 0, 0], [0.0, 0, 180]]))))
+    np.testing.assert_allclose(keyed(1.0)[:3, 3], [1, 0, 1])
+    np.testing.assert_allclose(keyed(1.0)[:3, :3] @ [1, 0, 0], [0, 1, 0], atol=1e-12)
+    np.testing.assert_allclose(keyed(5.0)[:3, 3], [2, 0, 1])  # held after the last key
