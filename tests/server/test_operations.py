@@ -246,6 +246,12 @@ def test_settings_from_config_file_env_and_flags(tmp_path, monkeypatch):
     (tmp_path / "bad.json").write_text(json.dumps({"max_wait_mss": 1}))
     with pytest.raises(ValueError, match="max_wait_mss"):
         load_settings(tmp_path / "bad.json")
+    # uvicorn knows lower-case level names only: upper case is accepted, unknown names named.
+    monkeypatch.setenv("COLLIDER_LOG_LEVEL", "DEBUG")
+    assert load_settings().log_level == "debug"
+    monkeypatch.setenv("COLLIDER_LOG_LEVEL", "verbose")
+    with pytest.raises(ValueError, match="log_level: .*'verbose'"):
+        load_settings()
 
 
 def test_serve_cli_user_errors_are_one_line(tmp_path):

@@ -7,10 +7,12 @@ import os
 from pathlib import Path
 from typing import Any
 
-from pydantic import Field, model_validator
+from pydantic import Field, field_validator, model_validator
 from pydantic_settings import BaseSettings, EnvSettingsSource, SettingsConfigDict
 
 from ..batching import BatchSettings
+
+LOG_LEVELS = ("critical", "error", "warning", "info", "debug")
 
 
 class ServiceSettings(BaseSettings):
@@ -45,7 +47,16 @@ class ServiceSettings(BaseSettings):
     compute_threads: int = Field(0, ge=0, description="CPU threads of one compute call; 0: "
                                                       "auto, all cores but one (the event loop's)")
     warmup: bool = Field(True, description="run one small query per model before ready")
-    log_level: str = Field("info")
+    log_level: str = Field("info", description=f"one of {', '.join(LOG_LEVELS)}")
+
+    @field_validator("log_level", mode="before")
+    @classmethod
+    def _known_log_level(cls, value: Any) -> Any:
+        # uvicorn knows lower-case names only; COLLIDER_LOG_LEVEL=DEBUG is meant the same way.
+        level = value.lower() if isinstance(value, str) else value
+        if level not in LOG_LEVELS:
+            raise ValueError(f"must be one of {', '.join(LOG_LEVELS)}, got {value!r}")
+        return level
 
     @model_validator(mode="after")
     def _request_fits_queue(self) -> "ServiceSettings":
