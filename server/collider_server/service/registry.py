@@ -88,11 +88,13 @@ class ModelRegistry:
         path = self.repository.path(name)
         if not path.is_file():
             raise FileNotFoundError(f"no model file {path.name} in {self.repository.root}")
-        collider = await asyncio.to_thread(self._load_and_warm, path)
+        collider, size_bytes = await asyncio.to_thread(self._load_and_warm, path)
+        # Nothing may fail between creating the batcher (its loop task starts at once) and
+        # registering it, or the task would be left running with no one to close it.
         batcher = PointBatcher(collider.query_local, self.batch,
                                self.workers.executor(collider.device),
                                on_batch=self.metrics.batch_observer(name))
-        model = LoadedModel(name, collider, batcher, public_info(name, collider, path.stat().st_size))
+        model = LoadedModel(name, collider, batcher, public_info(name, collider, size_bytes))
         old = self.models.get(name)
         self.models[name] = model
         self.errors.pop(name, None)
@@ -102,13 +104,16 @@ class ModelRegistry:
         log.info("loaded %s (%s on %s)", name, collider.info.kind, collider.device)
         return model
 
-    def _load_and_warm(self, path) -> Collider:
+    def _load_and_warm(self, path) -> tuple[Collider, int]:
+        """The collider in ``path``, warmed up, and the file's size in bytes (read first, so a
+        file replaced or removed meanwhile fails here, before any batcher exists)."""
         from ..modelfile import load_collider
 
+        size_bytes = path.stat().st_size
         collider = load_collider(path, self.device)
         if self.warmup:
             warm_up(collider)
-        return collider
+        return collider, size_bytes
 
     async def unload(self, name: str) -> bool:
         """Stop serving ``name``: new requests get 404 at once, queued ones are answered."""
