@@ -75,6 +75,15 @@ class TrainConfig:
             raise ValueError("steps and batch_size must be >= 1")
         if self.max_minutes is not None and self.max_minutes <= 0:
             raise ValueError(f"max_minutes must be > 0, got {self.max_minutes}")
+        if not (self.learning_rate > 0 and self.final_learning_rate > 0):
+            raise ValueError(f"learning_rate and final_learning_rate must be > 0, got "
+                             f"{self.learning_rate} and {self.final_learning_rate}")
+        if not self.normal_weight >= 0:  # a negative weight would train normals to point away
+            raise ValueError(f"normal_weight must be >= 0, got {self.normal_weight}")
+        if self.validate_every < 1 or self.validation_points < 1:
+            raise ValueError("validate_every and validation_points must be >= 1")
+        if not (math.isfinite(self.padding) and self.padding >= 0):
+            raise ValueError(f"padding must be a finite number >= 0, got {self.padding}")
         self.resolved_architecture()
 
 

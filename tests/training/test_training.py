@@ -94,6 +94,10 @@ def test_bad_training_settings_are_rejected():
         TrainConfig(samples=10).check()
     with pytest.raises(ValueError, match="hidden_width"):
         TrainConfig(architecture={"hidden_width": 0}).check()
+    for bad, message in (({"learning_rate": 0.0}, "learning_rate"), ({"normal_weight": -1.0}, "normal_weight"),
+                         ({"validate_every": 0}, "validate_every"), ({"padding": float("nan")}, "padding")):
+        with pytest.raises(ValueError, match=message):
+            TrainConfig(**bad).check()
 
 
 def test_evaluation_of_the_exact_kind_is_exact(sphere_mesh):
