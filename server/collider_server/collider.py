@@ -125,6 +125,8 @@ def check_points(points) -> np.ndarray:
 
 
 def check_eps(eps: float) -> float:
+    """Validate a collision offset: a finite number, world units (any sign: a negative eps asks
+    for contact inside the surface; the HTTP service narrows it to ``[0, domain diagonal]``)."""
     try:
         value = float(eps)
     except (TypeError, ValueError):
@@ -217,7 +219,9 @@ class Collider(abc.ABC):
         fields : any of ``distance``, ``normal``, ``contact``, ``collides``
         pose : (4, 4) collider frame -> world frame (rigid, optionally uniform scale);
             ``None`` is the identity
-        eps : collision offset in world units; defaults to 1 mm in the collider's units
+        eps : collision offset, world units; ``None``: 1 mm in the collider's units
+            (:attr:`ColliderInfo.default_eps`) times the pose's scale
+        Returns a :class:`QueryResult` holding exactly the fields asked for, world frame.
         """
         fields = check_fields(fields)
         points = check_points(points)

@@ -137,9 +137,11 @@ class ExactSDF:
         self._face_normals = normals / np.where(lengths > 0, lengths, 1.0)
 
     def query(self, points: np.ndarray, chunk_points: int = 200_000):
-        """Signed distance, closest point and closest face for (n, 3) float64 points.
+        """Signed distance, closest point and closest face for (n, 3) float64 points, mesh
+        units and frame.
 
-        Returns ``(distance (n,), closest (n, 3), face (n,))``; distance is negative inside.
+        Returns ``(distance (n,) float64, closest (n, 3) float64, face (n,) int64)``, the same
+        units and frame; distance is negative inside.
         """
         import igl
 

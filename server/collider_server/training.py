@@ -107,6 +107,8 @@ def default_margin(mesh: Mesh, meters_per_unit: float) -> float:
 
 def make_training_data(mesh: Mesh, sdf: ExactSDF, config: TrainConfig, meters_per_unit: float,
                        show_progress: bool = True) -> TrainingData:
+    """``config.samples`` points (mesh units and frame) and their exact distances and
+    gradients: the near-surface share first (``near`` True), then uniform in the padded box."""
     rng = np.random.default_rng(config.seed)
     margin = config.margin_m / meters_per_unit if config.margin_m else default_margin(mesh, meters_per_unit)
     tight = config.tight_margin_m / meters_per_unit

@@ -53,6 +53,8 @@ async def compute(model: LoadedModel, points: np.ndarray, pose: Pose, want_gradi
 
 
 async def answer_query(model: LoadedModel, spec: QuerySpec, deadline: float | None) -> QueryResult:
+    """The fields of one model query (world frame, see :class:`QueryResult`); ``deadline`` is a
+    ``time.monotonic`` time or None."""
     eps = resolve_eps(model, spec.pose, spec.eps)
     want_gradient = not GRADIENT_FIELDS.isdisjoint(spec.fields)
     distance, normal = await compute(model, spec.points, spec.pose, want_gradient, deadline)
