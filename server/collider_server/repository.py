@@ -12,9 +12,15 @@ from .modelfile import SUFFIX, load_collider, read_info
 NAME_PATTERN = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
 
 
+def is_valid_name(name: str) -> bool:
+    """1-64 letters, digits, '_', '-', '.', starting with a letter or digit, not ending in the
+    model file suffix (so names are safe file and URL parts)."""
+    return isinstance(name, str) and bool(NAME_PATTERN.match(name)) and not name.endswith(SUFFIX)
+
+
 def check_name(name: str) -> str:
-    """Model names are 1-64 letters, digits, '_', '-', '.' (so they are safe file and URL parts)."""
-    if not isinstance(name, str) or not NAME_PATTERN.match(name) or name.endswith(SUFFIX):
+    """``name`` if :func:`is_valid_name`, else ValueError saying what a name may hold."""
+    if not is_valid_name(name):
         raise ValueError(
             f"invalid model name {name!r}: use 1-64 letters, digits, '_', '-' or '.', "
             "starting with a letter or digit"
@@ -46,7 +52,7 @@ class ModelRepository:
         if not self.root.is_dir():
             return []
         stems = (p.name[: -len(SUFFIX)] for p in self.root.glob(f"*{SUFFIX}") if p.is_file())
-        return sorted(stem for stem in stems if NAME_PATTERN.match(stem))
+        return sorted(stem for stem in stems if is_valid_name(stem))
 
     def path(self, name: str) -> Path:
         return self.root / f"{check_name(name)}{SUFFIX}"

@@ -17,6 +17,7 @@ def repo(small_sphere_model):
     (folder / ".sphere.safetensors.abc.tmp").write_bytes(b"half a file")
     (folder / ".hidden.safetensors").write_bytes(b"x")
     (folder / "has space.safetensors").write_bytes(b"x")
+    (folder / "twice.safetensors.safetensors").write_bytes(b"x")  # stem ends in the suffix
     (folder / "sub.safetensors").mkdir()
     return ModelRepository(folder)
 
