@@ -109,7 +109,8 @@ class EmbeddedBackend:
         for name in self.repository.names():
             path = self.repository.path(name)
             info = read_info(path).to_dict()
-            info.update(bytes=path.stat().st_size, device=self._device_name())
+            # The name a query uses is the file's, whatever name the model was made under.
+            info.update(name=name, bytes=path.stat().st_size, device=self._device_name())
             out.append(ModelInfo.from_dict(info))
         return out
 

@@ -146,3 +146,12 @@ def test_client_defaults_use_sentinel(models_dir, points):
 def test_backend_choice_is_exclusive(models_dir):
     with pytest.raises(ValueError, match="not both"):
         cc.Client("http://127.0.0.1:1", models=models_dir)
+
+
+def test_embedded_models_are_named_by_their_file(models_dir, tmp_path):
+    import shutil
+
+    shutil.copy(models_dir / "sphere.safetensors", tmp_path / "ball.safetensors")
+    with cc.Client(models=tmp_path, device="cpu") as client:
+        assert [m.name for m in client.list_models()] == ["ball"]
+        assert client.query("ball", np.zeros((1, 3))).distance[0] < 0
