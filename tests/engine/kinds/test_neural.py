@@ -109,6 +109,16 @@ def test_from_tensors_rejects_weights_of_another_architecture(network_collider):
         NeuralCollider.from_tensors(no_arch, tensors, "cpu")
 
 
+def test_loading_leaves_the_callers_random_stream_alone(network_collider):
+    import torch
+
+    torch.manual_seed(7)
+    expected = torch.rand(4)
+    torch.manual_seed(7)
+    NeuralCollider.from_tensors(network_collider.info, network_collider.tensors(), "cpu")
+    assert torch.equal(torch.rand(4), expected)
+
+
 def test_parameters_are_frozen_for_queries(network_collider):
     assert not any(p.requires_grad for p in network_collider.network.parameters())
     assert not network_collider.network.training
