@@ -99,6 +99,8 @@ def evaluate_collider(collider: Collider, mesh: Mesh, points: int = 100_000, see
                       show_progress: bool = True) -> dict:
     """All figures of the module docstring as a JSON-ready dict. ``mesh`` must be in the
     collider's frame and units (apply ``info.source["transform"]`` first)."""
+    if isinstance(points, bool) or not isinstance(points, (int, np.integer)) or points < 1:
+        raise ValueError(f"points (per set) must be a positive integer, got {points!r}")
     sdf = ExactSDF(mesh)
     sets = point_sets(collider, mesh, points, seed)
     steps = len(sets) + 1 + int(reconstruction)

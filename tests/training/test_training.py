@@ -104,6 +104,8 @@ def test_evaluation_of_the_exact_kind_is_exact(sphere_mesh):
     from collider_server.bake import bake_collider
 
     collider = bake_collider(sphere_mesh, "mesh", "sphere", show_progress=False)
+    with pytest.raises(ValueError, match="positive integer, got 0"):  # not numpy's empty-max error
+        evaluate_collider(collider, sphere_mesh, points=0, show_progress=False)
     report = evaluate_collider(collider, sphere_mesh, points=3000, reconstruction=False, show_progress=False)
     for key in ("band_1mm", "band_10mm", "box"):
         assert report[key]["distance_max_mm"] < 1e-4  # float32 rounding of ~0.1 m values
