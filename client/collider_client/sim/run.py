@@ -32,6 +32,12 @@ def run_scene(scene: Scene, client, out_dir: Path, *, show_progress: bool = True
         preview (optional)
     Returns the report and the list of frames written as (t, (W*H, 3) float32 positions).
     """
+    if preview:
+        try:
+            import matplotlib  # noqa: F401
+        except ImportError:  # checked before the run, not after an hour of it
+            raise ValueError("the PNG preview needs matplotlib (pip install matplotlib, or the "
+                             "server extras); or pass --no-preview") from None
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     infos = None
