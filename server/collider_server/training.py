@@ -80,6 +80,8 @@ class TrainConfig:
                              f"{self.learning_rate} and {self.final_learning_rate}")
         if not self.normal_weight >= 0:  # a negative weight would train normals to point away
             raise ValueError(f"normal_weight must be >= 0, got {self.normal_weight}")
+        if self.threads is not None and self.threads < 1:
+            raise ValueError(f"threads must be >= 1, got {self.threads}")
         if self.validate_every < 1 or self.validation_points < 1:
             raise ValueError("validate_every and validation_points must be >= 1")
         if not (math.isfinite(self.padding) and self.padding >= 0):
@@ -220,7 +222,7 @@ def train_neural(mesh: Mesh, name: str, config: TrainConfig, *, units: str = "m"
 
     config.check()
     device = resolve_device(device)
-    if config.threads:
+    if config.threads is not None:
         torch.set_num_threads(config.threads)
     torch.manual_seed(config.seed)
     arch = config.resolved_architecture()

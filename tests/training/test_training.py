@@ -95,7 +95,8 @@ def test_bad_training_settings_are_rejected():
     with pytest.raises(ValueError, match="hidden_width"):
         TrainConfig(architecture={"hidden_width": 0}).check()
     for bad, message in (({"learning_rate": 0.0}, "learning_rate"), ({"normal_weight": -1.0}, "normal_weight"),
-                         ({"validate_every": 0}, "validate_every"), ({"padding": float("nan")}, "padding")):
+                         ({"validate_every": 0}, "validate_every"), ({"padding": float("nan")}, "padding"),
+                         ({"threads": -1}, "threads")):
         with pytest.raises(ValueError, match=message):
             TrainConfig(**bad).check()
 
