@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -116,7 +117,9 @@ def run_eval(args) -> int:
     if not np.allclose(transform, np.eye(4)):
         mesh = mesh.transformed(transform)
     if collider.info.source.get("sha256") and collider.info.source["sha256"] != mesh.sha256:
-        print(f"warning: {args.mesh} is not the mesh {collider.info.name} was made from (sha256 differs)")
+        # On stderr, so that stdout stays the report alone.
+        print(f"collider eval: warning: {args.mesh} is not the mesh {collider.info.name} was made "
+              "from (sha256 differs)", file=sys.stderr)
     report = evaluate_collider(collider, mesh, points=args.points, seed=args.seed,
                                reconstruction=not args.no_reconstruction, path=path,
                                show_progress=not args.quiet)
