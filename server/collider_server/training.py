@@ -151,15 +151,22 @@ def validation_sets(mesh: Mesh, sdf: ExactSDF, n: int, seed: int, meters_per_uni
 
 def save_checkpoint(path: Path, network, optimizer, state: dict) -> None:
     import torch
-    from safetensors.torch import save_file
 
     tensors = {f"model.{k}": v.detach().cpu().contiguous() for k, v in network.state_dict().items()}
     for index, param_state in optimizer.state_dict()["state"].items():
         for key, value in param_state.items():
             value = value if torch.is_tensor(value) else torch.tensor(value)  # Adam's step count
             tensors[f"adam.{index}.{key}"] = value.detach().cpu().contiguous()
-    tmp = path.with_suffix(".tmp")
-    save_file(tensors, str(tmp), metadata={"state": json.dumps(state)})
+    save_tensors_atomically(tensors, path, metadata={"state": json.dumps(state)})
+
+
+def save_tensors_atomically(tensors: dict, path: Path, metadata: dict | None = None) -> None:
+    """Write a safetensors file so that a run killed mid-write leaves the previous file intact
+    (a resumed run reads it back)."""
+    from safetensors.torch import save_file
+
+    tmp = path.with_name(path.name + ".tmp")
+    save_file(tensors, str(tmp), metadata=metadata)
     os.replace(tmp, path)
 
 
@@ -308,9 +315,8 @@ def train_neural(mesh: Mesh, name: str, config: TrainConfig, *, units: str = "m"
                     state["best_mm"] = errors["1mm"]
                     best_weights = {k: v.detach().cpu().clone() for k, v in network.state_dict().items()}
                     if checkpoint is not None:
-                        from safetensors.torch import save_file
-                        save_file({k: v.contiguous() for k, v in best_weights.items()},
-                                  str(checkpoint.with_name(checkpoint.name + ".best")))
+                        save_tensors_atomically({k: v.contiguous() for k, v in best_weights.items()},
+                                                checkpoint.with_name(checkpoint.name + ".best"))
                 bar.set_postfix_str(f"loss {last_loss:.2e} val±1mm {errors['1mm']:.4f}mm "
                                     f"val±10mm {errors['10mm']:.4f}mm best {state['best_mm']:.4f}mm lr {lr:.1e}")
                 state["seconds"] = time.monotonic() - started
