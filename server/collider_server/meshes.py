@@ -61,7 +61,8 @@ def file_sha256(path: Path) -> str:
 
 
 def load_mesh(path: str | Path, max_faces: int = MAX_FACES) -> Mesh:
-    """Read a triangle mesh (OBJ, PLY, STL, OFF, GLB/GLTF; several parts are concatenated).
+    """Read a triangle mesh (OBJ, PLY, STL, OFF, GLB/GLTF; several parts are concatenated),
+    its triangles oriented outward (flipped when the file winds them inward).
 
     Raises :class:`MeshError` with the file name and the reason when the file is missing,
     unreadable, has no triangles, encloses no volume, or has more than ``max_faces`` faces.
@@ -96,22 +97,30 @@ def load_mesh(path: str | Path, max_faces: int = MAX_FACES) -> Mesh:
     if not np.isfinite(vertices).all():
         raise MeshError(f"{path}: mesh has NaN or Inf vertex coordinates")
     mesh = Mesh(vertices, faces, path.stem, file_sha256(path))
-    check_has_volume(mesh, str(path))
+    if check_has_volume(mesh, str(path)) < 0:
+        # Triangles wound inward (clockwise seen from outside) make the winding number -1
+        # inside, which the sign test reads as outside everywhere, and turn face and vertex
+        # normals inward: orient them outward once, here.
+        mesh = Mesh(vertices, faces[:, ::-1].copy(), mesh.name, mesh.sha256)
     return mesh
 
 
-def check_has_volume(mesh: Mesh, where: str) -> None:
-    """Raise :class:`MeshError` when the mesh is flat or encloses (almost) nothing."""
+def check_has_volume(mesh: Mesh, where: str) -> float:
+    """Raise :class:`MeshError` when the mesh is flat or encloses (almost) nothing; else return
+    its signed volume (mesh units cubed; negative when its triangles are wound inward)."""
     extent = np.ptp(mesh.vertices, axis=0)
     if np.sort(extent)[0] <= 1e-9 * max(extent.max(), 1e-30):
         raise MeshError(f"{where}: mesh is flat (extent {extent.tolist()}); it encloses no volume")
-    tri = mesh.vertices[mesh.faces]
+    # About the box centre: for a closed mesh the volume is the same from any origin, for an open
+    # one (holes) it is not, and a far-away origin could even flip its sign.
+    tri = mesh.vertices[mesh.faces] - mesh.bounds.mean(axis=0)
     signed_volume = np.einsum("ij,ij->i", tri[:, 0], np.cross(tri[:, 1], tri[:, 2])).sum() / 6.0
     if abs(signed_volume) < 1e-6 * float(np.prod(extent)):
         raise MeshError(
             f"{where}: mesh encloses no volume (signed volume {signed_volume:.3g}); "
             "a signed distance needs a closed or nearly closed surface"
         )
+    return float(signed_volume)
 
 
 class ExactSDF:

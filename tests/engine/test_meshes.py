@@ -55,6 +55,30 @@ def test_load_mesh_refuses_too_many_faces(tmp_path):
         load_mesh(write(tmp_path / "tetra.obj", TETRA), max_faces=3)
 
 
+def test_load_mesh_orients_inward_wound_triangles_outward(tmp_path):
+    import trimesh
+
+    sphere = trimesh.creation.icosphere(subdivisions=2, radius=0.1)
+    inward = tmp_path / "inward.obj"
+    trimesh.Trimesh(sphere.vertices, sphere.faces[:, ::-1], process=False).export(inward)
+    mesh = load_mesh(inward)
+    # An outward open mesh far from the origin stays as it is (its volume is taken about its box
+    # centre, where a missing cap cannot flip the sign).
+    cut = sphere.faces[sphere.vertices[sphere.faces].mean(axis=1)[:, 2] > -0.09]
+    far = tmp_path / "open-far.obj"
+    trimesh.Trimesh(sphere.vertices + [0.0, 0.0, -100.0], cut, process=False).export(far)
+    assert ExactSDF(load_mesh(far)).signed_distance(np.array([[0.0, 0.0, -100.0]]))[0] < -0.09
+    # Negative inside, and the on-surface gradient (the face normal) points away from the centre.
+    points = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 0.2]])
+    distance = ExactSDF(mesh).signed_distance(points)
+    assert distance[0] < -0.09 and distance[1] > 0.09
+    on_surface = mesh.vertices[mesh.faces[:, 0]]
+    sdf = ExactSDF(mesh)
+    d, closest, face = sdf.query(on_surface)
+    normal = sdf.gradient(on_surface, d, closest, face)
+    assert (np.einsum("ij,ij->i", normal, on_surface) > 0).all()
+
+
 def test_transformed_keeps_orientation_outward(analytic_shape):
     sphere = analytic_shape("sphere").mesh
     mirror = np.diag([-1.0, 1.0, 1.0, 1.0])
