@@ -9,6 +9,7 @@ import os
 import re
 import shutil
 import signal
+import socket
 import subprocess
 import sys
 import threading
@@ -192,6 +193,26 @@ def test_metrics_count_requests_by_status(server):
     for name in ("collider_queue_seconds_bucket", "collider_compute_seconds_sum",
                  "collider_points_total", "collider_points_per_second", "collider_models_loaded"):
         assert name in text
+
+
+def test_client_gone_mid_body_is_a_499_not_a_500(server):
+    def count(status: str) -> float:
+        text = httpx.get(f"{server.url}/metrics").text
+        found = re.search(r'collider_requests_total\{method="POST",route="/v1/models/\{name\}/query",'
+                          rf'status="{status}"\}} (\S+)', text)
+        return float(found.group(1)) if found else 0.0
+
+    before_499, before_500 = count("499"), count("500")
+    with socket.create_connection(("127.0.0.1", server.port)) as sock:
+        sock.sendall(b"POST /v1/models/sphere/query HTTP/1.1\r\nHost: x\r\n"
+                     b"Content-Type: application/json\r\nContent-Length: 100000\r\n\r\n"
+                     b'{"points": [[0, 0, 0], ')
+        time.sleep(0.2)  # let the server start reading the body before the client goes
+    deadline = time.monotonic() + 10
+    while count("499") == before_499 and time.monotonic() < deadline:
+        time.sleep(0.05)  # the server notices the disconnect asynchronously
+    assert count("499") == before_499 + 1
+    assert count("500") == before_500
 
 
 def serve_subprocess(repo, *args, env=None):

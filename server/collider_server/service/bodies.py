@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from collider_client import wire
-from starlette.requests import Request
+from starlette.requests import ClientDisconnect, Request
 from starlette.responses import Response
 
 from ..collider import check_fields, check_points
@@ -54,11 +54,15 @@ async def read_body(request: Request, max_bytes: int) -> bytes:
         raise Problem(413, "body-too-large",
                       f"body of {int(declared)} bytes exceeds max_body_bytes={max_bytes}")
     chunks, size = [], 0
-    async for chunk in request.stream():
-        size += len(chunk)
-        if size > max_bytes:
-            raise Problem(413, "body-too-large", f"body exceeds max_body_bytes={max_bytes}")
-        chunks.append(chunk)
+    try:
+        async for chunk in request.stream():
+            size += len(chunk)
+            if size > max_bytes:
+                raise Problem(413, "body-too-large", f"body exceeds max_body_bytes={max_bytes}")
+            chunks.append(chunk)
+    except ClientDisconnect:  # a killed simulator mid-upload: not a server error, no traceback
+        raise Problem(499, "client-closed", f"the client disconnected after {size} bytes of the "
+                                            "body") from None
     return b"".join(chunks)
 
 
