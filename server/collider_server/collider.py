@@ -73,6 +73,11 @@ class ColliderInfo:
         """1 mm expressed in the collider's units."""
         return DEFAULT_EPS_METERS / self.meters_per_unit
 
+    def default_world_eps(self, pose: Pose) -> float:
+        """The eps of a query that gives none: :attr:`default_eps` in world units under
+        ``pose`` (collider units times the pose's scale)."""
+        return self.default_eps * pose.scale
+
 
 @dataclass
 class QueryResult:
@@ -219,14 +224,14 @@ class Collider(abc.ABC):
         fields : any of ``distance``, ``normal``, ``contact``, ``collides``
         pose : (4, 4) collider frame -> world frame (rigid, optionally uniform scale);
             ``None`` is the identity
-        eps : collision offset, world units; ``None``: 1 mm in the collider's units
-            (:attr:`ColliderInfo.default_eps`) times the pose's scale
+        eps : collision offset, world units; ``None``: 1 mm in the collider's units times the
+            pose's scale (:meth:`ColliderInfo.default_world_eps`)
         Returns a :class:`QueryResult` holding exactly the fields asked for, world frame.
         """
         fields = check_fields(fields)
         points = check_points(points)
         pose = as_pose(pose)
-        eps = self.info.default_eps * pose.scale if eps is None else check_eps(eps)
+        eps = self.info.default_world_eps(pose) if eps is None else check_eps(eps)
         want_gradient = not GRADIENT_FIELDS.isdisjoint(fields)
         distance, normal = self.query_local(pose.to_local(points), want_gradient)
         return assemble_result(points, pose, eps, fields, distance, normal)

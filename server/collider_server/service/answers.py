@@ -26,7 +26,7 @@ def resolve_eps(model: LoadedModel, pose: Pose, eps: float | None) -> float:
     """The request's eps in world units: its own, checked against ``[0, domain diagonal]``,
     or 1 mm (the collider's default, scaled by the pose)."""
     if eps is None:
-        return model.collider.info.default_eps * pose.scale
+        return model.collider.info.default_world_eps(pose)
     limit = model.domain_diagonal * pose.scale
     if not 0 <= eps <= limit:
         raise Problem(422, "eps-out-of-range",
