@@ -97,7 +97,7 @@ class EmbeddedBackend:
             best_index[closer] = i
             if want_gradient:
                 normal[closer] = pose.to_world_directions(n_local[closer])
-            e = engine.info.default_eps * pose.scale if eps is None else check_eps(eps)
+            e = engine.info.default_world_eps(pose) if eps is None else check_eps(eps)
             eps_per_point[closer] = e
         result = assemble_result(points, _WORLD, eps_per_point, fields_t, best, normal)
         return QueryResult(**result.fields(), collider=best_index)
