@@ -215,6 +215,28 @@ def test_client_gone_mid_body_is_a_499_not_a_500(server):
     assert count("500") == before_500
 
 
+def test_a_reload_while_a_body_arrives_does_not_fail_that_request(tmp_path, model_files, engine):
+    repo = make_repo(tmp_path / "models", model_files, names=["sphere"])
+    body = json.dumps({"points": [[0.0, 0.0, 0.0]]}).encode()
+    with ServerThread(models=repo, device="cpu", admin_token=ADMIN_TOKEN) as server:
+        with socket.create_connection(("127.0.0.1", server.port), timeout=30) as sock:
+            sock.sendall(b"POST /v1/models/sphere/query HTTP/1.1\r\nHost: x\r\nConnection: close\r\n"
+                         b"Content-Type: application/json\r\nAccept: application/json\r\n"
+                         b"Content-Length: " + str(len(body)).encode() + b"\r\n\r\n" + body[:5])
+            time.sleep(0.2)  # the server has looked the model up and waits for the rest
+            reloaded = httpx.put(f"{server.url}/v1/admin/models/sphere",
+                                 headers={"Authorization": f"Bearer {ADMIN_TOKEN}"}, timeout=60)
+            assert reloaded.status_code == 200
+            sock.sendall(body[5:])
+            answer = b""
+            while chunk := sock.recv(65536):
+                answer += chunk
+    head, _, payload = answer.partition(b"\r\n\r\n")
+    assert head.startswith(b"HTTP/1.1 200"), answer[:300]
+    want = engine["sphere"].query([[0.0, 0.0, 0.0]]).distance
+    np.testing.assert_allclose(json.loads(payload)["distance"], want)
+
+
 def serve_subprocess(repo, *args, env=None):
     port = free_port()
     process = subprocess.Popen(
