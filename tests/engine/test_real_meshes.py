@@ -115,7 +115,12 @@ def test_trained_neural_bunny_if_shipped(load_shared_mesh):
     assert collider.info.source.get("sha256") == mesh.sha256
     mesh = mesh.transformed(np.asarray(collider.info.source.get("transform", np.eye(4))))
     points = surface_band_points(mesh, 2000, 1e-3, 11)
-    distance = ExactSDF(mesh).signed_distance(points)
+    sdf = ExactSDF(mesh)
+    distance, closest, face = sdf.query(points)
+    true_normal = sdf.gradient(points, distance, closest, face)
     result = collider.query(points, ["distance", "normal"])
     assert np.isfinite(result.distance).all() and np.isfinite(result.normal).all()
-    assert np.abs(result.distance - distance).mean() < 1e-3
+    # Measured on 100k points: 0.031 mm mean error, 4.8 deg mean normal error (models/README.md).
+    assert np.abs(result.distance - distance).mean() < 0.05e-3
+    angle = np.degrees(np.arccos(np.clip((result.normal * true_normal).sum(axis=1), -1, 1)))
+    assert angle.mean() < 8.0
