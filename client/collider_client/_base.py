@@ -14,8 +14,9 @@ from typing import Any, Iterable, Sequence
 import numpy as np
 
 from . import wire
+from .wire import check_fields  # noqa: F401  (used by the clients)
 from ._exceptions import ProtocolError, error_for_status
-from ._models import FIELDS, ModelInfo, QueryResult
+from ._models import ModelInfo, QueryResult
 
 #: Statuses worth another try after a pause: the server is busy or (re)starting.
 RETRY_STATUSES = frozenset({429, 503})
@@ -90,19 +91,6 @@ def parse_retry_after(value: str | None) -> float | None:
         except (TypeError, ValueError):
             return None
     return max(0.0, seconds) if math.isfinite(seconds) else None
-
-
-def check_fields(fields: Iterable[str] | str) -> list[str]:
-    """A field selection as a list in canonical order; ValueError names unknown fields."""
-    if isinstance(fields, str):
-        fields = [fields]
-    fields = list(fields)
-    unknown = [f for f in fields if f not in FIELDS]
-    if unknown:
-        raise ValueError(f"unknown field(s) {unknown}; valid fields are {list(FIELDS)}")
-    if not fields:
-        raise ValueError(f"no fields asked for; choose from {list(FIELDS)}")
-    return [f for f in FIELDS if f in fields]
 
 
 def as_points(points) -> np.ndarray:

@@ -8,9 +8,8 @@ from typing import Any
 
 import numpy as np
 
-FIELDS = ("distance", "normal", "contact", "collides")
-#: Fields that need the SDF gradient; asking only for the others skips gradient work server-side.
-GRADIENT_FIELDS = frozenset({"normal", "contact"})
+from .wire import FIELDS, GRADIENT_FIELDS  # noqa: F401  (re-exported)
+
 DEFAULT_EPS_METERS = 1e-3
 
 

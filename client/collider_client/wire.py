@@ -21,7 +21,7 @@ Query response: one entry per field asked for, in the request's encoding:
 from __future__ import annotations
 
 import json
-from typing import Any
+from typing import Any, Iterable
 
 import msgpack
 import numpy as np
@@ -30,10 +30,27 @@ MSGPACK_TYPES = ("application/msgpack", "application/x-msgpack", "application/vn
 MSGPACK = MSGPACK_TYPES[0]
 JSON = "application/json"
 ARRAY_DTYPES = ("<f4", "<f8", "|b1", "<i4", "<i8")
+#: The fields a query can ask for, in canonical order (client and server share this list).
+FIELDS = ("distance", "normal", "contact", "collides")
+#: Fields that need the SDF gradient; asking only for the others skips gradient work.
+GRADIENT_FIELDS = frozenset({"normal", "contact"})
 
 
 class WireError(ValueError):
     """A body or array that does not follow the wire format; the message names the field."""
+
+
+def check_fields(fields: Iterable[str] | str) -> tuple[str, ...]:
+    """A field selection as a tuple in canonical order; ValueError names unknown fields."""
+    if isinstance(fields, str):
+        fields = [fields]
+    fields = list(fields)
+    unknown = [f for f in fields if f not in FIELDS]
+    if unknown:
+        raise ValueError(f"unknown field(s) {unknown}; valid fields are {list(FIELDS)}")
+    if not fields:
+        raise ValueError(f"no fields asked for; choose from {list(FIELDS)}")
+    return tuple(f for f in FIELDS if f in fields)
 
 
 def encode_array(array: np.ndarray) -> dict:

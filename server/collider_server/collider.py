@@ -23,10 +23,10 @@ from typing import ClassVar, Iterable
 
 import numpy as np
 
+from collider_client.wire import FIELDS, GRADIENT_FIELDS, check_fields  # the shared contract
+
 from .pose import Pose, as_pose
 
-FIELDS = ("distance", "normal", "contact", "collides")
-GRADIENT_FIELDS = frozenset({"normal", "contact"})
 DEFAULT_EPS_METERS = 1e-3
 MAX_POINTS_PER_CALL = 200_000_000
 
@@ -91,19 +91,6 @@ class QueryResult:
     def fields(self) -> dict[str, np.ndarray]:
         """The present fields by name, in the canonical order."""
         return {name: getattr(self, name) for name in FIELDS if getattr(self, name) is not None}
-
-
-def check_fields(fields: Iterable[str] | str) -> tuple[str, ...]:
-    """Validate a field selection; returns it as a tuple in canonical order."""
-    if isinstance(fields, str):
-        fields = [fields]
-    fields = list(fields)
-    unknown = [f for f in fields if f not in FIELDS]
-    if unknown:
-        raise ValueError(f"unknown field(s) {unknown}; valid fields are {list(FIELDS)}")
-    if not fields:
-        raise ValueError(f"no fields asked for; choose from {list(FIELDS)}")
-    return tuple(f for f in FIELDS if f in fields)
 
 
 def check_points(points) -> np.ndarray:
