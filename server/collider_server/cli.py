@@ -29,6 +29,10 @@ def build_parser() -> argparse.ArgumentParser:
     subparsers = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for name in COMMAND_MODULES:
         importlib.import_module(name).register(subparsers)
+    # No command takes NaN or infinity for a number (`--max-minutes nan` meant "no limit").
+    from .commands.options import require_finite
+
+    require_finite(parser)
     return parser
 
 

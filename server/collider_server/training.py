@@ -73,8 +73,8 @@ class TrainConfig:
             raise ValueError("near_fraction and tight_fraction must be in [0, 1]")
         if self.steps < 1 or self.batch_size < 1:
             raise ValueError("steps and batch_size must be >= 1")
-        if self.max_minutes is not None and self.max_minutes <= 0:
-            raise ValueError(f"max_minutes must be > 0, got {self.max_minutes}")
+        if self.max_minutes is not None and not (math.isfinite(self.max_minutes) and self.max_minutes > 0):
+            raise ValueError(f"max_minutes must be a finite number > 0 (None: no limit), got {self.max_minutes}")
         if not (self.learning_rate > 0 and self.final_learning_rate > 0):
             raise ValueError(f"learning_rate and final_learning_rate must be > 0, got "
                              f"{self.learning_rate} and {self.final_learning_rate}")

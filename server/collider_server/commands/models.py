@@ -10,6 +10,8 @@ from pathlib import Path
 import numpy as np
 
 from ..collider import FIELDS
+from ..placement import UNIT_METERS, meters_per_unit  # noqa: F401  (re-exported: older imports)
+from .options import add_placement_arguments, placement_from_args
 
 
 def register(subparsers) -> None:
@@ -19,10 +21,7 @@ def register(subparsers) -> None:
     bake.add_argument("--name", required=True, help="model name (file NAME.safetensors)")
     bake.add_argument("--resolution", type=int, default=256, help="voxel samples per axis (8..1024)")
     bake.add_argument("--padding", type=float, default=0.1, help="domain padding, fraction of the largest side")
-    bake.add_argument("--scale", type=float, default=1.0, help="multiply mesh coordinates by this first")
-    bake.add_argument("--units", default="m", help="length unit of the (scaled) mesh, e.g. m, mm")
-    bake.add_argument("--meters-per-unit", type=float, default=None,
-                      help="metres in one unit (derived from --units for m, cm, mm)")
+    add_placement_arguments(bake)
     bake.add_argument("--models", type=Path, default=None, help="model repository (default: models/)")
     bake.add_argument("--device", default=None, help="cpu, cuda or auto")
     bake.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -48,19 +47,6 @@ def register(subparsers) -> None:
     info.set_defaults(func=run_info)
 
 
-UNIT_METERS = {"m": 1.0, "cm": 0.01, "mm": 0.001, "um": 1e-6, "km": 1000.0, "in": 0.0254, "ft": 0.3048}
-
-
-def meters_per_unit(units: str, explicit: float | None) -> float:
-    if explicit is not None:
-        if not explicit > 0:
-            raise ValueError(f"--meters-per-unit must be > 0, got {explicit}")
-        return explicit
-    if units not in UNIT_METERS:
-        raise ValueError(f"unknown --units {units!r}; give --meters-per-unit or one of {sorted(UNIT_METERS)}")
-    return UNIT_METERS[units]
-
-
 def run_bake(args) -> int:
     from ..bake import bake_collider
     from ..meshes import load_mesh
@@ -68,15 +54,11 @@ def run_bake(args) -> int:
     from ..repository import ModelRepository, check_name
 
     check_name(args.name)
-    if not args.scale > 0:
-        raise ValueError(f"--scale must be > 0, got {args.scale}")
-    mesh = load_mesh(args.mesh)
-    transform = np.diag([args.scale, args.scale, args.scale, 1.0])
-    if args.scale != 1.0:
-        mesh = mesh.transformed(transform)
+    placement = placement_from_args(args)
+    mesh, transform = placement.apply(load_mesh(args.mesh))
     collider = bake_collider(
         mesh, args.kind, args.name, resolution=args.resolution, padding=args.padding,
-        units=args.units, meters_per_unit=meters_per_unit(args.units, args.meters_per_unit),
+        units=placement.units, meters_per_unit=placement.meters_per_unit,
         device=args.device, show_progress=not args.quiet,
     )
     collider.info.source["transform"] = transform.tolist()
@@ -135,6 +117,19 @@ def run_query(args) -> int:
     return 0
 
 
+def finite_json(value, where: str = ""):
+    """``value`` with every non-finite float replaced by None, and the paths of those replaced."""
+    if isinstance(value, float) and not np.isfinite(value):
+        return None, [where or "value"]
+    if isinstance(value, dict):
+        pairs = [(k, finite_json(v, f"{where}.{k}" if where else str(k))) for k, v in value.items()]
+        return {k: v for k, (v, _) in pairs}, [b for _, (_, bad) in pairs for b in bad]
+    if isinstance(value, (list, tuple)):
+        items = [finite_json(v, f"{where}[{i}]") for i, v in enumerate(value)]
+        return [v for v, _ in items], [b for _, bad in items for b in bad]
+    return value, []
+
+
 def run_info(args) -> int:
     from ..modelfile import read_info
     from ..repository import ModelRepository
@@ -155,7 +150,12 @@ def run_info(args) -> int:
     info = read_info(path)
     size = path.stat().st_size
     if args.json:
-        json.dump({"path": str(path), "bytes": size, **info.to_dict()}, sys.stdout, indent=2)
+        # Strict JSON: a NaN or infinity stored by an older version becomes null (and is named).
+        data, bad = finite_json({"path": str(path), "bytes": size, **info.to_dict()})
+        for where in bad:
+            print(f"collider info: warning: {where} is not a finite number; written as null",
+                  file=sys.stderr)
+        json.dump(data, sys.stdout, indent=2, allow_nan=False)
         print()
         return 0
     print(f"{info.name}  ({path}, {size:,} bytes)")

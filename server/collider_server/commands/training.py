@@ -8,9 +8,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .models import meters_per_unit
-
-Y_UP_TO_Z_UP = np.array([[1, 0, 0, 0], [0, 0, -1, 0], [0, 1, 0, 0], [0, 0, 0, 1]], dtype=np.float64)
+from ..placement import Y_UP_TO_Z_UP, MeshPlacement  # noqa: F401  (Y_UP_TO_Z_UP: older imports)
+from .options import add_placement_arguments, placement_from_args
 
 
 def register(subparsers) -> None:
@@ -31,12 +30,7 @@ def register(subparsers) -> None:
     train.add_argument("--max-minutes", type=float, default=None, help="stop after this long (keeps the best)")
     train.add_argument("--seed", type=int, default=defaults.seed)
     train.add_argument("--threads", type=int, default=None, help="CPU threads for torch")
-    train.add_argument("--scale", type=float, default=1.0, help="multiply mesh coordinates by this first")
-    train.add_argument("--fit-size", type=float, default=None,
-                       help="instead of --scale: scale so the largest side is this long (model units)")
-    train.add_argument("--z-up", action="store_true", help="rotate a Y-up mesh to Z-up (the paper's frame)")
-    train.add_argument("--units", default="m", help="length unit of the (scaled) mesh")
-    train.add_argument("--meters-per-unit", type=float, default=None)
+    add_placement_arguments(train)
     train.add_argument("--models", type=Path, default=None, help="model repository (default: models/)")
     train.add_argument("--checkpoint", type=Path, default=None,
                        help="resumable checkpoint file (default: runs/NAME.ckpt.safetensors)")
@@ -51,23 +45,21 @@ def register(subparsers) -> None:
     evaluate.add_argument("--seed", type=int, default=1234)
     evaluate.add_argument("--no-reconstruction", action="store_true", help="skip marching cubes")
     evaluate.add_argument("--no-save", action="store_true", help="do not write the figures into the model")
+    evaluate.add_argument("--store-anyway", action="store_true",
+                          help="write the figures into the model even when --mesh or the placement "
+                               "is not the model's source (otherwise refused, exit 2)")
     evaluate.add_argument("--report", type=Path, default=None, help="also write the figures as JSON here")
     evaluate.add_argument("--models", type=Path, default=None)
     evaluate.add_argument("--device", default=None)
     evaluate.add_argument("--quiet", action="store_true")
+    add_placement_arguments(evaluate, units=False, as_stored=True)
     evaluate.set_defaults(func=run_eval)
 
 
 def source_transform(mesh, scale: float, fit_size: float | None, z_up: bool) -> np.ndarray:
-    """The 4x4 similarity applied to the mesh file's coordinates before training."""
-    if not scale > 0:
-        raise ValueError(f"--scale must be > 0, got {scale}")
-    transform = Y_UP_TO_Z_UP.copy() if z_up else np.eye(4)
-    if fit_size is not None:
-        if not fit_size > 0:
-            raise ValueError(f"--fit-size must be > 0, got {fit_size}")
-        scale = fit_size / float(np.ptp(mesh.vertices, axis=0).max())
-    return np.diag([scale, scale, scale, 1.0]) @ transform
+    """The 4x4 similarity applied to the mesh file's coordinates before training (kept for
+    callers of the old name; see :class:`collider_server.placement.MeshPlacement`)."""
+    return MeshPlacement(scale=scale, fit_size=fit_size, z_up=z_up).transform(mesh)
 
 
 def run_train(args) -> int:
@@ -83,15 +75,13 @@ def run_train(args) -> int:
         max_minutes=args.max_minutes, seed=args.seed, threads=args.threads,
     )
     config.check()
-    mesh = load_mesh(args.mesh)
-    transform = source_transform(mesh, args.scale, args.fit_size, args.z_up)
-    if not np.allclose(transform, np.eye(4)):
-        mesh = mesh.transformed(transform)
+    placement = placement_from_args(args)
+    mesh, transform = placement.apply(load_mesh(args.mesh))
     checkpoint = args.checkpoint or Path("runs") / f"{args.name}.ckpt.safetensors"
     checkpoint.parent.mkdir(parents=True, exist_ok=True)
     result = train_neural(
-        mesh, args.name, config, units=args.units,
-        meters_per_unit=meters_per_unit(args.units, args.meters_per_unit), transform=transform,
+        mesh, args.name, config, units=placement.units,
+        meters_per_unit=placement.meters_per_unit, transform=transform,
         device=args.device, checkpoint=checkpoint, show_progress=not args.quiet,
     )
     path = save_collider(result.collider, ModelRepository(args.models).path(args.name))
@@ -112,22 +102,43 @@ def run_eval(args) -> int:
     repo = ModelRepository(args.models)
     path = repo.resolve(args.model)
     collider = repo.load(args.model, args.device)
-    mesh = load_mesh(args.mesh)
-    transform = np.asarray(collider.info.source.get("transform", np.eye(4)), dtype=np.float64)
-    if not np.allclose(transform, np.eye(4)):
-        mesh = mesh.transformed(transform)
-    if collider.info.source.get("sha256") and collider.info.source["sha256"] != mesh.sha256:
+    raw = load_mesh(args.mesh)
+    stored = np.asarray(collider.info.source.get("transform", np.eye(4)), dtype=np.float64)
+    placement = placement_from_args(args)
+    transform = stored if placement is None else placement.transform(raw)
+    mesh = raw if np.allclose(transform, np.eye(4)) else raw.transformed(transform)
+    differs = source_differences(collider.info, raw, transform, args.mesh)
+    if differs:
         # On stderr, so that stdout stays the report alone.
-        print(f"collider eval: warning: {args.mesh} is not the mesh {collider.info.name} was made "
-              "from (sha256 differs)", file=sys.stderr)
+        storing = "not stored" if not args.store_anyway else "stored anyway (--store-anyway)"
+        print(f"collider eval: warning: {'; '.join(differs)}: figures {storing}", file=sys.stderr)
     report = evaluate_collider(collider, mesh, points=args.points, seed=args.seed,
                                reconstruction=not args.no_reconstruction, path=path,
                                show_progress=not args.quiet)
     print(format_report(collider.info.name, collider.info.kind, report))
     if args.report is not None:
         args.report.write_text(json.dumps(report, indent=2))
-    if not args.no_save:
-        collider.info.accuracy = report
-        save_collider(collider, path)
-        print(f"figures written into {path}")
+    if args.no_save:
+        return 0
+    if differs and not args.store_anyway:
+        raise ValueError(f"figures not written into {path}: {'; '.join(differs)} (measured against "
+                         "another mesh; pass --store-anyway to store them, --no-save to only print)")
+    collider.info.accuracy = report
+    save_collider(collider, path)
+    print(f"figures written into {path}")
     return 0
+
+
+def source_differences(info, mesh, transform: np.ndarray, mesh_arg: str) -> list[str]:
+    """Why ``mesh`` placed by ``transform`` is not the source the model ``info`` was made from
+    (file content by sha256, then placement); empty when it is, or when the model records none."""
+    differs = []
+    sha = info.source.get("sha256")
+    if sha and mesh.sha256 and sha != mesh.sha256:
+        differs.append(f"{mesh_arg} is not the mesh {info.name} was made from "
+                       f"(sha256 {mesh.sha256[:12]}, model's source {sha[:12]})")
+    stored = np.asarray(info.source.get("transform", np.eye(4)), dtype=np.float64)
+    if not np.allclose(transform, stored, rtol=1e-9, atol=1e-12):
+        differs.append(f"the mesh placement differs from {info.name}'s (transform "
+                       f"{np.round(transform, 6).tolist()}, model's {np.round(stored, 6).tolist()})")
+    return differs

@@ -1,0 +1,76 @@
+"""Command-line options shared by several ``collider`` commands.
+
+- :func:`finite_float`: the argparse type that refuses ``nan`` and ``inf``; :func:`require_finite`
+  puts it on every float option of every command (``collider`` applies it once, in
+  :func:`collider_server.cli.build_parser`, so options added later are covered too).
+- :func:`add_placement_arguments` / :func:`placement_from_args`: the mesh placement options
+  (``--scale``, ``--fit-size``, ``--z-up``, ``--units``, ``--meters-per-unit``) of every command
+  that reads a mesh, applied with :class:`collider_server.placement.MeshPlacement`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+
+from ..placement import MeshPlacement
+
+
+def finite_float(text: str) -> float:
+    """argparse type: a float that is neither NaN nor infinite."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"{text!r} is not a finite number")
+    return value
+
+
+def require_finite(parser: argparse.ArgumentParser) -> None:
+    """Give every ``type=float`` option of ``parser`` and its subcommands :func:`finite_float`."""
+    for action in parser._actions:
+        if action.type is float:
+            action.type = finite_float
+        if isinstance(action, argparse._SubParsersAction):
+            for sub in action.choices.values():
+                require_finite(sub)
+
+
+def add_placement_arguments(parser: argparse.ArgumentParser, *, units: bool = True,
+                            as_stored: bool = False) -> None:
+    """Add the mesh placement options to ``parser`` (as a group "mesh placement").
+
+    units : also add ``--units`` and ``--meters-per-unit`` (commands that make a collider)
+    as_stored : the defaults are None, meaning "as the model was made" (``eval`` and others that
+        read a mesh for an existing model); :func:`placement_from_args` then returns None unless
+        an option was given.
+    """
+    group = parser.add_argument_group(
+        "mesh placement", "applied to the mesh file's coordinates: --z-up first, then the scale"
+        + (" (default: as the model was made)" if as_stored else ""))
+    group.add_argument("--scale", type=finite_float, default=None if as_stored else 1.0,
+                       help="multiply mesh coordinates by this" + ("" if as_stored else " (default 1)"))
+    group.add_argument("--fit-size", type=finite_float, default=None,
+                       help="instead of --scale: scale so the largest side is this long (in --units)")
+    group.add_argument("--z-up", action="store_true", default=None if as_stored else False,
+                       help="rotate a Y-up mesh to Z-up (the paper's frame)")
+    if units:
+        group.add_argument("--units", default="m", help="length unit of the placed mesh, e.g. m, mm (default m)")
+        group.add_argument("--meters-per-unit", type=finite_float, default=None,
+                           help="metres in one unit (derived from --units for m, cm, mm, um, km, in, ft)")
+
+
+def placement_from_args(args: argparse.Namespace) -> MeshPlacement | None:
+    """The :class:`MeshPlacement` the options describe, checked (ValueError naming the option).
+
+    With ``as_stored`` options and none given, None (use the model's stored transform)."""
+    if args.scale is None and args.fit_size is None and not args.z_up:
+        return None
+    if args.scale is not None and args.fit_size is not None and args.scale != 1.0:
+        raise ValueError("give --scale or --fit-size, not both")
+    placement = MeshPlacement(
+        scale=1.0 if args.scale is None else args.scale, fit_size=args.fit_size, z_up=bool(args.z_up),
+        units=getattr(args, "units", "m"), meters_per_unit_override=getattr(args, "meters_per_unit", None))
+    placement.check()
+    return placement

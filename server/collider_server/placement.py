@@ -1,0 +1,81 @@
+"""Mesh placement: how a mesh file's coordinates become a collider's frame and units.
+
+One definition for every command that reads a mesh (``bake``, ``train``, ``eval``, ``bench``,
+``view``, ``simulate --check-mesh``): an optional Y-up to Z-up rotation (the paper's frame), then a
+uniform scale (``scale``, or ``fit_size``: the scale that makes the largest side that long), then
+the unit the scaled coordinates are in. The argparse side is
+:mod:`collider_server.commands.options`.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from .meshes import Mesh
+
+#: Rotation taking a Y-up mesh to Z-up (x stays, y becomes z, z becomes -y).
+Y_UP_TO_Z_UP = np.array([[1, 0, 0, 0], [0, 0, -1, 0], [0, 1, 0, 0], [0, 0, 0, 1]], dtype=np.float64)
+
+#: Metres in one unit, for the unit names ``--units`` knows without ``--meters-per-unit``.
+UNIT_METERS = {"m": 1.0, "cm": 0.01, "mm": 0.001, "um": 1e-6, "km": 1000.0, "in": 0.0254, "ft": 0.3048}
+
+
+def meters_per_unit(units: str, explicit: float | None = None) -> float:
+    """Metres in one ``units`` (``explicit`` wins when given; it must be finite and > 0)."""
+    if explicit is not None:
+        if not (math.isfinite(explicit) and explicit > 0):
+            raise ValueError(f"--meters-per-unit must be a finite number > 0, got {explicit}")
+        return float(explicit)
+    if units not in UNIT_METERS:
+        raise ValueError(f"unknown --units {units!r}; give --meters-per-unit or one of {sorted(UNIT_METERS)}")
+    return UNIT_METERS[units]
+
+
+@dataclass(frozen=True)
+class MeshPlacement:
+    """Where a mesh file's coordinates go before a collider is made from them.
+
+    scale : multiply the (rotated) coordinates by this; ignored when ``fit_size`` is given
+    fit_size : scale so that the largest side of the box is this long (in ``units``)
+    z_up : rotate a Y-up file to Z-up first (about the file's origin)
+    units : unit of the placed coordinates (the collider's unit), e.g. "m", "mm"
+    meters_per_unit_override : metres in one unit for units :data:`UNIT_METERS` does not know
+    """
+
+    scale: float = 1.0
+    fit_size: float | None = None
+    z_up: bool = False
+    units: str = "m"
+    meters_per_unit_override: float | None = None
+
+    def check(self) -> None:
+        """Raise ValueError naming the option when a number is not finite and > 0."""
+        if not (math.isfinite(self.scale) and self.scale > 0):
+            raise ValueError(f"--scale must be a finite number > 0, got {self.scale}")
+        if self.fit_size is not None and not (math.isfinite(self.fit_size) and self.fit_size > 0):
+            raise ValueError(f"--fit-size must be a finite number > 0, got {self.fit_size}")
+        meters_per_unit(self.units, self.meters_per_unit_override)
+
+    @property
+    def meters_per_unit(self) -> float:
+        return meters_per_unit(self.units, self.meters_per_unit_override)
+
+    def transform(self, mesh: Mesh) -> np.ndarray:
+        """(4, 4) float64 similarity from the file's coordinates to the collider frame."""
+        self.check()
+        rotation = Y_UP_TO_Z_UP.copy() if self.z_up else np.eye(4)
+        scale = self.scale
+        if self.fit_size is not None:
+            # The largest side is the same before and after the axis permutation.
+            scale = self.fit_size / float(np.ptp(mesh.vertices, axis=0).max())
+        return np.diag([scale, scale, scale, 1.0]) @ rotation
+
+    def apply(self, mesh: Mesh) -> tuple[Mesh, np.ndarray]:
+        """The placed mesh and the transform applied (stored in the model's ``source``)."""
+        transform = self.transform(mesh)
+        if np.allclose(transform, np.eye(4)):
+            return mesh, np.eye(4)
+        return mesh.transformed(transform), transform
