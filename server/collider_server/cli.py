@@ -20,6 +20,12 @@ COMMAND_MODULES = [
 
 USER_ERRORS = (ValueError, FileNotFoundError, IsADirectoryError, PermissionError, KeyError)
 
+#: Packages of the optional extras (pyproject) and the extra that brings each: a command whose
+#: extra is not installed says what to install instead of showing an ImportError traceback.
+EXTRA_OF_MODULE = {"torch": "serve", "scipy": "serve", "igl": "serve", "safetensors": "serve",
+                   "fastapi": "serve", "uvicorn": "serve", "trimesh": "train", "skimage": "train",
+                   "tqdm": "train", "matplotlib": "sim"}
+
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
@@ -43,6 +49,13 @@ def main(argv: list[str] | None = None) -> int:
     except USER_ERRORS as exc:
         message = exc.args[0] if isinstance(exc, KeyError) and exc.args else exc
         print(f"collider {args.command}: error: {message}", file=sys.stderr)
+        return 2
+    except ModuleNotFoundError as exc:
+        extra = EXTRA_OF_MODULE.get((exc.name or "").partition(".")[0])
+        if extra is None:
+            raise
+        print(f"collider {args.command}: error: {exc.name} is not installed; install the "
+              f"'{extra}' extra: pip install 'neural-collider[{extra}]'", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print(f"collider {args.command}: interrupted", file=sys.stderr)

@@ -28,14 +28,37 @@ def check_name(name: str) -> str:
     return name
 
 
+SHIPPED_MODELS_DATA = "share/neural-collider/models"  # where pyproject's data-files put them
+
+
+def installed_models_dir() -> Path | None:
+    """The shipped models' folder of a (non-editable) ``pip install``, wherever pip's scheme put
+    it (``<venv>/share/...``, ``~/.local/share/...``), found through the distribution's file
+    list; ``None`` when the package is not installed that way."""
+    from importlib import metadata
+
+    try:
+        files = metadata.distribution("neural-collider").files or []
+    except metadata.PackageNotFoundError:
+        return None
+    for file in files:
+        if file.as_posix().endswith(f"{SHIPPED_MODELS_DATA}/{file.name}") and file.name.endswith(SUFFIX):
+            return Path(file.locate()).resolve().parent
+    return None
+
+
 def default_models_dir() -> Path:
-    """``$COLLIDER_MODELS`` if set, else ``./models`` if it exists, else the project's ``models/``."""
+    """``$COLLIDER_MODELS`` if set, else ``./models`` if it exists, else the source checkout's
+    ``models/`` (editable install), else the shipped models of an installed package."""
     if os.environ.get("COLLIDER_MODELS"):
         return Path(os.environ["COLLIDER_MODELS"])
     local = Path("models")
     if local.is_dir():
         return local
-    return Path(__file__).resolve().parents[2] / "models"
+    checkout = Path(__file__).resolve().parents[2] / "models"
+    if checkout.is_dir():
+        return checkout
+    return installed_models_dir() or checkout
 
 
 class ModelRepository:
