@@ -61,6 +61,23 @@ def default_models_dir() -> Path:
     return installed_models_dir() or checkout
 
 
+def check_writable_folder(folder: Path, what: str) -> Path:
+    """Create ``folder`` (and its parents) if missing, then write and delete a probe file in it:
+    permission bits alone do not tell (root ignores them; a read-only mount does not)."""
+    import tempfile
+
+    folder = Path(folder)
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryFile(dir=folder, prefix=".write-probe."):
+            pass
+    except FileExistsError:
+        raise PermissionError(f"{what} {folder} is a file, not a folder") from None
+    except OSError as exc:
+        raise PermissionError(f"{what} {folder} is not writable ({exc.strerror or exc})") from None
+    return folder
+
+
 class ModelRepository:
     """Colliders stored as ``root/NAME.safetensors``."""
 
@@ -91,6 +108,11 @@ class ModelRepository:
             known = ", ".join(self.names()) or "none"
             raise FileNotFoundError(f"no model named {name_or_path!r} in {self.root} (models: {known})")
         return path
+
+    def check_writable(self) -> Path:
+        """Create the folder if missing and prove a file can be written in it; raise
+        PermissionError naming the folder otherwise (before hours of training, not after)."""
+        return check_writable_folder(self.root, "model repository")
 
     def info(self, name: str) -> ColliderInfo:
         return read_info(self.resolve(name))

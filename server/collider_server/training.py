@@ -19,6 +19,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import sys
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -170,19 +171,32 @@ def save_tensors_atomically(tensors: dict, path: Path, metadata: dict | None = N
     os.replace(tmp, path)
 
 
+def read_checkpoint_state(path: Path) -> dict:
+    """The progress state saved in a checkpoint's metadata (ValueError naming the file)."""
+    from safetensors import safe_open
+
+    try:
+        with safe_open(str(path), framework="pt") as fh:
+            state = json.loads((fh.metadata() or {})["state"])
+    except Exception as exc:  # safetensors' own error type, JSON errors, a missing "state"
+        raise ValueError(f"{path}: not a readable training checkpoint ({type(exc).__name__}: "
+                         f"{exc}); delete it to start over") from None
+    if not isinstance(state, dict):
+        raise ValueError(f"{path}: not a readable training checkpoint (state is not an object)")
+    return state
+
+
 def load_checkpoint(path: Path, network, optimizer) -> dict:
     """Restore ``network`` and ``optimizer`` from ``path``; returns the saved progress state.
 
     Raises ValueError naming the file when it is unreadable or was written for another
     architecture (a stale checkpoint of an earlier run under the same name)."""
-    from safetensors import safe_open
     from safetensors.torch import load_file
 
+    state = read_checkpoint_state(path)
     try:
-        with safe_open(str(path), framework="pt") as fh:
-            state = json.loads((fh.metadata() or {})["state"])
         tensors = load_file(str(path))
-    except Exception as exc:  # safetensors' own error type, JSON errors, a missing "state"
+    except Exception as exc:  # safetensors' own error type
         raise ValueError(f"{path}: not a readable training checkpoint ({type(exc).__name__}: "
                          f"{exc}); delete it to start over") from None
     weights = {k[6:]: v for k, v in tensors.items() if k.startswith("model.")}
@@ -205,6 +219,51 @@ def load_checkpoint(path: Path, network, optimizer) -> dict:
     opt_state["state"] = restored
     optimizer.load_state_dict(opt_state)
     return state
+
+
+# -- what a checkpoint belongs to ------------------------------------------------------------------
+
+#: Settings a resumed run may change: they say how long and how often, not what is learnt.
+RESUMABLE_SETTINGS = frozenset({"steps", "max_minutes", "threads", "validate_every"})
+
+
+def run_identity(mesh: Mesh, config: TrainConfig, meters_per_unit: float) -> dict:
+    """What a checkpoint must match to be resumed: the placed mesh's content (sha256 of its
+    vertices and faces, so a rescaled or rotated file differs), the settings that shape the
+    training, and the architecture."""
+    import hashlib
+
+    digest = hashlib.sha256()
+    for array in (np.ascontiguousarray(mesh.vertices, dtype=np.float64),
+                  np.ascontiguousarray(mesh.faces, dtype=np.int64)):
+        digest.update(array.tobytes())
+    settings = {k: v for k, v in asdict(config).items() if k not in RESUMABLE_SETTINGS}
+    return {"mesh": mesh.name, "mesh_sha256": digest.hexdigest(), "meters_per_unit": meters_per_unit,
+            "settings": settings, "architecture": asdict(config.resolved_architecture())}
+
+
+def identity_differences(saved: dict | None, current: dict) -> list[str]:
+    """Human-readable differences between a checkpoint's identity and this run's (empty: same)."""
+    if not saved:
+        return ["it records no mesh, settings or architecture (written by an older version)"]
+    differs = []
+    if (saved.get("mesh_sha256"), saved.get("meters_per_unit")) != (current["mesh_sha256"], current["meters_per_unit"]):
+        differs.append(f"mesh differs (checkpoint: {saved.get('mesh')} sha256 {str(saved.get('mesh_sha256'))[:12]}, "
+                       f"this run: {current['mesh']} sha256 {current['mesh_sha256'][:12]})")
+    for group in ("settings", "architecture"):
+        old, new = saved.get(group, {}), current[group]
+        keys = sorted(k for k in set(old) | set(new) if json.dumps(old.get(k)) != json.dumps(new.get(k)))
+        if keys:
+            differs.append(f"{group} differ: " + ", ".join(f"{k} {old.get(k)!r} -> {new.get(k)!r}" for k in keys))
+    return differs
+
+
+def check_resumable(path: Path, saved: dict | None, current: dict) -> None:
+    """Raise ValueError naming what differs when the checkpoint at ``path`` is another run's."""
+    differs = identity_differences(saved, current)
+    if differs:
+        raise ValueError(f"{path}: checkpoint of another run, not resumed: {'; '.join(differs)}; "
+                         "delete it or pass another --checkpoint")
 
 
 # -- the loop -----------------------------------------------------------------------------------
@@ -248,10 +307,14 @@ def train_neural(mesh: Mesh, name: str, config: TrainConfig, *, units: str = "m"
     near = torch.from_numpy(data.near).to(device)
     val = {k: (torch.from_numpy(p).to(device), torch.from_numpy(d).to(device)) for k, (p, d) in validation.items()}
 
-    state = {"step": 0, "seconds": 0.0, "best_mm": math.inf, "history": []}
+    identity = run_identity(mesh, config, meters_per_unit)
+    state = {"step": 0, "seconds": 0.0, "best_mm": math.inf, "history": [], "run": identity}
     best_weights = None
     if checkpoint is not None and checkpoint.is_file():
+        check_resumable(checkpoint, read_checkpoint_state(checkpoint).get("run"), identity)
         state = load_checkpoint(checkpoint, network, optimizer)
+        print(f"resuming {checkpoint} at step {state['step']} (same mesh, settings and architecture)",
+              file=sys.stderr)
         best_path = checkpoint.with_name(checkpoint.name + ".best")
         if best_path.is_file():
             from safetensors.torch import load_file

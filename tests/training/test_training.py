@@ -72,10 +72,50 @@ def test_a_stale_checkpoint_of_another_architecture_is_a_clear_error(sphere_mesh
     train_neural(sphere_mesh, "s", small_config(samples=5000, steps=2, validate_every=1),
                  checkpoint=checkpoint, show_progress=False)
     wider = small_config(samples=5000, steps=4, architecture={**SMALL, "hidden_width": 32})
-    with pytest.raises(ValueError, match=r"another network architecture .*delete it"):
+    with pytest.raises(ValueError, match=r"another run, not resumed: .*architecture differ: hidden_width 64 -> 32.*delete it"):
         train_neural(sphere_mesh, "s", wider, checkpoint=checkpoint, show_progress=False)
     checkpoint.write_bytes(b"not a checkpoint")
     with pytest.raises(ValueError, match="not a readable training checkpoint"):
+        train_neural(sphere_mesh, "s", small_config(samples=5000, steps=4), checkpoint=checkpoint,
+                     show_progress=False)
+
+
+def test_a_checkpoint_resumes_only_for_the_same_mesh_and_settings(sphere_mesh, tmp_path, capsys):
+    """Training a new mesh under a name used before must not continue the old run."""
+    checkpoint = tmp_path / "run.ckpt.safetensors"
+    config = small_config(samples=5000, steps=4, validate_every=2)
+    train_neural(sphere_mesh, "s", config, checkpoint=checkpoint, show_progress=False)
+    before = checkpoint.read_bytes()
+    bigger = sphere_mesh.transformed(np.diag([1.5, 1.5, 1.5, 1.0]))  # same file name, other geometry
+    with pytest.raises(ValueError, match=r"another run, not resumed: mesh differs \(checkpoint: sphere sha256 \w{12}, "
+                                         r"this run: sphere sha256 \w{12}\)"):
+        train_neural(bigger, "s", config, checkpoint=checkpoint, show_progress=False)
+    with pytest.raises(ValueError, match=r"settings differ: learning_rate 0.003 -> 0.001"):
+        train_neural(sphere_mesh, "s", small_config(samples=5000, steps=4, learning_rate=1e-3),
+                     checkpoint=checkpoint, show_progress=False)
+    with pytest.raises(ValueError, match=r"mesh differs"):  # the same mesh in other units
+        train_neural(sphere_mesh, "s", config, meters_per_unit=0.001, checkpoint=checkpoint, show_progress=False)
+    assert checkpoint.read_bytes() == before  # a refused run leaves the checkpoint alone
+    capsys.readouterr()
+    # How long and how often may change: more steps, a time budget, other threads.
+    resumed = train_neural(sphere_mesh, "s", small_config(samples=5000, steps=6, validate_every=3, max_minutes=5),
+                           checkpoint=checkpoint, show_progress=False)
+    assert resumed.steps == 6
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert lines == [f"resuming {checkpoint} at step 4 (same mesh, settings and architecture)"]
+
+
+def test_a_checkpoint_without_a_run_identity_is_not_resumed(sphere_mesh, tmp_path):
+    from collider_server.training import read_checkpoint_state, save_tensors_atomically
+    from safetensors.torch import load_file
+
+    checkpoint = tmp_path / "run.ckpt.safetensors"
+    train_neural(sphere_mesh, "s", small_config(samples=5000, steps=2, validate_every=1),
+                 checkpoint=checkpoint, show_progress=False)
+    state = read_checkpoint_state(checkpoint)
+    del state["run"]  # what the previous version wrote
+    save_tensors_atomically(load_file(str(checkpoint)), checkpoint, metadata={"state": json.dumps(state)})
+    with pytest.raises(ValueError, match="records no mesh, settings or architecture"):
         train_neural(sphere_mesh, "s", small_config(samples=5000, steps=4), checkpoint=checkpoint,
                      show_progress=False)
 
@@ -138,6 +178,56 @@ def test_train_then_eval_through_the_cli(sphere_mesh, tmp_path):
     accuracy = json.loads(info.stdout)["accuracy"]
     assert accuracy["band_1mm"]["points"] == 2000
     assert accuracy["training_seconds"] > 0
+
+
+def read_only_folder(tmp_path):
+    """A folder no file can be created in, even by root (chmod is enough for other users)."""
+    import os
+
+    if os.geteuid() != 0:
+        folder = tmp_path / "locked"
+        folder.mkdir()
+        folder.chmod(0o555)
+        return folder
+    from pathlib import Path
+
+    for candidate in (Path("/sys/kernel"), Path("/proc/self")):
+        try:
+            with open(candidate / ".probe", "w"):
+                pass
+        except OSError:
+            return candidate
+    pytest.skip("no read-only folder available to root here")
+
+
+@pytest.mark.parametrize("where", ["read-only", "a file", "runs read-only"])
+def test_train_refuses_an_unwritable_folder_before_training(sphere_mesh, tmp_path, where):
+    mesh_file = tmp_path / "ball.obj"
+    trimesh.Trimesh(sphere_mesh.vertices, sphere_mesh.faces).export(mesh_file)
+    models, checkpoint = tmp_path / "models", tmp_path / "runs" / "ball.ckpt.safetensors"
+    if where == "read-only":
+        models = read_only_folder(tmp_path)
+    elif where == "a file":
+        models.write_text("not a folder")
+    else:
+        checkpoint = read_only_folder(tmp_path) / "ball.ckpt.safetensors"
+    # A budget of 40,000 steps: were the folder checked only at the end, this would run for long.
+    result = run_cli("train", str(mesh_file), "--name", "ball", "--preset", "fast", "--steps", "40000",
+                     "--samples", "5000", "--models", str(models), "--checkpoint", str(checkpoint))
+    assert result.returncode == 2, result.stderr
+    last = result.stderr.strip().splitlines()[-1]
+    expected = "checkpoint folder" if where == "runs read-only" else "model repository"
+    assert last.startswith(f"collider train: error: {expected} ") and (
+        "is a file, not a folder" in last if where == "a file" else "is not writable" in last), last
+    assert "exact SDF" not in result.stderr and "train ball" not in result.stderr  # no work started
+    assert not checkpoint.exists()
+
+
+def test_the_models_folder_is_created_when_missing(tmp_path):
+    from collider_server.repository import ModelRepository
+
+    repository = ModelRepository(tmp_path / "new" / "models")
+    assert repository.check_writable().is_dir() and list(repository.root.iterdir()) == []
 
 
 @pytest.mark.parametrize("content, message", [

@@ -65,7 +65,7 @@ def source_transform(mesh, scale: float, fit_size: float | None, z_up: bool) -> 
 def run_train(args) -> int:
     from ..meshes import load_mesh
     from ..modelfile import save_collider
-    from ..repository import ModelRepository, check_name
+    from ..repository import ModelRepository, check_name, check_writable_folder
     from ..training import TrainConfig, train_neural
 
     check_name(args.name)
@@ -78,13 +78,16 @@ def run_train(args) -> int:
     placement = placement_from_args(args)
     mesh, transform = placement.apply(load_mesh(args.mesh))
     checkpoint = args.checkpoint or Path("runs") / f"{args.name}.ckpt.safetensors"
-    checkpoint.parent.mkdir(parents=True, exist_ok=True)
+    # Both folders are proved writable now, not after the training budget is spent.
+    repository = ModelRepository(args.models)
+    repository.check_writable()
+    check_writable_folder(checkpoint.parent, "checkpoint folder")
     result = train_neural(
         mesh, args.name, config, units=placement.units,
         meters_per_unit=placement.meters_per_unit, transform=transform,
         device=args.device, checkpoint=checkpoint, show_progress=not args.quiet,
     )
-    path = save_collider(result.collider, ModelRepository(args.models).path(args.name))
+    path = save_collider(result.collider, repository.path(args.name))
     history = checkpoint.with_name(checkpoint.name + ".history.json")
     history.write_text(json.dumps(result.history, indent=1))
     print(f"wrote {path} ({path.stat().st_size:,} bytes): {result.steps} steps in "
