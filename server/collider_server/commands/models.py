@@ -11,6 +11,7 @@ import numpy as np
 
 from ..collider import FIELDS
 from ..placement import UNIT_METERS, meters_per_unit  # noqa: F401  (re-exported: older imports)
+from .bench import add_budget_arguments, budget_from_args
 from .options import add_placement_arguments, placement_from_args
 
 
@@ -25,6 +26,7 @@ def register(subparsers) -> None:
     bake.add_argument("--models", type=Path, default=None, help="model repository (default: models/)")
     bake.add_argument("--device", default=None, help="cpu, cuda or auto")
     bake.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_budget_arguments(bake)
     bake.set_defaults(func=run_bake)
 
     query = subparsers.add_parser("query", help="distance/normal/contact of points")
@@ -54,6 +56,11 @@ def run_bake(args) -> int:
     from ..repository import ModelRepository, check_name
 
     check_name(args.name)
+    budget = budget_from_args(args)
+    if budget is not None:  # an error budget: bake picks the kind (collider_server.bench)
+        from .bench import run_budget_bake
+
+        return run_budget_bake(args, budget)
     placement = placement_from_args(args)
     mesh, transform = placement.apply(load_mesh(args.mesh))
     collider = bake_collider(
