@@ -1,0 +1,139 @@
+"""The compose topology without Docker: a real nginx, configured with the very file compose mounts
+(docker/nginx/collider.conf.template), in front of two real ``collider serve`` processes on
+loopback. Queries are routed by model (consistent hash of the model name), and killing a replica
+loses no query: nginx resends it to the other one (``proxy_next_upstream ... non_idempotent``)."""
+
+from __future__ import annotations
+
+import shutil
+import threading
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import httpx
+import numpy as np
+import pytest
+
+from .conftest import SPHERE_RADIUS_M, Nginx, Replica, bake_sphere, nginx_binary
+
+pytestmark = [
+    pytest.mark.slow,
+    pytest.mark.skipif(nginx_binary() is None,
+                       reason="nginx is not installed (Debian: apt-get install nginx; .ci/run does)"),
+]
+
+# 16 models: with two replicas, the chance that consistent hashing puts all of them on one replica
+# is 2 * 2**-16, so "both replicas serve some models" is a property of the setup, not luck.
+MODELS = [f"m{i:02d}" for i in range(16)]
+
+
+@pytest.fixture(scope="module")
+def repo(tmp_path_factory) -> Path:
+    root = tmp_path_factory.mktemp("replica-models")
+    sphere = bake_sphere(tmp_path_factory.mktemp("baked") / "sphere.safetensors")
+    for name in MODELS:
+        shutil.copy(sphere, root / f"{name}.safetensors")
+    return root
+
+
+def start(repo: Path, root: Path) -> tuple[list[Replica], Nginx]:
+    replicas = [Replica(repo), Replica(repo)]  # both start loading at once
+    try:
+        for replica in replicas:
+            replica.wait_ready()
+        return replicas, Nginx(root, [r.address for r in replicas])
+    except BaseException:
+        for replica in replicas:
+            replica.kill()
+        raise
+
+
+def stop(replicas: list[Replica], nginx: Nginx) -> None:
+    nginx.stop()
+    for replica in replicas:
+        replica.kill()
+
+
+def points_for(i: int, n: int = 64) -> np.ndarray:
+    """n points (metres, world frame) at known distances from the sphere centred at the origin."""
+    rng = np.random.default_rng(i)
+    directions = rng.normal(size=(n, 3))
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    return directions * rng.uniform(0.05, 0.15, size=(n, 1))
+
+
+def query(client: httpx.Client, url: str, model: str, i: int) -> None:
+    """One query through nginx; asserts 200 and distances close to the analytic sphere's."""
+    points = points_for(i)
+    response = client.post(f"{url}/v1/models/{model}/query",
+                           json={"points": points.tolist(), "fields": ["distance"]})
+    assert response.status_code == 200, (model, i, response.status_code, response.text)
+    distance = np.asarray(response.json()["distance"])
+    want = np.linalg.norm(points, axis=1) - SPHERE_RADIUS_M
+    np.testing.assert_allclose(distance, want, atol=0.01)  # a 24^3 voxel grid of a 0.2 m sphere
+
+
+def test_queries_are_spread_by_model(repo, tmp_path):
+    replicas, nginx = start(repo, tmp_path)
+    try:
+        with httpx.Client(timeout=60) as client:
+            for k, model in enumerate(MODELS):
+                for round_ in range(3):  # in a row: round-robin would split them over both
+                    query(client, nginx.url, model, 100 * round_ + k)
+        served = [r.points_by_model() for r in replicas]
+    finally:
+        stop(replicas, nginx)
+
+    owners = {}
+    for model in MODELS:
+        holders = [i for i, counts in enumerate(served) if counts.get(model, 0) > 0]
+        assert len(holders) == 1, f"{model}'s queries went to replicas {holders}, not to one"
+        owners[model] = holders[0]
+        assert served[holders[0]][model] == 3 * 64  # every point of its 3 queries, on one replica
+    assert set(owners.values()) == {0, 1}, "one replica got every model"
+    # The access log agrees: one replica per model route, no retries while both are up.
+    for uri, status, tried in nginx.log():
+        assert status == 200 and len(tried) == 1
+        model = uri.split("/")[3]
+        assert tried[0] == replicas[owners[model]].address
+
+
+def test_killing_a_replica_loses_no_query(repo, tmp_path):
+    """Four callers keep querying every model; after 48 answers one replica is SIGKILLed (no
+    drain: a crash). Every query still gets a correct 200: those the dead replica held or would
+    have got are resent by nginx to the survivor."""
+    replicas, nginx = start(repo, tmp_path)
+    total, kill_after = 192, 48
+    answered = 0
+    lock = threading.Lock()
+    killed = threading.Event()
+    victim = replicas[0]
+
+    def caller(worker: int) -> None:
+        nonlocal answered
+        with httpx.Client(timeout=60) as client:
+            for j in range(worker, total, 4):
+                query(client, nginx.url, MODELS[j % len(MODELS)], j)
+                with lock:
+                    answered += 1
+                    if answered == kill_after:
+                        victim.kill()  # from the caller that got answer 48: others are mid-query
+                        killed.set()
+
+    try:
+        with ThreadPoolExecutor(4) as pool:
+            for future in [pool.submit(caller, w) for w in range(4)]:
+                future.result()  # re-raises any failed query
+        assert killed.is_set()
+        survivor = replicas[1].points_by_model()
+        log = nginx.log()
+    finally:
+        stop(replicas, nginx)
+
+    assert answered == total
+    assert all(status == 200 for _, status, _ in log) and len(log) == total
+    # nginx met the dead replica and resent to the survivor (a row naming both, dead one first) ...
+    resent = [tried for _, _, tried in log if len(tried) == 2]
+    assert resent and all(t == [victim.address, replicas[1].address] for t in resent)
+    # ... and the survivor now serves every model, the dead replica's included.
+    assert set(survivor) == set(MODELS)
