@@ -8,11 +8,12 @@ paper's approximate baseline). Lengths are in the collider's units (metres for t
 
 from .collider import FIELDS, Collider, ColliderInfo, QueryResult
 from .modelfile import ModelFileError, load_collider, save_collider
-from .pose import Pose, PoseError, as_pose
+from .pose import MAX_COORDINATE_M, Pose, PoseError, as_pose
 from .repository import ModelRepository
 
 __all__ = [
     "FIELDS",
+    "MAX_COORDINATE_M",
     "Collider",
     "ColliderInfo",
     "ModelFileError",

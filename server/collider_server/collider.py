@@ -25,7 +25,7 @@ import numpy as np
 
 from collider_client.wire import FIELDS, GRADIENT_FIELDS, check_fields  # the shared contract
 
-from .pose import Pose, as_pose
+from .pose import MAX_COORDINATE_M, Pose, as_pose  # MAX_COORDINATE_M: the coordinate range
 
 DEFAULT_EPS_METERS = 1e-3
 MAX_POINTS_PER_CALL = 200_000_000
@@ -113,6 +113,11 @@ def check_points(points) -> np.ndarray:
     if not finite.all():
         bad = int(np.flatnonzero(~finite)[0])
         raise ValueError(f"points contain NaN or Inf (first at row {bad}: {array[bad].tolist()})")
+    inside = (np.abs(array) <= MAX_COORDINATE_M).all(axis=1)
+    if not inside.all():
+        bad = int(np.flatnonzero(~inside)[0])
+        raise ValueError(f"points outside the coordinate range +-{MAX_COORDINATE_M:g} (world units; "
+                         f"first at row {bad}: {array[bad].tolist()})")
     return array
 
 
@@ -125,6 +130,9 @@ def check_eps(eps: float) -> float:
         raise ValueError(f"eps must be a number, got {eps!r}") from None
     if not np.isfinite(value):
         raise ValueError(f"eps must be finite, got {value}")
+    if abs(value) > MAX_COORDINATE_M:
+        raise ValueError(f"eps={value:g} is outside the coordinate range +-{MAX_COORDINATE_M:g} "
+                         "(world units)")
     return value
 
 
@@ -243,23 +251,29 @@ class Collider(abc.ABC):
         return distance, normal
 
     def _evaluate_anywhere(self, local: np.ndarray, want_gradient: bool):
-        """:meth:`evaluate` extended outside the domain box by a conservative rule:
-        ``d(p) = |p - c| + f(c)`` with ``c`` the point clamped into the box; its gradient is the
-        direction away from the box plus the gradient of ``f`` along the unclamped axes."""
+        """:meth:`evaluate` extended outside the domain box by a conservative rule.
+
+        With ``c`` the point clamped into the box and ``f(c)`` the model's value there:
+        ``d(p) = |p - c| + max(f(c), 0)``, never below the distance to the box (a model knows
+        nothing beyond its box; one whose values on the box are negative is cut off there). The
+        normal is the direction to ``p`` from ``c - f(c) n(c)``, the surface point that ``c``'s
+        own answer suggests: equal to ``n(c)`` on the box, so continuous with the inside, and
+        tending to the direction away from the object far from it."""
         if not self.clamps_to_domain:
             return self.evaluate(local, want_gradient)
         clamped = np.clip(local, self.domain_min, self.domain_max)
-        outside = clamped != local
+        outside = (clamped != local).any(axis=1)
         if not outside.any():
             return self.evaluate(local, want_gradient)
         d, g = self.evaluate(clamped, want_gradient)
         away = local - clamped
         box_distance = np.linalg.norm(away, axis=1)
-        d = d + box_distance
+        d_box = d
+        d = np.where(outside, np.maximum(d, 0.0) + box_distance, d)
         if want_gradient:
-            away_unit = away / np.where(box_distance > 0, box_distance, 1.0)[:, None]
+            away_unit = away / np.where(outside, box_distance, 1.0)[:, None]
             g_unit = unit_vectors(g, away_unit)
-            g = np.where(outside, 0.0, g_unit) + away_unit
+            g = np.where(outside[:, None], away + d_box[:, None] * g_unit, g)
         return d, g
 
     def _unit_normals(self, gradient: np.ndarray, local: np.ndarray) -> np.ndarray:
@@ -292,3 +306,45 @@ def assemble_result(points: np.ndarray, pose: Pose, eps: float, fields: tuple[st
     if "collides" in fields:
         result.collides = distance < eps
     return result
+
+
+def nearest_collider(world_distance: np.ndarray) -> np.ndarray:
+    """The scene rule, the one both backends use: per point, the index of the collider with the
+    smallest world-frame signed distance, compared in float64; a tie goes to the first collider
+    in the list (the lowest index).
+
+    world_distance : (k, n) float64, world units, one row per collider of the scene
+    Returns (n,) int32 indices into the scene's colliders.
+    """
+    world_distance = np.asarray(world_distance, dtype=np.float64)
+    if world_distance.ndim != 2 or len(world_distance) == 0:
+        raise ValueError(f"world_distance must be (k, n) with k >= 1, got {world_distance.shape}")
+    return np.argmin(world_distance, axis=0).astype(np.int32)
+
+
+def assemble_scene_result(points: np.ndarray, poses: list[Pose], eps: list[float],
+                          fields: tuple[str, ...], answers: list) -> tuple[QueryResult, np.ndarray]:
+    """A scene query's fields: per point, those of the nearest collider (:func:`nearest_collider`).
+
+    points : (n, 3) world frame; poses, eps : per collider (eps in world units)
+    answers : per collider, ``(distance, normal or None)`` in its frame from
+        :meth:`Collider.query_local`
+    Returns ``(result, nearest)``: world-frame fields (as :func:`assemble_result` gives for one
+    collider) and the (n,) int32 index of the collider each point's fields come from.
+    """
+    n = len(points)
+    world = np.stack([d * pose.scale for (d, _), pose in zip(answers, poses)]) if answers \
+        else np.zeros((0, n))
+    nearest = nearest_collider(world)
+    dtypes = {"distance": np.float32, "normal": np.float32, "contact": points.dtype,
+              "collides": np.bool_}
+    out = {f: np.empty((n, 3) if f in ("normal", "contact") else n, dtypes[f]) for f in fields}
+    for i, ((distance, normal), pose) in enumerate(zip(answers, poses)):
+        rows = np.flatnonzero(nearest == i)
+        if not len(rows):
+            continue
+        part = assemble_result(points[rows], pose, eps[i], fields, distance[rows],
+                               None if normal is None else normal[rows])
+        for name, values in part.fields().items():
+            out[name][rows] = values
+    return QueryResult(**out), nearest

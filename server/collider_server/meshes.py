@@ -144,6 +144,8 @@ class ExactSDF:
         )
         lengths = np.linalg.norm(normals, axis=1, keepdims=True)
         self._face_normals = normals / np.where(lengths > 0, lengths, 1.0)
+        self._edge_normals, self._vertex_normals = _pseudo_normals(
+            self._vertices, self._faces, self._face_normals)
 
     def query(self, points: np.ndarray, chunk_points: int = 200_000):
         """Signed distance, closest point and closest face for (n, 3) float64 points, mesh
@@ -175,12 +177,78 @@ class ExactSDF:
 
     def gradient(self, points: np.ndarray, distance, closest, face) -> np.ndarray:
         """Unit SDF gradient (n, 3): from the closest point towards the query point, flipped
-        inside; on the surface itself (distance ~ 0) the closest face's normal."""
+        inside; on the surface itself (distance ~ 0) the pseudo-normal of the feature the point
+        lies on (:meth:`surface_normals`)."""
         offset = np.asarray(points, dtype=np.float64) - closest
         length = np.linalg.norm(offset, axis=1)
         tiny = 1e-9 * max(float(np.ptp(self._vertices, axis=0).max()), 1e-30)
         on_surface = length <= tiny
         direction = offset / np.where(on_surface, 1.0, length)[:, None]
         direction *= np.where(distance < 0, -1.0, 1.0)[:, None]
-        direction[on_surface] = self._face_normals[face[on_surface]]
+        direction[on_surface] = self.surface_normals(closest[on_surface], face[on_surface])
         return direction
+
+    def surface_normals(self, closest: np.ndarray, face: np.ndarray) -> np.ndarray:
+        """Outward pseudo-normals (m, 3) at surface points ``closest`` of faces ``face``: the face
+        normal inside a face, the mean of the two faces' normals on an edge, the angle-weighted
+        vertex normal at a vertex. A face normal alone at a concave crease points into the
+        neighbouring face's solid: pushing a point there along it would move it inside."""
+        tri = self._vertices[self._faces[face]]
+        bary = _barycentric(closest, tri)
+        tol = 1e-6
+        normals = self._face_normals[face].copy()
+        corner = np.argmax(bary, axis=1)
+        at_vertex = bary[np.arange(len(face)), corner] > 1.0 - tol
+        opposite = np.argmin(bary, axis=1)
+        on_edge = ~at_vertex & (bary[np.arange(len(face)), opposite] < tol)
+        normals[on_edge] = self._edge_normals[face[on_edge], opposite[on_edge]]
+        vertex = self._faces[face[at_vertex], corner[at_vertex]]
+        normals[at_vertex] = self._vertex_normals[vertex]
+        # Degenerate features (zero-area faces) have no normal: keep the face's, zero or not;
+        # the caller's fallback turns a zero vector into a unit one.
+        bad = np.linalg.norm(normals, axis=1) < 0.5
+        normals[bad] = self._face_normals[face[bad]]
+        return normals
+
+
+def _barycentric(points: np.ndarray, tri: np.ndarray) -> np.ndarray:
+    """(m, 3) barycentric coordinates of ``points`` (m, 3) in triangles ``tri`` (m, 3, 3);
+    degenerate triangles give (1, 0, 0)."""
+    a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
+    v0, v1, v2 = b - a, c - a, points - a
+    d00, d01, d11 = (v0 * v0).sum(1), (v0 * v1).sum(1), (v1 * v1).sum(1)
+    d20, d21 = (v2 * v0).sum(1), (v2 * v1).sum(1)
+    denom = d00 * d11 - d01 * d01
+    ok = np.abs(denom) > 1e-300
+    safe = np.where(ok, denom, 1.0)
+    v = np.where(ok, (d11 * d20 - d01 * d21) / safe, 0.0)
+    w = np.where(ok, (d00 * d21 - d01 * d20) / safe, 0.0)
+    return np.stack([1.0 - v - w, v, w], axis=1)
+
+
+def _pseudo_normals(vertices: np.ndarray, faces: np.ndarray, face_normals: np.ndarray):
+    """Unit edge normals (f, 3, 3), per face and per corner the normal of the edge opposite that
+    corner (the normalised sum of the normals of the faces sharing it), and unit angle-weighted
+    vertex normals (v, 3) (Baerentzen and Aanaes 2005)."""
+    # Edge opposite corner k joins corners k+1 and k+2; key it by its sorted vertex pair.
+    pairs = np.stack([faces[:, [1, 2]], faces[:, [2, 0]], faces[:, [0, 1]]], axis=1)  # (f, 3, 2)
+    keys = np.sort(pairs.reshape(-1, 2), axis=1)
+    _, inverse = np.unique(keys, axis=0, return_inverse=True)
+    inverse = inverse.reshape(-1)
+    sums = np.zeros((int(inverse.max()) + 1 if len(inverse) else 0, 3))
+    np.add.at(sums, inverse, np.repeat(face_normals, 3, axis=0))
+    edge = sums[inverse].reshape(len(faces), 3, 3)
+    edge /= np.maximum(np.linalg.norm(edge, axis=2, keepdims=True), 1e-300)
+    # Interior angle of each face at each corner.
+    tri = vertices[faces]
+    angles = np.empty((len(faces), 3))
+    for k in range(3):
+        u = tri[:, (k + 1) % 3] - tri[:, k]
+        w = tri[:, (k + 2) % 3] - tri[:, k]
+        cos = (u * w).sum(1) / np.maximum(np.linalg.norm(u, axis=1) * np.linalg.norm(w, axis=1), 1e-300)
+        angles[:, k] = np.arccos(np.clip(cos, -1.0, 1.0))
+    vertex = np.zeros_like(vertices)
+    for k in range(3):
+        np.add.at(vertex, faces[:, k], face_normals * angles[:, k:k + 1])
+    vertex /= np.maximum(np.linalg.norm(vertex, axis=1, keepdims=True), 1e-300)
+    return edge, vertex

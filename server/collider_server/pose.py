@@ -16,6 +16,17 @@ from dataclasses import dataclass
 import numpy as np
 
 ORTHONORMAL_TOLERANCE = 1e-5
+#: The coordinate range, world units (metres for the shipped models): query points (checked by
+#: ``collider.check_points``), pose translations (checked here) and ``eps`` beyond
+#: +-MAX_COORDINATE_M, or non-finite, are refused with a ValueError naming the field and the row
+#: (the service answers 422). Inside it every answer is finite in float32: no Infinity, NaN or
+#: zero normal. Why 1e6: a million model sizes away from any real collider, yet far from where
+#: float32 overflows (3.4e38; squared distances overflow near 1e19). float32 points resolve only
+#: 6 cm at 1e6: far scenes should send float64 points (poses are always float64).
+MAX_COORDINATE_M = 1e6
+#: A pose's uniform scale must lie in [1 / MAX_SCALE, MAX_SCALE]: beyond it distances in world
+#: units could overflow float32 even for points inside the coordinate range.
+MAX_SCALE = 1e6
 
 
 class PoseError(ValueError):
@@ -52,15 +63,24 @@ class Pose:
 
     def to_local(self, points: np.ndarray) -> np.ndarray:
         """World-frame points (n, 3) to collider-frame points (n, 3) float64: ``T^-1 p``."""
-        local = np.asarray(points, dtype=np.float64) - self.translation
-        local = local @ self.rotation  # row-vector form of R^T (p - t)
+        local = rotate_rows(np.asarray(points, dtype=np.float64) - self.translation,
+                            self.rotation.T)  # R^T (p - t)
         if self.scale != 1.0:
             local /= self.scale
         return local
 
     def to_world_directions(self, vectors: np.ndarray) -> np.ndarray:
         """Collider-frame directions (n, 3) rotated into the world frame (no translation)."""
-        return vectors @ self.rotation.T
+        return rotate_rows(vectors, self.rotation)
+
+
+def rotate_rows(vectors: np.ndarray, matrix: np.ndarray) -> np.ndarray:
+    """``vectors @ matrix.T`` for (n, 3) rows, computed element-wise in a fixed order, so that
+    each row's result is bit-identical whatever the batch around it (a BLAS matrix product picks
+    its kernel by the batch's shape and may differ in the last bit)."""
+    vectors = np.asarray(vectors)
+    m = np.asarray(matrix, dtype=np.float64)
+    return vectors[:, 0:1] * m[:, 0] + vectors[:, 1:2] * m[:, 1] + vectors[:, 2:3] * m[:, 2]
 
 
 IDENTITY = Pose(np.eye(3), np.zeros(3), 1.0)
@@ -83,7 +103,12 @@ def as_pose(pose: "Pose | np.ndarray | list | None") -> Pose:
     if m.shape != (4, 4):
         raise PoseError(f"pose must be a 4x4 matrix, got shape {m.shape}")
     if not np.isfinite(m).all():
-        raise PoseError("pose contains NaN or Inf")
+        bad = [int(i) for i in np.argwhere(~np.isfinite(m))[0]]
+        raise PoseError(f"pose contains NaN or Inf (first at row {bad[0]}, column {bad[1]})")
+    far = np.abs(m[:3, 3]) > MAX_COORDINATE_M
+    if far.any():
+        raise PoseError(f"pose translation {m[:3, 3].tolist()} is outside the coordinate range "
+                        f"+-{MAX_COORDINATE_M:g} (world units; row {int(np.argmax(far))}, column 3)")
     if not np.allclose(m[3], [0.0, 0.0, 0.0, 1.0], atol=1e-9):
         raise PoseError(f"pose bottom row must be [0, 0, 0, 1], got {m[3].tolist()}")
     block = m[:3, :3]
@@ -99,6 +124,8 @@ def as_pose(pose: "Pose | np.ndarray | list | None") -> Pose:
     if np.linalg.det(block) <= 0:
         raise PoseError("pose is a reflection (negative determinant); only rotations are allowed")
     scale = float(np.sqrt(scale_sq))
+    if not 1.0 / MAX_SCALE <= scale <= MAX_SCALE:
+        raise PoseError(f"pose scale {scale:g} is outside [{1.0 / MAX_SCALE:g}, {MAX_SCALE:g}]")
     if abs(scale - 1.0) < ORTHONORMAL_TOLERANCE:
         scale = 1.0
     rotation = block / scale
