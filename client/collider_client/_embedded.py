@@ -70,37 +70,26 @@ class EmbeddedBackend:
 
     def scene_query(self, colliders: list[SceneCollider], points: np.ndarray, fields: list[str],
                     eps: float | None) -> QueryResult:
-        from collider_server.collider import assemble_result, check_eps, check_fields, check_points
+        from collider_server.collider import (assemble_scene_result, check_eps, check_fields,
+                                              check_points)
         from collider_server.pose import as_pose
 
         try:
             fields_t = check_fields(fields)
             points = check_points(points)
             poses = [as_pose(c.pose) for c in colliders]
+            eps_list = [None if eps is None else check_eps(eps)] * len(colliders)
         except ValueError as exc:
             raise InvalidValueError(str(exc)) from None
         engines = [self.collider(c.model) for c in colliders]
+        eps_list = [engine.info.default_world_eps(pose) if e is None else e
+                    for engine, pose, e in zip(engines, poses, eps_list)]
         want_gradient = not GRADIENT_FIELDS.isdisjoint(fields_t)
-        n = len(points)
-        best = np.full(n, np.inf)
-        best_index = np.zeros(n, dtype=np.int32)
-        normal = np.zeros((n, 3)) if want_gradient else None
-        eps_per_point = np.empty(n)
-        for i, (engine, pose) in enumerate(zip(engines, poses)):
-            d_local, n_local = engine.query_local(pose.to_local(points), want_gradient)
-            d_world = d_local * pose.scale
-            # Compare in float32, the precision the wire reports, so ties resolve as the server's.
-            closer = d_world.astype(np.float32) < best.astype(np.float32)
-            if i == 0:
-                closer[:] = True
-            best = np.where(closer, d_world, best)
-            best_index[closer] = i
-            if want_gradient:
-                normal[closer] = pose.to_world_directions(n_local[closer])
-            e = engine.info.default_world_eps(pose) if eps is None else check_eps(eps)
-            eps_per_point[closer] = e
-        result = assemble_result(points, _WORLD, eps_per_point, fields_t, best, normal)
-        return QueryResult(**result.fields(), collider=best_index)
+        answers = [engine.query_local(pose.to_local(points), want_gradient)
+                   for engine, pose in zip(engines, poses)]
+        # The engine's scene rule, the one the service uses: identical answers, ties included.
+        result, nearest = assemble_scene_result(points, poses, eps_list, fields_t, answers)
+        return QueryResult(**result.fields(), collider=nearest)
 
     def list_models(self) -> list[ModelInfo]:
         from collider_server.modelfile import read_info
@@ -122,15 +111,3 @@ class EmbeddedBackend:
     def close(self) -> None:
         self._colliders.clear()
 
-
-class _World:
-    """The identity pose for :func:`assemble_result` on points already in the world frame."""
-
-    scale = 1.0
-
-    @staticmethod
-    def to_world_directions(vectors):
-        return vectors
-
-
-_WORLD = _World()

@@ -9,7 +9,7 @@ import time
 import numpy as np
 
 from ..batching import BatcherClosed, DeadlineExceeded, QueueFull
-from ..collider import GRADIENT_FIELDS, QueryResult, assemble_result
+from ..collider import GRADIENT_FIELDS, QueryResult, assemble_result, assemble_scene_result
 from ..pose import Pose
 from .bodies import QuerySpec, SceneSpec
 from .problems import Problem
@@ -64,28 +64,14 @@ async def answer_query(model: LoadedModel, spec: QuerySpec, deadline: float | No
 async def answer_scene(models: list[LoadedModel], spec: SceneSpec,
                        deadline: float | None) -> tuple[QueryResult, np.ndarray]:
     """Per point, the fields of the collider with the smallest world-frame signed distance, and
-    that collider's index ``(n,) int32`` into ``spec.colliders``."""
+    that collider's index ``(n,) int32`` into ``spec.colliders`` (the engine's scene rule,
+    :func:`~collider_server.collider.nearest_collider`, shared with the embedded backend)."""
     poses = [pose for _, pose in spec.colliders]
     eps = [resolve_eps(m, pose, spec.eps) for m, pose in zip(models, poses)]
     want_gradient = not GRADIENT_FIELDS.isdisjoint(spec.fields)
     answers = await asyncio.gather(*(
         compute(m, spec.points, pose, want_gradient, deadline) for m, pose in zip(models, poses)))
-    # World-frame distances of every collider, (k, n); the nearest wins each point.
-    world = np.stack([d * pose.scale for (d, _), pose in zip(answers, poses)])
-    nearest = np.argmin(world, axis=0).astype(np.int32) if len(spec.points) else np.zeros(0, np.int32)
-    n = len(spec.points)
-    dtypes = {"distance": np.float32, "normal": np.float32, "contact": spec.points.dtype,
-              "collides": np.bool_}
-    out = {f: np.empty((n, 3) if f in ("normal", "contact") else n, dtypes[f]) for f in spec.fields}
-    for i, ((distance, normal), pose) in enumerate(zip(answers, poses)):
-        rows = np.flatnonzero(nearest == i)
-        if not len(rows):
-            continue
-        part = assemble_result(spec.points[rows], pose, eps[i], spec.fields, distance[rows],
-                               None if normal is None else normal[rows])
-        for name, values in part.fields().items():
-            out[name][rows] = values
-    return QueryResult(**out), nearest
+    return assemble_scene_result(spec.points, poses, eps, spec.fields, answers)
 
 
 async def _cancel_on_disconnect(receive, task: asyncio.Task, gone: list) -> None:
