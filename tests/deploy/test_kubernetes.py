@@ -1,0 +1,197 @@
+"""The Kubernetes manifests (deploy/k8s), checked offline: every resource against the Kubernetes
+OpenAPI schemas (kubernetes-validate, strict), and what a schema cannot see: the kustomizations
+name files that exist, the Service/PDB/HPA point at the Deployment, the settings are settings of
+``collider serve``, the HPA's metric is one the service exports and the adapter rule serves, the
+grace period matches compose, the CPU and GPU Deployments stay in step."""
+
+from __future__ import annotations
+
+import copy
+import re
+from pathlib import Path
+
+import pytest
+import yaml
+
+from .conftest import REPO
+
+K8S = REPO / "deploy" / "k8s"
+OVERLAYS = ("cpu", "gpu")
+#: The oldest Kubernetes these manifests claim (docker/README.md): the preStop `sleep` action.
+MIN_VERSION = "1.30"
+
+kubernetes_validate = pytest.importorskip(
+    "kubernetes_validate", reason="kubernetes-validate is not installed (the dev extra has it)")
+
+
+def documents(path: Path) -> list[dict]:
+    return [d for d in yaml.safe_load_all(path.read_text()) if d]
+
+
+def kustomization_files(folder: Path) -> list[Path]:
+    """Every resource file a kustomization pulls in, following folders to their kustomization."""
+    found = []
+    for entry in documents(folder / "kustomization.yaml")[0]["resources"]:
+        target = (folder / entry).resolve()
+        assert target.exists(), f"{folder / 'kustomization.yaml'}: {entry} does not exist"
+        found += kustomization_files(target) if target.is_dir() else [target]
+    return found
+
+
+def resources(overlay: str) -> dict[tuple[str, str], dict]:
+    """What ``kubectl apply -k overlays/<overlay>`` would create, by (kind, name)."""
+    found = {}
+    for path in kustomization_files(K8S / "overlays" / overlay):
+        for doc in documents(path):
+            key = (doc["kind"], doc["metadata"]["name"])
+            assert key not in found, f"{key} twice"
+            found[key] = doc
+    return found
+
+
+def all_core_resources() -> list[tuple[Path, dict]]:
+    paths = sorted(set(kustomization_files(K8S / "overlays" / "cpu"))
+                   | set(kustomization_files(K8S / "overlays" / "gpu")))
+    return [(p, d) for p in paths for d in documents(p)]
+
+
+@pytest.mark.parametrize("version", [MIN_VERSION, None])
+def test_every_resource_passes_the_kubernetes_schema(version):
+    version = version or kubernetes_validate.latest_version()
+    checked = 0
+    for path, doc in all_core_resources():
+        try:
+            kubernetes_validate.validate(doc, version, strict=True)
+        except kubernetes_validate.ValidationError as exc:
+            raise AssertionError(f"{path.relative_to(REPO)}: {exc.message} at {exc.path}") from None
+        checked += 1
+    assert checked >= 8
+
+
+def test_the_schema_check_is_not_vacuous():
+    deployment = resources("cpu")[("Deployment", "collider")]
+    broken = copy.deepcopy(deployment)
+    broken["spec"]["template"]["spec"]["containers"][0]["readinessProbe"]["httpGet"]["paht"] = "/"
+    with pytest.raises(kubernetes_validate.ValidationError):
+        kubernetes_validate.validate(broken, kubernetes_validate.latest_version(), strict=True)
+
+
+def container(overlay: str) -> dict:
+    (c,) = resources(overlay)[("Deployment", "collider")]["spec"]["template"]["spec"]["containers"]
+    return c
+
+
+@pytest.mark.parametrize("overlay", OVERLAYS)
+def test_deployment_is_wired_to_the_other_resources(overlay):
+    found = resources(overlay)
+    deployment = found[("Deployment", "collider")]
+    pod_labels = deployment["spec"]["template"]["metadata"]["labels"]
+    assert deployment["spec"]["selector"]["matchLabels"].items() <= pod_labels.items()
+    for kind, name in [("Service", "collider"), ("Service", "collider-replicas")]:
+        assert found[(kind, name)]["spec"]["selector"].items() <= pod_labels.items()
+    assert found[("PodDisruptionBudget", "collider")]["spec"]["selector"]["matchLabels"].items() \
+        <= pod_labels.items()
+    target = found[("HorizontalPodAutoscaler", "collider")]["spec"]["scaleTargetRef"]
+    assert (target["kind"], target["name"]) == ("Deployment", "collider")
+
+    pod = deployment["spec"]["template"]["spec"]
+    c = container(overlay)
+    port_names = {p["name"] for p in c["ports"]}
+    probes = {k: c[k]["httpGet"] for k in ("startupProbe", "livenessProbe", "readinessProbe")}
+    assert probes["livenessProbe"]["path"] == "/livez" and probes["readinessProbe"]["path"] == "/readyz"
+    assert all(p["port"] in port_names for p in probes.values())
+    for ref in c["envFrom"]:
+        assert ("ConfigMap", ref["configMapRef"]["name"]) in found
+    secret = found[("Secret", "collider-tokens")]["stringData"]
+    for env in c["env"]:
+        if "valueFrom" in env:
+            ref = env["valueFrom"]["secretKeyRef"]
+            assert ref["name"] == "collider-tokens" and ref["key"] in secret
+    claims = [v["persistentVolumeClaim"] for v in pod["volumes"] if "persistentVolumeClaim" in v]
+    assert claims and all(("PersistentVolumeClaim", c_["claimName"]) in found for c_ in claims)
+    assert all(c_["readOnly"] for c_ in claims)
+    assert {m["mountPath"]: m.get("readOnly", False) for m in c["volumeMounts"]}["/models"] is True
+    assert c["resources"]["limits"]["cpu"] and c["resources"]["limits"]["memory"]
+
+
+@pytest.mark.parametrize("overlay", OVERLAYS)
+def test_pods_run_as_the_images_non_root_user_on_a_read_only_root(overlay):
+    pod = resources(overlay)[("Deployment", "collider")]["spec"]["template"]["spec"]
+    dockerfile = (REPO / "docker" / "Dockerfile").read_text()
+    image_uid = int(re.findall(r"^USER (\d+)", dockerfile, re.M)[-1])
+    assert pod["securityContext"]["runAsNonRoot"] is True
+    assert pod["securityContext"]["runAsUser"] == image_uid
+    security = container(overlay)["securityContext"]
+    assert security["readOnlyRootFilesystem"] is True and security["allowPrivilegeEscalation"] is False
+    assert security["capabilities"]["drop"] == ["ALL"]
+    # The only writable place is an emptyDir at /tmp (the images' HOME and working folder).
+    writable = [m["mountPath"] for m in container(overlay)["volumeMounts"] if not m.get("readOnly")]
+    assert writable == ["/tmp"]
+
+
+def test_settings_are_settings_of_collider_serve():
+    from collider_server.service.settings import ServiceSettings
+
+    fields = {f"COLLIDER_{name.upper()}" for name in ServiceSettings.model_fields}
+    config = resources("cpu")[("ConfigMap", "collider-config")]["data"]
+    assert set(config) <= fields, set(config) - fields
+    for overlay in OVERLAYS:
+        names = {e["name"] for e in container(overlay)["env"]}
+        assert names <= fields, names - fields
+        assert not names & set(config), "a setting both in the ConfigMap and the Deployment"
+
+
+def test_cpu_and_gpu_deployments_differ_only_in_image_device_resources_and_placement():
+    def normalised(overlay):
+        d = copy.deepcopy(resources(overlay)[("Deployment", "collider")])
+        pod = d["spec"]["template"]["spec"]
+        pod.pop("tolerations", None)
+        (c,) = pod["containers"]
+        c.pop("image"), c.pop("resources")
+        c["env"] = [e for e in c["env"] if e["name"] not in ("COLLIDER_DEVICE",
+                                                             "COLLIDER_COMPUTE_THREADS")]
+        return d
+
+    assert normalised("cpu") == normalised("gpu")
+    assert container("gpu")["resources"]["limits"]["nvidia.com/gpu"] == 1
+    assert container("gpu")["image"].endswith(":cuda") and container("cpu")["image"].endswith(":cpu")
+
+
+def seconds(value: str) -> int:
+    number, unit = re.fullmatch(r"(\d+)(s|m)", value).groups()
+    return int(number) * (60 if unit == "m" else 1)
+
+
+def test_grace_period_matches_compose_and_covers_the_pre_stop_pause():
+    compose = yaml.safe_load((REPO / "docker" / "compose.yaml").read_text())
+    grace = seconds(compose["services"]["collider"]["stop_grace_period"])
+    for overlay in OVERLAYS:
+        pod = resources(overlay)[("Deployment", "collider")]["spec"]["template"]["spec"]
+        assert pod["terminationGracePeriodSeconds"] == grace
+        pause = container(overlay)["lifecycle"]["preStop"]["sleep"]["seconds"]
+        assert pause < grace / 2, "the pre-stop pause leaves the drain too little of the grace period"
+
+
+def test_hpa_scales_on_the_queue_metric_the_adapter_serves():
+    hpa = resources("cpu")[("HorizontalPodAutoscaler", "collider")]
+    (metric,) = hpa["spec"]["metrics"]
+    assert metric["type"] == "Pods" and metric["pods"]["metric"]["name"] == "collider_queue_points"
+    adapter = documents(K8S / "monitoring" / "prometheus-adapter-values.yaml")[0]
+    served = {rule["name"]["as"] for rule in adapter["rules"]["custom"]}
+    assert "collider_queue_points" in served
+    monitoring = [d for p in kustomization_files(K8S / "monitoring") for d in documents(p)]
+    monitor = next(d for d in monitoring if d["kind"] == "ServiceMonitor")
+    assert monitor["spec"]["endpoints"][0]["path"] == "/metrics"
+    assert monitor["spec"]["selector"]["matchLabels"].items() <= \
+        resources("cpu")[("Service", "collider-replicas")]["metadata"]["labels"].items()
+
+
+def test_the_service_exports_the_metrics_the_manifests_use():
+    from collider_server.service.metrics import ServiceMetrics
+
+    exported = ServiceMetrics().render()[0].decode()
+    if "collider_queue_points" not in exported:
+        pytest.skip("collider_queue_points is not exported yet (issue 10 adds it)")
+    rules = (K8S / "monitoring" / "alerts.yaml").read_text()
+    for name in set(re.findall(r"\b(collider_[a-z_]+?)(?:_total|_bucket)?\b", rules)):
+        assert f"# TYPE {name} " in exported, f"alerts.yaml uses {name}, which /metrics lacks"
