@@ -21,6 +21,7 @@ Query response: one entry per field asked for, in the request's encoding:
 from __future__ import annotations
 
 import json
+import math
 from typing import Any, Iterable
 
 import msgpack
@@ -34,6 +35,12 @@ ARRAY_DTYPES = ("<f4", "<f8", "|b1", "<i4", "<i8")
 FIELDS = ("distance", "normal", "contact", "collides")
 #: Fields that need the SDF gradient; asking only for the others skips gradient work.
 GRADIENT_FIELDS = frozenset({"normal", "contact"})
+
+
+#: Messages for parser errors that carry none.
+_REASONS = {"FormatError": "a byte that starts no msgpack value (e.g. 0xc1)",
+            "StackError": "nesting too deep", "OutOfData": "the body ends inside a value",
+            "ExtraData": "bytes after the end of the body's value"}
 
 
 class WireError(ValueError):
@@ -87,13 +94,18 @@ def decode_array(value: Any, name: str) -> np.ndarray:
             raise WireError(f"{name}: shape must be a list of non-negative integers, got {shape!r}")
         if not isinstance(data, (bytes, bytearray, memoryview)):
             raise WireError(f"{name}: data must be binary, got {type(data).__name__}")
-        expected = int(np.prod(shape, dtype=np.int64)) * np.dtype(dtype).itemsize
+        # Python integers: a product of wire-given dimensions must not wrap around (2**62 x 4
+        # is 0 in int64, which would "match" an empty data field).
+        expected = math.prod(shape) * np.dtype(dtype).itemsize
         if len(data) != expected:
             raise WireError(
                 f"{name}: data has {len(data)} bytes but dtype {dtype} and shape {list(shape)} "
                 f"need {expected}"
             )
-        return np.frombuffer(data, dtype=dtype).reshape(shape)
+        try:
+            return np.frombuffer(data, dtype=dtype).reshape(shape)
+        except ValueError as exc:  # an empty array with a dimension numpy cannot index
+            raise WireError(f"{name}: shape {list(shape)} is not a valid array shape ({exc})") from None
     if isinstance(value, list):
         try:
             array = np.asarray(value)
@@ -101,8 +113,23 @@ def decode_array(value: Any, name: str) -> np.ndarray:
             raise WireError(f"{name}: nested lists are ragged") from None
         if array.size and array.dtype.kind not in "fiub":
             raise WireError(f"{name}: must hold numbers, got {array.dtype}")
+        if array.dtype.kind in "iuf" and _holds_bool(value):
+            # numpy reads [0, true, 0] as numbers; true is not a coordinate.
+            raise WireError(f"{name}: must hold numbers only, got a boolean among them")
         return array.astype(np.float64) if array.dtype.kind in "iu" else array
     raise WireError(f"{name}: expected an array (msgpack map or JSON list), got {type(value).__name__}")
+
+
+def _holds_bool(value: list) -> bool:
+    """Whether the nested list ``value`` holds ``true`` or ``false`` anywhere."""
+    stack = [value]
+    while stack:
+        for item in stack.pop():
+            if item is True or item is False:
+                return True
+            if isinstance(item, list):
+                stack.append(item)
+    return False
 
 
 def to_jsonable(array: np.ndarray) -> list:
@@ -118,9 +145,14 @@ def dumps(body: dict, content_type: str = MSGPACK) -> bytes:
             use_bin_type=True,
         )
     if content_type == JSON:
-        return json.dumps(
-            {k: to_jsonable(v) if isinstance(v, np.ndarray) else v for k, v in body.items()}
-        ).encode()
+        # NaN and Infinity are not JSON (JSON.parse refuses them): never write them.
+        try:
+            return json.dumps(
+                {k: to_jsonable(v) if isinstance(v, np.ndarray) else v for k, v in body.items()},
+                allow_nan=False,
+            ).encode()
+        except ValueError:
+            raise WireError("NaN or Infinity cannot be sent as JSON") from None
     raise WireError(f"unsupported content type {content_type!r}; use {MSGPACK} or {JSON}")
 
 
@@ -137,7 +169,9 @@ def loads(data: bytes, content_type: str = MSGPACK) -> dict:
     except WireError:
         raise
     except Exception as exc:  # msgpack and json raise several types for malformed bodies
-        raise WireError(f"malformed {content_type} body: {exc}") from None
+        # Some (msgpack's FormatError) carry no message: say at least what kind of error it is.
+        reason = str(exc) or _REASONS.get(type(exc).__name__, type(exc).__name__)
+        raise WireError(f"malformed {content_type} body: {reason}") from None
     if not isinstance(body, dict):
         raise WireError(f"body must be a map/object, got {type(body).__name__}")
     return body

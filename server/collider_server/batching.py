@@ -1,21 +1,28 @@
-"""Request coalescing sized in points: one queue per model, one compute call per batch.
+"""Request coalescing sized in rows (points): one queue per model, one compute call per batch.
 
-Concurrent requests for the same model are joined into one call of a compute function
-``compute(local, want_gradient) -> (distance, normal)`` on their concatenated collider-frame
-points, the way Triton's dynamic batcher and Ray Serve's ``@serve.batch`` join requests, except
-that a batch is measured in points, not requests:
+Concurrent requests for the same model are joined into one call of a batch function, the way
+Triton's dynamic batcher and Ray Serve's ``@serve.batch`` join requests, except that a batch is
+measured in rows (points), not requests:
 
-- a batch closes when it holds ``max_batch_points`` points or ``max_wait_ms`` after its oldest
+- a batch closes when it holds ``max_batch_points`` rows or ``max_wait_ms`` after its oldest
   request was queued, whichever comes first;
 - a request larger than ``max_batch_points`` is split across consecutive batches and reassembled;
-- each caller gets exactly its own rows back; a failing compute call fails only the requests in
-  that batch (bad input never gets here: the web layer validates before queueing);
-- the queue is bounded (``max_queue_points``): :meth:`PointBatcher.submit` raises
-  :class:`QueueFull` at once instead of waiting;
+- the batch function gets every request's part of the batch (:class:`BatchPart`: the request's
+  opaque payload and its row range) and returns one answer per part, so whatever work is per
+  point (moving points between frames, assembling answers) runs once per batch, vectorised across
+  requests, in the compute thread: the event loop only queues and hands out answers;
+- each caller gets exactly its own rows back; a part answered with an exception fails only its
+  own request, and a failing batch function fails only the requests in that batch;
+- the queue is bounded (``max_queue_points``): submitting raises :class:`QueueFull` at once
+  instead of waiting;
 - a request may carry a deadline (clock seconds): when it passes, the caller gets
   :class:`DeadlineExceeded` and the request leaves the queue; a cancelled caller (a client that
   disconnected) leaves the queue too;
-- compute runs in a worker thread per device (:class:`DeviceWorkers`), never on the event loop.
+- the batch function runs in a worker thread per device (:class:`DeviceWorkers`), never on the
+  event loop.
+
+:class:`RowBatcher` is the general queue; :class:`PointBatcher` adapts it to a plain
+``compute(local points, want_gradient) -> (distance, normal)``.
 
 Only asyncio and numpy are used here: no HTTP. Policy (which status code "queue full" becomes) is
 the web layer's business. The clock is injected (``time.monotonic`` by default) and the loop
@@ -30,14 +37,36 @@ import logging
 import math
 import time
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
-from typing import Callable
+from dataclasses import dataclass, field
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
 #: ``compute(local (n, 3) float64 collider frame, want_gradient) ->
 #: (distance (n,) float64 collider units, normal (n, 3) float64 unit collider frame or None)``
 ComputeFn = Callable[[np.ndarray, bool], "tuple[np.ndarray, np.ndarray | None]"]
+
+#: One request's answer: named arrays whose first dimension is the request's row count.
+Answer = "dict[str, np.ndarray]"
+
+
+@dataclass(frozen=True)
+class BatchPart:
+    """Rows ``[start, stop)`` of one request (its ``payload``, as submitted) in a batch."""
+
+    payload: Any
+    start: int
+    stop: int
+
+    @property
+    def rows(self) -> int:
+        return self.stop - self.start
+
+
+#: ``batch(parts) -> answers``: one answer per part, in order: a dict of arrays with
+#: ``part.rows`` rows each, or an Exception that fails that part's request only. Runs in the
+#: batcher's executor (a compute thread), never on the event loop.
+BatchFn = Callable[[Sequence[BatchPart]], "list[dict[str, np.ndarray] | BaseException]"]
 
 log = logging.getLogger(__name__)
 
@@ -69,7 +98,8 @@ class BatcherClosed(BatchingError):
 
 
 class BatchContractError(BatchingError):
-    """The compute function returned arrays whose shapes do not match the batch it was given."""
+    """The batch (or compute) function returned answers that do not match the batch it was
+    given: another number of answers than parts, or arrays of another row count."""
 
 
 @dataclass(frozen=True)
@@ -116,21 +146,16 @@ class BatchStats:
 
 @dataclass(eq=False)
 class _Pending:
-    """One submitted request and the buffers its batches fill."""
+    """One submitted request and, if it is split across batches, its answered pieces."""
 
-    local: np.ndarray
-    want_gradient: bool
+    payload: Any
+    size: int
     enqueued_at: float
     future: asyncio.Future
-    distance: np.ndarray
-    normal: np.ndarray | None
-    taken: int = 0  # points handed to batches so far
-    done: int = 0  # points whose answers are in the buffers
+    pieces: list = field(default_factory=list)  # (start, answer) of a split request
+    taken: int = 0  # rows handed to batches so far
+    done: int = 0  # rows answered so far
     dropped: bool = False
-
-    @property
-    def size(self) -> int:
-        return len(self.local)
 
 
 @dataclass(frozen=True)
@@ -163,20 +188,20 @@ class DeviceWorkers:
         self._executors.clear()
 
 
-class PointBatcher:
+class RowBatcher:
     """The queue and batching loop of one model. Create it inside a running event loop.
 
-    compute : see :data:`ComputeFn`; called in ``executor`` with the batch's points
-    settings : :class:`BatchSettings`
-    executor : where compute runs (``DeviceWorkers().executor(device)``)
-    clock : monotonic seconds; deadlines passed to :meth:`submit` are on this clock
-    on_batch : called on the event loop with a :class:`BatchStats` after each compute call
+    batch : see :data:`BatchFn`; called in ``executor`` with the parts of each batch
+    settings : :class:`BatchSettings` (its "points" are rows)
+    executor : where batch runs (``DeviceWorkers().executor(device)``)
+    clock : monotonic seconds; deadlines passed to :meth:`submit_rows` are on this clock
+    on_batch : called on the event loop with a :class:`BatchStats` after each batch
     """
 
-    def __init__(self, compute: ComputeFn, settings: BatchSettings, executor, *,
+    def __init__(self, batch: BatchFn, settings: BatchSettings, executor, *,
                  clock: Callable[[], float] = time.monotonic,
                  on_batch: Callable[[BatchStats], None] | None = None):
-        self._compute = compute
+        self._batch = batch
         self.settings = settings
         self._executor = executor
         self._clock = clock
@@ -195,7 +220,7 @@ class PointBatcher:
 
     @property
     def queued_points(self) -> int:
-        """Points waiting for a batch (not yet handed to compute)."""
+        """Rows (points) waiting for a batch (not yet handed to the batch function)."""
         return self._queued_points
 
     @property
@@ -212,35 +237,35 @@ class PointBatcher:
 
     # -- the caller's side --------------------------------------------------------------------
 
-    async def submit(self, local: np.ndarray, want_gradient: bool,
-                     deadline: float | None = None) -> tuple[np.ndarray, np.ndarray | None]:
-        """Queue ``local`` and wait for its answers.
+    async def submit_rows(self, payload: Any, rows: int,
+                          deadline: float | None = None) -> dict[str, np.ndarray]:
+        """Queue a request of ``rows`` rows and wait for its answer.
 
-        local : (n, 3) float64, collider frame and units (already validated)
-        want_gradient : whether ``normal`` is needed
+        payload : handed to the batch function (in :class:`BatchPart`), never looked into here
+        rows : the request's size in rows (points), >= 0; a request of 0 rows is answered at
+            once by calling the batch function on the event loop (it has nothing to compute)
         deadline : clock time (seconds) after which the caller no longer wants the answer
-        Returns ``(distance (n,) float64, normal (n, 3) float64 or None)`` in the collider frame.
-        Raises :class:`QueueFull`, :class:`DeadlineExceeded`, :class:`BatcherClosed`, or whatever
-        the compute call raised for the batch holding this request.
+        Returns the request's answer (see :data:`BatchFn`), its pieces joined if it was split.
+        Raises :class:`QueueFull`, :class:`DeadlineExceeded`, :class:`BatcherClosed`, the
+        exception the batch function gave this request, or whatever the batch function raised.
         """
         if self._closing:
             raise BatcherClosed("the model is shutting down or being unloaded")
-        n = len(local)
-        if n == 0:
-            return np.empty(0), (np.empty((0, 3)) if want_gradient else None)
+        if rows == 0:
+            answer = self._batch([BatchPart(payload, 0, 0)])
+            _check_answers(answer, [0])
+            if isinstance(answer[0], BaseException):
+                raise answer[0]
+            return answer[0]
         limit = self.settings.max_queue_points
-        if self._queued_points + n > limit:
-            raise QueueFull(n, self._queued_points, limit, self._retry_after_s(n))
+        if self._queued_points + rows > limit:
+            raise QueueFull(rows, self._queued_points, limit, self._retry_after_s(rows))
         now = self._clock()
         if deadline is not None and deadline <= now:
             raise DeadlineExceeded("the deadline passed before the request was queued")
-        request = _Pending(
-            local=local, want_gradient=want_gradient, enqueued_at=now,
-            future=asyncio.get_running_loop().create_future(),
-            distance=np.empty(n), normal=np.empty((n, 3)) if want_gradient else None,
-        )
+        request = _Pending(payload, rows, now, asyncio.get_running_loop().create_future())
         self._queue.append(request)
-        self._queued_points += n
+        self._queued_points += rows
         # Wake the loop only when this changes its plan: the first request of an empty queue,
         # or a batch that is now full. Other arrivals just join the queue (no wake-up per request).
         if len(self._queue) == 1 or self._queued_points >= self.settings.max_batch_points:
@@ -253,7 +278,7 @@ class PointBatcher:
         except asyncio.TimeoutError:
             self._drop(request)
             raise DeadlineExceeded(
-                f"the deadline passed with {request.done} of {n} points computed"
+                f"the deadline passed with {request.done} of {rows} points computed"
             ) from None
         except BaseException:  # the caller was cancelled (disconnected): leave the queue
             self._drop(request)
@@ -353,22 +378,16 @@ class PointBatcher:
         return parts
 
     async def _execute(self, parts: list[_Part]) -> None:
-        if len(parts) == 1:
-            part = parts[0]
-            local = part.request.local[part.start:part.stop]  # a view, no copy
-        else:
-            local = np.concatenate([p.request.local[p.start:p.stop] for p in parts])
-        want_gradient = any(p.request.want_gradient for p in parts)
-        n = len(local)
+        batch = [BatchPart(p.request.payload, p.start, p.stop) for p in parts]
+        n = sum(p.stop - p.start for p in parts)
         started = self._clock()
         self._in_flight += n
         loop = asyncio.get_running_loop()
         try:
-            distance, normal = await loop.run_in_executor(
-                self._executor, self._compute, local, want_gradient)
-            _check_output(distance, normal, n, want_gradient)
+            answers = await loop.run_in_executor(self._executor, self._batch, batch)
+            _check_answers(answers, [p.rows for p in batch])
         except BaseException as exc:
-            # Compute failed: only this batch's requests see it. (If the loop itself is being
+            # The batch failed: only this batch's requests see it. (If the loop itself is being
             # cancelled, they learn that the batcher is gone.)
             error = exc if isinstance(exc, Exception) else BatcherClosed(
                 "the batching loop ended (cancelled)")
@@ -383,17 +402,8 @@ class PointBatcher:
         compute_s = max(self._clock() - started, 1e-9)
         self._points_per_second = n / compute_s if self._points_per_second == 0 else (
             0.8 * self._points_per_second + 0.2 * n / compute_s)
-        offset = 0
-        for part in parts:
-            request, count = part.request, part.stop - part.start
-            if not request.dropped and not request.future.done():
-                request.distance[part.start:part.stop] = distance[offset:offset + count]
-                if request.want_gradient:
-                    request.normal[part.start:part.stop] = normal[offset:offset + count]
-                request.done += count
-                if request.done == request.size:
-                    request.future.set_result((request.distance, request.normal))
-            offset += count
+        for part, answer in zip(parts, answers):
+            _deliver(part, answer)
         if self._on_batch is not None:
             waits = tuple(started - p.request.enqueued_at for p in parts)
             try:
@@ -402,8 +412,90 @@ class PointBatcher:
                 log.exception("on_batch hook failed")
 
 
+def _deliver(part: _Part, answer) -> None:
+    """Hand one part's answer to its request (joining the pieces of a split request)."""
+    request = part.request
+    if request.dropped or request.future.done():
+        return
+    if isinstance(answer, BaseException):
+        request.future.set_exception(answer)
+        return
+    if part.start == 0 and part.stop == request.size:  # the common case: the whole request
+        request.future.set_result(answer)
+        return
+    request.pieces.append((part.start, answer))
+    request.done += part.stop - part.start
+    if request.done == request.size:
+        pieces = [a for _, a in sorted(request.pieces, key=lambda piece: piece[0])]
+        request.future.set_result({k: np.concatenate([a[k] for a in pieces]) for k in pieces[0]})
+
+
+def _check_answers(answers, rows: list[int]) -> None:
+    """The batch contract: one answer per part, each array with the part's row count."""
+    if not isinstance(answers, (list, tuple)) or len(answers) != len(rows):
+        got = len(answers) if isinstance(answers, (list, tuple)) else type(answers).__name__
+        raise BatchContractError(f"the batch function returned {got} answers for {len(rows)} "
+                                 "parts")
+    for answer, n in zip(answers, rows):
+        if isinstance(answer, BaseException):
+            continue
+        for name, array in answer.items():
+            if not isinstance(array, np.ndarray) or len(array) != n:
+                shape = getattr(array, "shape", type(array).__name__)
+                raise BatchContractError(f"the batch function returned {name} of shape {shape} "
+                                         f"for a part of {n} rows")
+
+
+class PointBatcher(RowBatcher):
+    """A :class:`RowBatcher` around a plain ``compute(local, want_gradient) -> (distance,
+    normal)`` (see :data:`ComputeFn`): the batch's points are concatenated and computed in one
+    call (with the gradient if any request wants it), and each request gets its rows."""
+
+    def __init__(self, compute: ComputeFn, settings: BatchSettings, executor, *,
+                 clock: Callable[[], float] = time.monotonic,
+                 on_batch: Callable[[BatchStats], None] | None = None):
+        self._compute = compute
+        super().__init__(self._batch_points, settings, executor, clock=clock, on_batch=on_batch)
+
+    async def submit(self, local: np.ndarray, want_gradient: bool,
+                     deadline: float | None = None) -> tuple[np.ndarray, np.ndarray | None]:
+        """Queue ``local`` and wait for its answers.
+
+        local : (n, 3) float64, collider frame and units (already validated)
+        want_gradient : whether ``normal`` is needed
+        deadline : clock time (seconds) after which the caller no longer wants the answer
+        Returns ``(distance (n,) float64, normal (n, 3) float64 or None)`` in the collider frame.
+        Raises as :meth:`RowBatcher.submit_rows`.
+        """
+        answer = await self.submit_rows((local, want_gradient), len(local), deadline)
+        return answer["distance"], answer.get("normal")
+
+    def _batch_points(self, parts: Sequence[BatchPart]) -> list[dict[str, np.ndarray]]:
+        if len(parts) == 1:
+            part = parts[0]
+            local = part.payload[0][part.start:part.stop]  # a view, no copy
+        else:
+            local = np.concatenate([p.payload[0][p.start:p.stop] for p in parts])
+        want_gradient = any(p.payload[1] for p in parts)
+        n = len(local)
+        if n == 0:
+            distance, normal = np.empty(0), (np.empty((0, 3)) if want_gradient else None)
+        else:
+            distance, normal = self._compute(local, want_gradient)
+        _check_output(distance, normal, n, want_gradient)
+        answers, offset = [], 0
+        for part in parts:
+            rows = slice(offset, offset + part.rows)
+            answer = {"distance": distance[rows]}
+            if part.payload[1]:
+                answer["normal"] = normal[rows]
+            answers.append(answer)
+            offset += part.rows
+        return answers
+
+
 def _check_output(distance, normal, n: int, want_gradient: bool) -> None:
-    """The batch contract: one distance per point, and a normal per point when asked for."""
+    """The compute contract: one distance per point, and a normal per point when asked for."""
     if not isinstance(distance, np.ndarray) or distance.shape != (n,):
         shape = getattr(distance, "shape", type(distance).__name__)
         raise BatchContractError(f"compute returned distance of shape {shape} for {n} points")

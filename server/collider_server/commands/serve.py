@@ -40,6 +40,11 @@ def register(subparsers) -> None:
                        help="deadline of requests that give none, ms (default none)")
     knobs.add_argument("--compute-threads", type=int, default=None,
                        help="CPU threads per compute call (default 0: all cores but one)")
+    knobs.add_argument("--body-timeout-s", type=float, default=None,
+                       help="longest wait for the next part of a request body; then 408 "
+                            "(default 30)")
+    knobs.add_argument("--graceful-shutdown-s", type=float, default=None,
+                       help="on SIGTERM, longest wait for open requests (default 30)")
     serve.add_argument("--cors-origin", action="append", default=None, dest="cors_origins",
                        help="allow this CORS origin (repeatable; default CORS off)")
     serve.add_argument("--no-warmup", action="store_const", const=False, default=None,
@@ -52,7 +57,7 @@ def register(subparsers) -> None:
 SETTING_FLAGS = ("host", "port", "models", "device", "max_batch_points", "max_wait_ms",
                  "max_queue_points", "coalesce", "max_request_points", "max_body_bytes",
                  "max_scene_colliders", "default_deadline_ms", "compute_threads", "cors_origins", "warmup",
-                 "log_level")
+                 "log_level", "body_timeout_s", "graceful_shutdown_s")
 
 
 def is_loopback(host: str) -> bool:
@@ -79,8 +84,9 @@ def run_serve(args) -> int:
     app = create_app(settings)
     config = uvicorn.Config(app, host=settings.host, port=settings.port,
                             log_level=settings.log_level, access_log=False,
-                            timeout_graceful_shutdown=None)
-    # uvicorn handles SIGINT/SIGTERM: it stops accepting, answers every open request, then runs
+                            timeout_graceful_shutdown=settings.graceful_shutdown_s)
+    # uvicorn handles SIGINT/SIGTERM: it stops accepting, answers the open requests (for at most
+    # graceful_shutdown_s, so a pod's termination grace period can be set above it), then runs
     # the app's shutdown (which drains the batchers) and returns.
     uvicorn.Server(config).run()
     return 0

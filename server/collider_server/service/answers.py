@@ -1,19 +1,147 @@
-"""From validated queries to fields: move points to each collider's frame, queue them on its
-batcher, and assemble each request's answer (plain functions; the routers only translate HTTP)."""
+"""From validated queries to fields: each request becomes a :class:`QueryJob` on its model's
+batcher, and :func:`answer_batch` answers a whole batch of jobs in the compute thread (points
+moved to the collider frame, one compute call, answers assembled in the world frame, vectorised
+across the requests that share a pose, eps and fields). The event loop only validates, queues and
+encodes; the routers only translate HTTP.
+"""
 
 from __future__ import annotations
 
 import asyncio
 import time
+from dataclasses import dataclass
+from typing import Sequence
 
 import numpy as np
 
-from ..batching import BatcherClosed, DeadlineExceeded, QueueFull
-from ..collider import GRADIENT_FIELDS, QueryResult, assemble_result, assemble_scene_result
+from ..batching import BatcherClosed, BatchPart, DeadlineExceeded, QueueFull
+from ..collider import GRADIENT_FIELDS, Collider, QueryResult, assemble_result, assemble_scene_result
 from ..pose import Pose
 from .bodies import QuerySpec, SceneSpec
 from .problems import Problem
 from .registry import LoadedModel
+
+#: Largest float32 magnitude: answers beyond it would be sent as Infinity.
+FLOAT32_MAX = float(np.finfo(np.float32).max)
+
+
+@dataclass(eq=False)
+class QueryJob:
+    """One request's work for a model's batcher.
+
+    points : (n, 3) float32/float64, world frame, validated (finite)
+    pose : collider frame -> world frame
+    eps : collision offset, world units (already resolved)
+    fields : the fields to answer, canonical order
+    local_only : answer ``distance`` and ``normal`` in the collider frame, float64, unassembled
+        (the scene query picks the nearest collider per point before assembling)
+    """
+
+    points: np.ndarray
+    pose: Pose
+    eps: float
+    fields: tuple[str, ...]
+    local_only: bool = False
+
+    @property
+    def want_gradient(self) -> bool:
+        return not GRADIENT_FIELDS.isdisjoint(self.fields)
+
+    def group_key(self) -> tuple:
+        """Jobs with equal keys are assembled together in one vectorised step."""
+        pose = self.pose
+        return (pose.rotation.tobytes(), pose.translation.tobytes(), pose.scale, self.eps,
+                self.fields, self.points.dtype.str, self.local_only)
+
+
+def answer_batch(collider: Collider, name: str,
+                 parts: Sequence[BatchPart]) -> list[dict[str, np.ndarray] | Exception]:
+    """The answers of a batch of :class:`QueryJob` parts (runs in the compute thread).
+
+    Parts are grouped by :meth:`QueryJob.group_key`; each group's points are moved to the
+    collider frame in one step, the whole batch is computed in one ``query_local`` call, and each
+    group is assembled in one step (:func:`assemble_result`), then cut into the parts' rows.
+    A part whose answer is not finite (points astronomically far from the collider) gets a 422
+    problem; the others are answered."""
+    # Points astronomically far away overflow on the way (checked below): no warnings for that.
+    with np.errstate(over="ignore", invalid="ignore"):
+        return _answer_batch(collider, name, parts)
+
+
+def _answer_batch(collider: Collider, name: str, parts: Sequence[BatchPart]) -> list:
+    groups: dict[tuple, list[int]] = {}
+    for i, part in enumerate(parts):
+        groups.setdefault(part.payload.group_key(), []).append(i)
+    # Each group's world points, contiguous; the batch's collider-frame points in group order.
+    world, locals_ = [], []
+    for members in groups.values():
+        job = parts[members[0]].payload
+        points = _rows(parts, members, lambda p: p.payload.points)
+        world.append(points)
+        locals_.append(_to_local(job.pose, points))
+    local = locals_[0] if len(locals_) == 1 else np.concatenate(locals_)
+    want_gradient = any(p.payload.want_gradient for p in parts)
+    distance, normal = collider.query_local(local, want_gradient)
+    answers: list = [None] * len(parts)
+    offset = 0
+    for members, points in zip(groups.values(), world):
+        job = parts[members[0]].payload
+        rows = slice(offset, offset + len(points))
+        offset += len(points)
+        d, n = distance[rows], (None if normal is None else normal[rows])
+        if job.local_only:
+            group = {"distance": d, **({} if n is None else {"normal": n})}
+            bad = None
+        else:
+            result = assemble_result(points, job.pose, job.eps, job.fields, d, n)
+            group = result.fields()
+            bad = _not_finite(group)
+        start = 0
+        for i in members:
+            part = parts[i]
+            cut = slice(start, start + part.rows)
+            start += part.rows
+            if bad is not None and bad[cut].any():
+                answers[i] = _out_of_range(name, part, int(np.flatnonzero(bad[cut])[0]))
+            else:
+                answers[i] = {k: v[cut] for k, v in group.items()}
+    return answers
+
+
+def _rows(parts: Sequence[BatchPart], members: list[int], array) -> np.ndarray:
+    """The members' rows of ``array(part)`` stacked (a view when there is one member)."""
+    if len(members) == 1:
+        part = parts[members[0]]
+        return array(part)[part.start:part.stop]
+    return np.concatenate([array(parts[i])[parts[i].start:parts[i].stop] for i in members])
+
+
+def _to_local(pose: Pose, points: np.ndarray) -> np.ndarray:
+    """World -> collider frame, float64 (the identity only converts)."""
+    if pose.scale == 1.0 and not pose.translation.any() and (pose.rotation == np.eye(3)).all():
+        return points.astype(np.float64, copy=False)
+    return pose.to_local(points)
+
+
+def _not_finite(fields: dict[str, np.ndarray]) -> np.ndarray | None:
+    """Rows with an answer that is not a finite number, or None when all are finite. A float32
+    field overflows beyond ~3.4e38; the service never sends NaN or Infinity."""
+    bad = None
+    for name, values in fields.items():
+        if values.dtype.kind != "f":
+            continue
+        finite = np.isfinite(values) if values.ndim == 1 else np.isfinite(values).all(axis=1)
+        if not finite.all():
+            bad = ~finite if bad is None else bad | ~finite
+    return bad
+
+
+def _out_of_range(name: str, part: BatchPart, row: int) -> Problem:
+    job: QueryJob = part.payload
+    index = part.start + row
+    return Problem(422, "out-of-range",
+                   f"points row {index} ({job.points[index].tolist()}) has no finite answer: it "
+                   f"lies too far from model {name!r} (world frame, with the pose given)")
 
 
 def absolute_deadline(deadline_ms: float | None, default_ms: float | None) -> float | None:
@@ -35,13 +163,11 @@ def resolve_eps(model: LoadedModel, pose: Pose, eps: float | None) -> float:
     return eps
 
 
-async def compute(model: LoadedModel, points: np.ndarray, pose: Pose, want_gradient: bool,
-                  deadline: float | None):
-    """Collider-frame ``(distance, normal)`` of world-frame ``points`` through the batcher,
-    with the batcher's errors as problems (429, 503, 504)."""
-    local = pose.to_local(points)
+async def submit(model: LoadedModel, job: QueryJob, deadline: float | None) -> dict:
+    """``job``'s answer through the model's batcher, with the batcher's errors as problems
+    (429, 503, 504)."""
     try:
-        return await model.batcher.submit(local, want_gradient, deadline)
+        return await model.batcher.submit_rows(job, len(job.points), deadline)
     except QueueFull as exc:
         raise Problem(429, "queue-full", f"model {model.name!r}: {exc}",
                       {"Retry-After": str(exc.retry_after_s)}) from None
@@ -52,13 +178,12 @@ async def compute(model: LoadedModel, points: np.ndarray, pose: Pose, want_gradi
                       {"Retry-After": "1"}) from None
 
 
-async def answer_query(model: LoadedModel, spec: QuerySpec, deadline: float | None) -> QueryResult:
-    """The fields of one model query (world frame, see :class:`QueryResult`); ``deadline`` is a
-    ``time.monotonic`` time or None."""
+async def answer_query(model: LoadedModel, spec: QuerySpec,
+                       deadline: float | None) -> dict[str, np.ndarray]:
+    """The fields of one model query by name (world frame, see :class:`QueryResult`);
+    ``deadline`` is a ``time.monotonic`` time or None."""
     eps = resolve_eps(model, spec.pose, spec.eps)
-    want_gradient = not GRADIENT_FIELDS.isdisjoint(spec.fields)
-    distance, normal = await compute(model, spec.points, spec.pose, want_gradient, deadline)
-    return assemble_result(spec.points, spec.pose, eps, spec.fields, distance, normal)
+    return await submit(model, QueryJob(spec.points, spec.pose, eps, spec.fields), deadline)
 
 
 async def answer_scene(models: list[LoadedModel], spec: SceneSpec,
@@ -68,10 +193,20 @@ async def answer_scene(models: list[LoadedModel], spec: SceneSpec,
     :func:`~collider_server.collider.nearest_collider`, shared with the embedded backend)."""
     poses = [pose for _, pose in spec.colliders]
     eps = [resolve_eps(m, pose, spec.eps) for m, pose in zip(models, poses)]
-    want_gradient = not GRADIENT_FIELDS.isdisjoint(spec.fields)
     answers = await asyncio.gather(*(
-        compute(m, spec.points, pose, want_gradient, deadline) for m, pose in zip(models, poses)))
-    return assemble_scene_result(spec.points, poses, eps, spec.fields, answers)
+        submit(m, QueryJob(spec.points, pose, e, spec.fields, local_only=True), deadline)
+        for m, pose, e in zip(models, poses, eps)))
+    with np.errstate(over="ignore", invalid="ignore"):
+        result, nearest = assemble_scene_result(
+            spec.points, poses, eps, spec.fields,
+            [(a["distance"], a.get("normal")) for a in answers])
+    bad = _not_finite(result.fields())
+    if bad is not None:
+        row = int(np.flatnonzero(bad)[0])
+        raise Problem(422, "out-of-range",
+                      f"points row {row} ({spec.points[row].tolist()}) has no finite answer: it "
+                      "lies too far from the colliders (world frame, with the poses given)")
+    return result, nearest
 
 
 async def _cancel_on_disconnect(receive, task: asyncio.Task, gone: list) -> None:

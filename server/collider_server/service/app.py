@@ -13,7 +13,7 @@ from ..batching import DeviceWorkers
 from ..devices import resolve_device
 from ..repository import ModelRepository
 from .fastpath import QueryFastPath
-from .metrics import RequestCounter, ServiceMetrics
+from .metrics import RequestObserver, ServiceMetrics
 from .problems import install_handlers
 from .registry import ModelRegistry
 from .routers import admin, health, models, scene
@@ -74,5 +74,5 @@ def create_app(settings: ServiceSettings | None = None) -> FastAPI:
         app.add_middleware(CORSMiddleware, allow_origins=settings.cors_origins,
                            allow_methods=["GET", "POST", "PUT", "DELETE"],
                            allow_headers=["Authorization", "Content-Type", "X-Deadline-Ms"])
-    app.add_middleware(RequestCounter, metrics=metrics)
+    app.add_middleware(RequestObserver, metrics=metrics)
     return app

@@ -7,12 +7,13 @@ that is neither msgpack nor JSON, 422 a parsed body whose values are wrong.
 
 from __future__ import annotations
 
+import asyncio
 import math
 from dataclasses import dataclass
 
 import numpy as np
 from collider_client import wire
-from starlette.requests import ClientDisconnect, Request
+from starlette.requests import Request
 from starlette.responses import Response
 
 from ..collider import check_fields, check_points
@@ -47,23 +48,54 @@ def response_media_type(request: Request, request_media: str) -> str:
     return request_media
 
 
-async def read_body(request: Request, max_bytes: int) -> bytes:
-    """The whole body, refusing (413) more than ``max_bytes`` before reading it where possible."""
+async def read_body(request: Request, max_bytes: int, timeout_s: float) -> bytes:
+    """The whole body, refusing (413) more than ``max_bytes`` before reading it where possible,
+    and (408) a body whose next part has not arrived ``timeout_s`` seconds after the previous
+    one (nginx's ``client_body_timeout``): a stalled upload must not hold its connection forever."""
     declared = request.headers.get("content-length")
     if declared is not None and declared.isdigit() and int(declared) > max_bytes:
         raise Problem(413, "body-too-large",
                       f"body of {int(declared)} bytes exceeds max_body_bytes={max_bytes}")
     chunks, size = [], 0
+    receive = request.receive
+    while True:
+        message = await _receive_within(receive, timeout_s, size)
+        if message["type"] == "http.disconnect":  # a killed simulator mid-upload: not a 500
+            raise Problem(499, "client-closed", f"the client disconnected after {size} bytes of "
+                                                "the body")
+        chunk = message.get("body", b"")
+        size += len(chunk)
+        if size > max_bytes:
+            raise Problem(413, "body-too-large", f"body exceeds max_body_bytes={max_bytes}",
+                          {"Connection": "close"})
+        chunks.append(chunk)
+        if not message.get("more_body", False):
+            return chunks[0] if len(chunks) == 1 else b"".join(chunks)
+
+
+async def _receive_within(receive, timeout_s: float, size: int) -> dict:
+    """The next ASGI message, or 408 after ``timeout_s``. A timer that cancels this task (not a
+    ``wait_for`` task per chunk: the hot route reads most bodies in one message)."""
+    task = asyncio.current_task()
+    fired = []
+
+    def expire():
+        fired.append(True)
+        task.cancel()
+
+    timer = asyncio.get_running_loop().call_later(timeout_s, expire)
     try:
-        async for chunk in request.stream():
-            size += len(chunk)
-            if size > max_bytes:
-                raise Problem(413, "body-too-large", f"body exceeds max_body_bytes={max_bytes}")
-            chunks.append(chunk)
-    except ClientDisconnect:  # a killed simulator mid-upload: not a server error, no traceback
-        raise Problem(499, "client-closed", f"the client disconnected after {size} bytes of the "
-                                            "body") from None
-    return b"".join(chunks)
+        return await receive()
+    except asyncio.CancelledError:
+        if not fired:
+            raise
+        if hasattr(task, "uncancel"):  # Python >= 3.11: this cancellation is handled here
+            task.uncancel()
+        raise Problem(408, "body-timeout", f"no part of the body arrived for {timeout_s:g} s "
+                                           f"(after {size} bytes); body_timeout_s={timeout_s:g}",
+                      {"Connection": "close"}) from None
+    finally:
+        timer.cancel()
 
 
 def parse_body(data: bytes, media: str) -> dict:

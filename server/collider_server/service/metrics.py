@@ -1,7 +1,14 @@
-"""Prometheus metrics of one service instance (prometheus-client, a registry per app)."""
+"""Prometheus metrics of one service instance (prometheus-client, a registry per app).
+
+The two an autoscaler and an operator read first: ``collider_queue_points{model}`` (points
+waiting for a batch, read from the batcher when scraped) and ``collider_request_seconds{route}``
+(end-to-end latency of each answered request, from the app receiving it to its last byte sent).
+"""
 
 from __future__ import annotations
 
+import logging
+import time
 from typing import Callable
 
 from prometheus_client import (
@@ -13,9 +20,13 @@ from prometheus_client import (
     generate_latest,
 )
 
-from ..batching import BatchStats
+from ..batching import BatchStats, RowBatcher
+from .problems import Problem
+
+log = logging.getLogger("collider_server.service")
 
 SECONDS_BUCKETS = (0.0001, 0.0005, 0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1, 2, 5)
+REQUEST_BUCKETS = (0.0005, 0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1, 2, 5, 10, 30)
 POINTS_BUCKETS = tuple(float(2 ** k) for k in range(4, 23, 2))
 
 
@@ -42,6 +53,17 @@ class ServiceMetrics:
                                        ["model"], registry=r)
         self.models_loaded = Gauge("collider_models_loaded", "models loaded and serving",
                                    registry=r)
+        self.queue_points = Gauge("collider_queue_points",
+                                  "points waiting in the model's queue for a batch", ["model"],
+                                  registry=r)
+        self.request_seconds = Histogram("collider_request_seconds",
+                                         "end-to-end latency of answered requests, seconds",
+                                         ["route"], buckets=REQUEST_BUCKETS, registry=r)
+
+    def watch_queue(self, model: str, batcher: RowBatcher) -> None:
+        """Report ``batcher``'s waiting points as ``collider_queue_points{model}`` (read at
+        scrape time: no cost per request). A reload points the series at the new batcher."""
+        self.queue_points.labels(model).set_function(lambda: batcher.queued_points)
 
     def batch_observer(self, model: str) -> Callable[[BatchStats], None]:
         """The ``on_batch`` hook of ``model``'s batcher."""
@@ -64,7 +86,7 @@ class ServiceMetrics:
     def forget(self, model: str) -> None:
         """Drop an unloaded model's series."""
         for metric in (self.queue_seconds, self.batch_points, self.compute_seconds, self.points,
-                       self.points_per_second):
+                       self.points_per_second, self.queue_points):
             try:
                 metric.remove(model)
             except KeyError:
@@ -74,8 +96,10 @@ class ServiceMetrics:
         return generate_latest(self.registry), CONTENT_TYPE_LATEST
 
 
-class RequestCounter:
-    """ASGI middleware counting answered HTTP requests by method, route template and status."""
+class RequestObserver:
+    """ASGI middleware around the app: counts answered HTTP requests by method, route template
+    and status, times them (``collider_request_seconds``), and answers an unhandled error with a
+    500 problem (``Connection: close``) instead of a dropped connection."""
 
     def __init__(self, app, metrics: ServiceMetrics):
         self.app = app
@@ -84,7 +108,8 @@ class RequestCounter:
     async def __call__(self, scope, receive, send):
         if scope["type"] != "http":
             return await self.app(scope, receive, send)
-        status = [500]
+        started = time.perf_counter()
+        status = [0]
 
         async def send_and_record(message):
             if message["type"] == "http.response.start":
@@ -93,7 +118,14 @@ class RequestCounter:
 
         try:
             await self.app(scope, receive, send_and_record)
+        except Exception as exc:
+            log.exception("unhandled error on %s %s", scope["method"], scope["path"])
+            if status[0]:  # the answer had begun: all that can be done is to end the connection
+                raise
+            problem = Problem(500, "internal-error", f"{type(exc).__name__}: {exc}",
+                              {"Connection": "close"})
+            await problem.response()(scope, receive, send_and_record)
         finally:
-            route = scope.get("route")
-            template = getattr(route, "path", None) or "unmatched"
-            self.metrics.requests.labels(scope["method"], template, str(status[0])).inc()
+            route = getattr(scope.get("route"), "path", None) or "unmatched"
+            self.metrics.requests.labels(scope["method"], route, str(status[0] or 500)).inc()
+            self.metrics.request_seconds.labels(route).observe(time.perf_counter() - started)

@@ -3,12 +3,13 @@
 from __future__ import annotations
 
 import asyncio
+import functools
 import logging
 from dataclasses import dataclass
 
 import numpy as np
 
-from ..batching import BatchSettings, DeviceWorkers, PointBatcher
+from ..batching import BatchSettings, DeviceWorkers, RowBatcher
 from ..collider import Collider
 from ..repository import ModelRepository, check_name
 from .metrics import ServiceMetrics
@@ -23,7 +24,7 @@ class LoadedModel:
 
     name: str
     collider: Collider
-    batcher: PointBatcher
+    batcher: RowBatcher
     info: dict
 
     @property
@@ -91,9 +92,12 @@ class ModelRegistry:
         collider, size_bytes = await asyncio.to_thread(self._load_and_warm, path)
         # Nothing may fail between creating the batcher (its loop task starts at once) and
         # registering it, or the task would be left running with no one to close it.
-        batcher = PointBatcher(collider.query_local, self.batch,
-                               self.workers.executor(collider.device),
-                               on_batch=self.metrics.batch_observer(name))
+        from .answers import answer_batch  # (answers imports this module)
+
+        batcher = RowBatcher(functools.partial(answer_batch, collider, name), self.batch,
+                             self.workers.executor(collider.device),
+                             on_batch=self.metrics.batch_observer(name))
+        self.metrics.watch_queue(name, batcher)
         model = LoadedModel(name, collider, batcher, public_info(name, collider, size_bytes))
         old = self.models.get(name)
         self.models[name] = model

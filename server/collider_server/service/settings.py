@@ -46,6 +46,11 @@ class ServiceSettings(BaseSettings):
                                                                       "that give none, ms")
     compute_threads: int = Field(0, ge=0, description="CPU threads of one compute call; 0: "
                                                       "auto, all cores but one (the event loop's)")
+    body_timeout_s: float = Field(30.0, gt=0, description="longest wait for the next part of "
+                                                          "a request body, s; then 408")
+    graceful_shutdown_s: float = Field(30.0, gt=0, description="on SIGTERM, longest wait for "
+                                                               "open requests, s; then they are "
+                                                               "cancelled")
     warmup: bool = Field(True, description="run one small query per model before ready")
     log_level: str = Field("info", description=f"one of {', '.join(LOG_LEVELS)}")
 

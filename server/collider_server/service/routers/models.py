@@ -34,11 +34,11 @@ async def query(name: str, request: Request):
     settings = state.settings
     media = request_media_type(request)
     serving_model(state, name)  # 404 / 503 before reading what may be a large body
-    body = parse_body(await read_body(request, settings.max_body_bytes), media)
+    body = parse_body(await read_body(request, settings.max_body_bytes, settings.body_timeout_s), media)
     spec = parse_query(body, request, settings.max_request_points)
     # Look the model up again now: a reload while the body was arriving swapped in a new batcher
     # and closed the old one (queueing on it would answer 503). From here to the queue no await.
     model = serving_model(state, name)
     deadline = absolute_deadline(spec.deadline_ms, settings.default_deadline_ms)
     result = await unless_disconnected(request.receive, answer_query(model, spec, deadline))
-    return encode_response({**result.fields(), "model": name}, response_media_type(request, media))
+    return encode_response({**result, "model": name}, response_media_type(request, media))

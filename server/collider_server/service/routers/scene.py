@@ -20,7 +20,7 @@ async def scene_query(request: Request):
     state = get_state(request)
     settings = state.settings
     media = request_media_type(request)
-    body = parse_body(await read_body(request, settings.max_body_bytes), media)
+    body = parse_body(await read_body(request, settings.max_body_bytes, settings.body_timeout_s), media)
     spec = parse_scene(body, request, settings.max_request_points, settings.max_scene_colliders)
     models = [serving_model(state, name) for name, _ in spec.colliders]
     deadline = absolute_deadline(spec.deadline_ms, settings.default_deadline_ms)

@@ -1,0 +1,230 @@
+"""Regressions from probing the service from outside (issue 10): hostile array shapes, answers that
+would not be finite, booleans among numbers, empty error details, stalled bodies, crashes, and the
+metrics an autoscaler reads. Real servers on loopback; raw sockets where HTTP clients would hide
+what the server did with the connection."""
+
+from __future__ import annotations
+
+import http.client
+import json
+import re
+import socket
+import time
+
+import httpx
+import msgpack
+import numpy as np
+import pytest
+from collider_client import wire
+
+from .conftest import ServerThread
+from .test_operations import background_post, metric
+from .test_queries import decode, post, sample_points
+
+QUERY = "/v1/models/sphere/query"
+
+
+def strict_json(text: str):
+    """JSON as JSON.parse reads it: NaN and Infinity are errors."""
+    def refuse(constant):
+        raise ValueError(f"{constant} is not JSON")
+
+    return json.loads(text, parse_constant=refuse)
+
+
+def array_map(dtype: str, shape: list, data: bytes = b"") -> dict:
+    return {"dtype": dtype, "shape": shape, "data": data}
+
+
+# Shapes whose product overflows int64, or huge dimensions with zero size (issue 10, point 1).
+HOSTILE_SHAPES = {
+    "points-2^62x4-empty": ({"points": array_map("<f4", [2**62, 4])}, "bad-points"),
+    "points-2^63x0": ({"points": array_map("<f4", [2**63, 0])}, "bad-points"),
+    "points-2^31x2^31x0": ({"points": array_map("<f4", [2**31, 2**31, 0])}, "bad-points"),
+    "points-2^62x5-short": ({"points": array_map("<f8", [2**62, 5], b"\0" * 12)}, "bad-points"),
+    "points-2^62x3-short": ({"points": array_map("<f4", [2**62, 3], b"\0" * 12)}, "bad-points"),
+    "pose-2^61x8": ({"points": wire.encode_array(np.zeros((2, 3))),
+                     "pose": array_map("<f8", [2**61, 8])}, "bad-pose"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(HOSTILE_SHAPES))
+def test_hostile_shapes_are_422_and_the_connection_stays_usable(server, engine, case):
+    body, code = HOSTILE_SHAPES[case]
+    connection = http.client.HTTPConnection("127.0.0.1", server.port, timeout=10)
+    try:
+        connection.request("POST", QUERY, msgpack.packb(body, use_bin_type=True),
+                           {"Content-Type": wire.MSGPACK})
+        response = connection.getresponse()
+        problem = strict_json(response.read())
+        assert response.status == 422, problem
+        assert problem["type"] == code
+        assert not re.search(r"-\d", problem["detail"]), problem["detail"]  # no negative sizes
+        # The next request on the same keep-alive connection is answered.
+        points = sample_points(5, 1)
+        connection.request("POST", QUERY, wire.dumps({"points": points}),
+                           {"Content-Type": wire.MSGPACK})
+        again = connection.getresponse()
+        assert again.status == 200
+        got = wire.decode_array(wire.loads(again.read())["distance"], "distance")
+        np.testing.assert_array_equal(got, engine["sphere"].query(points).distance)
+    finally:
+        connection.close()
+
+
+FAR = {
+    "points-1e300-json": (wire.JSON, b'{"points": [[0, 0, 0], [1e300, 0, 0]], "fields": '
+                                     b'["distance", "normal", "contact", "collides"]}'),
+    "points-1e39-json": (wire.JSON, b'{"points": [[1e39, 0, 0]], "fields": ["distance"]}'),
+    "pose-1e300-msgpack": (wire.MSGPACK, wire.dumps({
+        "points": np.zeros((3, 3)), "fields": ["distance", "normal", "contact"],
+        "pose": np.array([[1, 0, 0, 1e300], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1.0]])})),
+}
+
+
+@pytest.mark.parametrize("case", sorted(FAR))
+def test_finite_input_never_gets_a_non_finite_answer(server, case):
+    media, raw = FAR[case]
+    for path in (QUERY, "/v1/scene/query"):
+        if path != QUERY:
+            body = wire.loads(raw, media)
+            pose = body.pop("pose", None)
+            body["colliders"] = [{"model": "sphere", "pose": pose}]
+            raw_body = wire.dumps(body, media)
+        else:
+            raw_body = raw
+        response = httpx.post(server.url + path, content=raw_body,
+                              headers={"content-type": media, "accept": wire.JSON})
+        problem = strict_json(response.text)  # whatever the answer, it is valid JSON
+        assert response.status_code == 422, problem
+        assert problem["type"] in ("out-of-range", "bad-points", "bad-pose"), problem
+        assert "row" in problem["detail"] or "pose" in problem["detail"]
+
+
+def test_a_far_request_in_a_batch_fails_alone(repo, engine):
+    """Coalesced with good requests, a request without a finite answer gets its 422; the others
+    in the same batch get their answers (assembled in the compute thread, batch-wide)."""
+    from collider_server.batching import BatchPart
+    from collider_server.pose import as_pose
+    from collider_server.service.answers import QueryJob, answer_batch
+    from collider_server.service.problems import Problem
+
+    collider = engine["sphere"]
+    fields = ("distance", "normal", "contact", "collides")
+    good = [sample_points(7, 1), sample_points(5, 2).astype(np.float32)]
+    far = np.array([[0.0, 0.0, 0.0], [0.0, 1e300, 0.0]])
+    shifted = np.eye(4)
+    shifted[:3, 3] = [0.05, 0.0, 0.0]
+    jobs = [QueryJob(good[0], as_pose(None), 0.001, fields),
+            QueryJob(far, as_pose(None), 0.001, fields),
+            QueryJob(good[1], as_pose(None), 0.001, fields),
+            QueryJob(good[0], as_pose(shifted), 0.002, ("distance", "contact"))]
+    answers = answer_batch(collider, "sphere", [BatchPart(j, 0, len(j.points)) for j in jobs])
+    assert isinstance(answers[1], Problem) and answers[1].status == 422
+    assert "row 1" in answers[1].detail
+    for job, answer in zip([jobs[0], jobs[2], jobs[3]], [answers[0], answers[2], answers[3]]):
+        want = collider.query(job.points, job.fields, job.pose, job.eps)
+        assert set(answer) == set(job.fields)
+        for name in job.fields:
+            np.testing.assert_array_equal(answer[name], getattr(want, name))
+            assert answer[name].dtype == getattr(want, name).dtype
+
+
+def test_malformed_bodies_name_what_is_wrong(server):
+    for raw in (b"\xc1", b"", b"\x92\x01", b"\x81\xa1a"):
+        response = httpx.post(server.url + QUERY, content=raw,
+                              headers={"content-type": wire.MSGPACK})
+        assert response.status_code == 400
+        detail = response.json()["detail"]
+        reason = detail.split("body:", 1)[1].strip()
+        assert len(reason) > 3, detail
+
+
+def test_a_boolean_among_json_numbers_is_refused(server):
+    for points in ("[[0, true, 0]]", "[[0.5, 0, false]]", "[[true, true, true]]"):
+        response = httpx.post(server.url + QUERY, content=f'{{"points": {points}}}',
+                              headers={"content-type": wire.JSON})
+        assert response.status_code == 422, points
+        assert response.json()["type"] == "bad-points"
+
+
+@pytest.fixture(scope="module")
+def timeout_server(repo):
+    with ServerThread(models=repo, device="cpu", body_timeout_s=0.3) as server:
+        yield server
+
+
+def test_stalled_body_gets_408_and_the_connection_closes(timeout_server):
+    with socket.create_connection(("127.0.0.1", timeout_server.port), timeout=10) as sock:
+        sock.sendall(f"POST {QUERY} HTTP/1.1\r\nHost: x\r\nContent-Type: {wire.JSON}\r\n"
+                     "Content-Length: 100\r\n\r\n{\"points\":".encode())
+        answer = b""
+        while chunk := sock.recv(65536):  # ends when the server closes the connection
+            answer += chunk
+    head, _, payload = answer.partition(b"\r\n\r\n")
+    assert head.startswith(b"HTTP/1.1 408"), answer[:300]
+    assert b"connection: close" in head.lower()
+    problem = strict_json(payload)
+    assert problem["type"] == "body-timeout" and "body_timeout_s=0.3" in problem["detail"]
+    assert metric(timeout_server.url, 'collider_requests_total{method="POST",'
+                  'route="/v1/models/{name}/query",status="408"}') >= 1
+    # A body that arrives in slow parts, each within the timeout, is read whole.
+    points = sample_points(20, 3)
+    body = wire.dumps({"points": points})
+    with socket.create_connection(("127.0.0.1", timeout_server.port), timeout=10) as sock:
+        sock.sendall(f"POST {QUERY} HTTP/1.1\r\nHost: x\r\nContent-Type: {wire.MSGPACK}\r\n"
+                     f"Content-Length: {len(body)}\r\nConnection: close\r\n\r\n".encode())
+        for i in range(0, len(body), 200):
+            sock.sendall(body[i:i + 200])
+            time.sleep(0.05)
+        answer = b""
+        while chunk := sock.recv(65536):
+            answer += chunk
+    assert answer.startswith(b"HTTP/1.1 200"), answer[:300]
+
+
+def test_an_unhandled_error_is_a_500_problem_that_closes_the_connection(repo):
+    server = ServerThread(models=repo, device="cpu")
+
+    async def boom():
+        raise RuntimeError("deliberate")
+
+    server.app.add_api_route("/boom", boom)
+    with server:
+        connection = http.client.HTTPConnection("127.0.0.1", server.port, timeout=10)
+        connection.request("GET", "/boom")
+        response = connection.getresponse()
+        problem = strict_json(response.read())
+        assert response.status == 500 and problem["type"] == "internal-error"
+        assert "deliberate" in problem["detail"]
+        assert response.getheader("connection") == "close"
+        connection.close()
+        assert metric(server.url, 'collider_requests_total{method="GET",route="/boom",'
+                      'status="500"}') == 1
+
+
+@pytest.fixture(scope="module")
+def waiting_server(repo):
+    """Batches wait 10 s for more points: what is queued stays queued, deterministically."""
+    with ServerThread(models=repo, device="cpu", max_wait_ms=10_000) as server:
+        yield server
+
+
+def test_metrics_show_the_queue_depth_and_request_latency(waiting_server, engine):
+    url = waiting_server.url
+    assert metric(url, 'collider_queue_points{model="sphere"}') == 0
+    waiting = background_post(f"{url}{QUERY}", {"points": sample_points(321, 4),
+                                                 "deadline_ms": 20_000})
+    end = time.monotonic() + 10
+    while metric(url, 'collider_queue_points{model="sphere"}') != 321:
+        assert time.monotonic() < end, "the queued points never showed"
+    assert metric(url, 'collider_queue_points{model="small"}') == 0
+    # A request that fills a batch (65,536 points) sends the queue off at once.
+    points = sample_points(65_536 - 321, 5)
+    got = decode(post(f"{url}{QUERY}", {"points": points}))
+    np.testing.assert_array_equal(got["distance"], engine["sphere"].query(points).distance)
+    assert waiting.result(10).status_code == 200
+    assert metric(url, 'collider_queue_points{model="sphere"}') == 0
+    count = metric(url, 'collider_request_seconds_count{route="/v1/models/{name}/query"}')
+    total = metric(url, 'collider_request_seconds_sum{route="/v1/models/{name}/query"}')
+    assert count == 2 and total > 0
