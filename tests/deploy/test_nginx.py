@@ -137,3 +137,28 @@ def test_killing_a_replica_loses_no_query(repo, tmp_path):
     assert resent and all(t == [victim.address, replicas[1].address] for t in resent)
     # ... and the survivor now serves every model, the dead replica's included.
     assert set(survivor) == set(MODELS)
+
+
+def test_routing_benchmark_runs_both_policies(repo, tmp_path):
+    """benchmarks/routing.py end to end, briefly: both policies answered every query, and by model
+    each model's batches were all on one replica."""
+    import json
+    import subprocess
+    import sys
+
+    from .conftest import REPO
+
+    output = tmp_path / "routing.json"
+    result = subprocess.run(
+        [sys.executable, str(REPO / "benchmarks" / "routing.py"), "--collider",
+         str(repo / "m00.safetensors"), "--models", "2", "--simulators", "2", "--cloth", "8",
+         "--duration", "1", "--output", str(output)],
+        capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stdout + result.stderr
+    report = json.loads(output.read_text())
+    policies = {r["policy"]: r for r in report["results"]}
+    assert set(policies) == {"round-robin", "by-model"}
+    for r in policies.values():
+        assert r["queries"] > 0 and set(r["status"]) == {"200"} and r["mean_batch_points"] >= 64
+    assert all(len(replicas) == 1 for replicas in policies["by-model"]["replicas_of_model"].values())
+    assert "| by-model |" in result.stdout
