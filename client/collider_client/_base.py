@@ -124,8 +124,10 @@ def as_scene(colliders: Sequence) -> list[SceneCollider]:
 
 
 def query_body(points: np.ndarray, fields: list[str], pose, eps: float | None,
-               deadline_ms: float | None) -> dict[str, Any]:
+               deadline_ms: float | None, only_colliding: bool = False) -> dict[str, Any]:
     body: dict[str, Any] = {"points": points, "fields": fields}
+    if only_colliding:  # sent only when set: a body without it is what older servers know
+        body["only_colliding"] = True
     if pose is not None:
         body["pose"] = np.asarray(pose, dtype=np.float64)
     if eps is not None:
@@ -136,8 +138,9 @@ def query_body(points: np.ndarray, fields: list[str], pose, eps: float | None,
 
 
 def scene_body(points: np.ndarray, colliders: list[SceneCollider], fields: list[str],
-               eps: float | None, deadline_ms: float | None) -> dict[str, Any]:
-    body = query_body(points, fields, None, eps, deadline_ms)
+               eps: float | None, deadline_ms: float | None,
+               only_colliding: bool = False) -> dict[str, Any]:
+    body = query_body(points, fields, None, eps, deadline_ms, only_colliding)
     # A pose nested in a list travels as nested lists: wire.dumps only encodes top-level arrays.
     body["colliders"] = [
         {"model": c.model} if c.pose is None

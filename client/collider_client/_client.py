@@ -124,38 +124,43 @@ class Client:
 
     def query(self, model: str, points, fields: Iterable[str] | UseClientDefault = USE_CLIENT_DEFAULT,
               pose=None, eps: float | None | UseClientDefault = USE_CLIENT_DEFAULT,
-              deadline_ms: float | None = None) -> QueryResult:
+              deadline_ms: float | None = None, only_colliding: bool = False) -> QueryResult:
         """The ``fields`` of one collider at ``points``.
 
         points : (n, 3) float32/float64, world frame, metres
         pose : (4, 4) collider frame -> world frame, None = identity
         eps : collision offset, world units; ``None`` = 1 mm; not given = the client's default
         deadline_ms : how long the server may take (remote only; it answers 504 after that)
+        only_colliding : compute ``normal`` and ``contact`` only for points with
+            ``distance < eps`` (cheaper); the others get ``normal`` [0, 0, 0] and ``contact``
+            equal to the point (``collides`` tells them apart)
         """
         fields, eps = self._settings.resolve(fields, eps)
         points = as_points(points)
         if self._embedded is not None:
-            return self._embedded.query(model, points, fields, pose, eps)
+            return self._embedded.query(model, points, fields, pose, eps, only_colliding)
         body = self._post(f"/v1/models/{model}/query",
-                          query_body(points, fields, pose, eps, deadline_ms))
+                          query_body(points, fields, pose, eps, deadline_ms, only_colliding))
         return decode_query(body, fields, scene=False)
 
     def scene_query(self, colliders: Sequence, points,
                     fields: Iterable[str] | UseClientDefault = USE_CLIENT_DEFAULT,
                     eps: float | None | UseClientDefault = USE_CLIENT_DEFAULT,
-                    deadline_ms: float | None = None) -> QueryResult:
+                    deadline_ms: float | None = None, only_colliding: bool = False) -> QueryResult:
         """Per point, the ``fields`` of the nearest of several colliders (smallest signed
         distance) and ``collider``, its index in ``colliders``.
 
         colliders : model names, ``(model, pose)`` pairs, ``{"model", "pose"}`` dicts or
             :class:`SceneCollider`; poses are 4x4 collider -> world
+        only_colliding : as in :meth:`query`
         """
         fields, eps = self._settings.resolve(fields, eps)
         scene = as_scene(colliders)
         points = as_points(points)
         if self._embedded is not None:
-            return self._embedded.scene_query(scene, points, fields, eps)
-        body = self._post("/v1/scene/query", scene_body(points, scene, fields, eps, deadline_ms))
+            return self._embedded.scene_query(scene, points, fields, eps, only_colliding)
+        body = self._post("/v1/scene/query",
+                          scene_body(points, scene, fields, eps, deadline_ms, only_colliding))
         return decode_query(body, fields, scene=True)
 
     def list_models(self) -> list[ModelInfo]:
@@ -243,28 +248,31 @@ class AsyncClient:
     async def query(self, model: str, points,
                     fields: Iterable[str] | UseClientDefault = USE_CLIENT_DEFAULT, pose=None,
                     eps: float | None | UseClientDefault = USE_CLIENT_DEFAULT,
-                    deadline_ms: float | None = None) -> QueryResult:
+                    deadline_ms: float | None = None, only_colliding: bool = False) -> QueryResult:
         """See :meth:`Client.query`."""
         fields, eps = self._settings.resolve(fields, eps)
         points = as_points(points)
         if self._embedded is not None:
-            return await asyncio.to_thread(self._embedded.query, model, points, fields, pose, eps)
+            return await asyncio.to_thread(self._embedded.query, model, points, fields, pose, eps,
+                                           only_colliding)
         body = await self._post(f"/v1/models/{model}/query",
-                                query_body(points, fields, pose, eps, deadline_ms))
+                                query_body(points, fields, pose, eps, deadline_ms, only_colliding))
         return decode_query(body, fields, scene=False)
 
     async def scene_query(self, colliders: Sequence, points,
                           fields: Iterable[str] | UseClientDefault = USE_CLIENT_DEFAULT,
                           eps: float | None | UseClientDefault = USE_CLIENT_DEFAULT,
-                          deadline_ms: float | None = None) -> QueryResult:
+                          deadline_ms: float | None = None,
+                          only_colliding: bool = False) -> QueryResult:
         """See :meth:`Client.scene_query`."""
         fields, eps = self._settings.resolve(fields, eps)
         scene = as_scene(colliders)
         points = as_points(points)
         if self._embedded is not None:
-            return await asyncio.to_thread(self._embedded.scene_query, scene, points, fields, eps)
+            return await asyncio.to_thread(self._embedded.scene_query, scene, points, fields, eps,
+                                           only_colliding)
         body = await self._post("/v1/scene/query",
-                                scene_body(points, scene, fields, eps, deadline_ms))
+                                scene_body(points, scene, fields, eps, deadline_ms, only_colliding))
         return decode_query(body, fields, scene=True)
 
     async def list_models(self) -> list[ModelInfo]:

@@ -60,18 +60,18 @@ class EmbeddedBackend:
             return self._colliders[name]
 
     def query(self, model: str, points: np.ndarray, fields: list[str], pose,
-              eps: float | None) -> QueryResult:
+              eps: float | None, only_colliding: bool = False) -> QueryResult:
         collider = self.collider(model)
         try:
-            result = collider.query(points, fields, pose=pose, eps=eps)
+            result = collider.query(points, fields, pose=pose, eps=eps, only_colliding=only_colliding)
         except ValueError as exc:  # PoseError is a ValueError too
             raise InvalidValueError(str(exc)) from None
         return QueryResult(**result.fields(), model=model)
 
     def scene_query(self, colliders: list[SceneCollider], points: np.ndarray, fields: list[str],
-                    eps: float | None) -> QueryResult:
+                    eps: float | None, only_colliding: bool = False) -> QueryResult:
         from collider_server.collider import (assemble_scene_result, check_eps, check_fields,
-                                              check_points)
+                                              check_points, gradient_threshold)
         from collider_server.pose import as_pose
 
         try:
@@ -85,10 +85,12 @@ class EmbeddedBackend:
         eps_list = [engine.info.default_world_eps(pose) if e is None else e
                     for engine, pose, e in zip(engines, poses, eps_list)]
         want_gradient = not GRADIENT_FIELDS.isdisjoint(fields_t)
-        answers = [engine.query_local(pose.to_local(points), want_gradient)
-                   for engine, pose in zip(engines, poses)]
+        answers = [engine.query_local(pose.to_local(points), want_gradient,
+                                      gradient_threshold(e, pose) if only_colliding else None)
+                   for engine, pose, e in zip(engines, poses, eps_list)]
         # The engine's scene rule, the one the service uses: identical answers, ties included.
-        result, nearest = assemble_scene_result(points, poses, eps_list, fields_t, answers)
+        result, nearest = assemble_scene_result(points, poses, eps_list, fields_t, answers,
+                                                only_colliding)
         return QueryResult(**result.fields(), collider=nearest)
 
     def list_models(self) -> list[ModelInfo]:

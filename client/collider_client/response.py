@@ -153,6 +153,9 @@ class CollisionHook:
     restitution : 0..1, used with friction
     cull : send only the points inside a collider's inflated box (True); False sends every point
         (for benchmarks that show what culling saves)
+    only_colliding : ask for ``contact`` and ``normal`` of the colliding points only (the
+        service then does the gradient work for those alone; the response never uses the
+        others'). False asks for them at every point sent (for benchmarks that show the saving)
 
     Call :meth:`apply` after each integration step (or substep). Only points inside a collider's
     inflated world box are sent, and only the fields the response needs are asked for.
@@ -160,7 +163,8 @@ class CollisionHook:
 
     def __init__(self, client, colliders: Sequence[ColliderPlacement], eps: float = 1e-3,
                  friction: float | None = None, restitution: float = 0.0,
-                 infos: dict[str, ModelInfo] | None = None, cull: bool = True):
+                 infos: dict[str, ModelInfo] | None = None, cull: bool = True,
+                 only_colliding: bool = True):
         if not eps > 0:
             raise ValueError(f"eps must be > 0, got {eps}")
         if not colliders:
@@ -171,15 +175,17 @@ class CollisionHook:
         self.friction = friction
         self.restitution = float(restitution)
         self.cull = cull
+        self.only_colliding = bool(only_colliding)
         if infos is None:
             infos = {m.name: m for m in client.list_models()}
         missing = sorted({c.model for c in self.colliders} - set(infos))
         if missing:
             raise ValueError(f"unknown model(s) {missing}; available: {sorted(infos)}")
         self.infos = infos
-        # distance decides who collides and gives the penetration; contact moves them out;
-        # normal only when velocities are corrected along it.
-        self.fields = ["distance", "contact"] + (["normal"] if friction is not None else [])
+        # distance gives the penetration; contact moves them out; normal only when velocities are
+        # corrected along it; collides (one byte a point) decides who collides, exactly as the
+        # service decided whose contact and normal to compute.
+        self.fields = ["distance", "contact", "collides"] + (["normal"] if friction is not None else [])
         self.stats = HookStats(fields=list(self.fields))
 
     def apply(self, positions: np.ndarray, velocities: np.ndarray, t: float, dt: float
@@ -211,18 +217,18 @@ class CollisionHook:
         q0 = time.perf_counter()
         if len(self.colliders) == 1:
             result = self.client.query(self.colliders[0].model, points, fields=self.fields,
-                                       pose=poses[0], eps=self.eps)
+                                       pose=poses[0], eps=self.eps, only_colliding=self.only_colliding)
             which = None
         else:
             result = self.client.scene_query(
                 [(c.model, p) for c, p in zip(self.colliders, poses)], points,
-                fields=self.fields, eps=self.eps)
+                fields=self.fields, eps=self.eps, only_colliding=self.only_colliding)
             which = np.asarray(result.collider)
         q1 = time.perf_counter()
         self.stats.query_s += q1 - q0
         self.stats.queries += 1
         self.stats.points_sent += len(index)
-        hit = np.asarray(result.distance) < self.eps
+        hit = np.asarray(result.collides, dtype=bool)
         local_index = np.flatnonzero(hit)
         mask[index[local_index]] = True
         positions = np.array(positions, copy=True)

@@ -13,6 +13,10 @@ Query request (``POST /v1/models/{name}/query``):
     pose : optional array (4, 4), collider frame -> world frame
     eps : optional number, collision offset in world units (default 1 mm)
     deadline_ms : optional number, the time the caller will wait
+    only_colliding : optional boolean (default false): compute ``normal`` and ``contact`` only for
+        the points with ``distance < eps``; for the others ``normal`` is [0, 0, 0] and ``contact``
+        is the point itself (``collides`` tells them apart). The scene query
+        (``POST /v1/scene/query``: ``colliders`` instead of ``pose``) takes it too.
 
 Query response: one entry per field asked for, in the request's encoding:
     distance (n,) float32, normal (n, 3) float32, contact (n, 3) dtype of points, collides (n,) bool.

@@ -12,6 +12,12 @@ Subclasses only evaluate the SDF (and its gradient when asked) on collider-frame
 their domain; this module does validation, pose handling, chunking, the out-of-domain rule and the
 assembly of the fields. Only the fields asked for are computed: no gradient work is done for
 ``distance`` or ``collides`` alone.
+
+Collide-only mode (``only_colliding=True``): ``normal`` and ``contact`` are computed only for the
+points that collide (``distance < eps``); the gradient is evaluated in a second pass over just
+those points, after a distance-only pass over all of them. For the other points ``normal`` is
+``[0, 0, 0]`` and ``contact`` is the point itself; ``collides`` tells the two apart. A cloth
+simulator that only moves colliding points needs nothing more.
 """
 
 from __future__ import annotations
@@ -212,6 +218,7 @@ class Collider(abc.ABC):
         fields: Iterable[str] | str = ("distance",),
         pose: "Pose | np.ndarray | None" = None,
         eps: float | None = None,
+        only_colliding: bool = False,
     ) -> QueryResult:
         """Answer ``fields`` for world-frame ``points``.
 
@@ -221,6 +228,8 @@ class Collider(abc.ABC):
             ``None`` is the identity
         eps : collision offset, world units; ``None``: 1 mm in the collider's units times the
             pose's scale (:meth:`ColliderInfo.default_world_eps`)
+        only_colliding : compute ``normal`` and ``contact`` only where ``distance < eps``; the
+            other points get ``normal`` [0, 0, 0] and ``contact`` equal to the point
         Returns a :class:`QueryResult` holding exactly the fields asked for, world frame.
         """
         fields = check_fields(fields)
@@ -228,13 +237,18 @@ class Collider(abc.ABC):
         pose = as_pose(pose)
         eps = self.info.default_world_eps(pose) if eps is None else check_eps(eps)
         want_gradient = not GRADIENT_FIELDS.isdisjoint(fields)
-        distance, normal = self.query_local(pose.to_local(points), want_gradient)
-        return assemble_result(points, pose, eps, fields, distance, normal)
+        below = gradient_threshold(eps, pose) if only_colliding and want_gradient else None
+        distance, normal = self.query_local(pose.to_local(points), want_gradient, below)
+        return assemble_result(points, pose, eps, fields, distance, normal, only_colliding)
 
-    def query_local(self, local: np.ndarray, want_gradient: bool):
+    def query_local(self, local: np.ndarray, want_gradient: bool, gradient_below=None):
         """Distance and unit normal at collider-frame points, in chunks (bounded memory).
 
         local : (n, 3) float64, collider frame and units
+        gradient_below : None (a normal for every point when ``want_gradient``), or a number or
+            an (n,) float64 array, collider units: a normal only where ``distance`` is below it
+            (:func:`gradient_threshold`); the other rows of ``normal`` are zero. An array lets a
+            batch join requests with different eps and poses (+inf: every point; -inf: none).
         Returns ``(distance (n,) float64, normal (n, 3) float64 unit or None)``, collider frame.
         This is the step a batching server coalesces across requests; :func:`assemble_result`
         then turns it into one request's fields.
@@ -242,12 +256,25 @@ class Collider(abc.ABC):
         n = len(local)
         distance = np.empty(n, dtype=np.float64)
         normal = np.empty((n, 3), dtype=np.float64) if want_gradient else None
+        if want_gradient and gradient_below is not None:
+            gradient_below = np.broadcast_to(np.asarray(gradient_below, dtype=np.float64), (n,))
         for start in range(0, n, self.chunk_points):
             stop = min(start + self.chunk_points, n)
-            d, g = self._evaluate_anywhere(local[start:stop], want_gradient)
+            chunk = local[start:stop]
+            if not want_gradient or gradient_below is None:
+                d, g = self._evaluate_anywhere(chunk, want_gradient)
+                distance[start:stop] = d
+                if want_gradient:
+                    normal[start:stop] = self._unit_normals(g, chunk)
+                continue
+            # Collide-only: distances of all, then the gradient pass over those below the bar.
+            d, _ = self._evaluate_anywhere(chunk, False)
             distance[start:stop] = d
-            if want_gradient:
-                normal[start:stop] = self._unit_normals(g, local[start:stop])
+            normal[start:stop] = 0.0
+            rows = np.flatnonzero(d < gradient_below[start:stop])
+            if len(rows):
+                _, g = self._evaluate_anywhere(chunk[rows], True)
+                normal[start + rows] = self._unit_normals(g, chunk[rows])
         return distance, normal
 
     def _evaluate_anywhere(self, local: np.ndarray, want_gradient: bool):
@@ -287,24 +314,41 @@ class Collider(abc.ABC):
         return f"<{type(self).__name__} {self.info.name!r} on {self.device}>"
 
 
+def gradient_threshold(eps: float, pose: Pose) -> float:
+    """The collider-unit distance below which a collide-only query needs the gradient: ``eps``
+    (world units) over the pose's scale, raised by a relative 1e-9 so that no point with
+    ``distance * scale < eps`` is missed by rounding (one a hair above gets a normal it does not
+    use; :func:`assemble_result` zeroes it)."""
+    local = eps / pose.scale
+    return local + 1e-9 * max(abs(local), 1e-30)
+
+
 def assemble_result(points: np.ndarray, pose: Pose, eps: float, fields: tuple[str, ...],
-                    distance: np.ndarray, normal: np.ndarray | None) -> QueryResult:
+                    distance: np.ndarray, normal: np.ndarray | None,
+                    only_colliding: bool = False) -> QueryResult:
     """One request's fields from collider-frame ``distance`` and ``normal`` (see
     :meth:`Collider.query_local`): distances scaled to world units, normals rotated into the
-    world frame, contacts ``p + (eps - d) * n`` computed in float64 in the world frame."""
+    world frame, contacts ``p + (eps - d) * n`` computed in float64 in the world frame.
+    With ``only_colliding``, points with ``distance >= eps`` get ``normal`` [0, 0, 0] and
+    ``contact`` equal to the point (whatever ``normal`` holds for them)."""
     distance = distance * pose.scale
+    collides = distance < eps
     result = QueryResult()
     if "distance" in fields:
         result.distance = distance.astype(np.float32)
     if normal is not None:
         normal = pose.to_world_directions(normal)
+        if only_colliding:
+            normal = np.where(collides[:, None], normal, 0.0)
     if "normal" in fields:
         result.normal = normal.astype(np.float32)
     if "contact" in fields:
-        contact = points.astype(np.float64) + (eps - distance)[:, None] * normal
+        # A zero normal leaves the point where it is, the documented contact of a free point.
+        push = np.where(collides, eps - distance, 0.0) if only_colliding else eps - distance
+        contact = points.astype(np.float64) + push[:, None] * normal
         result.contact = contact.astype(points.dtype)
     if "collides" in fields:
-        result.collides = distance < eps
+        result.collides = collides
     return result
 
 
@@ -323,7 +367,8 @@ def nearest_collider(world_distance: np.ndarray) -> np.ndarray:
 
 
 def assemble_scene_result(points: np.ndarray, poses: list[Pose], eps: list[float],
-                          fields: tuple[str, ...], answers: list) -> tuple[QueryResult, np.ndarray]:
+                          fields: tuple[str, ...], answers: list,
+                          only_colliding: bool = False) -> tuple[QueryResult, np.ndarray]:
     """A scene query's fields: per point, those of the nearest collider (:func:`nearest_collider`).
 
     points : (n, 3) world frame; poses, eps : per collider (eps in world units)
@@ -331,6 +376,8 @@ def assemble_scene_result(points: np.ndarray, poses: list[Pose], eps: list[float
         :meth:`Collider.query_local`
     Returns ``(result, nearest)``: world-frame fields (as :func:`assemble_result` gives for one
     collider) and the (n,) int32 index of the collider each point's fields come from.
+    only_colliding : as in :func:`assemble_result` (a point collides when it does with its
+        nearest collider, whose answer then holds its normal)
     """
     n = len(points)
     world = np.stack([d * pose.scale for (d, _), pose in zip(answers, poses)]) if answers \
@@ -344,7 +391,7 @@ def assemble_scene_result(points: np.ndarray, poses: list[Pose], eps: list[float
         if not len(rows):
             continue
         part = assemble_result(points[rows], pose, eps[i], fields, distance[rows],
-                               None if normal is None else normal[rows])
+                               None if normal is None else normal[rows], only_colliding)
         for name, values in part.fields().items():
             out[name][rows] = values
     return QueryResult(**out), nearest

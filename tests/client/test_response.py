@@ -145,7 +145,8 @@ def test_hook_against_embedded_sphere(models_dir):
     velocities = np.tile([0.0, 0.0, -1.0], (len(points), 1))
     with cc.Client(models=models_dir, device="cpu") as client:
         sticky = CollisionHook(client, [ColliderPlacement("sphere")], eps=1e-3)
-        assert sticky.fields == ["distance", "contact"]  # no normals without friction
+        assert sticky.fields == ["distance", "contact", "collides"]  # no normals without friction
+        assert sticky.only_colliding
         pos, vel, mask = sticky.apply(points, velocities, t=0.0, dt=1e-3)
         assert sticky.stats.points_sent == 300 and sticky.stats.points_total == 400
         assert mask[:300].all() and not mask[300:].any()
@@ -154,7 +155,7 @@ def test_hook_against_embedded_sphere(models_dir):
         np.testing.assert_array_equal(vel[:300], 0.0)  # static collider, sticky: stopped
         np.testing.assert_array_equal(pos[300:], points[300:])
         slide = CollisionHook(client, [ColliderPlacement("sphere")], eps=1e-3, friction=0.0)
-        assert slide.fields == ["distance", "contact", "normal"]
+        assert slide.fields == ["distance", "contact", "collides", "normal"]
         _, vel, _ = slide.apply(points, velocities, t=0.0, dt=1e-3)
         normals = near / 0.098
         inward = np.einsum("ij,ij->i", vel[:300], normals)

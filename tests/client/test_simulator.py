@@ -56,11 +56,12 @@ class CountingClient(cc.Client):
 
     def __init__(self, *args, **kwargs):
         super().__init__(*args, **kwargs)
-        self.calls, self.fields = 0, set()
+        self.calls, self.fields, self.only_colliding = 0, set(), set()
 
     def query(self, model, points, fields=cc.USE_CLIENT_DEFAULT, **kwargs):
         self.calls += 1
         self.fields |= set(fields)
+        self.only_colliding.add(kwargs.get("only_colliding", False))
         return super().query(model, points, fields=fields, **kwargs)
 
 
@@ -84,7 +85,8 @@ def test_drop_on_sphere_stays_outside(tmp_path, models_dir):
     assert report.colliding_max > 20            # the cloth reached the sphere
     assert sphere_depth(frames) < 1e-3          # and never went 1 mm inside it
     assert frames[-1][1][:, 2].min() < 0.09     # its edges fell past the top, draping
-    assert client.fields == {"distance", "contact"}  # no friction: no normals asked for
+    assert client.fields == {"distance", "contact", "collides"}  # no friction: no normals asked for
+    assert client.only_colliding == {True}  # contacts of the colliding points only
     assert client.calls == report.queries > 0
     # The same check through the exact mesh SDF that `--check-mesh` uses.
     import trimesh
@@ -141,7 +143,8 @@ def test_friction_asks_for_normals(tmp_path, models_dir):
     with CountingClient(models=models_dir, device="cpu") as client:
         report, frames = run_scene(scene, client, tmp_path / "out", show_progress=False,
                                    steps=300, preview=False)
-    assert client.fields == {"distance", "contact", "normal"}
+    assert client.fields == {"distance", "contact", "collides", "normal"}
+    assert client.only_colliding == {True}
     assert "friction" in report.effects
     assert sphere_depth(frames) < 1e-3
 

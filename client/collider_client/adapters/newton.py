@@ -11,6 +11,8 @@ cloth as usual; call :meth:`NewtonCollider.apply` on the state after each subste
         adapter.apply(state_0, t, dt)        # numpy round trip: positions, velocities
         t += dt
 
+The hook asks for contacts and normals of the colliding particles only (``only_colliding``, its
+default): the service skips the gradient work for the others.
 Particles with zero mass (Newton's fixed/kinematic particles) are never moved. Newton's frame is
 taken as the world frame of the poses (metres, z up by default).
 """

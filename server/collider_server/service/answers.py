@@ -15,7 +15,8 @@ from typing import Sequence
 import numpy as np
 
 from ..batching import BatcherClosed, BatchPart, DeadlineExceeded, QueueFull
-from ..collider import GRADIENT_FIELDS, Collider, QueryResult, assemble_result, assemble_scene_result
+from ..collider import (GRADIENT_FIELDS, Collider, QueryResult, assemble_result, assemble_scene_result,
+                        gradient_threshold)
 from ..pose import Pose
 from .bodies import QuerySpec, SceneSpec
 from .problems import Problem
@@ -35,6 +36,7 @@ class QueryJob:
     fields : the fields to answer, canonical order
     local_only : answer ``distance`` and ``normal`` in the collider frame, float64, unassembled
         (the scene query picks the nearest collider per point before assembling)
+    only_colliding : ``normal`` and ``contact`` only where ``distance < eps`` (collide-only)
     """
 
     points: np.ndarray
@@ -42,16 +44,23 @@ class QueryJob:
     eps: float
     fields: tuple[str, ...]
     local_only: bool = False
+    only_colliding: bool = False
 
     @property
     def want_gradient(self) -> bool:
         return not GRADIENT_FIELDS.isdisjoint(self.fields)
 
+    def gradient_below(self) -> float:
+        """Collider-unit distance below which this job's points need a normal (+inf: all)."""
+        if not self.want_gradient:
+            return -np.inf
+        return gradient_threshold(self.eps, self.pose) if self.only_colliding else np.inf
+
     def group_key(self) -> tuple:
         """Jobs with equal keys are assembled together in one vectorised step."""
         pose = self.pose
         return (pose.rotation.tobytes(), pose.translation.tobytes(), pose.scale, self.eps,
-                self.fields, self.points.dtype.str, self.local_only)
+                self.fields, self.points.dtype.str, self.local_only, self.only_colliding)
 
 
 def answer_batch(collider: Collider, name: str,
@@ -81,7 +90,13 @@ def _answer_batch(collider: Collider, name: str, parts: Sequence[BatchPart]) -> 
         locals_.append(_to_local(job.pose, points))
     local = locals_[0] if len(locals_) == 1 else np.concatenate(locals_)
     want_gradient = any(p.payload.want_gradient for p in parts)
-    distance, normal = collider.query_local(local, want_gradient)
+    below = None
+    if want_gradient and any(p.payload.only_colliding for p in parts):
+        # Collide-only jobs: a normal only for their colliding points; the batch's other jobs
+        # keep theirs (+inf: every point, -inf: none), one threshold per point in group order.
+        below = np.concatenate([np.full(len(points), parts[members[0]].payload.gradient_below())
+                                for members, points in zip(groups.values(), world)])
+    distance, normal = collider.query_local(local, want_gradient, below)
     answers: list = [None] * len(parts)
     offset = 0
     for members, points in zip(groups.values(), world):
@@ -93,7 +108,7 @@ def _answer_batch(collider: Collider, name: str, parts: Sequence[BatchPart]) -> 
             group = {"distance": d, **({} if n is None else {"normal": n})}
             bad = None
         else:
-            result = assemble_result(points, job.pose, job.eps, job.fields, d, n)
+            result = assemble_result(points, job.pose, job.eps, job.fields, d, n, job.only_colliding)
             group = result.fields()
             bad = _not_finite(group)
         start = 0
@@ -183,7 +198,8 @@ async def answer_query(model: LoadedModel, spec: QuerySpec,
     """The fields of one model query by name (world frame, see :class:`QueryResult`);
     ``deadline`` is a ``time.monotonic`` time or None."""
     eps = resolve_eps(model, spec.pose, spec.eps)
-    return await submit(model, QueryJob(spec.points, spec.pose, eps, spec.fields), deadline)
+    job = QueryJob(spec.points, spec.pose, eps, spec.fields, only_colliding=spec.only_colliding)
+    return await submit(model, job, deadline)
 
 
 async def answer_scene(models: list[LoadedModel], spec: SceneSpec,
@@ -194,12 +210,13 @@ async def answer_scene(models: list[LoadedModel], spec: SceneSpec,
     poses = [pose for _, pose in spec.colliders]
     eps = [resolve_eps(m, pose, spec.eps) for m, pose in zip(models, poses)]
     answers = await asyncio.gather(*(
-        submit(m, QueryJob(spec.points, pose, e, spec.fields, local_only=True), deadline)
+        submit(m, QueryJob(spec.points, pose, e, spec.fields, local_only=True,
+                           only_colliding=spec.only_colliding), deadline)
         for m, pose, e in zip(models, poses, eps)))
     with np.errstate(over="ignore", invalid="ignore"):
         result, nearest = assemble_scene_result(
             spec.points, poses, eps, spec.fields,
-            [(a["distance"], a.get("normal")) for a in answers])
+            [(a["distance"], a.get("normal")) for a in answers], spec.only_colliding)
     bad = _not_finite(result.fields())
     if bad is not None:
         row = int(np.flatnonzero(bad)[0])

@@ -21,8 +21,8 @@ from ..pose import Pose, PoseError, as_pose
 from .problems import Problem
 
 DEADLINE_HEADER = "x-deadline-ms"
-QUERY_KEYS = frozenset({"points", "fields", "pose", "eps", "deadline_ms"})
-SCENE_KEYS = frozenset({"points", "colliders", "fields", "eps", "deadline_ms"})
+QUERY_KEYS = frozenset({"points", "fields", "pose", "eps", "deadline_ms", "only_colliding"})
+SCENE_KEYS = frozenset({"points", "colliders", "fields", "eps", "deadline_ms", "only_colliding"})
 
 
 def request_media_type(request: Request) -> str:
@@ -120,6 +120,7 @@ class QuerySpec:
     pose: Pose
     eps: float | None
     deadline_ms: float | None
+    only_colliding: bool = False  # normal/contact only where distance < eps (collider.py)
 
 
 @dataclass
@@ -129,6 +130,7 @@ class SceneSpec:
     fields: tuple[str, ...]
     eps: float | None
     deadline_ms: float | None
+    only_colliding: bool = False
 
 
 def _check_keys(body: dict, allowed: frozenset, required: tuple[str, ...]) -> None:
@@ -204,6 +206,15 @@ def parse_number(value, name: str, positive: bool = False, code: str | None = No
     return number
 
 
+def parse_only_colliding(value) -> bool:
+    """The ``only_colliding`` flag: absent is false; anything but a boolean is 422."""
+    if value is None:
+        return False
+    if not isinstance(value, bool):
+        raise Problem(422, "bad-only-colliding", f"only_colliding must be true or false, got {value!r:.60}")
+    return value
+
+
 def parse_deadline(body: dict, request: Request) -> float | None:
     """The smaller of the ``deadline_ms`` field and the ``X-Deadline-Ms`` header, milliseconds."""
     deadlines = [parse_number(body.get("deadline_ms"), "deadline_ms", positive=True)]
@@ -226,6 +237,7 @@ def parse_query(body: dict, request: Request, max_points: int) -> QuerySpec:
         pose=parse_pose(body.get("pose")),
         eps=parse_number(body.get("eps"), "eps"),
         deadline_ms=parse_deadline(body, request),
+        only_colliding=parse_only_colliding(body.get("only_colliding")),
     )
 
 
@@ -251,4 +263,5 @@ def parse_scene(body: dict, request: Request, max_points: int, max_colliders: in
         fields=parse_fields(body.get("fields")),
         eps=parse_number(body.get("eps"), "eps"),
         deadline_ms=parse_deadline(body, request),
+        only_colliding=parse_only_colliding(body.get("only_colliding")),
     )

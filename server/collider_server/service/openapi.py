@@ -22,6 +22,11 @@ _COMMON = {
                                              "diagonal]; default 1 mm"},
     "deadline_ms": {"type": "number", "description": "504 if no answer within this many ms "
                                                      "(also the X-Deadline-Ms header)"},
+    "only_colliding": {"type": "boolean", "default": False,
+                       "description": "compute normal and contact only for points with distance < "
+                                      "eps (the gradient work of the others is skipped); the others "
+                                      "get normal [0, 0, 0] and contact = the point itself; "
+                                      "collides tells them apart"},
 }
 _QUERY_SCHEMA = {"type": "object", "required": ["points"], "properties": {
     **_COMMON, "pose": {**_ARRAY, "title": "pose: (4, 4) collider frame -> world frame, rigid"}}}

@@ -1,0 +1,100 @@
+"""Collide-only queries (``only_colliding=True``): ``normal`` and ``contact`` only for points with
+``distance < eps``, the others get ``normal`` [0, 0, 0] and ``contact`` = the point; the gradient
+is evaluated for the colliding points only. Units: metres; the sphere has radius 0.1 m."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from collider_server.collider import FIELDS, Collider
+
+from .test_collider import KINDS, fresh_collider, mixed_points  # noqa: F401  (fixture)
+
+SCALED_POSE = np.array([[0, -2.0, 0, 0.3], [2.0, 0, 0, -0.1], [0, 0, 2.0, 0.05], [0, 0, 0, 1]])
+
+
+def near_surface(n=600, seed=1, radius=0.1, band=0.01):
+    """Points within ``band`` of the sphere's surface, both sides (metres, collider frame)."""
+    rng = np.random.default_rng(seed)
+    d = rng.normal(size=(n, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    return d * (radius + rng.uniform(-band, band, n))[:, None]
+
+
+def record_gradient_points(collider: Collider) -> list:
+    """Wrap the collider's own ``evaluate`` to record how many points each gradient call took."""
+    sizes = []
+    evaluate = collider.evaluate
+
+    def recording(local, want_gradient):
+        if want_gradient:
+            sizes.append(len(local))
+        return evaluate(local, want_gradient)
+
+    collider.evaluate = recording
+    return sizes
+
+
+@pytest.mark.parametrize("kind", KINDS)
+@pytest.mark.parametrize("pose", [None, SCALED_POSE], ids=["identity", "scaled-pose"])
+def test_colliding_points_get_the_full_answer_the_others_the_documented_one(fresh_collider, kind, pose):
+    collider = fresh_collider(kind)
+    local = np.concatenate([near_surface(), mixed_points(200)])
+    scale = 1.0 if pose is None else 2.0
+    points = local * scale if pose is None else local @ SCALED_POSE[:3, :3].T + SCALED_POSE[:3, 3]
+    eps = 0.002 * scale
+    full = collider.query(points, FIELDS, pose=pose, eps=eps)
+    sizes = record_gradient_points(collider)
+    only = collider.query(points, FIELDS, pose=pose, eps=eps, only_colliding=True)
+    hit = full.collides
+    assert 0 < hit.sum() < len(points)  # (the tiny neural collider is untrained: any share)
+    np.testing.assert_array_equal(only.distance, full.distance)
+    np.testing.assert_array_equal(only.collides, hit)
+    np.testing.assert_allclose(only.normal[hit], full.normal[hit], atol=2e-5)
+    np.testing.assert_allclose(only.contact[hit], full.contact[hit], atol=2e-6 * scale)
+    assert not only.normal[~hit].any()
+    np.testing.assert_array_equal(only.contact[~hit], points[~hit])
+    # The gradient pass saw (about) the colliding points only, not all of them.
+    assert hit.sum() <= sum(sizes) <= hit.sum() + 2
+
+
+@pytest.mark.parametrize("kind", ["voxel", "neural"])
+def test_points_exactly_at_eps_follow_collides(fresh_collider, kind):
+    """The gradient threshold must not miss a point that ``distance < eps`` calls colliding."""
+    collider = fresh_collider(kind)
+    points = near_surface(2000, band=0.004)
+    distance = collider.query(points, "distance").distance.astype(np.float64)
+    for eps in np.sort(distance)[::97]:  # eps equal to (float32) distances of the points
+        result = collider.query(points, FIELDS, eps=float(eps), only_colliding=True)
+        assert np.allclose(np.linalg.norm(result.normal[result.collides], axis=1), 1.0, atol=1e-5)
+        assert not result.normal[~result.collides].any()
+
+
+@pytest.mark.parametrize("kind", ["voxel", "neural"])
+def test_without_gradient_fields_the_mode_changes_nothing(fresh_collider, kind):
+    collider = fresh_collider(kind)
+    sizes = record_gradient_points(collider)
+    points = near_surface()
+    a = collider.query(points, ["distance", "collides"], only_colliding=True)
+    b = collider.query(points, ["distance", "collides"])
+    np.testing.assert_array_equal(a.distance, b.distance)
+    np.testing.assert_array_equal(a.collides, b.collides)
+    assert sizes == []
+
+
+def test_query_local_takes_a_threshold_per_point(fresh_collider):
+    """What a batch joining requests of different eps (and modes) passes: +inf = every point,
+    -inf = none."""
+    collider = fresh_collider("voxel")
+    local = near_surface(300)
+    distance, normal = collider.query_local(local, True)
+    below = np.full(300, -np.inf)
+    below[:100] = np.inf
+    below[100:200] = 0.001
+    d2, n2 = collider.query_local(local, True, below)
+    np.testing.assert_array_equal(d2, distance)
+    np.testing.assert_array_equal(n2[:100], normal[:100])
+    middle = np.arange(100, 200)[distance[100:200] < 0.001]
+    np.testing.assert_array_equal(n2[middle], normal[middle])
+    assert not np.delete(n2, np.concatenate([np.arange(100), middle]), axis=0).any()
