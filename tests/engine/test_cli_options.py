@@ -184,3 +184,14 @@ def test_eval_against_another_mesh_refuses_to_store_the_figures(capsys, tmp_path
     assert main(evaluate + ["--mesh", str(ball), "--points", "200"]) == 0
     assert "warning" not in capsys.readouterr().err
     assert read_info(models / "ball.safetensors").accuracy["band_1mm"]["points"] == 200
+
+
+def test_query_only_colliding_from_the_command_line(capsys, small_sphere_model):
+    models = small_sphere_model.parent
+    argv = ["query", "sphere", "0", "0", "0.0995", "0", "0", "0.3", "--models", str(models),
+            "--fields", "normal,contact,collides", "--only-colliding"]
+    assert main(argv) == 0
+    inside, outside = capsys.readouterr().out.strip().splitlines()
+    assert "collides=True" in inside and "normal=[0.0, 0.0, 0.0]" not in inside
+    assert "collides=False" in outside and "normal=[0.0, 0.0, 0.0]" in outside
+    assert "contact=[0.0, 0.0, 0.3" in outside

@@ -37,6 +37,9 @@ def register(subparsers) -> None:
                        help=f"comma-separated subset of {','.join(FIELDS)}")
     query.add_argument("--eps", type=float, default=None, help="collision offset (default 1 mm)")
     query.add_argument("--pose", type=Path, default=None, help=".npy or .json 4x4 pose, collider to world")
+    query.add_argument("--only-colliding", action="store_true",
+                       help="normal and contact only for colliding points (others: normal 0, "
+                            "contact = the point)")
     query.add_argument("--output", type=Path, default=None, help="write the fields to this .npz")
     query.add_argument("--models", type=Path, default=None)
     query.add_argument("--device", default=None)
@@ -104,7 +107,8 @@ def run_query(args) -> int:
     fields = [f.strip() for f in args.fields.split(",") if f.strip()]
     points = load_points(args)
     collider = ModelRepository(args.models).load(args.model, args.device)
-    result = collider.query(points, fields, pose=load_pose(args.pose), eps=args.eps)
+    result = collider.query(points, fields, pose=load_pose(args.pose), eps=args.eps,
+                            only_colliding=args.only_colliding)
     values = result.fields()
     if args.output is not None:
         # np.savez appends ".npz" when it is missing; report the file it really writes.
