@@ -162,14 +162,23 @@ def seconds(value: str) -> int:
     return int(number) * (60 if unit == "m" else 1)
 
 
-def test_grace_period_matches_compose_and_covers_the_pre_stop_pause():
-    compose = yaml.safe_load((REPO / "docker" / "compose.yaml").read_text())
-    grace = seconds(compose["services"]["collider"]["stop_grace_period"])
+def test_grace_periods_cover_the_servers_bounded_drain():
+    """SIGKILL must never cut the drain short: compose's stop_grace_period and the pods'
+    terminationGracePeriodSeconds exceed the drain (COLLIDER_GRACEFUL_SHUTDOWN_S, one value in the
+    images, compose and the ConfigMap) plus the preStop pause, with 5 s to spare."""
+    compose = yaml.safe_load((REPO / "docker" / "compose.yaml").read_text())["services"]["collider"]
+    config = resources("cpu")[("ConfigMap", "collider-config")]["data"]
+    dockerfile = (REPO / "docker" / "Dockerfile").read_text()
+    drains = {float(compose["environment"]["COLLIDER_GRACEFUL_SHUTDOWN_S"]),
+              float(config["COLLIDER_GRACEFUL_SHUTDOWN_S"]),
+              *map(float, re.findall(r"COLLIDER_GRACEFUL_SHUTDOWN_S=(\S+)", dockerfile))}
+    assert len(drains) == 1, f"different drains: {drains}"
+    (drain,) = drains
+    assert seconds(compose["stop_grace_period"]) >= drain + 5
     for overlay in OVERLAYS:
         pod = resources(overlay)[("Deployment", "collider")]["spec"]["template"]["spec"]
-        assert pod["terminationGracePeriodSeconds"] == grace
         pause = container(overlay)["lifecycle"]["preStop"]["sleep"]["seconds"]
-        assert pause < grace / 2, "the pre-stop pause leaves the drain too little of the grace period"
+        assert pod["terminationGracePeriodSeconds"] >= pause + drain + 5
 
 
 def test_hpa_scales_on_the_queue_metric_the_adapter_serves():
