@@ -17,7 +17,7 @@ import numpy as np
 from ..batching import BatcherClosed, BatchPart, DeadlineExceeded, QueueFull
 from ..collider import (GRADIENT_FIELDS, Collider, QueryResult, assemble_result, assemble_scene_result,
                         gradient_threshold)
-from ..pose import Pose
+from ..pose import MAX_COORDINATE_M, Pose
 from .bodies import QuerySpec, SceneSpec
 from .problems import Problem
 from .registry import LoadedModel
@@ -166,15 +166,14 @@ def absolute_deadline(deadline_ms: float | None, default_ms: float | None) -> fl
 
 
 def resolve_eps(model: LoadedModel, pose: Pose, eps: float | None) -> float:
-    """The request's eps in world units: its own, checked against ``[0, domain diagonal]``,
-    or 1 mm (the collider's default, scaled by the pose)."""
+    """The request's eps in world units: its own, in ``[0, MAX_COORDINATE_M]``, or 1 mm (the
+    collider's default, scaled by the pose). (The bound is the engine's coordinate range, not
+    the model's size: a schema can state it, and a large eps is odd but well defined.)"""
     if eps is None:
         return model.collider.info.default_world_eps(pose)
-    limit = model.domain_diagonal * pose.scale
-    if not 0 <= eps <= limit:
+    if not 0 <= eps <= MAX_COORDINATE_M:
         raise Problem(422, "eps-out-of-range",
-                      f"eps={eps} is outside [0, {limit:.6g}] (world units; the upper bound is "
-                      f"the diagonal of model {model.name!r}'s domain box)")
+                      f"eps={eps} is outside [0, {MAX_COORDINATE_M:g}] (world units)")
     return eps
 
 

@@ -8,12 +8,15 @@ import functools
 import logging
 
 from fastapi import FastAPI
+from fastapi.openapi.utils import get_openapi
 
 from ..batching import DeviceWorkers
 from ..devices import resolve_device
 from ..repository import ModelRepository
 from .fastpath import QueryFastPath
 from .metrics import RequestObserver, ServiceMetrics
+from .openapi import add_security, query_body, scene_body
+from .openapi import router as docs_router
 from .problems import install_handlers
 from .registry import ModelRegistry
 from .routers import admin, health, models, scene
@@ -35,6 +38,20 @@ def set_compute_threads(threads: int) -> None:
     import torch
 
     torch.set_num_threads(threads)
+
+
+def openapi_schema(app: FastAPI, settings: ServiceSettings) -> dict:
+    """The OpenAPI document, with the hand-written query bodies sized by ``settings``."""
+    if app.openapi_schema is None:
+        schema = get_openapi(title=app.title, version=app.version, description=app.description,
+                             routes=app.routes)
+        paths = schema["paths"]
+        paths["/v1/models/{name}/query"]["post"].update(query_body(settings.max_request_points))
+        paths["/v1/scene/query"]["post"].update(
+            scene_body(settings.max_request_points, settings.max_scene_colliders))
+        add_security(schema)
+        app.openapi_schema = schema
+    return app.openapi_schema
 
 
 def create_app(settings: ServiceSettings | None = None) -> FastAPI:
@@ -63,9 +80,13 @@ def create_app(settings: ServiceSettings | None = None) -> FastAPI:
             await asyncio.to_thread(workers.shutdown)
             log.info("stopped")
 
-    app = FastAPI(title="neural-collider", version="1", description=DESCRIPTION, lifespan=lifespan)
+    # /docs and /openapi.json are routes of our own: the schema behind the token, the page's
+    # script and styles from the installed swagger-ui-bundle (no CDN).
+    app = FastAPI(title="neural-collider", version="1", description=DESCRIPTION, lifespan=lifespan,
+                  docs_url=None, redoc_url=None, openapi_url=None)
+    app.openapi = functools.partial(openapi_schema, app, settings)
     install_handlers(app)
-    for router in (health.router, models.router, scene.router, admin.router):
+    for router in (health.router, models.router, scene.router, admin.router, docs_router):
         app.include_router(router)
     app.add_middleware(QueryFastPath)
     if settings.cors_origins:

@@ -1,60 +1,220 @@
-"""OpenAPI descriptions of the raw (msgpack or JSON) query bodies, for the ``/docs`` page.
+"""The OpenAPI description, written to match what the server does (a schema fuzzer checks it in
+the test suite: schema-valid bodies are answered, every status code sent is declared), and the
+``/docs`` page served from the installed ``swagger-ui-bundle`` package (no CDN).
 
-The routes read their bodies themselves (msgpack arrays are decoded without copies), so FastAPI
-cannot infer these schemas; they are written here once."""
+The query routes read their bodies themselves (msgpack arrays are decoded without copies), so
+FastAPI cannot infer their schemas; they are written here once. What JSON Schema cannot say is
+in the descriptions: a pose must be rigid (the fuzzer maps its generated matrices to rigid ones),
+and a msgpack array map's ``data`` must hold exactly ``prod(shape) * itemsize`` bytes.
+"""
 
 from __future__ import annotations
 
-_ARRAY = {
-    "description": "JSON: nested lists. msgpack: a map {dtype: '<f4'|'<f8'|'|b1'|'<i4'|'<i8', "
-                   "shape: [..], data: raw little-endian C-order bytes}",
-    "oneOf": [{"type": "array", "items": {}},
-              {"type": "object", "properties": {"dtype": {"type": "string"},
-                                                "shape": {"type": "array", "items": {"type": "integer"}},
-                                                "data": {"type": "string", "format": "binary"}}}],
-}
-_FIELDS = {"type": "array", "items": {"enum": ["distance", "normal", "contact", "collides"]},
-           "default": ["distance"]}
-_COMMON = {
-    "points": {**_ARRAY, "title": "points: (n, 3) float32/float64, world frame, world units"},
-    "fields": _FIELDS,
-    "eps": {"type": "number", "description": "collision offset, world units, in [0, domain "
-                                             "diagonal]; default 1 mm"},
-    "deadline_ms": {"type": "number", "description": "504 if no answer within this many ms "
-                                                     "(also the X-Deadline-Ms header)"},
-    "only_colliding": {"type": "boolean", "default": False,
-                       "description": "compute normal and contact only for points with distance < "
-                                      "eps (the gradient work of the others is skipped); the others "
-                                      "get normal [0, 0, 0] and contact = the point itself; "
-                                      "collides tells them apart"},
-}
-_QUERY_SCHEMA = {"type": "object", "required": ["points"], "properties": {
-    **_COMMON, "pose": {**_ARRAY, "title": "pose: (4, 4) collider frame -> world frame, rigid"}}}
-_SCENE_SCHEMA = {"type": "object", "required": ["points", "colliders"], "properties": {
-    **_COMMON,
-    "colliders": {"type": "array", "items": {"type": "object", "required": ["model"], "properties": {
-        "model": {"type": "string"}, "pose": {**_ARRAY, "title": "(4, 4) collider -> world"}}}}}}
+import json
+from pathlib import Path
+
+from fastapi import APIRouter, Depends, Request
+from starlette.responses import FileResponse, HTMLResponse, JSONResponse
+
+from ..pose import MAX_COORDINATE_M
+from .auth import require_token
+from .problems import PROBLEM_JSON, TITLES
+
+MSGPACK_AND_JSON = ("application/msgpack", "application/json")
+
+_COORDINATE = {"type": "number", "minimum": -MAX_COORDINATE_M, "maximum": MAX_COORDINATE_M}
 
 
-def _body(schema: dict) -> dict:
+def _array_map(dtypes: list[str], shape: list[int | None], title: str) -> dict:
+    """msgpack's array map ``{dtype, shape, data}`` for arrays of ``shape`` (None: any length)."""
+    dims = [{"type": "integer", "minimum": 0} if d is None else {"const": d} for d in shape]
+    return {"type": "object", "title": title, "required": ["dtype", "shape", "data"],
+            "additionalProperties": False,
+            "description": "data: the raw little-endian C-order bytes, exactly "
+                           "prod(shape) * itemsize of them",
+            "properties": {"dtype": {"enum": dtypes},
+                           "shape": {"type": "array", "prefixItems": dims, "items": False,
+                                     "minItems": len(shape), "maxItems": len(shape)},
+                           "data": {"type": "string", "format": "binary"}}}
+
+
+def _points(max_points: int, msgpack: bool) -> dict:
+    lists = {"type": "array", "maxItems": max_points,
+             "items": {"type": "array", "items": _COORDINATE, "minItems": 3, "maxItems": 3}}
+    schema = {"title": "points: (n, 3), world frame, world units (|coordinate| <= "
+                       f"{MAX_COORDINATE_M:g})", **lists}
+    if msgpack:
+        schema = {"title": schema["title"], "oneOf": [
+            lists, _array_map(["<f4", "<f8"], [None, 3], "(n, 3) float32 or float64")]}
+    return schema
+
+
+def _pose(msgpack: bool) -> dict:
+    lists = {"type": "array", "minItems": 4, "maxItems": 4,
+             "items": {"type": "array", "items": _COORDINATE, "minItems": 4, "maxItems": 4}}
+    title = ("pose: (4, 4) collider frame -> world frame: a rotation times a uniform scale "
+             f"(1e-6 to 1e6), translation within +-{MAX_COORDINATE_M:g}, bottom row 0 0 0 1")
+    if msgpack:
+        return {"title": title, "oneOf": [lists, _array_map(["<f4", "<f8"], [4, 4], "(4, 4)")]}
+    return {"title": title, **lists}
+
+
+def _common(max_points: int, msgpack: bool) -> dict:
+    return {
+        "points": _points(max_points, msgpack),
+        "fields": {"type": "array", "minItems": 1, "default": ["distance"],
+                   "items": {"enum": ["distance", "normal", "contact", "collides"]}},
+        "eps": {"type": "number", "minimum": 0, "maximum": MAX_COORDINATE_M,
+                "description": "collision offset, world units; default 1 mm in the collider's "
+                               "units times the pose's scale"},
+        "deadline_ms": {"type": "number", "exclusiveMinimum": 0,
+                        "description": "504 if no answer within this many ms (also the "
+                                       "X-Deadline-Ms header; the smaller wins)"},
+        "only_colliding": {"type": "boolean", "default": False,
+                           "description": "compute normal and contact only for points with "
+                                          "distance < eps (the gradient work of the others is "
+                                          "skipped); the others get normal [0, 0, 0] and contact "
+                                          "= the point itself; collides tells them apart"},
+    }
+
+
+def query_body(max_points: int) -> dict:
+    return _body({media: {"type": "object", "required": ["points"], "additionalProperties": False,
+                          "properties": {**_common(max_points, media != "application/json"),
+                                         "pose": _pose(media != "application/json")}}
+                  for media in MSGPACK_AND_JSON})
+
+
+def scene_body(max_points: int, max_colliders: int) -> dict:
+    def schema(msgpack: bool) -> dict:
+        collider = {"type": "object", "required": ["model"], "additionalProperties": False,
+                    "properties": {"model": {"type": "string"}, "pose": _pose(msgpack)}}
+        return {"type": "object", "required": ["points", "colliders"],
+                "additionalProperties": False,
+                "properties": {**_common(max_points, msgpack),
+                               "colliders": {"type": "array", "items": collider, "minItems": 1,
+                                             "maxItems": max_colliders}}}
+
+    return _body({media: schema(media != "application/json") for media in MSGPACK_AND_JSON})
+
+
+def _body(schemas: dict[str, dict]) -> dict:
     return {"requestBody": {"required": True, "content": {
-        "application/msgpack": {"schema": schema}, "application/json": {"schema": schema}}}}
+        media: {"schema": schema} for media, schema in schemas.items()}}}
 
 
-QUERY_BODY = _body(_QUERY_SCHEMA)
-SCENE_BODY = _body(_SCENE_SCHEMA)
+_PROBLEM_SCHEMA = {"type": "object", "required": ["type", "title", "status", "detail"],
+                   "properties": {"type": {"type": "string"}, "title": {"type": "string"},
+                                  "status": {"type": "integer"}, "detail": {"type": "string"}}}
 
-_PROBLEM = {"content": {"application/problem+json": {"schema": {"type": "object", "properties": {
-    "type": {"type": "string"}, "title": {"type": "string"}, "status": {"type": "integer"},
-    "detail": {"type": "string"}}}}}}
-QUERY_RESPONSES = {
-    200: {"description": "one entry per field asked for: distance (n,) float32, normal (n, 3) "
-                         "float32, contact (n, 3) dtype of points, collides (n,) bool; world frame",
-          "content": {"application/msgpack": {}, "application/json": {}}},
-    **{code: {"description": text, **_PROBLEM} for code, text in {
-        400: "malformed body", 401: "missing or bad bearer token", 404: "unknown model",
-        413: "body too large or too many points", 415: "unsupported media type",
-        422: "bad values: shape, dtype, NaN/Inf, non-rigid pose, unknown field, eps out of range",
-        429: "queue full (Retry-After)", 503: "not ready or shutting down (Retry-After)",
-        504: "deadline exceeded"}.items()},
+
+def problems(*codes: int) -> dict:
+    """``responses=`` entries for error statuses, each an ``application/problem+json`` body."""
+    return {code: {"description": TITLES.get(code, "Error"),
+                   "content": {PROBLEM_JSON: {"schema": _PROBLEM_SCHEMA}}} for code in codes}
+
+
+_FLOATS = {"type": "array", "items": {"type": "number"}}
+_ROWS = {"type": "array", "items": {"type": "array", "items": {"type": "number"},
+                                    "minItems": 3, "maxItems": 3}}
+_ANSWER = {"type": "object", "properties": {
+    "distance": _FLOATS, "normal": _ROWS, "contact": _ROWS,
+    "collides": {"type": "array", "items": {"type": "boolean"}}}}
+
+#: Statuses every body-reading query route can answer.
+QUERY_ERRORS = (400, 401, 404, 408, 413, 415, 422, 429, 503, 504)
+
+
+def query_responses(extra: dict | None = None, description: str = "") -> dict:
+    ok = {"description": description or (
+        "one entry per field asked for, plus \"model\": distance (n,) float32, normal (n, 3) "
+        "float32, contact (n, 3) dtype of points, collides (n,) bool; world frame"),
+        "content": {"application/msgpack": {}, "application/json": {"schema": {
+            **_ANSWER, "properties": {**_ANSWER["properties"], **(extra or {})}}}}}
+    return {200: ok, **problems(*QUERY_ERRORS)}
+
+
+#: Routes open to anyone; the admin routes take the admin token; the rest the service token.
+PUBLIC_PATHS = ("/livez", "/readyz")
+
+
+def add_security(schema: dict) -> None:
+    """Declare the bearer tokens (``COLLIDER_TOKEN``, ``COLLIDER_ADMIN_TOKEN``) and which
+    operations need which (the service token only when one is set)."""
+    schema.setdefault("components", {})["securitySchemes"] = {
+        "token": {"type": "http", "scheme": "bearer",
+                  "description": "COLLIDER_TOKEN; when the server has none, no auth"},
+        "adminToken": {"type": "http", "scheme": "bearer", "description": "COLLIDER_ADMIN_TOKEN"},
+    }
+    for path, operations in schema["paths"].items():
+        if path in PUBLIC_PATHS:
+            continue
+        scheme = "adminToken" if path.startswith("/v1/admin/") else "token"
+        for operation in operations.values():
+            operation["security"] = [{scheme: []}]
+
+
+# -- the /docs page and the schema, behind the same token as the API --------------------------
+
+router = APIRouter(tags=["docs"], include_in_schema=False)
+
+_PAGE = """<!doctype html>
+<html lang="en"><head><meta charset="utf-8"><title>neural-collider API</title>
+<link rel="stylesheet" href="/docs/assets/swagger-ui.css"></head>
+<body><div id="swagger-ui"></div>
+<script src="/docs/assets/swagger-ui-bundle.js"></script>
+<script>
+// The schema needs the service token when one is set: ask for it once, then send it with every
+// request the page makes (the token stays in this tab's memory).
+let token = null;
+async function start() {
+  let response = await fetch("/openapi.json");
+  if (response.status === 401) {
+    token = window.prompt("Service token (COLLIDER_TOKEN):");
+    response = await fetch("/openapi.json", {headers: {Authorization: "Bearer " + token}});
+  }
+  SwaggerUIBundle({
+    spec: await response.json(), dom_id: "#swagger-ui",
+    requestInterceptor: (request) => {
+      if (token) request.headers.Authorization = "Bearer " + token;
+      return request;
+    },
+  });
 }
+start();
+</script></body></html>
+"""
+_ASSETS = ("swagger-ui.css", "swagger-ui-bundle.js")
+
+
+def _assets_dir() -> Path:
+    import swagger_ui_bundle
+
+    return Path(swagger_ui_bundle.swagger_ui_path)
+
+
+@router.get("/openapi.json", dependencies=[Depends(require_token)])
+async def openapi_schema(request: Request):
+    return JSONResponse(request.app.openapi())
+
+
+@router.get("/docs")
+async def docs_page():
+    """The page and its assets are the installed package's static files (they hold nothing
+    secret, and a browser cannot send a bearer token for a page load); the schema it loads
+    needs the token."""
+    return HTMLResponse(_PAGE)
+
+
+@router.get("/docs/assets/{name}")
+async def docs_asset(name: str):
+    from .problems import Problem
+
+    if name not in _ASSETS:
+        raise Problem(404, "not-found", f"no docs asset {name!r}")
+    return FileResponse(_assets_dir() / name)
+
+
+def schema_json(app) -> str:
+    """The app's OpenAPI document as text (for tools)."""
+    return json.dumps(app.openapi(), indent=2)

@@ -51,6 +51,17 @@ class Problem(Exception):
                         media_type=PROBLEM_JSON)
 
 
+def allowed_methods(request: Request) -> list[str]:
+    """Every method some route serves at the request's path (for a 405's ``Allow``): Starlette
+    names only the methods of the first route matching the path."""
+    from starlette.routing import Match
+
+    routes = request.app.router.routes
+    return [method for method in ("GET", "HEAD", "POST", "PUT", "DELETE", "PATCH")
+            if any(route.matches({**request.scope, "method": method})[0] == Match.FULL
+                   for route in routes)]
+
+
 def install_handlers(app: FastAPI) -> None:
     """Every error the app can produce, including unknown routes and crashes, as a problem."""
 
@@ -64,7 +75,13 @@ def install_handlers(app: FastAPI) -> None:
         detail = exc.detail if isinstance(exc.detail, str) else json.dumps(exc.detail)
         if exc.status_code == 404 and detail == "Not Found":
             detail = f"no route {request.method} {request.url.path}"
-        return Problem(exc.status_code, code, detail, dict(exc.headers or {})).response()
+        headers = dict(exc.headers or {})
+        if exc.status_code == 405:
+            # Starlette names the methods of the first route matching the path only.
+            allowed = allowed_methods(request)
+            headers["Allow"] = ", ".join(allowed)
+            detail = f"{request.method} is not allowed on {request.url.path}; use {', '.join(allowed)}"
+        return Problem(exc.status_code, code, detail, headers).response()
 
     @app.exception_handler(RequestValidationError)
     async def _validation(request: Request, exc: RequestValidationError):

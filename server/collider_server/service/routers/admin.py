@@ -6,13 +6,15 @@ from fastapi import APIRouter, Depends, Request
 
 from ...modelfile import ModelFileError
 from ..auth import require_admin
+from ..openapi import problems
 from ..problems import Problem
 from ..state import get_state
 
 router = APIRouter(prefix="/v1/admin", tags=["admin"], dependencies=[Depends(require_admin)])
 
 
-@router.put("/models/{name}", summary="load (or reload) a model from the repository")
+@router.put("/models/{name}", summary="load (or reload) a model from the repository",
+            responses=problems(401, 403, 404, 422))
 async def load_model(name: str, request: Request):
     registry = get_state(request).registry
     try:
@@ -26,7 +28,8 @@ async def load_model(name: str, request: Request):
     return {"loaded": name, "info": model.info}
 
 
-@router.delete("/models/{name}", summary="unload a model (queued requests are still answered)")
+@router.delete("/models/{name}", summary="unload a model (queued requests are still answered)",
+               responses=problems(401, 403, 404))
 async def unload_model(name: str, request: Request):
     if not await get_state(request).registry.unload(name):
         raise Problem(404, "unknown-model", f"no model named {name!r} is loaded")

@@ -3,20 +3,30 @@
 from __future__ import annotations
 
 from fastapi import APIRouter, Depends, Request
-from starlette.responses import JSONResponse, Response
+from starlette.responses import JSONResponse, PlainTextResponse, Response
 
 from ..auth import require_token
+from ..openapi import problems
 from ..state import get_state
 
 router = APIRouter(tags=["health"])
 
+_READY = {"type": "object", "required": ["status", "models", "errors"], "properties": {
+    "status": {"enum": ["ready", "loading", "shutting-down"]},
+    "models": {"type": "array", "items": {"type": "string"}},
+    "errors": {"type": "object", "additionalProperties": {"type": "string"}}}}
 
-@router.get("/livez", summary="the process is up")
+
+@router.get("/livez", summary="the process is up", responses={200: {"content": {
+    "application/json": {"schema": {"type": "object", "properties": {"status": {"const": "ok"}}}}}}})
 async def livez():
     return {"status": "ok"}
 
 
-@router.get("/readyz", summary="ready once every model is loaded and warmed up")
+@router.get("/readyz", summary="ready once every model is loaded and warmed up", responses={
+    200: {"content": {"application/json": {"schema": _READY}}},
+    503: {"description": "loading or shutting down (Retry-After)",
+          "content": {"application/json": {"schema": _READY}}}})
 async def readyz(request: Request):
     state = get_state(request)
     registry = state.registry
@@ -28,7 +38,10 @@ async def readyz(request: Request):
     return {"status": "ready", **body}
 
 
-@router.get("/metrics", summary="Prometheus metrics", dependencies=[Depends(require_token)])
+@router.get("/metrics", summary="Prometheus metrics (text format)",
+            dependencies=[Depends(require_token)], response_class=PlainTextResponse,
+            responses={200: {"content": {"text/plain": {"schema": {"type": "string"}}}},
+                       **problems(401)})
 async def metrics(request: Request):
     data, content_type = get_state(request).metrics.render()
     return Response(data, media_type=content_type)

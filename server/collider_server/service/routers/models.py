@@ -8,25 +8,26 @@ from ..answers import absolute_deadline, answer_query, unless_disconnected
 from ..auth import require_token
 from ..bodies import encode_response, parse_body, parse_query, read_body, request_media_type, \
     response_media_type
-from ..openapi import QUERY_BODY, QUERY_RESPONSES
+from ..openapi import problems, query_responses
 from ..state import get_state, serving_model
 
 router = APIRouter(prefix="/v1/models", tags=["models"], dependencies=[Depends(require_token)])
 
 
-@router.get("", summary="the models being served")
+@router.get("", summary="the models being served", responses=problems(401))
 async def list_models(request: Request):
     registry = get_state(request).registry
     return {"models": [registry.models[name].info for name in sorted(registry.models)]}
 
 
-@router.get("/{name}", summary="one model: kind, units, domain box, size, recorded accuracy")
+@router.get("/{name}", summary="one model: kind, units, domain box, size, recorded accuracy",
+            responses=problems(401, 404, 503))
 async def model_info(name: str, request: Request):
     return serving_model(get_state(request), name).info
 
 
 @router.post("/{name}/query", summary="distance / normal / contact / collides of points",
-             openapi_extra=QUERY_BODY, responses=QUERY_RESPONSES)
+             responses=query_responses({"model": {"type": "string"}}))
 async def query(name: str, request: Request):
     """Points in the world frame, an optional pose (collider -> world), the fields to return and
     eps (world units). The response holds one entry per field plus ``"model"``."""

@@ -8,14 +8,15 @@ from ..answers import absolute_deadline, answer_scene, unless_disconnected
 from ..auth import require_token
 from ..bodies import encode_response, parse_body, parse_scene, read_body, request_media_type, \
     response_media_type
-from ..openapi import SCENE_BODY, QUERY_RESPONSES
+from ..openapi import query_responses
 from ..state import get_state, serving_model
 
 router = APIRouter(prefix="/v1/scene", tags=["scene"], dependencies=[Depends(require_token)])
 
 
 @router.post("/query", summary="per point, the fields of the nearest collider and its index",
-             openapi_extra=SCENE_BODY, responses=QUERY_RESPONSES)
+             responses=query_responses({"collider": {"type": "array",
+                                                     "items": {"type": "integer"}}}))
 async def scene_query(request: Request):
     state = get_state(request)
     settings = state.settings
