@@ -178,3 +178,25 @@ def test_remote_and_embedded_runs_agree(tmp_path, models_dir, server_url):
         assert f"({backend} backend)" in result.stdout
         out[backend] = read_pc2(tmp_path / backend / "drop.pc2")
     np.testing.assert_allclose(out["embedded"], out["remote"], atol=1e-5)
+
+
+def test_check_mesh_places_the_mesh_as_the_model_was_made(tmp_path):
+    """A model baked from a 1 m sphere file with --fit-size 0.2 is a 0.1 m sphere: the exact
+    check must measure against the file placed the same way, not the raw 1 m sphere."""
+    pytest.importorskip("collider_server", reason="the engine (server extras) is not installed")
+    import trimesh
+
+    from collider_server.cli import main
+
+    big = tmp_path / "big.obj"
+    trimesh.creation.icosphere(subdivisions=4, radius=1.0).export(big)
+    models = tmp_path / "models"
+    assert main(["bake", str(big), "--kind", "voxel", "--resolution", "48", "--name", "sphere",
+                 "--fit-size", "0.2", "--models", str(models), "--quiet"]) == 0
+    out = tmp_path / "out"
+    code = main(["simulate", str(scene_file(tmp_path)), "--models", str(models), "--steps", "300",
+                 "--no-preview", "--quiet", "--output", str(out), "--check-mesh", f"sphere={big}"])
+    assert code == 0
+    check = json.loads((out / "drop.report.json").read_text())["exact_check"]
+    assert check["max_depth_m"] < 1e-3  # the raw 1 m file would put every vertex ~0.9 m inside
+    assert check["min_distance_m"] < 3e-3  # and the cloth did reach the sphere

@@ -63,17 +63,6 @@ def run_simulate(args: argparse.Namespace) -> int:
         if not sep or not model or not mesh:
             raise ValueError(f"--check-mesh wants MODEL=MESH, got {item!r}")
         checks[model] = Path(mesh)
-    # The exact meshes also show the colliders in the PNG (a few thousand surface vertices).
-    shown = {}
-    if checks:
-        import numpy as np
-        from collider_server.meshes import load_mesh
-
-        for model, mesh_path in checks.items():
-            vertices = load_mesh(mesh_path).vertices
-            pick = np.random.default_rng(0).choice(len(vertices), min(4000, len(vertices)),
-                                                   replace=False)
-            shown[model] = np.asarray(vertices[pick], dtype=np.float64)
     client = None
     if scene.colliders:
         if args.server:
@@ -85,6 +74,32 @@ def run_simulate(args: argparse.Namespace) -> int:
             client = Client(models=args.models, device=args.device, threads=threads)
     from .._exceptions import ColliderError
 
+    # Each checked mesh file is placed as its model was made (the model's source.transform:
+    # --scale / --fit-size / --z-up), so that it lies in the collider frame like the model.
+    transforms = {}
+    if checks and client is not None:
+        import numpy as np
+
+        try:
+            infos = {m.name: m for m in client.list_models()}
+        except ColliderError as exc:
+            client.close()
+            raise ValueError(str(exc)) from None
+        transforms = {model: np.asarray(infos[model].source.get("transform", np.eye(4)), dtype=np.float64)
+                      for model in checks if model in infos}
+    # The exact meshes also show the colliders in the PNG (a few thousand surface vertices).
+    shown = {}
+    if checks:
+        import numpy as np
+        from collider_server.meshes import load_mesh
+
+        for model, mesh_path in checks.items():
+            vertices = load_mesh(mesh_path).vertices
+            if model in transforms:
+                vertices = vertices @ transforms[model][:3, :3].T + transforms[model][:3, 3]
+            pick = np.random.default_rng(0).choice(len(vertices), min(4000, len(vertices)),
+                                                   replace=False)
+            shown[model] = np.asarray(vertices[pick], dtype=np.float64)
     try:
         report, frames = run_scene(scene, client, args.output, show_progress=not args.quiet,
                                    steps=args.steps, preview=not args.no_preview,
@@ -98,7 +113,7 @@ def run_simulate(args: argparse.Namespace) -> int:
     if checks:
         from .exact import exact_penetration
 
-        report.exact_check = exact_penetration(scene, frames, checks)
+        report.exact_check = exact_penetration(scene, frames, checks, transforms)
         import json
         stem = scene.path.stem
         (args.output / f"{stem}.report.json").write_text(json.dumps(report.to_dict(), indent=2,

@@ -9,9 +9,14 @@ import numpy as np
 from .scene import Scene, pose_function
 
 
-def exact_penetration(scene: Scene, frames: list, meshes: dict[str, Path]) -> dict:
+def exact_penetration(scene: Scene, frames: list, meshes: dict[str, Path],
+                      transforms: dict[str, np.ndarray] | None = None) -> dict:
     """Deepest penetration (metres, >= 0) of any vertex in any frame into each collider's exact
-    mesh (``meshes``: model name -> mesh file, in the collider frame), at the frame's pose.
+    mesh (``meshes``: model name -> mesh file), at the frame's pose.
+
+    transforms : model name -> (4, 4) placing the mesh file in the collider frame: the model's
+        ``source.transform`` (the scale / Z-up it was made with, see
+        :class:`collider_server.placement.MeshPlacement`); absent: the file is in that frame
 
     Returns ``{"max_depth_m": ..., "min_distance_m": ..., "frames": ..., "by_model": {model:
     depth_m}}``; ``min_distance_m`` is the smallest signed distance of any vertex (negative:
@@ -24,7 +29,11 @@ def exact_penetration(scene: Scene, frames: list, meshes: dict[str, Path]) -> di
     for spec in scene.colliders:
         if spec.model not in meshes:
             continue
-        sdf = ExactSDF(load_mesh(meshes[spec.model]))
+        mesh = load_mesh(meshes[spec.model])
+        transform = (transforms or {}).get(spec.model)
+        if transform is not None and not np.allclose(transform, np.eye(4)):
+            mesh = mesh.transformed(transform)
+        sdf = ExactSDF(mesh)
         pose_at = pose_function(spec)
         worst = 0.0
         for t, vertices in frames:
