@@ -51,7 +51,8 @@ def resources(overlay: str) -> dict[tuple[str, str], dict]:
 
 def all_core_resources() -> list[tuple[Path, dict]]:
     paths = sorted(set(kustomization_files(K8S / "overlays" / "cpu"))
-                   | set(kustomization_files(K8S / "overlays" / "gpu")))
+                   | set(kustomization_files(K8S / "overlays" / "gpu"))
+                   | set(kustomization_files(K8S / "router")))
     return [(p, d) for p in paths for d in documents(p)]
 
 
@@ -65,7 +66,7 @@ def test_every_resource_passes_the_kubernetes_schema(version):
         except kubernetes_validate.ValidationError as exc:
             raise AssertionError(f"{path.relative_to(REPO)}: {exc.message} at {exc.path}") from None
         checked += 1
-    assert checked >= 8
+    assert checked >= 10
 
 
 def test_the_schema_check_is_not_vacuous():
@@ -205,3 +206,28 @@ def test_the_service_exports_the_metrics_the_manifests_use():
     for name in set(re.findall(r"\b(collider_[a-z_]+?)(?:_total|_bucket)?\b", rules)):
         types = (f"# TYPE {name} ", f"# TYPE {name}_total counter")  # counters: either spelling
         assert any(t in exported for t in types), f"alerts.yaml uses {name}, which /metrics lacks"
+
+
+def test_router_runs_the_compose_nginx_file_against_the_headless_service():
+    router = {(d["kind"], d["metadata"]["name"]): d
+              for p in kustomization_files(K8S / "router") for d in documents(p)}
+    deployment = router[("Deployment", "collider-router")]
+    pod = deployment["spec"]["template"]["spec"]
+    (nginx,) = pod["containers"]
+    env = {e["name"]: e["value"] for e in nginx["env"]}
+    template = (REPO / "docker" / "nginx" / "collider.conf.template").read_text()
+    assert set(re.findall(r"\$\{(\w+)\}", template)) <= set(env)
+    assert env["NGINX_LISTEN"] == str(nginx["ports"][0]["containerPort"])
+    headless = resources("cpu")[("Service", "collider-replicas")]
+    port = headless["spec"]["ports"][0]["port"]
+    assert f"server {headless['metadata']['name']}." in env["COLLIDER_UPSTREAMS"]
+    assert f":{port} resolve" in env["COLLIDER_UPSTREAMS"]
+    mounts = {m["mountPath"]: m["name"] for m in nginx["volumeMounts"]}
+    volumes = {v["name"]: v for v in pod["volumes"]}
+    template_volume = volumes[mounts["/etc/nginx/templates"]]
+    # The ConfigMap that kustomization.yaml tells the reader to create from the template file.
+    name = template_volume["configMap"]["name"]
+    assert f"kubectl create configmap {name}" in (K8S / "router" / "kustomization.yaml").read_text()
+    assert router[("Service", "collider-router")]["spec"]["selector"].items() <= \
+        deployment["spec"]["template"]["metadata"]["labels"].items()
+    assert pod["securityContext"]["runAsNonRoot"] and nginx["securityContext"]["readOnlyRootFilesystem"]
