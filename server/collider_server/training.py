@@ -28,11 +28,22 @@ import numpy as np
 
 from .bake import mesh_source
 from .collider import ColliderInfo
-from .kinds.neural import PRESETS, Architecture, NeuralCollider, build_network
+from .kinds.neural import (DEFAULT_PRESET, PRESETS, Architecture, GridArchitecture, NeuralCollider,
+                           architecture_dict, build_network)
 from .kinds.voxel import padded_box
 from .meshes import ExactSDF, Mesh
 from .progress import progress
 from .sampling import box_points, surface_band_points, surface_points
+
+
+#: Adam's learning rate, initial and final (cosine decay), per kind of network: feature tables
+#: learn best at the large rate instant-NGP uses; the paper's MLP at 1e-3.
+LEARNING_RATES = {"fourier": (1e-3, 1e-5), "grid": (1e-2, 1e-4)}
+#: Weight of the 1 - cos(normal) term per kind of network (docs/neural.md has the measurements).
+NORMAL_WEIGHTS = {"fourier": 0.05, "grid": 0.1}
+#: With a time budget, validations per run (plus one at the end): the best weights are chosen
+#: among these whatever the speed of the machine.
+VALIDATIONS_PER_BUDGET = 30
 
 
 @dataclass
@@ -43,7 +54,7 @@ class TrainConfig:
     ``meters_per_unit``); None for margin_m means 5 % of the largest side clamped to 5..10 mm.
     """
 
-    preset: str = "paper-bunny"
+    preset: str = DEFAULT_PRESET
     samples: int = 1_000_000
     near_fraction: float = 0.8
     tight_fraction: float = 0.5
@@ -52,9 +63,9 @@ class TrainConfig:
     padding: float = 0.1
     batch_size: int = 8192
     steps: int = 20_000
-    learning_rate: float = 1e-3
-    final_learning_rate: float = 1e-5
-    normal_weight: float = 0.05
+    learning_rate: float | None = None  # None: the preset's (LEARNING_RATES)
+    final_learning_rate: float | None = None
+    normal_weight: float | None = None  # None: the preset's (NORMAL_WEIGHTS)
     validate_every: int = 500
     validation_points: int = 20_000
     max_minutes: float | None = None
@@ -62,10 +73,27 @@ class TrainConfig:
     threads: int | None = None
     architecture: dict = field(default_factory=dict)
 
-    def resolved_architecture(self) -> Architecture:
+    def resolved_architecture(self) -> Architecture | GridArchitecture:
         if self.preset not in PRESETS:
             raise ValueError(f"unknown preset {self.preset!r}; choose one of {sorted(PRESETS)}")
-        return Architecture(**{**asdict(PRESETS[self.preset]), **self.architecture})
+        preset = PRESETS[self.preset]
+        try:
+            return type(preset)(**{**asdict(preset), **self.architecture})
+        except TypeError as exc:  # an override the preset's kind of network does not have
+            raise ValueError(f"architecture overrides {sorted(self.architecture)} do not fit preset "
+                             f"{self.preset!r}: {exc}") from None
+
+    def _encoding(self) -> str:
+        return "grid" if isinstance(PRESETS.get(self.preset), GridArchitecture) else "fourier"
+
+    def resolved_learning_rates(self) -> tuple[float, float]:
+        """(initial, final) learning rate: the given ones, else the preset kind's defaults."""
+        first, last = LEARNING_RATES[self._encoding()]
+        return (first if self.learning_rate is None else self.learning_rate,
+                last if self.final_learning_rate is None else self.final_learning_rate)
+
+    def resolved_normal_weight(self) -> float:
+        return NORMAL_WEIGHTS[self._encoding()] if self.normal_weight is None else self.normal_weight
 
     def check(self) -> None:
         if self.samples < 1000:
@@ -76,11 +104,13 @@ class TrainConfig:
             raise ValueError("steps and batch_size must be >= 1")
         if self.max_minutes is not None and not (math.isfinite(self.max_minutes) and self.max_minutes > 0):
             raise ValueError(f"max_minutes must be a finite number > 0 (None: no limit), got {self.max_minutes}")
-        if not (self.learning_rate > 0 and self.final_learning_rate > 0):
-            raise ValueError(f"learning_rate and final_learning_rate must be > 0, got "
-                             f"{self.learning_rate} and {self.final_learning_rate}")
-        if not self.normal_weight >= 0:  # a negative weight would train normals to point away
-            raise ValueError(f"normal_weight must be >= 0, got {self.normal_weight}")
+        for name in ("learning_rate", "final_learning_rate"):
+            value = getattr(self, name)
+            if value is not None and not (math.isfinite(value) and value > 0):
+                raise ValueError(f"{name} must be a finite number > 0, got {value}")
+        if self.normal_weight is not None and not (math.isfinite(self.normal_weight) and self.normal_weight >= 0):
+            # a negative weight would train normals to point away
+            raise ValueError(f"normal_weight must be a finite number >= 0, got {self.normal_weight}")
         if self.threads is not None and self.threads < 1:
             raise ValueError(f"threads must be >= 1, got {self.threads}")
         if self.validate_every < 1 or self.validation_points < 1:
@@ -266,6 +296,111 @@ def check_resumable(path: Path, saved: dict | None, current: dict) -> None:
                          "delete it or pass another --checkpoint")
 
 
+def set_training_threads(arch, threads: int) -> None:
+    """``threads`` CPU threads for the run. A grid network spends them in the fused encoding
+    kernels; its MLP is too small for torch's OpenMP to gain anything, and on a shared machine
+    OpenMP threads that wait for a preempted sibling made a step 14x slower (586 against 42 ms
+    measured with 2 against 1 torch threads under load), so torch gets one."""
+    import torch
+
+    from .kinds import grid_kernels
+
+    if isinstance(arch, GridArchitecture) and grid_kernels.available():
+        torch.set_num_threads(1)
+        grid_kernels.set_threads(threads)
+    else:
+        torch.set_num_threads(threads)
+
+
+# -- the schedule: steps or the clock, whichever ends first ------------------------------------
+
+def make_optimizer(network, learning_rate: float):
+    """Adam; a grid network's feature table in its own group (instant-NGP's settings: the
+    table's rows see sparse, noisy gradients, so a small eps and a short second-moment memory)."""
+    import torch
+
+    table = [p for n, p in network.named_parameters() if n == "table"]
+    others = [p for n, p in network.named_parameters() if n != "table"]
+    if not table:
+        return torch.optim.Adam(others, lr=learning_rate)
+    return torch.optim.Adam([{"params": table}, {"params": others}], lr=learning_rate,
+                            betas=(0.9, 0.99), eps=1e-15)
+
+
+def cosine_learning_rate(fraction: float, first: float, last: float) -> float:
+    """Cosine decay from ``first`` (fraction 0) to ``last`` (fraction 1)."""
+    fraction = min(max(fraction, 0.0), 1.0)
+    return last + 0.5 * (first - last) * (1 + math.cos(math.pi * fraction))
+
+
+class RunClock:
+    """Where a run is, by steps or, with ``max_minutes``, by the clock (whichever ends first):
+    the learning-rate schedule, the progress bar (seconds of the budget, not a step count that a
+    time-bounded run never reaches) and the validation times follow it. Times are
+    ``time.monotonic()`` values passed in, so the logic is testable without waiting."""
+
+    def __init__(self, config: TrainConfig, start: float):
+        self.steps = config.steps
+        self.validate_every = config.validate_every
+        self.budget_s = None if config.max_minutes is None else 60.0 * config.max_minutes
+        self.start = start
+        self.last_validation = start
+        self.shown = 0
+
+    def fraction(self, step: int, now: float) -> float:
+        """Share of the run done: steps, or the budget's time when that is further."""
+        done = step / self.steps
+        if self.budget_s is not None:
+            done = max(done, (now - self.start) / self.budget_s)
+        return min(done, 1.0)
+
+    def out_of_time(self, now: float) -> bool:
+        return self.budget_s is not None and now - self.start >= self.budget_s
+
+    def validation_due(self, step: int, now: float) -> bool:
+        """Every ``validate_every`` steps; with a budget, every 1/VALIDATIONS_PER_BUDGET of it
+        instead (a slow machine still picks its best weights among as many candidates)."""
+        if self.budget_s is None:
+            return step % self.validate_every == 0
+        return now - self.last_validation >= self.budget_s / VALIDATIONS_PER_BUDGET
+
+    def validated(self, now: float) -> None:
+        self.last_validation = now
+
+    def progress_bar(self, desc: str, step: int, enabled: bool):
+        """A bar in steps, or in seconds of the budget when the run has one."""
+        if self.budget_s is None:
+            bar = progress(self.steps, desc, "step", enabled)
+            self.shown = step
+            return _started(bar, step)
+        return progress(int(round(self.budget_s)), desc, "s", enabled)
+
+    def advance(self, bar, now: float) -> None:
+        """Move ``bar`` to the run's position (one step, or the seconds elapsed)."""
+        if self.budget_s is None:
+            bar.update(1)
+            return
+        elapsed = int(min(now - self.start, self.budget_s))
+        if elapsed > self.shown:
+            bar.update(elapsed - self.shown)
+            self.shown = elapsed
+
+
+class _started:
+    """``progress(...)`` entered already advanced by ``step`` (a resumed run)."""
+
+    def __init__(self, bar, step: int):
+        self._bar, self._step = bar, step
+
+    def __enter__(self):
+        handle = self._bar.__enter__()
+        handle.update(self._step)
+        return handle
+
+    def __exit__(self, *exc):
+        return self._bar.__exit__(*exc)
+
+
 # -- the loop -----------------------------------------------------------------------------------
 
 @dataclass
@@ -288,15 +423,17 @@ def train_neural(mesh: Mesh, name: str, config: TrainConfig, *, units: str = "m"
 
     config.check()
     device = resolve_device(device)
-    if config.threads is not None:
-        torch.set_num_threads(config.threads)
     torch.manual_seed(config.seed)
     arch = config.resolved_architecture()
+    if config.threads is not None:
+        set_training_threads(arch, config.threads)
     lo, hi = padded_box(mesh, config.padding)
     centre = 0.5 * (lo + hi)
     radius = 0.5 * float((hi - lo).max())
     network = build_network(arch, centre, radius).to(device)
-    optimizer = torch.optim.Adam(network.parameters(), lr=config.learning_rate)
+    first_lr, last_lr = config.resolved_learning_rates()
+    normal_weight = config.resolved_normal_weight()
+    optimizer = make_optimizer(network, first_lr)
 
     sdf = ExactSDF(mesh)
     data = make_training_data(mesh, sdf, config, meters_per_unit, show_progress)
@@ -323,8 +460,8 @@ def train_neural(mesh: Mesh, name: str, config: TrainConfig, *, units: str = "m"
     generator = torch.Generator(device="cpu").manual_seed(config.seed + state["step"])
     to_mm = 1000.0 * meters_per_unit
     started = time.monotonic() - state["seconds"]
-    run_started = time.monotonic()
-    deadline = None if config.max_minutes is None else run_started + 60.0 * config.max_minutes
+    clock = RunClock(config, time.monotonic())
+    analytic = hasattr(network, "value_and_gradient")
 
     def evaluate() -> dict:
         network.eval()
@@ -333,44 +470,43 @@ def train_neural(mesh: Mesh, name: str, config: TrainConfig, *, units: str = "m"
         network.train()
         return errors
 
-    with progress(config.steps, f"train {name}", "step", show_progress) as bar:
-        bar.update(state["step"])
+    with clock.progress_bar(f"train {name}", state["step"], show_progress) as bar:
         last_loss = float("nan")
         while state["step"] < config.steps:
             step = state["step"]
-            # Cosine decay over the run; with a time budget the run's end is whichever comes
-            # first, steps or minutes, so a bounded run still ends at a low learning rate.
-            fraction = step / config.steps
-            if deadline is not None:
-                fraction = max(fraction, (time.monotonic() - run_started) / (60.0 * config.max_minutes))
-            fraction = min(fraction, 1.0)
-            lr = config.final_learning_rate + 0.5 * (config.learning_rate - config.final_learning_rate) * (
-                1 + math.cos(math.pi * fraction))
+            now = time.monotonic()
+            lr = cosine_learning_rate(clock.fraction(step, now), first_lr, last_lr)
             for group in optimizer.param_groups:
-                group["lr"] = lr
+                group["lr"] = lr * group.get("lr_scale", 1.0)
             index = torch.randint(0, len(points), (config.batch_size,), generator=generator).to(device)
             x = points[index]
             mask = near[index]
             # The normal term lives on the near samples only; a batch without any (possible with
             # a small near_fraction) would make its mean, and the logged loss, NaN.
-            want_normals = config.normal_weight > 0 and bool(mask.any())
-            if want_normals:
+            want_normals = normal_weight > 0 and bool(mask.any())
+            if want_normals and analytic:
+                # The analytic gradient is made of differentiable ops: one backward pass.
+                prediction, grad = network.value_and_gradient(x)
+            elif want_normals:
                 x.requires_grad_(True)
-            prediction = network(x)
+                prediction = network(x)
+                (grad,) = torch.autograd.grad(prediction.sum(), x, create_graph=True)
+            else:
+                prediction = network(x)
             loss = (prediction - target[index]).abs().mean() / radius
             if want_normals:
-                (grad,) = torch.autograd.grad(prediction.sum(), x, create_graph=True)
                 cosine = torch.nn.functional.cosine_similarity(grad[mask], target_gradient[index][mask], dim=1)
-                loss = loss + config.normal_weight * (1 - cosine).mean()
+                loss = loss + normal_weight * (1 - cosine).mean()
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
             optimizer.step()
             last_loss = float(loss.detach())
             state["step"] = step + 1
-            bar.update(1)
+            now = time.monotonic()
+            clock.advance(bar, now)
             done = state["step"] >= config.steps
-            out_of_time = deadline is not None and time.monotonic() >= deadline
-            if state["step"] % config.validate_every == 0 or done or out_of_time:
+            out_of_time = clock.out_of_time(now)
+            if clock.validation_due(state["step"], now) or done or out_of_time:
                 errors = evaluate()
                 state["history"].append({"step": state["step"], "loss": last_loss, **errors,
                                          "seconds": time.monotonic() - started})
@@ -380,11 +516,12 @@ def train_neural(mesh: Mesh, name: str, config: TrainConfig, *, units: str = "m"
                     if checkpoint is not None:
                         save_tensors_atomically({k: v.contiguous() for k, v in best_weights.items()},
                                                 checkpoint.with_name(checkpoint.name + ".best"))
-                bar.set_postfix_str(f"loss {last_loss:.2e} val±1mm {errors['1mm']:.4f}mm "
+                bar.set_postfix_str(f"step {state['step']} loss {last_loss:.2e} val±1mm {errors['1mm']:.4f}mm "
                                     f"val±10mm {errors['10mm']:.4f}mm best {state['best_mm']:.4f}mm lr {lr:.1e}")
                 state["seconds"] = time.monotonic() - started
                 if checkpoint is not None:
                     save_checkpoint(checkpoint, network, optimizer, state)
+                clock.validated(time.monotonic())
             if out_of_time:
                 break
 
@@ -395,7 +532,7 @@ def train_neural(mesh: Mesh, name: str, config: TrainConfig, *, units: str = "m"
         name=name, kind="neural", domain_min=lo.tolist(), domain_max=hi.tolist(), units=units,
         meters_per_unit=meters_per_unit, source=mesh_source(mesh, transform),
         settings={
-            "architecture": asdict(arch),
+            "architecture": architecture_dict(arch),
             "parameters": arch.parameter_count(),
             "training": {**asdict(config), "steps_done": state["step"], "seconds": round(seconds, 1),
                          "device": device, "device_name": _device_name(device),

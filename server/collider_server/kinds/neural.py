@@ -16,6 +16,7 @@ import numpy as np
 
 from ..collider import Collider, ColliderInfo
 from ..devices import resolve_device
+from .neural_grid import GridArchitecture, build_grid_network
 
 
 @dataclass(frozen=True)
@@ -46,17 +47,40 @@ class Architecture:
         return 3 * self.fourier_features + (k2 * h + h) + (self.hidden_layers - 1) * (h * h + h) + h + 1
 
 
-#: The paper's architectures (NOTES.md): bunny 3 hidden x 256, dragon 8 hidden x 256, K = 128.
-PRESETS: dict[str, Architecture] = {
+#: Every preset ``collider train --preset`` offers. The paper's architectures (NOTES.md: bunny
+#: 3 hidden x 256, dragon 8 hidden x 256, K = 128) stay unchanged for reproduction; the grid
+#: presets (:mod:`.neural_grid`) are ours, chosen by measurement (docs/neural.md).
+PRESETS: dict[str, Architecture | GridArchitecture] = {
     "paper-bunny": Architecture(128, 3, 256, 3.0),
     "paper-dragon": Architecture(128, 8, 256, 3.0),
     # Ours: narrower, trains several times faster on a CPU.
     "fast": Architecture(64, 3, 128, 3.0),
+    "grid": GridArchitecture(),
 }
 
+#: The preset ``collider train`` uses when none is named.
+DEFAULT_PRESET = "grid"
 
-def build_network(arch: Architecture, centre, radius: float):
+
+def architecture_from_dict(values: dict) -> Architecture | GridArchitecture:
+    """The architecture stored in a model's ``settings["architecture"]`` (files written before
+    the grid encoding have no ``encoding`` key: they are Fourier networks)."""
+    values = dict(values)
+    if values.get("encoding", "fourier") == "grid":
+        return GridArchitecture(**values)
+    values.pop("encoding", None)
+    return Architecture(**values)
+
+
+def architecture_dict(arch: Architecture | GridArchitecture) -> dict:
+    """``arch`` as stored in a model file."""
+    return asdict(arch)
+
+
+def build_network(arch: Architecture | GridArchitecture, centre, radius: float):
     """The torch module for ``arch``; input collider-frame points (n, 3) float32, output (n,)."""
+    if isinstance(arch, GridArchitecture):
+        return build_grid_network(arch, centre, radius)
     import torch
     from torch import nn
 
@@ -104,8 +128,8 @@ class NeuralCollider(Collider):
         return self._device
 
     @property
-    def architecture(self) -> Architecture:
-        return Architecture(**self.info.settings["architecture"])
+    def architecture(self) -> Architecture | GridArchitecture:
+        return architecture_from_dict(self.info.settings["architecture"])
 
     def evaluate(self, local, want_gradient):
         torch = self._torch
@@ -113,6 +137,10 @@ class NeuralCollider(Collider):
         if not want_gradient:
             with torch.inference_mode():
                 return self.network(x).double().cpu().numpy(), None
+        if hasattr(self.network, "value_and_gradient"):  # analytic: no autograd graph
+            with torch.inference_mode():
+                d, g = self.network.value_and_gradient(x)
+            return d.double().cpu().numpy(), g.double().cpu().numpy()
         with torch.enable_grad():
             x.requires_grad_(True)
             d = self.network(x)
@@ -120,15 +148,19 @@ class NeuralCollider(Collider):
         return d.detach().double().cpu().numpy(), g.double().cpu().numpy()
 
     def tensors(self):
-        return {k: v.detach().cpu().numpy() for k, v in self.network.state_dict().items()}
+        tensors = {k: v.detach().cpu().numpy() for k, v in self.network.state_dict().items()}
+        arch = self.architecture
+        if isinstance(arch, GridArchitecture) and arch.table_dtype == "float16":
+            tensors["table"] = tensors["table"].astype(np.float16)  # half the file; see docs/neural.md
+        return tensors
 
     @classmethod
     def from_tensors(cls, info, tensors, device=None):
         import torch
 
         try:
-            arch = Architecture(**info.settings["architecture"])
-        except (KeyError, TypeError) as exc:
+            arch = architecture_from_dict(info.settings["architecture"])
+        except (KeyError, TypeError, AttributeError) as exc:
             raise ValueError(f"neural settings lack a valid architecture: {exc}") from None
         tensors = dict(tensors)
         if np.shape(tensors.get("radius")) == (1,):
@@ -145,5 +177,7 @@ class NeuralCollider(Collider):
                 f"weights do not match the architecture {asdict(arch)}: "
                 f"expected {expected}, found {found}"
             )
-        network.load_state_dict({k: torch.from_numpy(np.array(v)) for k, v in tensors.items()})
+        # float32 in memory whatever the stored dtype (a float16 feature table).
+        network.load_state_dict({k: torch.from_numpy(np.array(v, dtype=np.float32 if np.asarray(v).dtype == np.float16
+                                                              else None)) for k, v in tensors.items()})
         return cls(info, network, device)
