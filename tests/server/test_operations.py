@@ -254,14 +254,20 @@ def serve_subprocess(repo, *args, env=None):
 
 
 def test_graceful_shutdown_answers_every_accepted_request(repo, engine):
-    # Batches wait 1.5 s, so the requests are still queued when SIGTERM arrives.
-    process, url = serve_subprocess(repo, "--max-wait-ms", "1500")
+    # Batches wait 5 s for more points, so the requests are still queued when SIGTERM arrives;
+    # uvicorn then waits for them (graceful_shutdown_s is 30 s).
+    process, url = serve_subprocess(repo, "--max-wait-ms", "5000")
     try:
         inputs = [sample_points(50 + i, 200 + i) for i in range(8)]
         with ThreadPoolExecutor(len(inputs)) as pool:
             futures = [pool.submit(post, f"{url}/v1/models/sphere/query", {"points": p})
                        for p in inputs]
-            time.sleep(0.6)
+            # SIGTERM once every request is accepted and queued (the queue gauge says so; a
+            # fixed sleep was too short on a loaded machine).
+            queued = sum(len(p) for p in inputs)
+            end = time.monotonic() + 30
+            while metric(url, 'collider_queue_points{model="sphere"}') != queued:
+                assert time.monotonic() < end, "the requests never all reached the queue"
             process.send_signal(signal.SIGTERM)
             results = [f.result(30) for f in futures]
         for points, response in zip(inputs, results):
@@ -289,6 +295,13 @@ def test_settings_from_config_file_env_and_flags(tmp_path, monkeypatch):
     (tmp_path / "bad.json").write_text(json.dumps({"max_wait_mss": 1}))
     with pytest.raises(ValueError, match="max_wait_mss"):
         load_settings(tmp_path / "bad.json")
+    (tmp_path / "flat.json").write_text(json.dumps({"max_wait_ms": 3, "port": 9003}))
+    assert load_settings(tmp_path / "flat.json", port=None).max_wait_ms == 3.0
+    (tmp_path / "broken.toml").write_text("port = [")
+    with pytest.raises(ValueError, match="broken.toml: malformed config file"):
+        load_settings(tmp_path / "broken.toml")
+    with pytest.raises(ValueError, match="missing.toml: cannot read"):
+        load_settings(tmp_path / "missing.toml")
     # uvicorn knows lower-case level names only: upper case is accepted, unknown names named.
     monkeypatch.setenv("COLLIDER_LOG_LEVEL", "DEBUG")
     assert load_settings().log_level == "debug"

@@ -1,14 +1,21 @@
-"""The service's settings: defaults < config file < ``COLLIDER_*`` environment < CLI flags."""
+"""The service's settings: defaults < config file < ``COLLIDER_*`` environment < CLI flags,
+merged by pydantic-settings' own sources (TOML is read with ``tomllib``, or ``tomli`` on
+Python 3.10, by pydantic-settings)."""
 
 from __future__ import annotations
 
-import json
 import os
 from pathlib import Path
 from typing import Any
 
 from pydantic import Field, field_validator, model_validator
-from pydantic_settings import BaseSettings, EnvSettingsSource, SettingsConfigDict
+from pydantic_settings import (
+    BaseSettings,
+    JsonConfigSettingsSource,
+    PydanticBaseSettingsSource,
+    SettingsConfigDict,
+    TomlConfigSettingsSource,
+)
 
 from ..batching import BatchSettings
 
@@ -84,47 +91,53 @@ class ServiceSettings(BaseSettings):
                              self.coalesce)
 
 
-def read_config_file(path: str | Path) -> dict[str, Any]:
-    """A TOML (``.toml``) or JSON (``.json``) file of settings, keys as the field names; a TOML
-    file may put them under a ``[serve]`` table."""
-    path = Path(path)
-    try:
-        text = path.read_text()
-    except OSError as exc:
-        raise ValueError(f"{path}: cannot read config file ({exc.strerror})") from None
-    try:
-        if path.suffix == ".json":
-            data = json.loads(text)
-        elif path.suffix == ".toml":
-            import tomllib
+class _ServeTomlSource(TomlConfigSettingsSource):
+    """A TOML settings file whose keys may sit under a ``[serve]`` table."""
 
-            data = tomllib.loads(text)
-            data = data.get("serve", data)
-        else:
-            raise ValueError(f"{path}: config file must be .toml or .json")
-    except (json.JSONDecodeError, ValueError) as exc:
-        if str(exc).startswith(str(path)):
-            raise
-        raise ValueError(f"{path}: malformed config file ({exc})") from None
-    if not isinstance(data, dict):
-        raise ValueError(f"{path}: config file must hold a table/object of settings")
-    return data
+    def _read_file(self, file_path) -> dict[str, Any]:
+        data = super()._read_file(file_path)
+        serve = data.get("serve")
+        return serve if isinstance(serve, dict) else data
+
+
+def config_file_source(path: str | Path) -> type[PydanticBaseSettingsSource]:
+    """The pydantic-settings source class reading ``path`` (.toml or .json); ValueError names
+    a file that is missing or of another kind."""
+    path = Path(path)
+    if not path.is_file():
+        raise ValueError(f"{path}: cannot read config file (no such file)")
+    if path.suffix == ".toml":
+        return lambda cls: _ServeTomlSource(cls, toml_file=path)
+    if path.suffix == ".json":
+        return lambda cls: JsonConfigSettingsSource(cls, json_file=path)
+    raise ValueError(f"{path}: config file must be .toml or .json")
 
 
 def load_settings(config_file: str | Path | None = None, **overrides: Any) -> ServiceSettings:
     """Settings from, lowest priority first: defaults, ``config_file``, ``COLLIDER_*``
     environment variables, ``overrides`` (the CLI flags that were given; ``None`` = not given).
 
-    Raises ValueError naming the bad setting and where it came from."""
+    Raises ValueError naming the bad setting, or the config file that cannot be read."""
     from pydantic import ValidationError
 
-    values: dict[str, Any] = read_config_file(config_file) if config_file else {}
-    values.update(EnvSettingsSource(ServiceSettings)())
-    values.update({k: v for k, v in overrides.items() if v is not None})
+    file_source = config_file_source(config_file) if config_file else None
+
+    class FromSources(ServiceSettings):
+        @classmethod
+        def settings_customise_sources(cls, settings_cls, init_settings, env_settings,
+                                       dotenv_settings, file_secret_settings):
+            # Earlier sources win: flags (init), environment, then the file.
+            return (init_settings, env_settings) + ((file_source(settings_cls),) if file_source
+                                                    else ())
+
     try:
-        return ServiceSettings(**values)
+        merged = FromSources(**{k: v for k, v in overrides.items() if v is not None})
     except ValidationError as exc:
         problems = "; ".join(
             f"{'.'.join(str(p) for p in e['loc']) or 'settings'}: {e['msg']}" for e in exc.errors()
         )
         raise ValueError(f"invalid settings: {problems}") from None
+    except ValueError as exc:  # a malformed TOML or JSON file
+        raise ValueError(f"{config_file}: malformed config file ({exc})") from None
+    # A plain ServiceSettings (the subclass only chose the sources); values already validated.
+    return ServiceSettings.model_construct(**merged.model_dump())
