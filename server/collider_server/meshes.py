@@ -74,6 +74,7 @@ def load_mesh(path: str | Path, max_faces: int = MAX_FACES) -> Mesh:
         raise MeshError(f"{path}: is a directory, not a mesh file")
     if not path.is_file():
         raise MeshError(f"{path}: no such mesh file")
+    check_text_format(path)
     try:
         loaded = trimesh.load(path, process=False, force="mesh")
     except ImportError:
@@ -103,6 +104,24 @@ def load_mesh(path: str | Path, max_faces: int = MAX_FACES) -> Mesh:
         # normals inward: orient them outward once, here.
         mesh = Mesh(vertices, faces[:, ::-1].copy(), mesh.name, mesh.sha256)
     return mesh
+
+
+#: Formats that are text only: a file of these that is not UTF-8 text is not that format.
+TEXT_SUFFIXES = (".obj", ".off")
+
+
+def check_text_format(path: Path, probe_bytes: int = 1 << 20) -> None:
+    """Raise :class:`MeshError` when a text-only format's file (OBJ, OFF) holds NUL bytes, i.e.
+    is binary: trimesh would otherwise guess an encoding (with charset-normalizer installed, any
+    blob decodes) and report an empty mesh instead of an unreadable file. Text in another
+    encoding than UTF-8 (a Latin-1 comment) has no NUL byte and is left to trimesh."""
+    if path.suffix.lower() not in TEXT_SUFFIXES:
+        return
+    with open(path, "rb") as fh:
+        head = fh.read(probe_bytes)
+    if b"\x00" in head:
+        raise MeshError(f"{path}: cannot read mesh (binary data, so not a valid {path.suffix} "
+                        "file; it is a text format)")
 
 
 def check_has_volume(mesh: Mesh, where: str) -> float:

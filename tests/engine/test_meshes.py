@@ -129,3 +129,16 @@ def test_exact_gradient_is_unit_and_outward(analytic_shape):
     gradient = exact.gradient(points, distance, closest, face)
     np.testing.assert_allclose(np.linalg.norm(gradient, axis=1), 1.0, atol=1e-12)
     assert np.einsum("ij,ij->i", gradient, sphere.gradient(points)).min() > np.cos(np.radians(3))
+
+
+def test_text_formats_refuse_binary_data_but_not_other_encodings(tmp_path):
+    """A binary blob named .obj is unreadable whatever encoding guesser trimesh finds installed;
+    an OBJ whose comment is Latin-1 (not UTF-8) still loads."""
+    blob = tmp_path / "blob.obj"
+    blob.write_bytes(b"v 0 0 0\n" + bytes(range(256)))
+    with pytest.raises(MeshError, match="cannot read mesh \\(binary data"):
+        load_mesh(blob)
+    latin = tmp_path / "latin.obj"
+    latin.write_bytes("# Créé à Paris\nv 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\n"
+                      "f 1 3 2\nf 1 2 4\nf 1 4 3\nf 2 3 4\n".encode("latin-1"))
+    assert load_mesh(latin).faces.shape == (4, 3)
