@@ -81,8 +81,10 @@ def test_a_wheel_install_serves_the_shipped_models(tmp_path):
                     "--quiet", "-w", str(wheels), str(REPO)], check=True, cwd=tmp_path)
     (wheel,) = wheels.glob("neural_collider-*.whl")
     prefix = tmp_path / "prefix"
-    subprocess.run([sys.executable, "-m", "pip", "install", "--no-deps", "--quiet", "--prefix",
-                    str(prefix), str(wheel)], check=True)
+    # --ignore-installed: without it pip uninstalls this venv's own (editable) neural-collider
+    # before installing under the prefix, and every later test loses collider_server.
+    subprocess.run([sys.executable, "-m", "pip", "install", "--no-deps", "--ignore-installed",
+                    "--quiet", "--prefix", str(prefix), str(wheel)], check=True)
     (site,) = prefix.glob("lib/python*/site-packages")
     empty = tmp_path / "elsewhere"
     empty.mkdir()
