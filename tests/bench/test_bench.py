@@ -107,9 +107,19 @@ def test_plan_stops_voxels_at_the_memory_budget_and_lists_every_neural_preset(mo
     assert "another placement" in {s["name"]: s["reason"] for s in other.skipped}["neural-bunny"]
 
 
-def collider(*args, cwd=None):
+def collider(*args):
+    """The ``collider`` command in a subprocess (what a user runs)."""
     return subprocess.run([sys.executable, "-m", "collider_server.cli", *map(str, args)],
-                          capture_output=True, text=True, timeout=300, cwd=cwd)
+                          capture_output=True, text=True, timeout=300)
+
+
+def collider_here(capsys, *args):
+    """The same entry point in this process (no interpreter start-up): (exit code, stdout, stderr)."""
+    from collider_server.cli import main
+
+    code = main([str(a) for a in args])
+    captured = capsys.readouterr()
+    return code, captured.out, captured.err
 
 
 @pytest.fixture(scope="module")
@@ -177,17 +187,33 @@ def test_budget_bake_picks_the_fastest_collider_that_meets_it_and_checks_it_afre
     (["--max-normal-error", "3deg"], "need --max-error"),
     (["--max-error", "0.05mm", "--max-memory", "lots"], "--max-memory must be"),
 ])
-def test_budget_bake_refuses_bad_limits_in_one_line(args, message, tmp_path, bunny):
-    mesh = bunny
-    result = collider("bake", mesh, "--name", "x", "--models", tmp_path, *args)
-    assert result.returncode == 2 and message in result.stderr and "Traceback" not in result.stderr
+def test_budget_bake_refuses_bad_limits_in_one_line(args, message, tmp_path, bunny, capsys):
+    code, _, err = collider_here(capsys, "bake", bunny, "--name", "x", "--models", tmp_path, *args)
+    assert code == 2 and message in err and "Traceback" not in err
 
 
-def test_bench_refuses_unknown_kinds_and_a_bench_file_of_another_mesh(tmp_path, bunny):
-    mesh = bunny
-    result = collider("bench", mesh, "--kinds", "voxel,magic")
-    assert result.returncode == 2 and "--kinds must name some of" in result.stderr
+def test_bench_refuses_unknown_kinds_and_a_bench_file_of_another_mesh(tmp_path, bunny, capsys):
+    code, _, err = collider_here(capsys, "bench", bunny, "--kinds", "voxel,magic")
+    assert code == 2 and "--kinds must name some of" in err
     other = tmp_path / "bench.json"
     other.write_text(json.dumps({"mesh": {"sha256": "0" * 64, "transform": np.eye(4).tolist(), "path": "x.obj"}}))
-    result = collider("bake", mesh, "--name", "x", "--models", tmp_path, "--max-error", "1mm", "--bench", other)
-    assert result.returncode == 2 and "measured another mesh or placement" in result.stderr
+    code, _, err = collider_here(capsys, "bake", bunny, "--name", "x", "--models", tmp_path, "--max-error", "1mm",
+                                 "--bench", other)
+    assert code == 2 and "measured another mesh or placement" in err
+
+
+def test_bench_places_the_mesh_like_every_command_and_reports_errors_in_mm(tmp_path, bunny, capsys):
+    """The bunny in metres and the same bunny in millimetres (--scale 1000 --units mm) give the
+    same physical errors: figures are in mm whatever the collider's units."""
+    reports = {}
+    for label, placement in (("m", []), ("mm", ["--scale", "1000", "--units", "mm"])):
+        out = tmp_path / label
+        code, stdout, err = collider_here(capsys, "bench", bunny, *placement, "--kinds", "kdtree", "--no-served",
+                                          "--sizes", "1000", "--accuracy-points", "3000", "--repeats", "1",
+                                          "--quiet", "--output", out, "--cache", tmp_path / "cache")
+        assert code == 0, stdout + err
+        reports[label] = json.loads((out / "bench.json").read_text())
+    assert reports["mm"]["mesh"]["units"] == "mm" and reports["mm"]["mesh"]["transform"][0][0] == 1000.0
+    metres = reports["m"]["colliders"][0]["accuracy"]["band_1mm"]["distance_mean_mm"]
+    millimetres = reports["mm"]["colliders"][0]["accuracy"]["band_1mm"]["distance_mean_mm"]
+    assert 0.1 < metres < 0.5 and millimetres == pytest.approx(metres, rel=1e-3)

@@ -97,12 +97,14 @@ class Plan:
     skipped: list[dict]  # {"name", "reason"}: what was left out and why
 
 
-def placement_key(mesh: Mesh, transform: np.ndarray, padding: float) -> str:
-    """Short hash of the source file, the placement and the padding: the cache key's stem."""
+def placement_key(mesh: Mesh, transform: np.ndarray, padding: float, units: str,
+                  meters_per_unit: float) -> str:
+    """Short hash of the source file, the placement, the units and the padding: the cache
+    key's stem."""
     digest = hashlib.sha256()
     digest.update(mesh.sha256.encode() or np.ascontiguousarray(mesh.vertices).tobytes())
     digest.update(np.round(np.asarray(transform, np.float64), 12).tobytes())
-    digest.update(repr(float(padding)).encode())
+    digest.update(repr((float(padding), units, float(meters_per_unit))).encode())
     return digest.hexdigest()[:16]
 
 
@@ -233,7 +235,7 @@ def _cached(candidate: Candidate, mesh: Mesh, transform, units, meters_per_unit,
     """A voxel grid or a bench-trained network from ``cache``, made (and timed) when absent."""
     from ..modelfile import load_collider, save_collider
 
-    key = placement_key(mesh, transform, candidate.settings.get("padding", 0.1))
+    key = placement_key(mesh, transform, candidate.settings.get("padding", 0.1), units, meters_per_unit)
     detail = json.dumps(candidate.settings, sort_keys=True)
     path = cache / f"{key}-{candidate.name}-{hashlib.sha256(detail.encode()).hexdigest()[:8]}.safetensors"
     if path.is_file():
