@@ -181,6 +181,42 @@ def front_text(report: dict, device: str) -> str:
     return "\n".join(lines)
 
 
+def place_labels(ax, labels: list[tuple[str, float, float, float]],
+                 obstacles: list[tuple[float, float, float]] = ()) -> None:
+    """Annotate each ``(text, x, y, marker diameter in points)`` near its marker: the first of
+    a few offsets (growing rings around the marker) whose box overlaps no marker and no label
+    placed before, with a thin leader line when it had to move away (clustered colliders, e.g.
+    voxel grids of similar speed, would otherwise print over each other)."""
+    to_points = 72.0 / ax.figure.dpi
+    centres = [tuple(ax.transData.transform((x, y)) * to_points) + (size,) for _, x, y, size in labels]
+    others = [tuple(ax.transData.transform((x, y)) * to_points) + (size,) for x, y, size in obstacles]
+    placed = [(cx - s / 2, cy - s / 2, cx + s / 2, cy + s / 2) for cx, cy, s in centres + others]
+    for (text, x, y, size), (px, py, _) in sorted(zip(labels, centres), key=lambda item: item[0][1]):
+        width, height = 5.0 * len(text), 10.0
+        choice = None
+        for ring in range(4):
+            gap = size / 2 + 3 + 14 * ring
+            for dx, dy, ha in ((0, -gap - height, "center"), (0, gap, "center"), (gap, -height / 2, "left"),
+                               (-gap, -height / 2, "right"), (gap * 0.7, gap * 0.7, "left"),
+                               (gap * 0.7, -gap * 0.7 - height, "left"), (-gap * 0.7, gap * 0.7, "right"),
+                               (-gap * 0.7, -gap * 0.7 - height, "right")):
+                left = px + dx - {"center": width / 2, "left": 0, "right": width}[ha]
+                box = (left, py + dy, left + width, py + dy + height)
+                if not any(box[0] < b[2] and b[0] < box[2] and box[1] < b[3] and b[1] < box[3] for b in placed):
+                    choice = (dx, dy, ha, box, ring)
+                    break
+            if choice:
+                break
+        if choice is None:  # nowhere free: below the marker anyway
+            gap = size / 2 + 3
+            choice = (0, -gap - height, "center", (px - width / 2, py - gap - height, px + width / 2, py - gap), 0)
+        dx, dy, ha, box, ring = choice
+        placed.append(box)
+        arrow = {"arrowstyle": "-", "color": "grey", "linewidth": 0.6} if ring else None
+        ax.annotate(text, (x, y), textcoords="offset points", xytext=(dx, dy), ha=ha, va="bottom", fontsize=8,
+                    arrowprops=arrow)
+
+
 # -- files ------------------------------------------------------------------------------------
 
 
@@ -212,7 +248,7 @@ def plot(report: dict, output: Path, device: str = "cpu") -> Path:
     floor = {"distance": 1e-4, "normal": 1e-2}  # exact colliders (error 0) drawn on this floor
     biggest = max(r["memory_bytes"] for r in rows)
     for ax, (error, key) in zip(axes, ERROR_KEYS.items()):
-        points = {}
+        points, labels, served_markers = {}, [], []
         for i, r in enumerate(rows):
             t = reference_seconds_per_point(r, report, device) * 1e6
             e = max(r["accuracy"]["band_1mm"][key], floor[error])
@@ -225,9 +261,9 @@ def plot(report: dict, output: Path, device: str = "cpu") -> Path:
                 ax.scatter(served * 1e6, e, s=area, facecolors="none", edgecolors=colours(i % 10),
                            linewidths=1.2, zorder=3)
                 ax.plot([t, served * 1e6], [e, e], color=colours(i % 10), linewidth=0.8, alpha=0.6)
+                served_markers.append((served * 1e6, e, np.sqrt(area)))
             exact = " (error 0, drawn on the floor)" if r["accuracy"]["band_1mm"][key] < floor[error] else ""
-            ax.annotate(f"{r['label']}{exact}", (t, e), textcoords="offset points", xytext=(0, -18),
-                        ha="center", fontsize=8)
+            labels.append((f"{r['label']}{exact}", t, e, np.sqrt(area)))
         front = pareto_front([(n, t, e) for n, (t, e) in points.items()])
         if front:
             xs, ys = zip(*(points[n] for n in front))
@@ -244,6 +280,7 @@ def plot(report: dict, output: Path, device: str = "cpu") -> Path:
         ax.set_xlim(xlo / 1.5, xhi * 1.5)
         ylo, yhi = ax.get_ylim()
         ax.set_ylim(ylo / 2, yhi * 1.5)
+        place_labels(ax, labels, served_markers)
     handles = [Line2D([], [], marker="o", linestyle="", color=colours(i % 10), markersize=8, label=r["label"])
                for i, r in enumerate(rows)]
     handles += [Line2D([], [], color="crimson", linestyle="--", label="Pareto front (embedded)"),

@@ -29,7 +29,7 @@ class TimingPolicy:
     untimed warm-up call before each (collider, path, device, mode)."""
 
     repeats: int = 5
-    cell_budget_s: float = 20.0
+    cell_budget_s: float = 10.0
     warmup_points: int = 10_000
 
     def check(self) -> None:

@@ -43,7 +43,7 @@ def register(subparsers) -> None:
     bench.add_argument("--accuracy-points", type=int, default=None, help="points per band (default 40000)")
     bench.add_argument("--repeats", type=int, default=None, help="most timed calls per cell (default 5)")
     bench.add_argument("--cell-seconds", type=float, default=None,
-                       help="a cell stops repeating once its calls took this long (default 20)")
+                       help="a cell stops repeating once its calls took this long (default 10)")
     bench.add_argument("--no-served", action="store_true", help="skip the served (HTTP) half")
     bench.add_argument("--device", default=None, help="cpu or cuda (default: cpu, and cuda when present)")
     bench.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's)")
