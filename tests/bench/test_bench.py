@@ -137,7 +137,8 @@ def quick_bench(tmp_path_factory, bunny):
 def test_quick_bench_measures_every_kind_embedded_and_served_with_plausible_accuracy(quick_bench):
     out, report, stdout = quick_bench
     rows = {r["name"]: r for r in report["colliders"]}
-    assert list(rows) == ["kdtree", "mesh", "voxel-32", "voxel-64", "neural-bunny"]
+    assert list(rows)[:4] == ["kdtree", "mesh", "voxel-32", "voxel-64"]
+    assert "neural-bunny" in rows  # the shipped model of this mesh (others may join it)
     for row in rows.values():
         cells = {(t["path"], t["device"], t["mode"], t["points"]) for t in row["timings"]}
         assert cells == {(path, "cpu", mode, n) for path in ("embedded", "served")
