@@ -65,6 +65,11 @@ def test_training_resumes_from_its_checkpoint(sphere_mesh, tmp_path):
                            checkpoint=checkpoint, show_progress=False)
     assert resumed.steps == 30
     assert [h["step"] for h in resumed.history] == [10, 20, 30]
+    # The weights are resumed, not only the step count: training goes on from the step-20 error
+    # (a network restarted from its initial weights with the late, small learning rate stays
+    # near its untrained error, several times larger).
+    assert resumed.history[:2] == first.history
+    assert resumed.history[2]["1mm"] < 1.5 * first.history[-1]["1mm"], resumed.history
 
 
 def test_a_stale_checkpoint_of_another_architecture_is_a_clear_error(sphere_mesh, tmp_path):
