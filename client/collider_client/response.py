@@ -30,6 +30,7 @@ __all__ = [
     "ColliderPlacement",
     "CollisionHook",
     "HookStats",
+    "TunnellingError",
 ]
 
 
@@ -112,18 +113,41 @@ def world_box(info: ModelInfo, pose: np.ndarray | None, margin: float) -> tuple[
     return corners.min(axis=0) - margin, corners.max(axis=0) + margin
 
 
+def _unit_rows(vectors: np.ndarray) -> np.ndarray:
+    """Rows scaled to unit length; zero rows stay zero."""
+    length = np.linalg.norm(vectors, axis=1, keepdims=True)
+    return vectors / np.where(length > 0, length, 1.0)
+
+
 @dataclass
 class ColliderPlacement:
     """A collider in a simulation: a model name and its pose over time.
 
-    pose_at : function of time (s) -> (4, 4) collider -> world, or None for a static identity pose
+    pose_at : function of time (s) -> (4, 4) collider -> world; or a fixed (4, 4) pose (array or
+        nested lists) for a static collider; or None for the identity
     """
 
     model: str
-    pose_at: Callable[[float], np.ndarray] | None = None
+    pose_at: Callable[[float], np.ndarray] | np.ndarray | None = None
+
+    def __post_init__(self):
+        if self.pose_at is not None and not callable(self.pose_at):
+            fixed = np.asarray(self.pose_at, dtype=np.float64)
+            if fixed.shape != (4, 4) or not np.isfinite(fixed).all():
+                raise ValueError(f"ColliderPlacement({self.model!r}): pose must be a function of "
+                                 f"time or a finite 4x4 matrix, got shape {fixed.shape}")
+            self.pose_at = lambda t, _fixed=fixed: _fixed
+            self.static = True
+        else:
+            self.static = self.pose_at is None
 
     def pose(self, t: float) -> np.ndarray:
         return np.eye(4) if self.pose_at is None else np.asarray(self.pose_at(t), dtype=np.float64)
+
+
+class TunnellingError(ValueError):
+    """A step too long for the collision offset: a point could have passed through a thin
+    feature between two queries (speed x dt >= eps relative to the collider)."""
 
 
 @dataclass
@@ -156,6 +180,9 @@ class CollisionHook:
     only_colliding : ask for ``contact`` and ``normal`` of the colliding points only (the
         service then does the gradient work for those alone; the response never uses the
         others'). False asks for them at every point sent (for benchmarks that show the saving)
+    check_step : raise :class:`TunnellingError` when a point near a collider moves ``eps`` or
+        more relative to it in one step (the limit below which nothing tunnels; see
+        :meth:`substeps`)
 
     Call :meth:`apply` after each integration step (or substep). Only points inside a collider's
     inflated world box are sent, and only the fields the response needs are asked for.
@@ -164,7 +191,7 @@ class CollisionHook:
     def __init__(self, client, colliders: Sequence[ColliderPlacement], eps: float = 1e-3,
                  friction: float | None = None, restitution: float = 0.0,
                  infos: dict[str, ModelInfo] | None = None, cull: bool = True,
-                 only_colliding: bool = True):
+                 only_colliding: bool = True, check_step: bool = True):
         if not eps > 0:
             raise ValueError(f"eps must be > 0, got {eps}")
         if not colliders:
@@ -175,6 +202,7 @@ class CollisionHook:
         self.friction = friction
         self.restitution = float(restitution)
         self.cull = cull
+        self.check_step = check_step
         self.only_colliding = bool(only_colliding)
         if infos is None:
             infos = {m.name: m for m in client.list_models()}
@@ -188,32 +216,129 @@ class CollisionHook:
         self.fields = ["distance", "contact", "collides"] + (["normal"] if friction is not None else [])
         self.stats = HookStats(fields=list(self.fields))
 
+    #: Most collision substeps of one step (see :meth:`substeps`); beyond, TunnellingError.
+    max_substeps = 64
+
+    def collider_moves(self, poses: list, t: float, dt: float) -> list[float]:
+        """Per collider, the largest displacement (m) of any point of its domain box over the
+        step from ``t - dt`` to ``t`` (a rigid motion moves a box's points at most as far as its
+        corners); 0 for static colliders."""
+        moves = []
+        for placement, pose in zip(self.colliders, poses):
+            if placement.static:
+                moves.append(0.0)
+                continue
+            info = self.infos[placement.model]
+            corners = np.array([[x, y, z] for x in (info.domain_min[0], info.domain_max[0])
+                                for y in (info.domain_min[1], info.domain_max[1])
+                                for z in (info.domain_min[2], info.domain_max[2])], dtype=np.float64)
+            previous = placement.pose(t - dt)
+            moved = corners @ (pose[:3, :3] - previous[:3, :3]).T + (pose[:3, 3] - previous[:3, 3])
+            moves.append(float(np.linalg.norm(moved, axis=1).max()))
+        return moves
+
+    def substeps(self, velocities: np.ndarray, index: np.ndarray, moves: list[float], t: float,
+                 dt: float) -> int:
+        """How many collision checks the step needs along the points' paths so that nothing
+        tunnels: ``floor(relative displacement / eps) + 1``.
+
+        Why eps: a point at least eps outside (where every point is after a step: colliding
+        ones are moved to eps) that moves less than eps cannot reach the far side of anything,
+        however thin, without first landing within eps, where it is caught. The relative
+        displacement is bounded by the point's own plus the collider's (:meth:`collider_moves`).
+        Raises :class:`TunnellingError` beyond :attr:`max_substeps`."""
+        speed = np.linalg.norm(np.asarray(velocities, dtype=np.float64)[index], axis=1)
+        own = float(speed.max(initial=0.0)) * dt
+        box = max(moves, default=0.0)
+        if not np.isfinite(own + box):
+            raise TunnellingError(f"at t = {t:.6g} s a point near a collider has a non-finite velocity")
+        count = int(np.floor((own + box) / self.eps)) + 1
+        if count > self.max_substeps:
+            raise TunnellingError(
+                f"at t = {t:.6g} s a point near a collider moved {1e3 * (own + box):.3g} mm "
+                f"relative to it in one step ({1e3 * own:.3g} mm itself at {own / dt:.3g} m/s, "
+                f"{1e3 * box:.3g} mm the collider): more than {self.max_substeps} x eps = "
+                f"{1e3 * self.eps:.3g} mm, it could pass through a thin feature unseen. Keep "
+                "speed x dt below eps: lower dt or raise eps")
+        return count
+
     def apply(self, positions: np.ndarray, velocities: np.ndarray, t: float, dt: float
               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Respond to contacts at time ``t`` (the poses at ``t``; ``dt`` for collider velocity).
 
-        positions : (n, 3) float, metres, world frame; velocities : (n, 3) float, m/s
+        positions : (n, 3) float, metres, world frame, after the step; velocities : (n, 3) float,
+            m/s, the step's (positions moved by about velocities * dt during it)
         Returns ``(positions, velocities, mask)`` with new arrays for the first two and ``mask``
         (n,) bool of the points that were in contact.
+
+        A step in which a point moves ``eps`` or more relative to a collider is checked at
+        :meth:`substeps` times along the paths (``check_step``); a point caught part-way is
+        responded there and moves on with its responded velocity for the rest of the step, so
+        it cannot pass through a feature thinner than its step.
         """
         started = time.perf_counter()
         positions = np.asarray(positions)
         n = len(positions)
         poses = [c.pose(t) for c in self.colliders]
-        margin = self.eps + 1e-9
-        near = np.full(n, not self.cull)
-        for placement, pose in zip(self.colliders, poses) if self.cull else ():
-            lo, hi = world_box(self.infos[placement.model], pose, margin)
-            near |= np.all((positions >= lo) & (positions <= hi), axis=1)
-        index = np.flatnonzero(near)
+        moves = self.collider_moves(poses, t, dt) if self.check_step else [0.0] * len(poses)
+        sweep = np.asarray(velocities, dtype=np.float64) * dt if self.check_step else None
+        index = np.flatnonzero(self._near(positions, poses, self.eps + 1e-9, sweep, moves))
         self.stats.calls += 1
         self.stats.points_total += n
         mask = np.zeros(n, dtype=bool)
+        self.stats.colliding_last = 0
         if not len(index):
-            self.stats.colliding_last = 0
             self.stats.response_s += time.perf_counter() - started
             return positions, velocities, mask
-        points = positions[index]
+        count = self.substeps(velocities, index, moves, t, dt) if self.check_step else 1
+        positions = np.array(positions, copy=True)
+        velocities = np.array(velocities, dtype=np.float64, copy=True)
+        end_positions = positions.copy()
+        query_s = 0.0
+        for j in range(1, count + 1):
+            back = 1.0 - j / count  # fraction of the step after this check
+            t_j = t - back * dt
+            poses_j = poses if j == count else [c.pose(t_j) for c in self.colliders]
+            points = end_positions[index] - back * velocities[index] * dt
+            hit, q = self._respond(points, index, positions, velocities, poses_j, t_j, dt,
+                                   (1.0 - back) * dt, back * dt)
+            query_s += q
+            mask[index[hit]] = True  # _respond wrote their positions and velocities
+            index = index[~hit]
+            if not len(index):
+                break
+        self.stats.colliding_last = int(mask.sum())
+        self.stats.colliding_max = max(self.stats.colliding_max, self.stats.colliding_last)
+        self.stats.response_s += (time.perf_counter() - started) - query_s
+        return positions, velocities, mask
+
+    def _near(self, positions, poses, margin: float, sweep=None, moves=None) -> np.ndarray:
+        """(n,) bool: points inside some collider's world box grown by ``margin`` (all points
+        when culling is off); with ``sweep`` (n, 3) displacements, points whose path from
+        ``positions - sweep`` to ``positions`` may meet such a box grown by the collider's own
+        move (``moves``, m)."""
+        n = len(positions)
+        if not self.cull:
+            return np.ones(n, dtype=bool)
+        near = np.zeros(n, dtype=bool)
+        for k, (placement, pose) in enumerate(zip(self.colliders, poses)):
+            grow = margin + (moves[k] if moves else 0.0)
+            lo, hi = world_box(self.infos[placement.model], pose, grow)
+            if sweep is None:
+                near |= np.all((positions >= lo) & (positions <= hi), axis=1)
+            else:  # the path's own box overlaps the collider's box
+                start = positions - sweep
+                near |= np.all((np.maximum(positions, start) >= lo)
+                               & (np.minimum(positions, start) <= hi), axis=1)
+        return near
+
+    def _respond(self, points, index, positions, velocities, poses, t: float, dt: float,
+                 travelled_s: float, remaining_s: float):
+        """Query ``points`` (the rows ``index`` at time ``t``, ``travelled_s`` into the step and
+        ``remaining_s`` before its end), and for those within eps write the contact, moved on
+        with the responded velocity for ``remaining_s``, and that velocity into ``positions`` /
+        ``velocities`` (in place).
+        Returns ``(hit (len(index),) bool, seconds spent in the query)``."""
         q0 = time.perf_counter()
         if len(self.colliders) == 1:
             result = self.client.query(self.colliders[0].model, points, fields=self.fields,
@@ -224,37 +349,40 @@ class CollisionHook:
                 [(c.model, p) for c, p in zip(self.colliders, poses)], points,
                 fields=self.fields, eps=self.eps, only_colliding=self.only_colliding)
             which = np.asarray(result.collider)
-        q1 = time.perf_counter()
-        self.stats.query_s += q1 - q0
+        spent = time.perf_counter() - q0
+        self.stats.query_s += spent
         self.stats.queries += 1
         self.stats.points_sent += len(index)
         hit = np.asarray(result.collides, dtype=bool)
         local_index = np.flatnonzero(hit)
-        mask[index[local_index]] = True
-        positions = np.array(positions, copy=True)
-        velocities = np.array(velocities, dtype=np.float64, copy=True)
-        if len(local_index):
-            self.stats.deepest_m = min(self.stats.deepest_m,
-                                       float(np.min(result.distance[local_index])))
-            contact = np.asarray(result.contact)[local_index]
-            # Collider velocity at the contact points, per collider (zero for static ones).
-            v_col = np.zeros((len(local_index), 3))
-            for k, (placement, pose) in enumerate(zip(self.colliders, poses)):
-                if placement.pose_at is None:
-                    continue
-                rows = slice(None) if which is None else (which[local_index] == k)
-                before = placement.pose(t - dt)
-                if not np.array_equal(before, pose):
-                    v_col[rows] = collider_velocity(before, pose, contact[rows], dt)
-            positions[index[local_index]] = contact
-            if self.friction is None:
-                velocities[index[local_index]] = v_col
-            else:
-                normal = np.asarray(result.normal)[local_index]
-                velocities[index[local_index]] = respond_velocities(
-                    velocities[index[local_index]], normal, np.ones(len(local_index), bool),
-                    self.friction, self.restitution, v_col)
-        self.stats.colliding_last = len(local_index)
-        self.stats.colliding_max = max(self.stats.colliding_max, len(local_index))
-        self.stats.response_s += (time.perf_counter() - started) - (q1 - q0)
-        return positions, velocities, mask
+        if not len(local_index):
+            return hit, spent
+        self.stats.deepest_m = min(self.stats.deepest_m, float(np.min(result.distance[local_index])))
+        contact = np.asarray(result.contact)[local_index]
+        # Collider velocity at the contact points, per collider (zero for static ones).
+        v_col = np.zeros((len(local_index), 3))
+        for k, (placement, pose) in enumerate(zip(self.colliders, poses)):
+            if placement.static:
+                continue
+            rows = slice(None) if which is None else (which[local_index] == k)
+            previous = placement.pose(t - dt)
+            if not np.array_equal(previous, pose):
+                v_col[rows] = collider_velocity(previous, pose, contact[rows], dt)
+        rows = index[local_index]
+        v_before = velocities[rows]
+        if self.friction is None:
+            v_after = v_col
+        else:
+            normal = np.asarray(result.normal)[local_index]
+            v_after = respond_velocities(v_before, normal, np.ones(len(local_index), bool),
+                                         self.friction, self.restitution, v_col)
+        velocities[rows] = v_after
+        # The step already moved the point along the surface with its old velocity; the response
+        # changed that velocity, so take the tangential part of the change back from this step's
+        # displacement too: a contact that sticks does not creep (it slid g sin(theta) dt^2 per
+        # step on a slope). The normal part is the projection's job.
+        normal = _unit_rows(contact - points[local_index])
+        change = (v_after - v_before) * travelled_s
+        change -= np.einsum("ij,ij->i", change, normal)[:, None] * normal
+        positions[rows] = contact + change + v_after * remaining_s
+        return hit, spent

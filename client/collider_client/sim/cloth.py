@@ -70,3 +70,12 @@ class SpringFamily:
             f = d * scale[..., None]
             forces[a] += f
             forces[b] -= f
+
+    def energy(self, x: np.ndarray) -> float:
+        """Elastic energy (J) ``sum k (|d| - L)^2 / 2`` of this family at positions ``x``."""
+        total = 0.0
+        for (a, b), rest in zip(self.slices, self.rest):
+            d = x[b] - x[a]
+            length = np.sqrt(np.einsum("...i,...i->...", d, d))
+            total += 0.5 * self.k * float(np.sum((length - rest) ** 2))
+        return total

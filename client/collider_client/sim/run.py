@@ -73,9 +73,6 @@ def run_scene(scene: Scene, client, out_dir: Path, *, show_progress: bool = True
                 bar.update(i - bar.n)
                 if sim.hook is not None:
                     bar.set_postfix(colliding=sim.hook.stats.colliding_last, refresh=False)
-            if not np.isfinite(sim.x).all():
-                raise ValueError(f"{scene.path}: the cloth blew up at step {i} (t = {sim.t:.4g} s);"
-                                 " lower scene.dt_s or the spring stiffness")
     if bar is not None:
         bar.close()
     wall = time.perf_counter() - started

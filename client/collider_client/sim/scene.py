@@ -313,13 +313,46 @@ def _check_consistency(scene: Scene) -> None:
         raise SceneError(f"{path}: effects.collisions needs at least one [[colliders]] entry")
     if scene.has("friction") and not scene.has("collisions"):
         raise SceneError(f"{path}: effects.friction needs effects.collisions")
-    # Explicit integration of springs is stable while dt < 2 / omega_max; the stiffest grid mode
-    # is about (4 per declared spring family) * k / m. Refuse runs that would blow up.
+    _check_stability(scene)
+
+
+def stability_limits(scene: Scene) -> dict[str, float]:
+    """The largest safe ``dt_s`` (seconds) of each declared effect that limits it.
+
+    - springs (stretch, shear, bend): explicit integration is stable while dt < 2 / omega_max;
+      the stiffest grid mode is about (4 per declared spring family) * k / m;
+    - damping and wind drag both scale the velocity by ``1 - (c + drag) dt`` per step: above
+      ``dt = 1 / (c + drag)`` the factor turns negative and the velocity flips sign every step
+      (above twice that it grows without bound: positions reached 1e36 m).
+    """
+    limits = {}
     mass = scene.cloth.density_kg_m2 * scene.cloth.spacing_m ** 2
     k_total = sum(4.0 * scene.effects[s]["stiffness_n_m"] for s in ("stretch", "shear", "bend")
                   if scene.has(s))
     if k_total:
-        dt_max = 2.0 / math.sqrt(k_total / mass)
+        limits["springs"] = 2.0 / math.sqrt(k_total / mass)
+    rate = (scene.effects["damping"]["coefficient_1_s"] if scene.has("damping") else 0.0) + (
+        scene.effects["wind"]["drag_1_s"] if scene.has("wind") else 0.0)
+    if rate > 0:
+        limits["damping and wind drag"] = 1.0 / rate
+    return limits
+
+
+def _check_stability(scene: Scene) -> None:
+    """Refuse, before the run, a dt_s beyond any declared effect's stability limit."""
+    path = scene.path
+    limits = stability_limits(scene)
+    dt_drag = limits.get("damping and wind drag")
+    if dt_drag is not None and scene.dt_s > dt_drag:
+        raise SceneError(
+            f"{path}: scene.dt_s = {scene.dt_s} is unstable for effects.damping.coefficient_1_s + "
+            f"effects.wind.drag_1_s = {1.0 / dt_drag:g} 1/s (the velocity factor 1 - rate * dt "
+            f"must stay >= 0): use dt_s <= {dt_drag:.3g} s or a smaller coefficient")
+    mass = scene.cloth.density_kg_m2 * scene.cloth.spacing_m ** 2
+    k_total = sum(4.0 * scene.effects[s]["stiffness_n_m"] for s in ("stretch", "shear", "bend")
+                  if scene.has(s))
+    if k_total:
+        dt_max = limits["springs"]
         if scene.dt_s >= dt_max:
             raise SceneError(
                 f"{path}: scene.dt_s = {scene.dt_s} is unstable for these springs (vertex mass "

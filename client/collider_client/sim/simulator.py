@@ -88,6 +88,11 @@ class RunReport:
         return d
 
 
+class SimulationError(ValueError):
+    """The run left the physically meaningful states: a non-finite position, or a vertex that
+    moved more than the cloth's own size in one step (a blow-up). Raised at the first such step."""
+
+
 class Simulator:
     """A cloth from ``scene``; ``client`` (a :class:`collider_client.Client`) answers collisions
     and is only used when the scene declares ``[effects.collisions]``."""
@@ -96,6 +101,9 @@ class Simulator:
         self.scene = scene
         c = scene.cloth
         self.rest = grid_positions(c.width, c.height, c.spacing_m, c.origin_m, c.axes)
+        #: A vertex moving farther than this in one step (the cloth's rest diagonal) is a blow-up.
+        self.runaway_m = float(np.hypot(c.width - 1, c.height - 1) * c.spacing_m)
+        self.steps_done = 0
         self.x = self.rest.copy()
         self.x_prev = self.rest.copy()
         self.dt = scene.dt_s
@@ -137,6 +145,19 @@ class Simulator:
             if friction is not None:
                 self.effects.append("friction")
 
+    def _check_state(self, x_new: np.ndarray, x: np.ndarray) -> None:
+        """Stop at the first non-finite or runaway state, naming the step and what to change."""
+        step = np.abs(x_new - x).max(initial=0.0)  # NaN propagates: caught below
+        if np.isfinite(step) and step <= self.runaway_m:
+            return
+        what = ("a position became non-finite" if not np.isfinite(step) else
+                f"a vertex moved {step:.3g} m in one step, more than the cloth's size "
+                f"({self.runaway_m:.3g} m)")
+        raise SimulationError(
+            f"{self.scene.path}: the cloth blew up at step {self.steps_done} (t = "
+            f"{self.t + self.dt:.6g} s): {what}; lower scene.dt_s, the spring stiffness, the "
+            "damping or the wind drag")
+
     def _pinned(self, pins):
         if pins is None:
             return None
@@ -146,6 +167,19 @@ class Simulator:
         cells = {corner[c] for c in pins["corners"]} | {tuple(v) for v in pins["vertices"]}
         cols, rows = zip(*sorted(cells))
         return np.asarray(rows), np.asarray(cols)
+
+    def energy(self) -> dict[str, float]:
+        """The cloth's mechanical energy now, joules: ``kinetic`` (from the last step's
+        velocity ``(x - x_prev) / dt``), ``gravity`` (potential, zero at the world origin), and
+        ``springs`` (``k (|d| - L)^2 / 2`` summed over the declared families), and ``total``.
+        With only dissipative effects (damping, friction, inelastic contact) the total does not
+        grow; a blow-up shows as it growing without bound."""
+        velocity = (self.x - self.x_prev) / self.dt
+        kinetic = 0.5 * self.mass_kg * float(np.sum(velocity * velocity))
+        gravity = -self.mass_kg * float(np.sum(self.x * self._accel))
+        springs = sum(family.energy(self.x) for family in self.springs)
+        return {"kinetic": kinetic, "gravity": gravity, "springs": springs,
+                "total": kinetic + gravity + springs}
 
     @property
     def vertices(self) -> np.ndarray:
@@ -171,6 +205,8 @@ class Simulator:
         x_new = x + keep * velocity_dt + accel * (dt * dt)
         if self.pinned is not None:
             x_new[self.pinned] = self.rest[self.pinned]
+        self.steps_done += 1
+        self._check_state(x_new, x)
         self.t += dt
         t1 = time.perf_counter()
         self.timings.integration_s += t1 - t0

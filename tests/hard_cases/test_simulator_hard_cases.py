@@ -1,0 +1,416 @@
+"""Hard cases of the cloth simulator and the collision response, each against a closed-form or
+independently computed expectation: every effect would fail here if its sign, its magnitude or its
+presence were wrong. Units: metres, seconds, kilograms; world frame, gravity along -z.
+
+Colliders are exact (``mesh`` kind) boxes, so what is measured is the simulator, not a model's
+approximation: a floor (top face at z = 0) and a thin plate (0.2 mm thick, thinner than eps).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import collider_client as cc
+from collider_client.response import ColliderPlacement, CollisionHook
+from collider_client.sim.cloth import FAMILIES
+from collider_client.sim.scene import SceneError, load_scene
+from collider_client.sim.simulator import SimulationError, Simulator
+
+G = 9.81
+EPS = 1e-3
+PLATE_THICKNESS = 2e-4
+
+
+def write_scene(tmp_path: Path, effects: str, *, width=3, height=3, spacing=0.01, dt=1e-3,
+                duration=1.0, origin=(0.0, 0.0, 0.0), axes="xy", density=0.5, colliders="",
+                name="case") -> Path:
+    path = tmp_path / f"{name}.toml"
+    path.write_text(f"""
+[scene]
+duration_s = {duration}
+dt_s = {dt}
+frame_every_steps = 10
+
+[cloth]
+width = {width}
+height = {height}
+spacing_m = {spacing}
+origin_m = {list(origin)}
+axes = "{axes}"
+density_kg_m2 = {density}
+{colliders}
+[effects]
+{effects}
+""")
+    return path
+
+
+def simulator(tmp_path, effects, client=None, **kwargs) -> Simulator:
+    scene = load_scene(write_scene(tmp_path, effects, **kwargs))
+    infos = None if client is None else {m.name: m for m in client.list_models()}
+    return Simulator(scene, client, infos)
+
+
+def run(sim: Simulator, steps: int) -> None:
+    for _ in range(steps):
+        sim.step()
+
+
+def velocity(sim: Simulator) -> np.ndarray:
+    return (sim.x - sim.x_prev) / sim.dt
+
+
+# -- colliders: exact boxes ------------------------------------------------------------------------
+
+
+def _box(extents, centre):
+    import trimesh
+
+    from collider_server.meshes import Mesh
+
+    box = trimesh.creation.box(extents=extents)
+    return Mesh(np.asarray(box.vertices) + np.asarray(centre, float), np.asarray(box.faces), "box")
+
+
+@pytest.fixture(scope="module")
+def box_models(tmp_path_factory) -> Path:
+    """``floor``: 1 x 1 x 0.1 m, top face at z = 0; ``plate``: 0.3 x 0.3 m, 0.2 mm thick, its
+    faces at z = 0 and z = -0.2 mm. Exact mesh colliders, metres."""
+    pytest.importorskip("collider_server")
+    from collider_server.bake import bake_collider
+    from collider_server.modelfile import save_collider
+
+    root = tmp_path_factory.mktemp("boxes")
+    for name, mesh in {"floor": _box((1.0, 1.0, 0.1), (0, 0, -0.05)),
+                       "plate": _box((0.3, 0.3, PLATE_THICKNESS), (0, 0, -PLATE_THICKNESS / 2))}.items():
+        save_collider(bake_collider(mesh, "mesh", name, show_progress=False), root / f"{name}.safetensors")
+    return root
+
+
+@pytest.fixture(scope="module")
+def client(box_models):
+    with cc.Client(models=box_models, device="cpu") as c:
+        yield c
+
+
+def floor_scene(position=(0, 0, 0), rotation=(0, 0, 0), model="floor", motion=""):
+    return (f'[[colliders]]\nmodel = "{model}"\nposition_m = {list(position)}\n'
+            f'rotation_deg = {list(rotation)}\n{motion}\n')
+
+
+# -- 2. every effect against a closed form ---------------------------------------------------------
+
+
+def test_gravity_follows_the_closed_form_free_fall(tmp_path):
+    g = np.array([0.5, 0.0, -G])
+    sim = simulator(tmp_path, "[effects.gravity]\nacceleration_m_s2 = [0.5, 0.0, -9.81]")
+    n = 50
+    run(sim, n)
+    np.testing.assert_allclose(sim.x - sim.rest, np.broadcast_to(g * sim.dt**2 * n * (n + 1) / 2,
+                                                                 sim.x.shape), rtol=1e-9)
+    np.testing.assert_allclose(velocity(sim)[0, 0], g * n * sim.dt, rtol=1e-9)
+
+
+def reference_spring_forces(x: np.ndarray, rest: np.ndarray, family: str, k: float) -> np.ndarray:
+    """Forces (N) of one spring family, one spring at a time (the slow, obvious reference)."""
+    h, w = x.shape[:2]
+    forces = np.zeros_like(x)
+    for dr, dc in FAMILIES[family]:
+        for r in range(h):
+            for c in range(w):
+                r2, c2 = r + dr, c + dc
+                if not (0 <= r2 < h and 0 <= c2 < w):
+                    continue
+                d = x[r2, c2] - x[r, c]
+                length = np.linalg.norm(d)
+                natural = np.linalg.norm(rest[r2, c2] - rest[r, c])
+                f = k * (length - natural) * d / length  # pulls the two ends together when stretched
+                forces[r, c] += f
+                forces[r2, c2] -= f
+    return forces
+
+
+@pytest.mark.parametrize("family", ["stretch", "shear", "bend"])
+def test_each_spring_family_gives_its_own_forces(tmp_path, family):
+    k, density, spacing = 7.0, 0.5, 0.01
+    sim = simulator(tmp_path, f"[effects.{family}]\nstiffness_n_m = {k}", width=5, height=4,
+                    spacing=spacing, density=density, dt=1e-4)
+    rng = np.random.default_rng(3)
+    sim.x = sim.rest + rng.normal(scale=2e-3, size=sim.rest.shape)
+    sim.x_prev = sim.x.copy()  # at rest: the step moves by F / m dt^2 only
+    start = sim.x.copy()
+    sim.step()
+    mass = density * spacing**2
+    expected = start + reference_spring_forces(start, sim.rest, family, k) / mass * sim.dt**2
+    np.testing.assert_allclose(sim.x, expected, rtol=0, atol=1e-15)
+    assert np.abs(sim.x - start).max() > 1e-9  # the family did act
+
+
+def test_damping_decays_the_velocity_geometrically(tmp_path):
+    c = 20.0
+    sim = simulator(tmp_path, f"[effects.damping]\ncoefficient_1_s = {c}", dt=1e-3)
+    v0 = np.array([0.3, -0.2, 0.1])
+    sim.x_prev = sim.x - v0 * sim.dt
+    n = 40
+    run(sim, n)
+    factor = 1.0 - c * sim.dt
+    np.testing.assert_allclose(velocity(sim)[1, 1], v0 * factor**n, rtol=1e-9)
+    travelled = v0 * sim.dt * sum(factor**k for k in range(1, n + 1))
+    np.testing.assert_allclose(sim.x[1, 1] - sim.rest[1, 1], travelled, rtol=1e-9)
+    assert sim.energy()["kinetic"] < 0.5 * sim.mass_kg * 9 * (v0 @ v0)  # it lost energy
+
+
+def test_wind_drag_pulls_the_velocity_towards_the_wind(tmp_path):
+    # v_{k+1} = v_k + drag (w - v_k) dt, so v_N = w (1 - (1 - drag dt)^N) from rest.
+    w, drag = np.array([3.0, 1.0, 0.0]), 2.0
+    sim = simulator(tmp_path, f"[effects.wind]\nvelocity_m_s = {w.tolist()}\ndrag_1_s = {drag}",
+                    dt=1e-3)
+    n = 200
+    run(sim, n)
+    np.testing.assert_allclose(velocity(sim)[2, 0], w * (1 - (1 - drag * sim.dt) ** n), rtol=1e-9)
+
+
+def test_wind_and_damping_combine_as_one_linear_recurrence(tmp_path):
+    w, drag, c = np.array([0.0, -2.0, 1.0]), 3.0, 5.0
+    sim = simulator(tmp_path, f"[effects.wind]\nvelocity_m_s = {w.tolist()}\ndrag_1_s = {drag}\n"
+                              f"[effects.damping]\ncoefficient_1_s = {c}", dt=1e-3)
+    v = np.zeros(3)
+    for _ in range(100):
+        sim.step()
+        v = (1 - c * sim.dt) * v + drag * sim.dt * (w - v)  # independent recurrence
+    np.testing.assert_allclose(velocity(sim)[0, 2], v, rtol=1e-9)
+
+
+def test_pins_hold_exactly_the_declared_vertices_and_nothing_else(tmp_path):
+    sim = simulator(tmp_path, '[effects.gravity]\n[effects.pins]\ncorners = ["top-left"]\n'
+                              "vertices = [[2, 0]]", width=4, height=3)
+    n = 30
+    run(sim, n)
+    pinned = np.zeros((3, 4), bool)
+    pinned[2, 0] = True  # top-left: column 0, row H - 1
+    pinned[0, 2] = True  # vertex [column 2, row 0]
+    np.testing.assert_array_equal(sim.x[pinned], sim.rest[pinned])
+    fall = -G * sim.dt**2 * n * (n + 1) / 2
+    np.testing.assert_allclose(sim.x[~pinned][:, 2] - sim.rest[~pinned][:, 2], fall, rtol=1e-9)
+
+
+# -- collisions, friction, restitution, moving colliders (exact floor) ---------------------------
+
+
+def drop_on_floor(tmp_path, client, friction="", height=0.02, steps=200, dt=2e-4, v0=None):
+    sim = simulator(tmp_path, f"[effects.gravity]\n[effects.collisions]\neps_m = {EPS}\n{friction}",
+                    client=client, colliders=floor_scene(), origin=(-0.005, -0.005, height), dt=dt,
+                    width=2, height=2)
+    if v0 is not None:
+        sim.x_prev = sim.x - np.asarray(v0) * sim.dt
+    heights, speeds = [], []
+    for _ in range(steps):
+        sim.step()
+        heights.append(sim.x[..., 2].min())
+        speeds.append(velocity(sim)[0, 0].copy())
+    return sim, np.array(heights), np.array(speeds)
+
+
+def test_collisions_keep_the_cloth_at_eps_above_the_floor(tmp_path, client):
+    sim, heights, _ = drop_on_floor(tmp_path, client, height=0.01, steps=400)
+    assert heights.min() >= EPS - 1e-9  # never below the offset surface after a step
+    np.testing.assert_allclose(sim.x[..., 2], EPS, atol=1e-9)  # landed, resting at eps
+
+
+@pytest.mark.parametrize("restitution", [0.0, 0.5])
+def test_restitution_returns_that_fraction_of_the_impact_speed(tmp_path, client, restitution):
+    friction = f"[effects.friction]\ncoefficient = 0.0\nrestitution = {restitution}"
+    sim, heights, speeds = drop_on_floor(tmp_path, client, friction, height=0.01, steps=300)
+    impact = speeds[:, 2].min()  # most negative vertical speed, just before the contact
+    rebound = speeds[np.argmin(speeds[:, 2]):, 2].max()
+    assert impact < -0.3
+    # One step of gravity (g dt) separates the measured speeds from the instant of contact.
+    assert rebound == pytest.approx(-restitution * impact, abs=2 * G * sim.dt + 1e-6)
+
+
+@pytest.mark.parametrize("mu", [0.0, 0.3])
+def test_sliding_friction_decelerates_at_mu_g(tmp_path, client, mu):
+    v0 = np.array([0.5, 0.0, 0.0])
+    friction = f"[effects.friction]\ncoefficient = {mu}"
+    sim = simulator(tmp_path, f"[effects.gravity]\n[effects.collisions]\neps_m = {EPS}\n{friction}",
+                    client=client, colliders=floor_scene(), origin=(-0.005, -0.005, EPS), width=2,
+                    height=2, dt=1e-4)
+    sim.x_prev = sim.x - v0 * sim.dt
+    steps = 1000
+    run(sim, steps)
+    t = steps * sim.dt
+    expected_v = max(v0[0] - mu * G * t, 0.0)
+    assert velocity(sim)[0, 0, 0] == pytest.approx(expected_v, abs=0.01 * v0[0])
+    travelled = sim.x[0, 0, 0] - sim.rest[0, 0, 0]
+    expected_x = v0[0] * t - 0.5 * mu * G * t**2
+    assert travelled == pytest.approx(expected_x, rel=0.02)
+
+
+def slope(tmp_path, client, mu: float, theta_deg: float, steps: int, dt=1e-3):
+    """A 2 x 2 cloth resting on the floor tilted theta about x, with friction mu."""
+    friction = f"[effects.friction]\ncoefficient = {mu}"
+    theta = np.radians(theta_deg)
+    up = np.array([0.0, -np.sin(theta), np.cos(theta)])  # the tilted floor's normal
+    sim = simulator(tmp_path, f"[effects.gravity]\n[effects.collisions]\neps_m = {EPS}\n{friction}",
+                    client=client, colliders=floor_scene(rotation=(theta_deg, 0, 0)), width=2,
+                    height=2, dt=dt, spacing=0.005)
+    # Lay the cloth on the slope, eps above it.
+    rot = np.array([[1, 0, 0], [0, np.cos(theta), -np.sin(theta)], [0, np.sin(theta), np.cos(theta)]])
+    sim.rest = sim.rest @ rot.T + EPS * up
+    sim.x, sim.x_prev = sim.rest.copy(), sim.rest.copy()
+    start = sim.x.copy()
+    run(sim, steps)
+    downhill = np.array([0.0, -np.cos(theta), -np.sin(theta)])
+    return (sim.x - start) @ downhill, sim, up
+
+
+def test_static_friction_holds_below_the_friction_angle(tmp_path, client):
+    # 20 deg slope, mu = 0.5 > tan 20 deg = 0.36: the cloth sticks (it crept 0.67 mm in 0.2 s).
+    slid, sim, up = slope(tmp_path, client, mu=0.5, theta_deg=20.0, steps=200)
+    assert np.abs(slid).max() < 1e-7, slid
+    assert np.abs((sim.x - sim.rest) @ up).max() < 1e-6  # and stays on the surface
+
+
+def test_friction_lets_the_cloth_slide_above_the_friction_angle(tmp_path, client):
+    # mu = 0.2 < tan 20 deg: it slides with a = g (sin - mu cos).
+    steps, theta = 200, np.radians(20.0)
+    slid, sim, _ = slope(tmp_path, client, mu=0.2, theta_deg=20.0, steps=steps)
+    t = steps * sim.dt
+    expected = 0.5 * G * (np.sin(theta) - 0.2 * np.cos(theta)) * t**2
+    np.testing.assert_allclose(slid, expected, rtol=0.03)
+
+
+def test_a_resting_vertex_neither_jitters_nor_creeps_for_1000_steps(tmp_path, client):
+    sim = simulator(tmp_path, f"[effects.gravity]\n[effects.collisions]\neps_m = {EPS}\n"
+                              "[effects.friction]\ncoefficient = 0.4",
+                    client=client, colliders=floor_scene(), origin=(0.01, 0.02, EPS), width=2,
+                    height=2, dt=1e-3)
+    track = []
+    for _ in range(1000):
+        sim.step()
+        track.append(sim.x.copy())
+    track = np.array(track)
+    assert np.abs(track[..., 2] - EPS).max() < 1e-4  # jitter < 0.1 mm (measured 0)
+    assert np.abs(track[..., :2] - sim.rest[..., :2]).max() < 1e-9  # no creep
+
+
+def test_a_moving_collider_carries_the_cloth_resting_on_it(tmp_path, client):
+    rise = 0.05  # m/s, the floor moving up
+    motion = f'motion = {{ kind = "velocity", velocity_m_s = [0.0, 0.0, {rise}] }}'
+    sim = simulator(tmp_path, f"[effects.gravity]\n[effects.collisions]\neps_m = {EPS}",
+                    client=client, colliders=floor_scene(motion=motion), origin=(0.0, 0.0, EPS),
+                    width=2, height=2, dt=1e-3)
+    run(sim, 200)
+    floor_top = rise * sim.t
+    np.testing.assert_allclose(sim.x[..., 2], floor_top + EPS, atol=1e-4)
+    np.testing.assert_allclose(velocity(sim)[..., 2], rise, rtol=0.05)
+
+
+# -- 16. fast vertices and fast colliders against a thin plate -------------------------------------
+
+
+def shoot_at_plate(client, speed: float, dt: float, check_step=True, plate_speed=0.0):
+    """One vertex 5 mm above a 0.2 mm plate moving towards it (or the plate moving up towards the
+    vertex); returns its height above the plate's top after the passage, metres."""
+    t0 = 0.0
+    plate = ColliderPlacement("plate", lambda t: np.array(
+        [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, plate_speed * t], [0, 0, 0, 1.0]]))
+    hook = CollisionHook(client, [plate], eps=EPS, check_step=check_step)
+    x = np.array([[0.01, 0.02, 0.005]])
+    v = np.array([[0.0, 0.0, -speed]])
+    t = t0
+    for _ in range(int(round(0.02 / (max(speed, plate_speed) * dt))) + 2):
+        t += dt
+        x = x + v * dt
+        x, v, _ = hook.apply(x, v, t, dt)
+    return float(x[0, 2] - plate_speed * t)
+
+
+@pytest.mark.parametrize("steps_per_eps", [0.5, 4.0, 30.0])
+def test_fast_vertices_do_not_tunnel_through_a_thin_plate(client, steps_per_eps):
+    dt = 1e-3
+    speed = steps_per_eps * EPS / dt  # speed x dt = steps_per_eps x eps, plate 0.2 mm thick
+    assert shoot_at_plate(client, speed, dt) > 0.5 * EPS
+
+
+def test_without_the_step_check_a_fast_vertex_does_tunnel(client):
+    # The limit, shown: speed x dt = 4 eps and no sub-checks: the vertex ends below the plate.
+    assert shoot_at_plate(client, 4.0, 1e-3, check_step=False) < -PLATE_THICKNESS
+
+
+def test_a_fast_moving_plate_does_not_pass_through_a_vertex(client):
+    assert shoot_at_plate(client, 0.0, 1e-3, plate_speed=3.0) > 0.5 * EPS
+
+
+def test_beyond_the_substep_limit_the_hook_refuses(client):
+    from collider_client.response import TunnellingError
+
+    with pytest.raises(TunnellingError, match="speed x dt below eps"):
+        shoot_at_plate(client, 200.0, 1e-3)
+
+
+# -- blow-ups are refused before or stopped at the first bad step ----------------------------------
+
+
+def test_damping_beyond_its_stability_limit_is_refused_before_the_run(tmp_path):
+    with pytest.raises(SceneError, match=r"damping.coefficient_1_s \+ effects.wind.drag_1_s = 50000 .*"
+                                         r"dt_s <= 2e-05"):
+        load_scene(write_scene(tmp_path, "[effects.damping]\ncoefficient_1_s = 50000", dt=1e-4))
+    with pytest.raises(SceneError, match="dt_s <= 0.0005"):
+        load_scene(write_scene(tmp_path, "[effects.wind]\nvelocity_m_s = [1, 0, 0]\ndrag_1_s = 1500\n"
+                                         "[effects.damping]\ncoefficient_1_s = 500", dt=1e-3))
+    load_scene(write_scene(tmp_path, "[effects.damping]\ncoefficient_1_s = 500", dt=2e-3))  # limit
+
+
+def test_a_runaway_state_stops_the_run_at_its_first_step(tmp_path):
+    sim = simulator(tmp_path, "[effects.gravity]", dt=1e-3)
+    sim.x_prev = sim.x - np.array([0.0, 0.0, 100.0])  # 100 m in one step: far beyond the cloth
+    with pytest.raises(SimulationError, match="blew up at step 1 .*moved 100 m in one step"):
+        sim.step()
+    sim = simulator(tmp_path, "[effects.gravity]", dt=1e-3)
+    sim.x[1, 1, 0] = np.nan
+    with pytest.raises(SimulationError, match="non-finite"):
+        sim.step()
+
+
+# -- 17. a long run, shortened: drape on a voxel bunny ------------------------------------------
+
+
+@pytest.mark.slow
+def test_drape_on_a_voxel_bunny_stays_finite_bounded_and_outside(tmp_path, load_shared_mesh):
+    """The paper's drape, coarsened (40 x 40 vertices 6 mm apart, 0.25 s): no NaN, the energy
+    never rises above its start, no vertex deeper than 0.1 mm inside the exact mesh at any frame.
+    The full 5 s run is ``benchmarks/long_drape.py`` (README, hard cases)."""
+    from collider_server.bake import bake_collider
+    from collider_server.meshes import ExactSDF
+    from collider_server.modelfile import save_collider
+
+    from collider_client.sim.command import SCENES_DIR
+    from collider_client.sim.scene import pose_function
+
+    mesh = load_shared_mesh("stanford-bunny.obj")
+    save_collider(bake_collider(mesh, "voxel", "bunny", resolution=64, show_progress=False),
+                  tmp_path / "models" / "bunny.safetensors")
+    scene = load_scene(SCENES_DIR / "drape_bunny.toml")
+    scene.cloth.width = scene.cloth.height = 40
+    scene.cloth.spacing_m = 6e-3
+    scene.cloth.origin_m = np.array([-0.117, -0.1, 0.20])
+    exact = ExactSDF(mesh)
+    pose = pose_function(scene.colliders[0])(0.0)
+    with cc.Client(models=tmp_path / "models", device="cpu") as client:
+        sim = Simulator(scene, client, {m.name: m for m in client.list_models()})
+        start = sim.energy()["total"]
+        deepest, energies = 0.0, []
+        for i in range(1, 1251):
+            sim.step()
+            if i % 50 == 0:
+                energies.append(sim.energy()["total"])
+                local = (sim.vertices - pose[:3, 3]) @ pose[:3, :3]
+                deepest = max(deepest, float(-exact.signed_distance(local).min()))
+    assert np.isfinite(sim.x).all()
+    assert sim.hook.stats.colliding_max > 50  # it did drape over the bunny
+    assert max(energies) <= start + 1e-9, (start, max(energies))
+    assert deepest < 1e-4, deepest
