@@ -11,6 +11,35 @@ from collider_server.collider import FIELDS, Collider
 
 from .test_collider import KINDS, fresh_collider, mixed_points  # noqa: F401  (fixture)
 
+@pytest.fixture
+def collider_of(fresh_collider):
+    """``fresh_collider`` plus "neural-grid": an untrained grid network (analytic gradient path)
+    over the sphere's domain, its table drawn large so the encoding matters."""
+
+    def make(kind: str) -> Collider:
+        if kind != "neural-grid":
+            return fresh_collider(kind)
+        import torch
+
+        from collider_server.collider import ColliderInfo
+        from collider_server.kinds.neural import GridArchitecture, NeuralCollider, build_network
+
+        box = fresh_collider("kdtree")
+        arch = GridArchitecture(levels=4, features=2, base_resolution=4, max_resolution=40,
+                                table_log2=10, hidden_layers=2, hidden_width=16)
+        lo, hi = box.domain_min, box.domain_max
+        with torch.random.fork_rng(devices=[]):
+            torch.manual_seed(0)
+            network = build_network(arch, 0.5 * (lo + hi), 0.5 * float((hi - lo).max()))
+            with torch.no_grad():
+                network.table.normal_(0.0, 0.5)
+        info = ColliderInfo("grid", "neural", lo.tolist(), hi.tolist(),
+                            settings={"architecture": dict(arch.__dict__)})
+        return NeuralCollider(info, network, "cpu")
+
+    return make
+
+
 SCALED_POSE = np.array([[0, -2.0, 0, 0.3], [2.0, 0, 0, -0.1], [0, 0, 2.0, 0.05], [0, 0, 0, 1]])
 
 
@@ -36,10 +65,10 @@ def record_gradient_points(collider: Collider) -> list:
     return sizes
 
 
-@pytest.mark.parametrize("kind", KINDS)
+@pytest.mark.parametrize("kind", KINDS + ["neural-grid"])
 @pytest.mark.parametrize("pose", [None, SCALED_POSE], ids=["identity", "scaled-pose"])
-def test_colliding_points_get_the_full_answer_the_others_the_documented_one(fresh_collider, kind, pose):
-    collider = fresh_collider(kind)
+def test_colliding_points_get_the_full_answer_the_others_the_documented_one(collider_of, kind, pose):
+    collider = collider_of(kind)
     local = np.concatenate([near_surface(), mixed_points(200)])
     scale = 1.0 if pose is None else 2.0
     points = local * scale if pose is None else local @ SCALED_POSE[:3, :3].T + SCALED_POSE[:3, 3]
