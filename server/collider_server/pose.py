@@ -11,6 +11,7 @@ All transforms run in float64 so that a collider far from the origin loses no pr
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -46,7 +47,7 @@ class Pose:
     translation: np.ndarray
     scale: float = 1.0
 
-    @property
+    @functools.cached_property  # (a frozen dataclass still has a __dict__ to cache in)
     def is_identity(self) -> bool:
         return (
             self.scale == 1.0
@@ -63,6 +64,8 @@ class Pose:
 
     def to_local(self, points: np.ndarray) -> np.ndarray:
         """World-frame points (n, 3) to collider-frame points (n, 3) float64: ``T^-1 p``."""
+        if self.is_identity:  # the common case of a service query: a copy, no arithmetic
+            return np.array(points, dtype=np.float64)
         local = rotate_rows(np.asarray(points, dtype=np.float64) - self.translation,
                             self.rotation.T)  # R^T (p - t)
         if self.scale != 1.0:
@@ -71,6 +74,8 @@ class Pose:
 
     def to_world_directions(self, vectors: np.ndarray) -> np.ndarray:
         """Collider-frame directions (n, 3) rotated into the world frame (no translation)."""
+        if self.is_identity:
+            return np.asarray(vectors)
         return rotate_rows(vectors, self.rotation)
 
 

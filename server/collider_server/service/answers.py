@@ -87,7 +87,7 @@ def _answer_batch(collider: Collider, name: str, parts: Sequence[BatchPart]) -> 
         job = parts[members[0]].payload
         points = _rows(parts, members, lambda p: p.payload.points)
         world.append(points)
-        locals_.append(_to_local(job.pose, points))
+        locals_.append(job.pose.to_local(points))
     local = locals_[0] if len(locals_) == 1 else np.concatenate(locals_)
     want_gradient = any(p.payload.want_gradient for p in parts)
     below = None
@@ -131,23 +131,16 @@ def _rows(parts: Sequence[BatchPart], members: list[int], array) -> np.ndarray:
     return np.concatenate([array(parts[i])[parts[i].start:parts[i].stop] for i in members])
 
 
-def _to_local(pose: Pose, points: np.ndarray) -> np.ndarray:
-    """World -> collider frame, float64 (the identity only converts)."""
-    if pose.scale == 1.0 and not pose.translation.any() and (pose.rotation == np.eye(3)).all():
-        return points.astype(np.float64, copy=False)
-    return pose.to_local(points)
-
-
 def _not_finite(fields: dict[str, np.ndarray]) -> np.ndarray | None:
     """Rows with an answer that is not a finite number, or None when all are finite. A float32
-    field overflows beyond ~3.4e38; the service never sends NaN or Infinity."""
-    bad = None
-    for name, values in fields.items():
-        if values.dtype.kind != "f":
-            continue
-        finite = np.isfinite(values) if values.ndim == 1 else np.isfinite(values).all(axis=1)
-        if not finite.all():
-            bad = ~finite if bad is None else bad | ~finite
+    field overflows beyond ~3.4e38; the service never sends NaN or Infinity. (Within the
+    engine's coordinate range nothing overflows: one cheap check per field, rows only if not.)"""
+    floats = [v for v in fields.values() if v.dtype.kind == "f"]
+    if all(np.isfinite(v).all() for v in floats):
+        return None
+    bad = np.zeros(len(floats[0]), dtype=bool)
+    for values in floats:
+        bad |= ~(np.isfinite(values) if values.ndim == 1 else np.isfinite(values).all(axis=1))
     return bad
 
 
