@@ -228,3 +228,65 @@ def test_metrics_show_the_queue_depth_and_request_latency(waiting_server, engine
     count = metric(url, 'collider_request_seconds_count{route="/v1/models/{name}/query"}')
     total = metric(url, 'collider_request_seconds_sum{route="/v1/models/{name}/query"}')
     assert count == 2 and total > 0
+
+
+# -- the hot route's fast path answers exactly as the FastAPI route (issue 10, point 10) --------
+
+
+def fast_path_requests() -> list[tuple[str, dict, bytes]]:
+    """(path, headers, body) of good and bad query requests: every bad body of test_queries, the
+    hostile shapes above, auth missing and wrong, an unknown model, JSON and msgpack answers."""
+    from .test_queries import BAD_BODIES
+
+    token = {"Authorization": "Bearer tok"}
+    points = sample_points(50, 9)
+    requests = [
+        (QUERY, {**token, "content-type": wire.MSGPACK},
+         wire.dumps({"points": points, "fields": ["distance", "normal", "contact", "collides"]})),
+        (QUERY, {**token, "content-type": wire.JSON, "X-Deadline-Ms": "60000"},
+         wire.dumps({"points": points, "fields": ["contact"], "eps": 0.01}, wire.JSON)),
+        (QUERY, {"content-type": wire.MSGPACK}, wire.dumps({"points": points})),
+        (QUERY, {"Authorization": "Bearer nope", "content-type": wire.MSGPACK},
+         wire.dumps({"points": points})),
+        ("/v1/models/nope/query", {**token, "content-type": wire.MSGPACK},
+         wire.dumps({"points": points})),
+    ]
+    for media, raw, *_ in BAD_BODIES.values():
+        requests.append((QUERY, {**token, "content-type": media}, raw))
+    for body, _ in HOSTILE_SHAPES.values():
+        requests.append((QUERY, {**token, "content-type": wire.MSGPACK},
+                         msgpack.packb(body, use_bin_type=True)))
+    return requests
+
+
+def test_the_fast_path_answers_as_the_fastapi_route(repo):
+    with ServerThread(models=repo, device="cpu", token="tok") as fast, \
+            ServerThread(models=repo, device="cpu", token="tok", query_fast_path=False) as slow:
+        for path, headers, body in fast_path_requests():
+            a = httpx.post(fast.url + path, content=body, headers=headers)
+            b = httpx.post(slow.url + path, content=body, headers=headers)
+            assert (a.status_code, a.headers["content-type"]) == \
+                   (b.status_code, b.headers["content-type"]), (path, headers, a.text, b.text)
+            for name in ("www-authenticate", "retry-after", "connection"):
+                assert a.headers.get(name) == b.headers.get(name), name
+            assert a.content == b.content, (a.text[:300], b.text[:300])
+        # Both counted under the route template.
+        for server in (fast, slow):
+            assert metric(server.url, 'collider_requests_total{method="POST",'
+                          'route="/v1/models/{name}/query",status="200"}',
+                          {"Authorization": "Bearer tok"}) == 2
+
+
+def test_the_app_refuses_a_router_dependency_the_fast_path_would_skip(monkeypatch):
+    from fastapi import Depends
+
+    from collider_server.service import ServiceSettings, create_app
+    from collider_server.service.routers import models
+
+    async def audit():
+        pass
+
+    route = next(r for r in models.router.routes if r.path.endswith("/query"))
+    monkeypatch.setattr(route, "dependencies", [*route.dependencies, Depends(audit)])
+    with pytest.raises(RuntimeError, match="audit"):
+        create_app(ServiceSettings())

@@ -13,7 +13,7 @@ from fastapi.openapi.utils import get_openapi
 from ..batching import DeviceWorkers
 from ..devices import resolve_device
 from ..repository import ModelRepository
-from .fastpath import QueryFastPath
+from .fastpath import QueryFastPath, check_equivalent
 from .metrics import RequestObserver, ServiceMetrics
 from .openapi import add_security, query_body, scene_body
 from .openapi import router as docs_router
@@ -88,7 +88,9 @@ def create_app(settings: ServiceSettings | None = None) -> FastAPI:
     install_handlers(app)
     for router in (health.router, models.router, scene.router, admin.router, docs_router):
         app.include_router(router)
-    app.add_middleware(QueryFastPath)
+    if settings.query_fast_path:
+        check_equivalent()  # here, not when Starlette builds the stack at the first request
+        app.add_middleware(QueryFastPath)
     if settings.cors_origins:
         from fastapi.middleware.cors import CORSMiddleware
 

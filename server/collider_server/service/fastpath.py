@@ -4,7 +4,12 @@ The route's own function (:func:`routers.models.query`) answers it, with the sam
 only FastAPI's per-request machinery (route matching over every route, dependency solving, the
 exit stack) is skipped. With 1,000-point voxel queries that machinery is a sizeable part of the
 event loop's time per request, and the event loop's time per request is what limits coalescing
-on a CPU. The FastAPI route stays registered for the OpenAPI page.
+on a CPU. The FastAPI route stays registered for the OpenAPI page and answers when the fast path
+is off (``query_fast_path=False``).
+
+Equivalence is guarded twice: the app refuses to start when the route has dependencies other
+than the ones this shortcut runs (so a dependency added to the router is never silently skipped
+here), and a test sends the same requests through both paths and compares the answers.
 """
 
 from __future__ import annotations
@@ -22,6 +27,21 @@ QUERY_PATH = re.compile(r"^/v1/models/([^/]+)/query$")
 ROUTE = SimpleNamespace(path="/v1/models/{name}/query")
 
 
+#: The dependencies the shortcut runs, in order, exactly as the router declares them.
+FAST_PATH_DEPENDENCIES = (require_token,)
+
+
+def check_equivalent(router=models.router) -> None:
+    """RuntimeError unless the query route's dependencies are :data:`FAST_PATH_DEPENDENCIES`."""
+    route = next(r for r in router.routes if getattr(r, "path", "").endswith("/{name}/query"))
+    declared = tuple(d.dependency for d in route.dependencies)  # the router's come first
+    if declared != FAST_PATH_DEPENDENCIES:
+        names = [getattr(d, "__name__", repr(d)) for d in declared]
+        raise RuntimeError(
+            f"the query route's dependencies are {names}, but service/fastpath.py runs "
+            f"{[d.__name__ for d in FAST_PATH_DEPENDENCIES]}: teach the fast path the new ones")
+
+
 class QueryFastPath:
     """ASGI middleware: serve the model query route directly, pass everything else on."""
 
@@ -35,7 +55,8 @@ class QueryFastPath:
         scope["route"] = ROUTE  # metrics label these requests like the FastAPI route's
         request = Request(scope, receive)
         try:
-            await require_token(request)
+            for dependency in FAST_PATH_DEPENDENCIES:
+                await dependency(request)
             response = await models.query(match.group(1), request)
         except Problem as exc:
             response = exc.response()

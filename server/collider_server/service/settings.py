@@ -58,6 +58,9 @@ class ServiceSettings(BaseSettings):
     graceful_shutdown_s: float = Field(30.0, gt=0, description="on SIGTERM, longest wait for "
                                                                "open requests, s; then they are "
                                                                "cancelled")
+    query_fast_path: bool = Field(True, description="serve POST /v1/models/{name}/query from "
+                                                    "ASGI directly (off: through FastAPI's "
+                                                    "router; same answers, more overhead)")
     warmup: bool = Field(True, description="run one small query per model before ready")
     log_level: str = Field("info", description=f"one of {', '.join(LOG_LEVELS)}")
 
