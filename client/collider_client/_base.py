@@ -15,7 +15,7 @@ import numpy as np
 
 from . import wire
 from .wire import check_fields  # noqa: F401  (used by the clients)
-from ._exceptions import ProtocolError, error_for_status
+from ._exceptions import ProtocolError, ServerError, error_for_status
 from ._models import ModelInfo, QueryResult
 
 #: Statuses worth another try after a pause: the server is busy or (re)starting.
@@ -74,6 +74,59 @@ class RetryPolicy:
         if retry_after_s is not None:
             delay = max(delay, retry_after_s)
         return min(delay, self.max_backoff_s)
+
+
+class Attempts:
+    """The retry loop's decisions, shared by :class:`~collider_client.Client` and
+    :class:`~collider_client.AsyncClient` (which only send and sleep): after each try, either
+    the answer, or how long to wait before the next try, or the error to raise.
+
+    A refused connection and a 429/503 answer are retried ``policy.max_retries`` times with
+    backoff (``Retry-After`` honoured); other transport failures and errors are raised at once.
+    """
+
+    def __init__(self, policy: RetryPolicy, url: str):
+        self.policy = policy
+        self.url = url
+        self.attempt = 0
+
+    def _next_delay(self, retry_after_s: float | None) -> float | None:
+        if self.attempt >= self.policy.max_retries:
+            return None
+        delay = self.policy.delay_s(self.attempt, retry_after_s)
+        self.attempt += 1
+        return delay
+
+    def after_transport_error(self, exc: Exception, retryable: bool, error: Exception) -> float:
+        """The pause before the next try after a transport failure ``exc``; raises ``error``
+        when it is not ``retryable`` (only a refused connection is) or no try is left."""
+        delay = self._next_delay(None) if retryable else None
+        if delay is None:
+            raise error from None
+        return delay
+
+    def after_answer(self, status: int, content: bytes, content_type: str,
+                     retry_after: str | None) -> tuple[dict[str, Any] | None, float]:
+        """``(body, 0)`` for a success; ``(None, pause)`` for a 429/503 worth another try;
+        else raises the typed error (:func:`raise_for_problem`)."""
+        if status < 400:
+            return decode_body(content, content_type, self.url), 0.0
+        try:
+            raise_for_problem(status, content, content_type, retry_after)
+        except ServerError as exc:
+            delay = self._next_delay(exc.retry_after_s) if status in RETRY_STATUSES else None
+            if delay is None:
+                raise
+            return None, delay
+        raise AssertionError("raise_for_problem returned")  # pragma: no cover
+
+
+def decode_body(content: bytes, content_type: str, where: str) -> dict[str, Any]:
+    """A success response's body; ProtocolError when it does not parse."""
+    try:
+        return wire.loads(content, content_type)
+    except wire.WireError as exc:
+        raise ProtocolError(f"{where}: {exc}") from None
 
 
 def parse_retry_after(value: str | None) -> float | None:

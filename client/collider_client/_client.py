@@ -14,17 +14,17 @@ from __future__ import annotations
 import asyncio
 import time
 from pathlib import Path
-from typing import Any, Iterable, Sequence
+from typing import Iterable, Sequence
 
 import httpx
 import numpy as np
 
 from . import wire
 from ._base import (
-    RETRY_STATUSES, USE_CLIENT_DEFAULT, RetryPolicy, UseClientDefault, as_points, as_scene,
-    check_fields, decode_models, decode_query, query_body, raise_for_problem, scene_body,
+    USE_CLIENT_DEFAULT, Attempts, RetryPolicy, UseClientDefault, as_points, as_scene,
+    check_fields, decode_models, decode_query, query_body, scene_body,
 )
-from ._exceptions import ConnectError, ProtocolError, ServerError, TimeoutError, TransportError
+from ._exceptions import ConnectError, TimeoutError, TransportError
 from ._models import ModelInfo, QueryResult
 
 DEFAULT_TIMEOUT_S = 30.0
@@ -64,15 +64,11 @@ class _Settings:
         return fields, eps
 
 
-def _decode_response(response: httpx.Response) -> dict[str, Any]:
-    content_type = response.headers.get("content-type", "")
-    if response.status_code >= 400:
-        raise_for_problem(response.status_code, response.content, content_type,
-                          response.headers.get("retry-after"))
-    try:
-        return wire.loads(response.content, content_type)
-    except wire.WireError as exc:
-        raise ProtocolError(f"{response.request.method} {response.request.url.path}: {exc}") from None
+def _answer(attempts: Attempts, response: httpx.Response) -> tuple[dict | None, float]:
+    """:meth:`Attempts.after_answer` for an httpx response."""
+    return attempts.after_answer(response.status_code, response.content,
+                                 response.headers.get("content-type", ""),
+                                 response.headers.get("retry-after"))
 
 
 def _transport_error(exc: httpx.TransportError, url: str) -> TransportError:
@@ -197,25 +193,18 @@ class Client:
         return self._send("POST", path, wire.dumps(body, wire.MSGPACK))
 
     def _send(self, method: str, path: str, content: bytes | None) -> dict:
-        retry = self._settings.retry
-        for attempt in range(retry.max_retries + 1):
-            last = attempt == retry.max_retries
+        attempts = Attempts(self._settings.retry, self._settings.server + path)
+        while True:
             try:
                 response = self._http.request(method, path, content=content)
-            except httpx.ConnectError as exc:
-                if last:
-                    raise _transport_error(exc, self._settings.server + path) from None
-                time.sleep(retry.delay_s(attempt, None))
-                continue
             except httpx.TransportError as exc:
-                raise _transport_error(exc, self._settings.server + path) from None
-            try:
-                return _decode_response(response)
-            except ServerError as exc:
-                if last or exc.status not in RETRY_STATUSES:
-                    raise
-                time.sleep(retry.delay_s(attempt, exc.retry_after_s))
-        raise AssertionError("unreachable")  # the loop always returns or raises
+                delay = attempts.after_transport_error(
+                    exc, isinstance(exc, httpx.ConnectError), _transport_error(exc, attempts.url))
+            else:
+                body, delay = _answer(attempts, response)
+                if body is not None:
+                    return body
+            time.sleep(delay)
 
 
 class AsyncClient:
@@ -306,22 +295,15 @@ class AsyncClient:
         return await self._send("POST", path, wire.dumps(body, wire.MSGPACK))
 
     async def _send(self, method: str, path: str, content: bytes | None) -> dict:
-        retry = self._settings.retry
-        for attempt in range(retry.max_retries + 1):
-            last = attempt == retry.max_retries
+        attempts = Attempts(self._settings.retry, self._settings.server + path)
+        while True:
             try:
                 response = await self._http.request(method, path, content=content)
-            except httpx.ConnectError as exc:
-                if last:
-                    raise _transport_error(exc, self._settings.server + path) from None
-                await asyncio.sleep(retry.delay_s(attempt, None))
-                continue
             except httpx.TransportError as exc:
-                raise _transport_error(exc, self._settings.server + path) from None
-            try:
-                return _decode_response(response)
-            except ServerError as exc:
-                if last or exc.status not in RETRY_STATUSES:
-                    raise
-                await asyncio.sleep(retry.delay_s(attempt, exc.retry_after_s))
-        raise AssertionError("unreachable")
+                delay = attempts.after_transport_error(
+                    exc, isinstance(exc, httpx.ConnectError), _transport_error(exc, attempts.url))
+            else:
+                body, delay = _answer(attempts, response)
+                if body is not None:
+                    return body
+            await asyncio.sleep(delay)

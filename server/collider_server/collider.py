@@ -29,6 +29,7 @@ from typing import ClassVar, Iterable
 
 import numpy as np
 
+from collider_client._models import QueryResult  # one result type for engine and SDK
 from collider_client.wire import FIELDS, GRADIENT_FIELDS, check_fields  # the shared contract
 
 from .pose import MAX_COORDINATE_M, Pose, as_pose  # MAX_COORDINATE_M: the coordinate range
@@ -83,20 +84,6 @@ class ColliderInfo:
         """The eps of a query that gives none: :attr:`default_eps` in world units under
         ``pose`` (collider units times the pose's scale)."""
         return self.default_eps * pose.scale
-
-
-@dataclass
-class QueryResult:
-    """The fields asked for; the others are ``None``. Shapes and frames as in the module doc."""
-
-    distance: np.ndarray | None = None
-    normal: np.ndarray | None = None
-    contact: np.ndarray | None = None
-    collides: np.ndarray | None = None
-
-    def fields(self) -> dict[str, np.ndarray]:
-        """The present fields by name, in the canonical order."""
-        return {name: getattr(self, name) for name in FIELDS if getattr(self, name) is not None}
 
 
 def check_points(points) -> np.ndarray:
