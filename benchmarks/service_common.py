@@ -15,9 +15,7 @@ import dataclasses
 import os
 import shutil
 import socket
-import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -27,6 +25,7 @@ MESHES = REPO.parent / "shared" / "data" / "meshes"
 sys.path.insert(0, str(REPO / "client"))
 
 from collider_client import wire  # noqa: E402
+from collider_server.service.launch import free_port  # noqa: E402,F401  (one home for it)
 
 
 class HTTPError(Exception):
@@ -83,44 +82,14 @@ def decode_response(data: bytes) -> dict:
     return {k: wire.decode_array(v, k) for k, v in body.items() if k != "model"}
 
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 @contextlib.contextmanager
 def serve(models: Path, *flags: str, env: dict | None = None):
     """``collider serve`` on a free loopback port until the block ends; yields its port.
     ``flags`` may hold ``--device``; the server's default is ``auto`` (CUDA when present)."""
-    port = free_port()
-    process = subprocess.Popen(
-        [sys.executable, "-m", "collider_server.cli", "serve", "--models", str(models),
-         "--port", str(port), "--log-level", "warning", *flags],
-        env={**os.environ, **(env or {})})
-    try:
-        wait_ready(port, process)
-        yield port
-    finally:
-        process.terminate()
-        try:
-            process.wait(30)
-        except subprocess.TimeoutExpired:
-            process.kill()
+    from collider_server.service.launch import serve_process
 
-
-def wait_ready(port: int, process, timeout_s: float = 120.0) -> None:
-    import httpx
-
-    end = time.monotonic() + timeout_s
-    while time.monotonic() < end:
-        if process.poll() is not None:
-            raise RuntimeError(f"collider serve exited with {process.returncode}")
-        with contextlib.suppress(httpx.TransportError):
-            if httpx.get(f"http://127.0.0.1:{port}/readyz", timeout=2).status_code == 200:
-                return
-        time.sleep(0.1)
-    raise TimeoutError(f"server on port {port} not ready after {timeout_s} s")
+    with serve_process(models, "--log-level", "warning", *flags, env=env) as server:
+        yield server.port
 
 
 def prepare_models(root: Path, resolution: int = 128) -> dict[str, str]:

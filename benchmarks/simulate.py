@@ -12,9 +12,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import socket
-import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -67,23 +64,11 @@ def run_variant(variant: str, client, steps: int, cloth: int | None,
 
 
 def start_server(models: Path):
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
-    process = subprocess.Popen([sys.executable, "-m", "collider_server.cli", "serve", "--host",
-                                "127.0.0.1", "--port", str(port), "--models", str(models),
-                                "--log-level", "warning"],
-                               env={k: v for k, v in os.environ.items() if k != "COLLIDER_TOKEN"})
-    url = f"http://127.0.0.1:{port}"
-    probe = Client(url)
-    for _ in range(600):
-        if probe.ready():
-            break
-        if process.poll() is not None:
-            raise SystemExit(f"collider serve exited with {process.returncode}")
-        time.sleep(0.2)
-    probe.close()
-    return process, url
+    """A ready ``collider serve`` over ``models``: ``(process, url)``."""
+    from collider_server.service.launch import ServerProcess
+
+    server = ServerProcess(models, "--log-level", "warning").wait_ready(120)
+    return server.process, server.url
 
 
 def plot(rows: list[dict], path: Path) -> None:

@@ -6,11 +6,6 @@ these tests need no shared meshes and no trained models. Units: metres.
 
 from __future__ import annotations
 
-import os
-import socket
-import subprocess
-import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -46,12 +41,6 @@ def models_dir(tmp_path_factory) -> Path:
     return root
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 @pytest.fixture(scope="session")
 def server_url(models_dir):
     """URL of a real ``collider serve`` subprocess over ``models_dir`` on a free loopback port."""
@@ -60,36 +49,15 @@ def server_url(models_dir):
     except ImportError as exc:
         pytest.skip(f"collider_server.service is missing ({exc}); the remote backend cannot be "
                     "tested against a real server")
-    port = _free_port()
-    env = dict(os.environ, COLLIDER_TOKEN="", PYTHONUNBUFFERED="1")
-    env.pop("COLLIDER_TOKEN")
-    process = subprocess.Popen(
-        [sys.executable, "-m", "collider_server.cli", "serve", "--host", "127.0.0.1",
-         "--port", str(port), "--models", str(models_dir), "--device", "cpu",
-         "--log-level", "warning"],
-        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, env=env)
-    url = f"http://127.0.0.1:{port}"
-    import httpx
+    from collider_server.service.launch import ServerProcess
 
-    deadline = time.monotonic() + 90
+    server = ServerProcess(models_dir, "--device", "cpu", "--log-level", "warning",
+                           env={"PYTHONUNBUFFERED": "1"})
     try:
-        while True:
-            if process.poll() is not None:
-                out = process.stdout.read().decode(errors="replace")
-                pytest.fail(f"collider serve exited with {process.returncode}:\n{out[-3000:]}")
-            try:
-                if httpx.get(url + "/readyz", timeout=1.0).status_code == 200:
-                    break
-            except httpx.TransportError:
-                pass
-            if time.monotonic() > deadline:
-                pytest.fail("collider serve did not become ready within 90 s")
-            time.sleep(0.2)
-        yield url
+        server.wait_ready(90)
+    except (RuntimeError, TimeoutError) as exc:
+        pytest.fail(f"collider serve did not become ready: {exc}")
+    try:
+        yield server.url
     finally:
-        process.terminate()
-        try:
-            process.wait(timeout=20)
-        except subprocess.TimeoutExpired:
-            process.kill()
-            process.wait()
+        server.stop()

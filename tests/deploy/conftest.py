@@ -23,26 +23,8 @@ NGINX_TEMPLATE = REPO / "docker" / "nginx" / "collider.conf.template"
 SPHERE_RADIUS_M = 0.1
 
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def wait_ready(url: str, process: subprocess.Popen, timeout_s: float = 120.0) -> None:
-    """Poll ``/readyz`` until 200 (start-up only; what the tests assert never waits on time)."""
-    end = time.monotonic() + timeout_s
-    while time.monotonic() < end:
-        if process.poll() is not None:
-            raise AssertionError(f"{process.args} exited: {process.communicate()[0]}")
-        try:
-            if httpx.get(f"{url}/readyz", timeout=2).status_code == 200:
-                return
-        except httpx.TransportError:
-            pass
-        time.sleep(0.05)
-    process.kill()
-    raise TimeoutError(f"{url} did not become ready in {timeout_s} s: {process.communicate()[0]}")
+# One home for starting servers: collider_server.service.launch.
+from collider_server.service.launch import free_port, wait_ready  # noqa: E402
 
 
 def render_template(text: str, values: dict[str, str]) -> str:

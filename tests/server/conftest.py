@@ -4,12 +4,8 @@
 from __future__ import annotations
 
 import shutil
-import socket
-import threading
-import time
 from pathlib import Path
 
-import httpx
 import numpy as np
 import pytest
 
@@ -18,54 +14,8 @@ SMALL_RADIUS = 0.05  # metres; the "small" model
 ADMIN_TOKEN = "admin-secret"
 
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def wait_ready(url: str, timeout_s: float = 60.0, headers=None) -> None:
-    """Poll ``/readyz`` until 200 (start-up only; the tests themselves never poll)."""
-    end = time.monotonic() + timeout_s
-    while time.monotonic() < end:
-        try:
-            if httpx.get(f"{url}/readyz", timeout=2).status_code == 200:
-                return
-        except httpx.TransportError:
-            pass
-        time.sleep(0.05)
-    raise TimeoutError(f"{url} did not become ready in {timeout_s} s")
-
-
-class ServerThread:
-    """``collider_server.service`` under a real uvicorn in a background thread."""
-
-    def __init__(self, **settings):
-        import uvicorn
-
-        from collider_server.service import ServiceSettings, create_app
-
-        self.port = free_port()
-        self.url = f"http://127.0.0.1:{self.port}"
-        import torch
-
-        # Keep the test process's torch thread count as it is (the server sets it process-wide).
-        settings.setdefault("compute_threads", torch.get_num_threads())
-        self.settings = ServiceSettings(host="127.0.0.1", port=self.port, **settings)
-        self.app = create_app(self.settings)
-        config = uvicorn.Config(self.app, host="127.0.0.1", port=self.port, log_level="warning")
-        self.server = uvicorn.Server(config)
-        self.thread = threading.Thread(target=self.server.run, daemon=True)
-
-    def __enter__(self) -> "ServerThread":
-        self.thread.start()
-        wait_ready(self.url)
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.server.should_exit = True
-        self.thread.join(30)
-        assert not self.thread.is_alive(), "server did not stop"
+# One home for starting servers (tests, benchmarks, collider bench): collider_server.service.launch.
+from collider_server.service.launch import ServerThread, free_port, wait_ready  # noqa: E402,F401
 
 
 def bake_sphere(path: Path, radius: float, resolution: int = 32) -> Path:

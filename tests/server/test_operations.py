@@ -5,7 +5,6 @@ load/unload while others query, metrics, and a graceful shutdown on SIGTERM."""
 from __future__ import annotations
 
 import json
-import os
 import re
 import shutil
 import signal
@@ -21,7 +20,7 @@ import numpy as np
 import pytest
 from collider_client import wire
 
-from .conftest import ADMIN_TOKEN, ServerThread, free_port, make_repo, wait_ready
+from .conftest import ADMIN_TOKEN, ServerThread, make_repo
 from .test_queries import decode, post, sample_points
 
 
@@ -238,19 +237,15 @@ def test_a_reload_while_a_body_arrives_does_not_fail_that_request(tmp_path, mode
 
 
 def serve_subprocess(repo, *args, env=None):
-    port = free_port()
-    process = subprocess.Popen(
-        [sys.executable, "-m", "collider_server.cli", "serve", "--models", str(repo), "--port",
-         str(port), "--device", "cpu", *args],
-        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-        env={**os.environ, **(env or {})})
-    url = f"http://127.0.0.1:{port}"
+    """A ready ``collider serve`` over ``repo`` (output captured); ``(process, url)``."""
+    from collider_server.service.launch import ServerProcess
+
+    server = ServerProcess(repo, "--device", "cpu", *args, env=env, capture=True)
     try:
-        wait_ready(url)
-    except TimeoutError:
-        process.kill()
-        raise AssertionError(process.communicate()[0])
-    return process, url
+        server.wait_ready(60)
+    except (RuntimeError, TimeoutError) as exc:
+        raise AssertionError(str(exc)) from None
+    return server.process, server.url
 
 
 def test_graceful_shutdown_answers_every_accepted_request(repo, engine):

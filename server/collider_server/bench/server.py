@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import contextlib
 import os
-import socket
 import subprocess
 import sys
 import tempfile
@@ -14,10 +13,7 @@ from pathlib import Path
 from typing import Iterator
 
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+from ..service.launch import free_port  # noqa: E402,F401  (one home for it)
 
 
 @contextlib.contextmanager
