@@ -49,10 +49,11 @@ def run(client, args):
     model, solver = build(args)
     state_0, state_1, control = model.state(), model.state(), model.control()
     pose = y_up_to_z_up() if args.pose == "y-up" else np.eye(4)
-    hook = CollisionHook(client, [ColliderPlacement(args.model, lambda t: pose)],
+    hook = CollisionHook(client, [ColliderPlacement(args.model, pose)],
                          eps=args.eps_m, friction=args.friction)
     adapter = NewtonCollider(model, hook)
     dt, t = args.dt_s, 0.0
+    start_size = float(np.ptp(state_0.particle_q.numpy(), axis=0).max())
     started = time.perf_counter()
     for _ in range(args.steps):
         state_0.clear_forces()
@@ -62,6 +63,10 @@ def run(client, args):
         adapter.apply(state_0, t, dt)
     wall = time.perf_counter() - started
     q = state_0.particle_q.numpy()
+    size = float(np.ptp(q, axis=0).max()) if np.isfinite(q).all() else float("inf")
+    if size > 10 * start_size:  # a blown-up cloth: its collider distances would mean nothing
+        raise SystemExit(f"newton_cloth_drop: the cloth blew up (it spans {size:.3g} m, it "
+                         f"started at {start_size:.3g} m); lower --dt-s or raise --iterations")
     final = client.query(args.model, q, fields=["distance"], pose=pose)
     return q, float(final.distance.min()), hook.stats, wall
 

@@ -414,3 +414,84 @@ def test_drape_on_a_voxel_bunny_stays_finite_bounded_and_outside(tmp_path, load_
     assert sim.hook.stats.colliding_max > 50  # it did drape over the bunny
     assert max(energies) <= start + 1e-9, (start, max(energies))
     assert deepest < 1e-4, deepest
+
+
+# -- what a run refuses before it starts, and what it writes -----------------------------------------
+
+
+def cli(*args, timeout=300):
+    import subprocess
+    import sys
+
+    return subprocess.run([sys.executable, "-m", "collider_server.cli", "simulate", *map(str, args)],
+                          capture_output=True, text=True, timeout=timeout)
+
+
+def test_cli_blow_up_through_damping_exits_non_zero_before_the_run(tmp_path):
+    # The run: damping 50,000 1/s at dt 1e-4 s exited 0 with inf in the PC2.
+    path = write_scene(tmp_path, "[effects.gravity]\n[effects.damping]\ncoefficient_1_s = 50000",
+                       dt=1e-4, duration=0.01)
+    out = cli(path, "--no-preview", "--quiet", "--output", tmp_path / "out")
+    assert out.returncode == 2 and "Traceback" not in out.stderr
+    assert "unstable" in out.stderr and "dt_s <= 2e-05" in out.stderr
+    assert not (tmp_path / "out").exists()
+
+
+def test_cli_check_mesh_of_an_unused_model_is_refused_before_the_run(tmp_path, box_models):
+    path = write_scene(tmp_path, f"[effects.gravity]\n[effects.collisions]\neps_m = {EPS}",
+                       colliders=floor_scene(), origin=(0, 0, 0.01), duration=0.01)
+    mesh = tmp_path / "m.obj"
+    mesh.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
+    out = cli(path, "--models", box_models, "--check-mesh", f"plate={mesh}", "--quiet",
+              "--output", tmp_path / "out")
+    assert out.returncode == 2 and "['plate'] that the scene does not use" in out.stderr
+    assert not (tmp_path / "out" / "case.pc2").exists()  # refused before anything ran
+
+
+def test_cli_without_preview_does_not_claim_a_png(tmp_path):
+    path = write_scene(tmp_path, "[effects.gravity]", duration=0.01)
+    out = cli(path, "--no-preview", "--quiet", "--output", tmp_path / "out")
+    assert out.returncode == 0, out.stderr
+    assert ".png" not in out.stdout and not (tmp_path / "out" / "case.png").exists()
+    assert "case.obj, .pc2, .report.json" in out.stdout
+
+
+def test_a_huge_cloth_is_estimated_warned_about_and_refused_where_it_cannot_fit(tmp_path, capsys,
+                                                                             monkeypatch):
+    from collider_client.sim import run as run_module
+
+    scene = load_scene(write_scene(tmp_path, "[effects.gravity]", width=4096, height=4096,
+                                   spacing=1e-3, dt=1e-3, duration=0.1))
+    need = run_module.resource_estimate(scene, scene.steps)
+    assert need["memory"] == 4096 * 4096 * run_module.STATE_BYTES_PER_VERTEX  # 6.4 GB
+    assert need["pc2"] == 32 + (100 // 10 + 2) * 4096 * 4096 * 12
+    monkeypatch.setattr(run_module, "_physical_memory", lambda: 64 * 2**30)
+    run_module.check_resources(scene, scene.steps)
+    assert "4096 x 4096 cloth: about 6.0 GiB of memory" in capsys.readouterr().err
+    monkeypatch.setattr(run_module, "_physical_memory", lambda: 4 * 2**30)  # a small machine
+    with pytest.raises(ValueError, match="needs about 6.0 GiB of memory"):
+        run_module.check_resources(scene, scene.steps)
+
+
+def test_frames_are_streamed_to_the_pc2_file(tmp_path):
+    from collider_client.sim.output import PC2Frames, read_pc2
+    from collider_client.sim.run import run_scene
+
+    scene = load_scene(write_scene(tmp_path, "[effects.gravity]", duration=0.05))
+    report, frames = run_scene(scene, None, tmp_path / "out", show_progress=False, preview=False)
+    assert isinstance(frames, PC2Frames) and len(frames) == report.frames == 6
+    stored = read_pc2(tmp_path / "out" / "case.pc2")
+    for (t, vertices), expected in zip(frames, stored):
+        np.testing.assert_array_equal(vertices, expected)
+    assert frames[-1][0] == pytest.approx(0.05)
+
+
+def test_newton_style_placement_takes_a_fixed_matrix(client):
+    pose = np.eye(4)
+    pose[2, 3] = 0.5  # the floor raised by 0.5 m
+    hook = CollisionHook(client, [ColliderPlacement("floor", pose)], eps=EPS)
+    positions, _, mask = hook.apply(np.array([[0.0, 0.0, 0.4995]]), np.zeros((1, 3)), 0.1, 1e-3)
+    assert mask.all()
+    np.testing.assert_allclose(positions[0, 2], 0.5 + EPS, atol=1e-9)
+    with pytest.raises(ValueError, match="finite 4x4"):
+        ColliderPlacement("floor", np.eye(3))

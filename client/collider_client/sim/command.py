@@ -63,6 +63,14 @@ def run_simulate(args: argparse.Namespace) -> int:
         if not sep or not model or not mesh:
             raise ValueError(f"--check-mesh wants MODEL=MESH, got {item!r}")
         checks[model] = Path(mesh)
+    # Checked before the run, not reported after it.
+    unused = sorted(set(checks) - {c.model for c in scene.colliders})
+    if unused:
+        raise ValueError(f"--check-mesh names model(s) {unused} that the scene does not use; its "
+                         f"colliders: {sorted({c.model for c in scene.colliders}) or 'none'}")
+    for model, mesh_path in checks.items():
+        if not mesh_path.is_file():
+            raise FileNotFoundError(f"--check-mesh {model}={mesh_path}: no such file")
     client = None
     if scene.colliders:
         if args.server:
@@ -120,5 +128,6 @@ def run_simulate(args: argparse.Namespace) -> int:
                                                                     default=float))
     print(report.text())
     stem = scene.path.stem
-    print(f"wrote {args.output / (stem + '.obj')}, .pc2, .png, .report.json")
+    written = ".pc2, .report.json" if args.no_preview else ".pc2, .png, .report.json"
+    print(f"wrote {args.output / (stem + '.obj')}, {written}")
     return 0

@@ -64,11 +64,39 @@ def read_pc2(path: Path) -> np.ndarray:
     return np.frombuffer(data[32:], dtype="<f4").reshape(samples, points, 3)
 
 
+class PC2Frames:
+    """The frames of a written PC2 file as a sequence of ``(t, (n, 3) float32 positions)``, read
+    from the file on access (memory-mapped): a run streams its frames to disk instead of keeping
+    them (a 4096 x 4096 cloth is 200 MB a frame).
+
+    path : the PC2 file (complete, closed); times_s : the simulated time of each frame
+    """
+
+    def __init__(self, path: Path, times_s: list[float], points: int):
+        self.path, self.times_s, self.points = Path(path), list(times_s), points
+
+    def __len__(self) -> int:
+        return len(self.times_s)
+
+    def __getitem__(self, i: int) -> tuple[float, np.ndarray]:
+        if not -len(self) <= i < len(self):
+            raise IndexError(f"frame {i} of {len(self)}")
+        i %= len(self)
+        data = np.memmap(self.path, dtype="<f4", mode="r", offset=32 + i * self.points * 12,
+                         shape=(self.points, 3))
+        return self.times_s[i], np.array(data)
+
+    def __iter__(self):
+        return (self[i] for i in range(len(self)))
+
+
 def write_preview(path: Path, frames: dict[int, np.ndarray], width: int, height: int,
                   times_s: dict[int, float], title: str,
                   collider_points: list[np.ndarray] | None = None) -> None:
     """PNG with one 3-D panel per chosen frame: the cloth surface (and collider surface points,
-    world frame, when given). ``frames`` maps frame index -> (W*H, 3) positions."""
+    world frame, when given). ``frames`` maps frame index -> (W*H, 3) positions;
+    ``collider_points`` is one list of (m, 3) arrays for every panel, or a dict frame index ->
+    list (moving colliders, drawn at each frame's pose)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -77,7 +105,9 @@ def write_preview(path: Path, frames: dict[int, np.ndarray], width: int, height:
     count = len(frames)
     fig = plt.figure(figsize=(4.2 * count, 4.4))
     stride = max(1, max(width, height) // 60)  # plot_surface is slow above ~60 x 60 cells
-    all_points = np.concatenate(list(frames.values()) + (collider_points or []))
+    per_frame = (collider_points if isinstance(collider_points, dict)
+                 else {i: collider_points or [] for i in frames})
+    all_points = np.concatenate(list(frames.values()) + [p for i in frames for p in per_frame[i]])
     lo, hi = all_points.min(axis=0), all_points.max(axis=0)
     centre, half = (lo + hi) / 2, max(float((hi - lo).max()) / 2, 1e-6)
     for k, (index, vertices) in enumerate(sorted(frames.items())):
@@ -85,7 +115,7 @@ def write_preview(path: Path, frames: dict[int, np.ndarray], width: int, height:
         grid = vertices.reshape(height, width, 3)[::stride, ::stride]
         ax.plot_surface(grid[..., 0], grid[..., 1], grid[..., 2], color="#4a90d9",
                         edgecolor="#1f4e79", linewidth=0.2, alpha=0.9, shade=True)
-        for pts in collider_points or []:
+        for pts in per_frame[index]:
             ax.scatter(pts[:, 0], pts[:, 1], pts[:, 2], s=0.3, c="#c0392b", alpha=0.4)
         for axis, set_lim in zip(range(3), (ax.set_xlim, ax.set_ylim, ax.set_zlim)):
             set_lim(centre[axis] - half, centre[axis] + half)
