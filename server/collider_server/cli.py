@@ -16,6 +16,7 @@ COMMAND_MODULES = [
     "collider_server.commands.training",
     "collider_client.sim.command",
     "collider_server.commands.serve",
+    "collider_server.commands.view",
     "collider_server.commands.bench",
 ]
 

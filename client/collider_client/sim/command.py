@@ -46,6 +46,14 @@ def register(subparsers) -> None:
     p.add_argument("--check-mesh", action="append", default=[], metavar="MODEL=MESH",
                    help="also measure penetration of every output frame against the exact SDF of "
                         "MESH (collider frame) for collider MODEL; repeatable")
+    view = p.add_argument_group("live view (extra [view]: pip install 'neural-collider[view]')")
+    view.add_argument("--view", action="store_true",
+                      help="show the run live in the browser (play / pause / step); the view "
+                           "stays up after the run until Ctrl-C")
+    view.add_argument("--host", default="127.0.0.1",
+                      help="address the view listens on (default 127.0.0.1; another warns: no authentication)")
+    view.add_argument("--port", type=int, default=8080, help="port of the view (default 8080)")
+    view.add_argument("--paused", action="store_true", help="with --view: start paused")
     p.set_defaults(func=run_simulate)
 
 
@@ -57,6 +65,10 @@ def run_simulate(args: argparse.Namespace) -> int:
     scene = load_scene(resolve_scene(args.scene))
     if args.steps is not None and args.steps < 1:
         raise ValueError(f"--steps must be >= 1, got {args.steps}")
+    if args.view:  # a missing extra is said before any work, not after the run
+        from .view import require_viser
+
+        require_viser()
     checks = {}
     for item in args.check_mesh:
         model, sep, mesh = item.partition("=")
@@ -108,13 +120,23 @@ def run_simulate(args: argparse.Namespace) -> int:
             pick = np.random.default_rng(0).choice(len(vertices), min(4000, len(vertices)),
                                                    replace=False)
             shown[model] = np.asarray(vertices[pick], dtype=np.float64)
+    server = None
     try:
+        on_step = None
+        if args.view:
+            server, on_step = start_live_view(args, scene, client)
         report, frames = run_scene(scene, client, args.output, show_progress=not args.quiet,
                                    steps=args.steps, preview=not args.no_preview,
                                    backend="remote" if args.server else "embedded",
-                                   collider_points=shown)
+                                   collider_points=shown, on_step=on_step)
     except ColliderError as exc:  # a server that is down or refuses: one line, no traceback
+        if server is not None:
+            server.stop()
         raise ValueError(str(exc)) from None
+    except BaseException:  # Ctrl-C or an error mid-run: do not leave the view's port open
+        if server is not None:
+            server.stop()
+        raise
     finally:
         if client is not None:
             client.close()
@@ -130,4 +152,26 @@ def run_simulate(args: argparse.Namespace) -> int:
     stem = scene.path.stem
     written = ".pc2, .report.json" if args.no_preview else ".pc2, .png, .report.json"
     print(f"wrote {args.output / (stem + '.obj')}, {written}")
+    if server is not None:
+        from .view import url_of, wait_until_interrupted
+
+        wait_until_interrupted(server, f"run finished; the view stays at {url_of(server)} "
+                                       "(Ctrl-C to stop)")
     return 0
+
+
+def start_live_view(args: argparse.Namespace, scene, client):
+    """Start the browser view of the run (``--view``); returns the viser server and the
+    per-step callback for :func:`run_scene`."""
+    from .cloth import grid_positions
+    from .view import ClothView, LiveControls, start_server, url_of
+
+    server = start_server(args.host, args.port)
+    c = scene.cloth
+    rest = grid_positions(c.width, c.height, c.spacing_m, c.origin_m, c.axes).reshape(-1, 3)
+    infos = {m.name: m for m in client.list_models()} if client is not None else None
+    view = ClothView(server, scene, rest, client, infos)
+    total = scene.steps if args.steps is None else args.steps
+    controls = LiveControls(server, view, total, paused=args.paused)
+    print(f"view at {url_of(server)}  (Ctrl-C to stop)", flush=True)
+    return server, controls.on_step

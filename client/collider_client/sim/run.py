@@ -69,12 +69,15 @@ def check_resources(scene: Scene, steps: int) -> dict[str, int]:
 
 def run_scene(scene: Scene, client, out_dir: Path, *, show_progress: bool = True,
               steps: int | None = None, preview: bool = True, backend: str = "embedded",
-              collider_points: dict[str, np.ndarray] | None = None) -> tuple[RunReport, list]:
+              collider_points: dict[str, np.ndarray] | None = None,
+              on_step=None) -> tuple[RunReport, list]:
     """Simulate ``scene`` (``steps`` overrides its step count), writing into ``out_dir``:
     ``NAME.obj``, ``NAME.pc2``, ``NAME.png`` and ``NAME.report.json``.
 
     collider_points : model name -> (m, 3) surface points in the collider frame, drawn in the
         preview (optional)
+    on_step : called as ``on_step(sim, i)`` after step ``i`` (1-based), e.g. by the live viewer
+        (``collider simulate --view``), which may block there to pause the run
     Returns the report and the frames written, a sequence of (t, (W*H, 3) float32 positions)
     read back from the PC2 file (:class:`PC2Frames`: frames are streamed to disk, not kept).
     """
@@ -116,6 +119,8 @@ def run_scene(scene: Scene, client, out_dir: Path, *, show_progress: bool = True
             sim.step()
             if i % scene.frame_every == 0 or i == total:
                 keep_frame()
+            if on_step is not None:
+                on_step(sim, i)
             if bar is not None and (i % 50 == 0 or i == total):
                 bar.update(i - bar.n)
                 if sim.hook is not None:

@@ -130,6 +130,7 @@ class Simulator:
         if self.pinned is not None:
             self.effects.append("pins")
         self.hook = None
+        self.colliding: np.ndarray | None = None  # set by step() when collisions run
         if "collisions" in fx:
             if client is None:
                 raise ValueError(f"{scene.path}: the scene has colliders; a client is needed")
@@ -215,6 +216,7 @@ class Simulator:
             velocity = (flat - x.reshape(-1, 3)) / dt
             query_before = self.hook.stats.query_s
             positions, velocity, mask = self.hook.apply(flat, velocity, self.t, dt)
+            self.colliding = mask  # (W*H,) bool of the last step, for viewers
             if mask.any():
                 positions = positions.reshape(x.shape)
                 velocity = velocity.reshape(x.shape)

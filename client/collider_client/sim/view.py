@@ -1,0 +1,350 @@
+"""The browser view of a cloth run: live (``collider simulate --view``) or replayed from its
+OBJ + PC2 output (``collider view --replay out/SCENE``).
+
+Built on viser (optional extra ``[view]``; imported only here, when a view is asked for): one
+process serves the page and its web client (shipped inside the viser wheel, nothing is fetched),
+and pushes the scene over a websocket. Everything drawn is in the **world frame, metres**: the
+cloth, its colliding vertices (red points), and each collider's surface (marching cubes of its
+zero level set, computed in the collider frame through the same client the run uses, then placed
+by its pose at the shown time).
+"""
+
+from __future__ import annotations
+
+import ipaddress
+import sys
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .cloth import quad_faces
+from .scene import Scene, pose_function
+
+CLOTH_COLOR = (70, 130, 200)
+COLLIDER_COLOR = (200, 200, 190)
+COLLIDING_COLOR = (230, 30, 30)
+DEFAULT_PORT = 8080
+
+
+def require_viser():
+    """The viser module, or a ValueError saying how to install it (the CLI prints it as one line)."""
+    try:
+        import viser
+    except ImportError:
+        raise ValueError("the browser view needs viser: pip install 'neural-collider[view]' "
+                         "(or pip install viser scikit-image)") from None
+    return viser
+
+
+def start_server(host: str = "127.0.0.1", port: int = DEFAULT_PORT, label: str = "neural-collider"):
+    """A started ``viser.ViserServer`` on ``host:port``; warns on stderr when ``host`` is not a
+    loopback address (the view has no authentication: anyone who reaches the port sees it)."""
+    viser = require_viser()
+    if not _is_loopback(host):
+        print(f"warning: the view listens on {host}: anyone who can reach port {port} can see "
+              "and drive it (no authentication)", file=sys.stderr)
+    server = viser.ViserServer(host=host, port=port, label=label, verbose=False)
+    server.scene.set_up_direction("+z")
+    return server
+
+
+def _is_loopback(host: str) -> bool:
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+def url_of(server) -> str:
+    host = server.get_host()
+    return f"http://{'127.0.0.1' if host in ('0.0.0.0', '::') else host}:{server.get_port()}/"
+
+
+def wait_until_interrupted(server, message: str) -> None:
+    """Print ``message`` and serve until Ctrl-C (SIGINT), then stop the server cleanly."""
+    print(message, flush=True)
+    try:
+        threading.Event().wait()
+    except KeyboardInterrupt:
+        pass
+    finally:
+        server.stop()
+    print("view stopped", file=sys.stderr)
+
+
+def triangles(width: int, height: int) -> np.ndarray:
+    """(F, 3) uint32 triangles of the cloth grid (each quad split in two)."""
+    q = quad_faces(width, height)
+    return np.concatenate([q[:, [0, 1, 2]], q[:, [0, 2, 3]]]).astype(np.uint32)
+
+
+def look_at_box(server, lo: np.ndarray, hi: np.ndarray, up: str = "+z") -> None:
+    """Point the initial camera at the box ``lo``..``hi`` from a three-quarter view above it,
+    ``up`` being the scene's up axis (``"+y"``, ``"+z"``, ...)."""
+    axis = "xyz".index(up[1])
+    up_vec = np.zeros(3)
+    up_vec[axis] = 1.0 if up[0] == "+" else -1.0
+    side, front = np.roll(np.eye(3), -axis - 1, axis=0)[:2]  # the two other axes
+    centre = 0.5 * (lo + hi)
+    size = float(np.max(hi - lo)) or 1.0
+    server.initial_camera.look_at = centre
+    server.initial_camera.up = up_vec
+    server.initial_camera.position = centre + size * (0.75 * side - 1.0 * front + 0.6 * up_vec)
+
+
+def box_edges(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """(12, 2, 3) the edges of the axis-aligned box ``lo``..``hi``."""
+    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1])
+                        for z in (lo[2], hi[2])])
+    pairs = [(a, b) for a in range(8) for b in range(a + 1, 8)
+             if bin(a ^ b).count("1") == 1]  # corners differing in one coordinate
+    return np.stack([corners[[a, b]] for a, b in pairs])
+
+
+def collider_surface_via_client(client, info, resolution: int = 48):
+    """(vertices (v, 3) float32, faces (f, 3) uint32) of a collider's zero level set in its own
+    frame and units, from ``distance`` queries on a grid over its domain through ``client``;
+    None when scikit-image is missing or the grid has no sign change."""
+    try:
+        from skimage.measure import marching_cubes
+    except ImportError:
+        return None
+    lo, hi = np.asarray(info.domain_min, float), np.asarray(info.domain_max, float)
+    axes = [np.linspace(lo[i], hi[i], resolution) for i in range(3)]
+    grid = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+    # The identity pose, so that the answer stays in the collider frame.
+    values = np.asarray(client.query(info.name, grid, fields=["distance"], pose=np.eye(4)).distance)
+    values = values.reshape((resolution,) * 3)
+    if values.min() >= 0 or values.max() <= 0:
+        return None
+    spacing = tuple((hi - lo) / (resolution - 1))
+    verts, faces, _, _ = marching_cubes(values, level=0.0, spacing=spacing)
+    return (verts + lo).astype(np.float32), faces.astype(np.uint32)
+
+
+def _pose_parts(pose: np.ndarray):
+    """(wxyz, position, scale) of a 4x4 similarity (rotation, translation, uniform scale)."""
+    from viser import transforms
+
+    linear = pose[:3, :3]
+    scale = float(np.cbrt(abs(np.linalg.det(linear)))) or 1.0
+    return transforms.SO3.from_matrix(linear / scale).wxyz, pose[:3, 3], scale
+
+
+@dataclass
+class Colliders:
+    """The scene's colliders drawn in the view, moved to their poses by :meth:`place`."""
+
+    handles: list
+    poses: list
+
+    @classmethod
+    def add(cls, server, scene: Scene, client, infos: dict | None) -> "Colliders":
+        handles, poses = [], []
+        for i, spec in enumerate(scene.colliders):
+            surface = None
+            if client is not None and infos and spec.model in infos:
+                surface = collider_surface_via_client(client, infos[spec.model])
+            if surface is None:
+                continue
+            handles.append(server.scene.add_mesh_simple(
+                f"/colliders/{i}_{spec.model}", surface[0], surface[1], color=COLLIDER_COLOR,
+                side="double"))
+            poses.append(pose_function(spec))
+        return cls(handles, poses)
+
+    def place(self, t: float) -> None:
+        for handle, pose in zip(self.handles, self.poses):
+            wxyz, position, scale = _pose_parts(pose(t))
+            handle.wxyz, handle.position, handle.scale = wxyz, position, scale
+
+
+class ClothView:
+    """The cloth mesh, its colliding vertices and the scene's colliders in one viser scene."""
+
+    def __init__(self, server, scene: Scene, vertices: np.ndarray, client=None, infos=None):
+        c = scene.cloth
+        self.server = server
+        self.cloth = server.scene.add_mesh_simple(
+            "/cloth", vertices.astype(np.float32), triangles(c.width, c.height),
+            color=CLOTH_COLOR, side="double")
+        self.colliding = server.scene.add_point_cloud(
+            "/colliding", vertices[:1].astype(np.float32), COLLIDING_COLOR,
+            point_size=2.5 * c.spacing_m, point_shape="circle", visible=False)
+        self.colliders = Colliders.add(server, scene, client, infos)
+        self.colliders.place(0.0)
+        lo, hi = vertices.min(axis=0), vertices.max(axis=0)
+        for spec, info in ((s, (infos or {}).get(s.model)) for s in scene.colliders):
+            if info is not None:  # frame the colliders too, at their start pose
+                pose = pose_function(spec)(0.0)
+                box = box_edges(np.asarray(info.domain_min), np.asarray(info.domain_max))
+                pts = box.reshape(-1, 3) @ pose[:3, :3].T + pose[:3, 3]
+                lo, hi = np.minimum(lo, pts.min(axis=0)), np.maximum(hi, pts.max(axis=0))
+        look_at_box(server, lo, hi)
+
+    def show(self, vertices: np.ndarray, t: float, colliding: np.ndarray | None) -> None:
+        """Show the cloth at ``vertices`` ((W*H, 3) metres, world frame), time ``t`` seconds."""
+        with self.server.atomic():
+            self.cloth.vertices = vertices.astype(np.float32)
+            if colliding is not None and colliding.any():
+                self.colliding.points = vertices[colliding].astype(np.float32)
+                self.colliding.colors = np.tile(np.array(COLLIDING_COLOR, np.uint8),
+                                                (int(colliding.sum()), 1))
+                self.colliding.visible = True
+            else:
+                self.colliding.visible = False
+            self.colliders.place(t)
+
+
+class LiveControls:
+    """Play / pause / step for a running simulation, with the frame counter and time per step.
+
+    :meth:`on_step` is the simulator's per-step callback (``run_scene(on_step=...)``): it
+    refreshes the view at most every ``refresh_s`` seconds of wall time (and on every step while
+    paused, and at the last step) and blocks while the run is paused.
+    """
+
+    def __init__(self, server, view: ClothView, total_steps: int, refresh_s: float = 0.1,
+                 paused: bool = False):
+        self.view, self.total, self.refresh_s = view, total_steps, refresh_s
+        self._running = threading.Event()
+        if not paused:
+            self._running.set()
+        self._step_once = False
+        self._wake = threading.Event()  # set by "play" and "step": the paused run looks again
+        self._last_step = 0
+        self._last_time = self._shown = time.perf_counter()
+        gui = server.gui
+        self.play = gui.add_button("pause" if not paused else "play")
+        self.step = gui.add_button("step")
+        self.status = gui.add_markdown(self._text(0, 0.0, None, 0))
+        self.play.on_click(lambda _: self.toggle())
+        self.step.on_click(lambda _: self.step_one())
+
+    def toggle(self) -> None:
+        if self._running.is_set():
+            self._running.clear()
+            self.play.label = "play"
+        else:
+            self._running.set()
+            self.play.label = "pause"
+            self._wake.set()
+
+    def step_one(self) -> None:
+        """Run exactly one more step, then stay paused."""
+        if self._running.is_set():
+            self.toggle()
+        self._step_once = True
+        self._wake.set()
+
+    def _text(self, step: int, t: float, ms: float | None, colliding: int) -> str:
+        per_step = "-" if ms is None else f"{ms:.2f} ms"
+        return (f"**step {step} / {self.total}**, t = {t:.4f} s  \n"
+                f"time per step: {per_step}  \ncolliding vertices: {colliding}")
+
+    def on_step(self, sim, i: int) -> None:
+        paused = not self._running.is_set()
+        now = time.perf_counter()
+        if now - self._shown >= self.refresh_s or i == self.total or paused:
+            ms = 1e3 * (now - self._last_time) / max(i - self._last_step, 1)
+            colliding = sim.colliding
+            self.view.show(sim.vertices, sim.t, colliding)
+            self.status.content = self._text(i, sim.t, ms, 0 if colliding is None
+                                             else int(colliding.sum()))
+            self._last_step, self._last_time, self._shown = i, now, now
+        if i == self.total:
+            self.play.label, self.play.disabled, self.step.disabled = "finished", True, True
+        if i < self.total and not self._running.is_set():
+            self._wait_if_paused()
+            # Time spent paused is not a step's time.
+            self._last_step, self._last_time = i, time.perf_counter()
+
+    def _wait_if_paused(self) -> None:
+        while not self._running.is_set():
+            self._wake.wait()
+            self._wake.clear()
+            if self._step_once:
+                self._step_once = False
+                return
+
+
+def replay(out_prefix: Path, host: str, port: int, scene: Scene | None = None, client=None,
+           infos=None) -> None:
+    """Serve a view of a finished run: ``out_prefix``.obj (first frame, quads) and .pc2 (every
+    frame), with a frame slider and play/pause; the scene's colliders when ``scene`` is given."""
+    from .output import read_pc2
+
+    obj, pc2 = out_prefix.with_suffix(".obj"), out_prefix.with_suffix(".pc2")
+    for path in (obj, pc2):
+        if not path.is_file():
+            raise FileNotFoundError(f"{path}: no such file (run `collider simulate` first; "
+                                    "--replay takes the output prefix, e.g. out/drape_bunny)")
+    frames = read_pc2(pc2)
+    if len(frames) == 0:
+        raise ValueError(f"{pc2}: holds no frames")
+    # Frame k was written at step k * frame_every (the last one may be the run's final step).
+    interval_s = scene.dt_s * scene.frame_every if scene is not None else None
+    if scene is None:
+        width, height = _grid_from_obj(obj, frames.shape[1])
+        scene = _bare_scene(width, height)
+    server = start_server(host, port)
+    view = ClothView(server, scene, frames[0], client, infos)
+    gui = server.gui
+    slider = gui.add_slider("frame", 0, len(frames) - 1, 1, 0)
+    play = gui.add_button("play")
+    status = gui.add_markdown("")
+    playing = threading.Event()
+
+    def show(_=None):
+        k = int(slider.value)
+        t = k * interval_s if interval_s else 0.0
+        view.show(frames[k], t, None)
+        when = f", t = {t:.4f} s" if interval_s else ""
+        status.content = f"**frame {k} / {len(frames) - 1}**{when}"
+
+    def toggle(_):
+        if playing.is_set():
+            playing.clear()
+            play.label = "play"
+        else:
+            playing.set()
+            play.label = "pause"
+
+    slider.on_update(show)
+    play.on_click(toggle)
+    show()
+
+    def player():
+        while True:
+            playing.wait()
+            slider.value = (int(slider.value) + 1) % len(frames)  # on_update redraws
+            time.sleep(1.0 / 30)  # playback pace: 30 frames per second of wall time
+
+    threading.Thread(target=player, daemon=True).start()
+    wait_until_interrupted(server, f"replaying {len(frames)} frames of {out_prefix} at "
+                                   f"{url_of(server)}  (Ctrl-C to stop)")
+
+
+def _grid_from_obj(obj: Path, n: int) -> tuple[int, int]:
+    """(width, height) of the cloth grid from the OBJ's first quad (a b b+1 ... rows of W)."""
+    for line in obj.open():
+        if line.startswith("f "):
+            a, b, c, d = (int(v) for v in line.split()[1:5])
+            width = d - a
+            if width > 0 and n % width == 0:
+                return width, n // width
+            break
+    raise ValueError(f"{obj}: not a cloth grid written by `collider simulate`")
+
+
+def _bare_scene(width: int, height: int):
+    """A stand-in with only the cloth's grid size, for a replay without its scene file."""
+    from types import SimpleNamespace
+
+    return SimpleNamespace(cloth=SimpleNamespace(width=width, height=height, spacing_m=1e-3),
+                           colliders=[])

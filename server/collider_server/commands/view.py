@@ -1,0 +1,116 @@
+"""``collider view NAME`` (a collider in the browser) and ``collider view --replay out/SCENE``
+(a finished cloth run). Needs the ``[view]`` extra (viser); see :mod:`collider_server.view`."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from .options import add_placement_arguments, placement_from_args
+
+
+def register(subparsers) -> None:
+    view = subparsers.add_parser(
+        "view", help="look at a collider, or replay a cloth run, in the browser",
+        description="Serve an interactive 3D view on http://HOST:PORT/ (extra [view]: "
+                    "pip install 'neural-collider[view]'). `collider view NAME --mesh MESH`: the "
+                    "collider's surface coloured by its error against the exact mesh (mm), the "
+                    "mesh as a wireframe, the domain box, a level slider (eps offset surface), a "
+                    "probe. `collider view --replay out/SCENE`: replay a `collider simulate` "
+                    "output (OBJ + PC2). Ctrl-C stops it.")
+    view.add_argument("model", nargs="?", help="model name in the repository, or a .safetensors path")
+    view.add_argument("--mesh", default=None,
+                      help="the mesh the collider was made from: colour by error, show as wireframe "
+                           "(placed as the model was made unless placement options are given)")
+    view.add_argument("--replay", type=Path, default=None, metavar="OUT/SCENE",
+                      help="replay a run's output prefix (OBJ + PC2), e.g. out/drape_bunny")
+    view.add_argument("--scene", default=None,
+                      help="with --replay: the scene file or name, to show its colliders "
+                           "(default: the output's name if it is a shipped scene)")
+    view.add_argument("--resolution", type=int, default=96,
+                      help="marching-cubes grid samples per axis over the domain (default 96)")
+    view.add_argument("--clip-mm", type=float, default=None,
+                      help="error colour scale, +- mm (default: p95 of the surface's |error|)")
+    view.add_argument("--up", default=None, choices=["+x", "+y", "+z", "-x", "-y", "-z"],
+                      help="up axis of the collider frame in the view (default +z, or +y for a "
+                           "model whose source transform kept a Y-up mesh as is)")
+    view.add_argument("--host", default="127.0.0.1",
+                      help="address to listen on (default 127.0.0.1; another warns: no authentication)")
+    view.add_argument("--port", type=int, default=8080, help="port (default 8080)")
+    view.add_argument("--models", type=Path, default=None, help="model repository (default models/)")
+    view.add_argument("--device", default=None, help="cpu, cuda or auto")
+    view.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_placement_arguments(view, units=False, as_stored=True)
+    view.set_defaults(func=run_view)
+
+
+def run_view(args: argparse.Namespace) -> int:
+    from collider_client.sim.view import require_viser
+
+    if (args.model is None) == (args.replay is None):
+        raise ValueError("give a model NAME or --replay OUT/SCENE (one of them)")
+    if not 1 <= args.port <= 65535:
+        raise ValueError(f"--port must be 1..65535, got {args.port}")
+    require_viser()  # before any work: the missing extra is said first
+    if args.replay is not None:
+        return run_replay(args)
+    return run_collider_view(args)
+
+
+def run_collider_view(args: argparse.Namespace) -> int:
+    from collider_client.sim.view import url_of, wait_until_interrupted
+
+    from ..meshes import load_mesh
+    from ..repository import ModelRepository
+    from ..view import serve_collider_view
+
+    collider = ModelRepository(args.models).load(args.model, args.device)
+    mesh = None
+    stored = np.asarray(collider.info.source.get("transform", np.eye(4)), dtype=np.float64)
+    if args.mesh is not None:
+        mesh = load_mesh(args.mesh)
+        placement = placement_from_args(args)
+        if placement is None:  # as the model was made: its stored source transform
+            if not np.allclose(stored, np.eye(4)):
+                mesh = mesh.transformed(stored)
+        else:
+            mesh, _ = placement.apply(mesh)
+        sha = collider.info.source.get("sha256")
+        if sha and sha != mesh.sha256:
+            print(f"collider view: warning: {args.mesh} is not the mesh {collider.info.name} was "
+                  "made from (sha256 differs)", file=sys.stderr)
+    up = args.up or ("+z" if not np.allclose(stored, np.eye(4)) else "+y")
+    server = serve_collider_view(collider, mesh, host=args.host, port=args.port,
+                                 resolution=args.resolution, up=up, clip_mm=args.clip_mm,
+                                 show_progress=not args.quiet)
+    wait_until_interrupted(server, f"view of {collider.info.name} at {url_of(server)}  "
+                                   "(Ctrl-C to stop)")
+    return 0
+
+
+def run_replay(args: argparse.Namespace) -> int:
+    from collider_client import Client
+    from collider_client.sim.command import SCENES_DIR, resolve_scene
+    from collider_client.sim.scene import load_scene
+    from collider_client.sim.view import replay
+
+    prefix = args.replay
+    if prefix.suffix in (".obj", ".pc2"):
+        prefix = prefix.with_suffix("")
+    scene = client = infos = None
+    if args.scene is not None:
+        scene = load_scene(resolve_scene(args.scene))
+    elif (SCENES_DIR / f"{prefix.name}.toml").is_file():
+        scene = load_scene(SCENES_DIR / f"{prefix.name}.toml")
+    try:
+        if scene is not None and scene.colliders:
+            client = Client(models=args.models, device=args.device)
+            infos = {m.name: m for m in client.list_models()}
+        replay(prefix, args.host, args.port, scene, client, infos)
+    finally:
+        if client is not None:
+            client.close()
+    return 0

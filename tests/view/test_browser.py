@@ -1,0 +1,177 @@
+"""The browser views in a real headless Chromium: ``collider view bunny --mesh ...`` and a short
+``collider simulate drape_bunny --view``. Each is started as a user would (the real command, a
+loopback port), opened in Chromium over the DevTools protocol, screenshotted until its canvas
+shows the expected colours, and checked for JavaScript errors; Ctrl-C (SIGINT) must stop it with
+status 0.
+
+Skipped with a reason when no Chromium is installed (CI installs Debian's ``chromium``) or the
+``[view]`` extra is missing. ``COLLIDER_SCREENSHOTS=DIR`` also saves the screenshots there (how
+``docs/view-*.png`` were made).
+"""
+
+from __future__ import annotations
+
+import os
+import queue
+import signal
+import socket
+import subprocess
+import sys
+import threading
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from tests.conftest import REPO_ROOT, shared_mesh_path
+
+from .chromium import Browser, find_browser
+
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(900)]
+
+BROWSER = find_browser()
+if BROWSER is None:
+    pytest.skip("no Chromium installed (apt-get install chromium)", allow_module_level=True)
+pytest.importorskip("viser", reason="the [view] extra (viser) is not installed")
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+class Command:
+    """A ``collider`` command in a subprocess whose stdout lines are read by a thread."""
+
+    def __init__(self, args: list[str], cwd: Path):
+        env = dict(os.environ, PYTHONUNBUFFERED="1", OMP_NUM_THREADS="1",
+                   PYTHONPATH=os.pathsep.join([str(REPO_ROOT / "server"), str(REPO_ROOT / "client"),
+                                               os.environ.get("PYTHONPATH", "")]))
+        self.process = subprocess.Popen([sys.executable, "-m", "collider_server.cli", *args],
+                                        cwd=cwd, env=env, stdout=subprocess.PIPE,
+                                        stderr=subprocess.PIPE, text=True)
+        self.lines: queue.Queue[str | None] = queue.Queue()
+        self.stderr: list[str] = []
+        threading.Thread(target=self._pump, daemon=True).start()
+        threading.Thread(target=lambda: self.stderr.extend(self.process.stderr), daemon=True).start()
+
+    def _pump(self) -> None:
+        for line in self.process.stdout:
+            self.lines.put(line)
+        self.lines.put(None)
+
+    def wait_for(self, text: str, timeout_s: float = 600) -> str:
+        """The first stdout line containing ``text`` (fails if the command ends first)."""
+        while True:
+            line = self.lines.get(timeout=timeout_s)
+            if line is None:
+                self.process.wait()
+                pytest.fail(f"command ended ({self.process.returncode}) before printing {text!r}:"
+                            f"\n{''.join(self.stderr)[-3000:]}")
+            if text in line:
+                return line
+
+    def interrupt(self) -> int:
+        """Ctrl-C, as a user stops the view; the exit status."""
+        self.process.send_signal(signal.SIGINT)
+        try:
+            return self.process.wait(timeout=60)
+        except subprocess.TimeoutExpired:
+            self.process.kill()
+            self.process.wait()
+            raise
+
+    def kill(self) -> None:
+        if self.process.poll() is None:
+            self.process.kill()
+            self.process.wait()
+
+
+def canvas_region(image) -> np.ndarray:
+    """(h, w, 3) int the part of the screenshot where the 3D canvas shows the scene: left of the
+    control panel (right 30 %) and below the top band (toasts)."""
+    a = np.asarray(image).astype(int)
+    h, w = a.shape[:2]
+    return a[int(0.25 * h):, : int(0.7 * w)]
+
+
+def coloured(region: np.ndarray, colour: str) -> int:
+    """Pixels of a clearly red / blue / grey (non-white, unsaturated) hue."""
+    r, g, b = region[..., 0], region[..., 1], region[..., 2]
+    if colour == "red":
+        return int(((r - np.maximum(g, b)) > 60).sum())
+    if colour == "blue":
+        return int(((b - r) > 50).sum())
+    if colour == "shape":  # anything drawn: clearly darker than the white background
+        return int((region.max(axis=-1) < 225).sum())
+    raise ValueError(colour)
+
+
+def save(image, name: str, tmp_path: Path) -> None:
+    image.save(tmp_path / name)
+    target = os.environ.get("COLLIDER_SCREENSHOTS")
+    if target:
+        image.save(Path(target) / name)
+
+
+def look(url: str, tmp_path: Path, check, name: str):
+    with Browser(BROWSER, tmp_path / f"profile-{name}") as browser:
+        browser.open(url)
+        image, ok = browser.screenshot_until(check, timeout_s=180)
+        # A little more of the page's life for late errors: one more round trip to the page.
+        browser.call("Runtime.evaluate", expression="1")
+        errors = list(browser.errors)
+    save(image, name, tmp_path)
+    return image, ok, errors
+
+
+def test_collider_view_in_chromium(tmp_path):
+    mesh = shared_mesh_path("stanford-bunny.obj")
+    port = free_port()
+    command = Command(["view", "bunny", "--mesh", str(mesh), "--port", str(port),
+                       "--resolution", "64", "--quiet"], REPO_ROOT)
+    try:
+        line = command.wait_for("Ctrl-C to stop")
+        assert f"http://127.0.0.1:{port}/" in line
+
+        def check(image) -> bool:
+            region = canvas_region(image)
+            # The bunny's surface (shaded, mostly white-grey where the error is small) and its
+            # error patches in the colour map's red.
+            return coloured(region, "shape") > 0.02 * region[..., 0].size and \
+                coloured(region, "red") > 30
+
+        image, ok, errors = look(f"http://127.0.0.1:{port}/", tmp_path, check, "view-bunny.png")
+        region = canvas_region(image)
+        assert ok, (f"canvas shows too little: {coloured(region, 'shape')} drawn pixels, "
+                    f"{coloured(region, 'red')} red; see {tmp_path / 'view-bunny.png'}")
+        assert errors == [], errors
+        assert command.interrupt() == 0
+        assert "view stopped" in "".join(command.stderr)
+    finally:
+        command.kill()
+
+
+def test_simulate_view_in_chromium(tmp_path):
+    port = free_port()
+    command = Command(["simulate", "drape_bunny", "--steps", "20", "--view", "--port", str(port),
+                       "--output", str(tmp_path / "out"), "--no-preview", "--quiet"], REPO_ROOT)
+    try:
+        command.wait_for("view at")
+        command.wait_for("run finished")  # the view stays up after the run
+
+        def check(image) -> bool:
+            region = canvas_region(image)
+            # The cloth (blue) above the bunny (light grey).
+            return coloured(region, "blue") > 0.01 * region[..., 0].size and \
+                coloured(region, "shape") > 0.03 * region[..., 0].size
+
+        image, ok, errors = look(f"http://127.0.0.1:{port}/", tmp_path, check, "view-simulate.png")
+        region = canvas_region(image)
+        assert ok, (f"canvas shows too little: {coloured(region, 'blue')} cloth pixels, "
+                    f"{coloured(region, 'shape')} drawn; see {tmp_path / 'view-simulate.png'}")
+        assert errors == [], errors
+        assert command.interrupt() == 0
+    finally:
+        command.kill()
