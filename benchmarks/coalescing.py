@@ -43,6 +43,7 @@ from service_common import (  # noqa: E402
     REPO,
     LeanConnection,
     bunny_points,
+    cpu_seconds,
     decode_response,
     machine_note,
     percentiles_ms,
@@ -61,10 +62,12 @@ class Slices:
         self.latencies: list[float] = []
         self.points = 0
         self.seconds = 0.0
+        self.cpu_s = 0.0  # the server process's CPU time
         self.errors: dict[int, int] = {}
 
     def result(self) -> dict:
         return {"points_per_s": self.points / self.seconds, "requests": len(self.latencies),
+                "server_cpu_ms_per_1000_points": 1e6 * self.cpu_s / max(self.points, 1),
                 "errors": self.errors, **percentiles_ms(self.latencies)}
 
 
@@ -76,6 +79,7 @@ async def run_clients(port: int, model: str, bodies: list[bytes], points_each: i
     # One request each first, so connections are open before the clock starts.
     await asyncio.gather(*(c.post(path, b) for c, b in zip(connections, bodies)))
     start = time.perf_counter()
+    cpu_start = cpu_seconds(port)
     end = start + duration_s
     done = [0]
 
@@ -91,6 +95,7 @@ async def run_clients(port: int, model: str, bodies: list[bytes], points_each: i
 
     await asyncio.gather(*(client(c, b) for c, b in zip(connections, bodies)))
     into.seconds += time.perf_counter() - start
+    into.cpu_s += cpu_seconds(port) - cpu_start
     into.points += done[0] * points_each
     await asyncio.gather(*(c.close() for c in connections))
 
@@ -123,6 +128,7 @@ async def coalescing(models: Path, model: str, collider, clients: list[int], poi
                          else f"one request of {k} x {points_each} points")
                 print(f"  {model:<13} {label:<34} {result['points_per_s']:>12,.0f} points/s"
                       f"  p50 {result['p50_ms']:8.1f} ms  p99 {result['p99_ms']:8.1f} ms"
+                      f"  server CPU {result['server_cpu_ms_per_1000_points']:.2f} ms/1000 pts"
                       f"  errors {result['errors'] or 0}", flush=True)
     return rows
 
@@ -253,8 +259,12 @@ def main() -> int:
               for r in results["coalescing"] if r["model"] == model}
         for k in clients:
             if ("off", k) in by and ("one-batch", k) in by:
+                cpu = {(r["coalescing"], r["clients"]): r["server_cpu_ms_per_1000_points"]
+                       for r in results["coalescing"] if r["model"] == model}
                 print(f"{model} K={k}: on/off {by['on', k] / by['off', k]:.2f}x, "
-                      f"on/one-batch {100 * by['on', k] / by['one-batch', k]:.0f} %")
+                      f"on/one-batch {100 * by['on', k] / by['one-batch', k]:.0f} %; server CPU "
+                      f"per point: off/on {cpu['off', k] / cpu['on', k]:.2f}x, one-batch/on "
+                      f"{100 * cpu['one-batch', k] / cpu['on', k]:.0f} %")
     args.output.parent.mkdir(parents=True, exist_ok=True)
     args.output.write_text(json.dumps(results, indent=2))
     plot(results["coalescing"], args.plot)
