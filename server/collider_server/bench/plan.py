@@ -167,7 +167,8 @@ def neural_candidates(mesh: Mesh, transform: np.ndarray, config: PlanConfig,
             seconds = info.settings.get("training", {}).get("seconds")
             candidates.append(Candidate(
                 f"neural-{name}", f"neural {name} ({preset})", "neural",
-                {"preset": preset, "model": name, "architecture": info.settings.get("architecture")},
+                {"preset": preset, "model": name, "model_file": str(path.resolve()),
+                 "architecture": info.settings.get("architecture")},
                 path=path, build="trained", build_seconds=seconds))
         if preset in trained or preset not in PRESETS:
             continue

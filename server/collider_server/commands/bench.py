@@ -171,12 +171,33 @@ def run_budget_bake(args, budget) -> int:
     except NothingMeetsBudget as exc:
         print(f"collider bake: {exc}", file=sys.stderr)
         return 1
+    print_ranking(report, ranked, budget, device)
     for row in ranked:
         if _build_and_check(args, row, report, budget, mesh, transform, units, meters_per_unit, device):
             return 0
     print(f"collider bake: every collider that met {budget.describe()} in the bench missed it in the "
           "fresh evaluation; nothing was saved", file=sys.stderr)
     return 1
+
+
+def print_ranking(report: dict, ranked: list[dict], budget, device: str) -> None:
+    """Every measured collider: its reference time and whether it meets the budget (and why not)."""
+    from ..bench.report import reference_seconds_per_point
+
+    meeting = {r["name"] for r in ranked}
+    print(f"measured colliders ({device}, distance+normal+contact, s per 1M points; "
+          f"+-1 mm band mean errors), for {budget.describe()}:")
+    rows = sorted(report["colliders"], key=lambda r: reference_seconds_per_point(r, report, device) or float("inf"))
+    for r in rows:
+        t = reference_seconds_per_point(r, report, device)
+        if t is None:
+            continue
+        a = r["accuracy"]["band_1mm"]
+        verdict = "meets" if r["name"] in meeting else "misses: " + "; ".join(budget.misses(r))
+        print(f"  {r['label']:<34} {t * 1e6:8.2f}  {a['distance_mean_mm']:.4f} mm  {a['normal_mean_deg']:5.2f} deg  "
+              f"{r['memory_bytes'] / 1e6:7.2f} MB  {verdict}")
+    for skipped in report.get("skipped", []):
+        print(f"  not measured: {skipped['name']}: {skipped['reason']}")
 
 
 def _bake_device(device: str | None) -> str:
@@ -202,11 +223,17 @@ def _budget_report(args, budget, mesh, transform, units, meters_per_unit, device
     plan = PlanConfig(padding=args.padding, max_memory_bytes=budget.max_memory_bytes or PlanConfig().max_memory_bytes)
     config = BenchConfig(sizes=(100_000,), paths=("embedded",), devices=(device,), plan=plan,
                          timing=TimingPolicy(repeats=3, cell_budget_s=10.0))
+    from ..bench.report import write_outputs
+
+    work_dir = Path("out") / f"bake-{args.name}"
     print(f"measuring the candidates of {args.mesh} ({device}, embedded, 100k points per call) ...",
           file=sys.stderr)
-    return run_bench(mesh, transform, config, units=units, meters_per_unit=meters_per_unit,
-                     models_root=args.models, work_dir=Path("out") / f"bake-{args.name}",
-                     mesh_path=str(args.mesh), show_progress=not args.quiet)
+    report = run_bench(mesh, transform, config, units=units, meters_per_unit=meters_per_unit,
+                       models_root=args.models, work_dir=work_dir, mesh_path=str(args.mesh),
+                       show_progress=not args.quiet)
+    paths = write_outputs(report, work_dir)
+    print(f"measured figures: {paths['markdown']}, {paths['json']}")
+    return report
 
 
 def _build_and_check(args, row, report, budget, mesh, transform, units, meters_per_unit, device) -> bool:
@@ -222,8 +249,8 @@ def _build_and_check(args, row, report, budget, mesh, transform, units, meters_p
 
     repo = ModelRepository(args.models)
     candidate = Candidate(row["name"], row["label"], row["kind"], row["settings"], build=row["build"])
-    if candidate.build == "trained":
-        candidate.path = repo.resolve(row["settings"]["model"])
+    if candidate.build == "trained":  # an existing model: the very file the bench measured
+        candidate.path = Path(row["settings"]["model_file"])
     with tempfile.TemporaryDirectory() as scratch:
         collider = build_candidate(candidate, mesh, transform, units=units, meters_per_unit=meters_per_unit,
                                    cache=Path("out/bench-cache"), out_dir=Path(scratch),
