@@ -3,13 +3,12 @@ this machine.
 
 - :mod:`.plan`: which colliders are compared and how each is built (cached);
 - :mod:`.timing`: warm-up, then the median of repeats per (path, device, mode, size) cell;
-- :mod:`.server`: a real ``collider serve`` subprocess for the served half;
 - :mod:`.run`: the measurement run, returning every raw figure as a JSON-ready dict;
 - :mod:`.report`: tables, Pareto front, the error-vs-time PNG, the files;
 - :mod:`.budget`: an error budget in, the fastest collider that meets it out.
 
 The engine knows nothing of this package; it only calls the engine (and the client SDK for the
-served half).
+served half, started with :mod:`collider_server.service.launch`).
 """
 
 from .budget import Budget, NothingMeetsBudget, rank

@@ -182,10 +182,10 @@ def time_served(candidates: list[Candidate], models: Path, device: str, points: 
     import torch
     from collider_client import Client
 
-    from .server import serve_process
+    from ..service.launch import serve_process
 
     biggest = max(config.sizes)
-    flags = ["--device", device, "--compute-threads", str(torch.get_num_threads()),
+    flags = ["--device", device, "--compute-threads", str(torch.get_num_threads()), "--log-level", "warning",
              "--max-request-points", str(max(biggest, 1_000_000)),
              "--max-queue-points", str(max(4 * biggest, 4_000_000)),
              "--max-body-bytes", str(max(64 * 2**20, 64 * biggest))]
@@ -197,7 +197,8 @@ def time_served(candidates: list[Candidate], models: Path, device: str, points: 
     for candidate in candidates:
         shutil.copyfile(candidate.path, served / candidate.path.name)
     results = {}
-    with serve_process(served, *flags) as url, Client(url, timeout_s=None) as client:
+    with serve_process(served, *flags, ready_timeout_s=300.0, capture=True) as server, \
+            Client(server.url, timeout_s=None) as client:
         for candidate in candidates:
             bar.set_postfix_str(f"time {candidate.label}, served, {device}")
             results[candidate.name] = time_cells(
