@@ -76,10 +76,30 @@ def main() -> None:
                                    "deepest_m": float(max(0.0, -distance.min())),
                                    "closest_m": float(distance.min()), "energy_j": energy,
                                    "colliding": sim.hook.stats.colliding_last})
+                    if args.json:  # after every frame: a run stopped early keeps its figures
+                        write_json(args.json, summarise(frames, start_energy, scene, args,
+                                                        time.perf_counter() - started), frames)
             wall = time.perf_counter() - started
+    summary = summarise(frames, start_energy, scene, args, wall)
+    for key, value in summary.items():
+        print(f"{key:26s} {value}")
+    ok = summary["all_finite"] and summary["energy_rise_j"] <= 0.0 and summary["deepest_inside_exact_mm"] <= 0.1
+    print("guarantees (finite, energy not above its start, deepest <= 0.1 mm):", "met" if ok else "NOT met")
+    if args.json:
+        write_json(args.json, summary, frames)
+
+
+def write_json(path: Path, summary: dict, frames: list) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps({"summary": summary, "frames": frames}, indent=1))
+
+
+def summarise(frames: list, start_energy: float, scene, args, wall: float) -> dict:
+    """The run's figures over the frames so far."""
+    steps = frames[-1]["step"]
     worst = max(frames, key=lambda f: f["deepest_m"])
     energies = np.array([f["energy_j"]["total"] for f in frames])
-    summary = {
+    return {
         "steps": steps, "dt_s": scene.dt_s, "simulated_s": steps * scene.dt_s, "frames": len(frames),
         "wall_s": round(wall, 1), "ms_per_step": round(1e3 * wall / steps, 2),
         "voxel_resolution": args.resolution, "all_finite": all(f["finite"] for f in frames),
@@ -90,13 +110,6 @@ def main() -> None:
         "closest_mm": 1e3 * min(f["closest_m"] for f in frames),
         "colliding_max": max(f["colliding"] for f in frames),
     }
-    for key, value in summary.items():
-        print(f"{key:26s} {value}")
-    ok = summary["all_finite"] and summary["energy_rise_j"] <= 0.0 and summary["deepest_inside_exact_mm"] <= 0.1
-    print("guarantees (finite, energy not above its start, deepest <= 0.1 mm):", "met" if ok else "NOT met")
-    if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps({"summary": summary, "frames": frames}, indent=1))
 
 
 if __name__ == "__main__":

@@ -426,3 +426,86 @@ def test_shipped_bunny_gives_sane_answers_on_the_hard_points(shipped_bunny):
     chunks = [shipped_bunny.query(points[i:i + 7], ["distance"]) for i in range(0, len(points), 7)]
     np.testing.assert_allclose(np.concatenate([c.distance for c in chunks]), result.distance,
                                rtol=1e-6, atol=1e-7)
+
+
+# -- 5. open meshes: inside / outside agrees with the winding number away from the holes ---------
+
+OPEN_MESHES = ["stanford-bunny.obj", "teapot.obj", "spot.obj", "suzanne.obj"]
+
+
+@pytest.mark.parametrize("name", OPEN_MESHES)
+def test_open_meshes_sign_agrees_with_the_exact_winding_number(name, load_shared_mesh):
+    import igl
+
+    from collider_server.bake import bake_collider
+
+    mesh = load_shared_mesh(name)
+    size = float(np.ptp(mesh.vertices, axis=0).max())
+    rng = np.random.default_rng(13)
+    lo, hi = mesh.bounds
+    points = rng.uniform(lo - 0.05 * size, hi + 0.05 * size, size=(1500, 3))
+    # The exact generalised winding number (a sum over every triangle: slow, obviously right).
+    winding = igl.winding_number(np.ascontiguousarray(mesh.vertices, np.float64),
+                                 np.ascontiguousarray(mesh.faces, np.int64), points)
+    for kind in ("mesh", "voxel"):
+        collider = bake_collider(mesh, kind, name, resolution=64, show_progress=False)
+        distance = collider.query(points, ["distance"]).distance
+        # Away from the holes (w near 0 or 1) and from the surface (one voxel cell and more).
+        clear = ((winding < 0.1) | (winding > 0.9)) & (np.abs(distance) > 2 * size / 64)
+        agree = np.mean((distance[clear] < 0) == (winding[clear] > 0.5))
+        assert clear.sum() > 500 and agree == 1.0, (kind, agree, clear.sum())
+
+
+# -- 6. features thinner than 2 eps: the contact is never on the far side ---------------------------
+
+
+def thin_spots(mesh, exact, max_thickness: float, count: int, seed: int):
+    """Surface points (face centroids) whose solid, measured along the inward normal, is thinner
+    than ``max_thickness``: (points (m, 3), outward normals (m, 3), thickness (m,))."""
+    tri = mesh.vertices[mesh.faces]
+    normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    area = np.linalg.norm(normal, axis=1)
+    keep = area > 0
+    centre, normal = tri[keep].mean(axis=1), normal[keep] / area[keep, None]
+    rng = np.random.default_rng(seed)
+    pick = rng.choice(len(centre), min(4000, len(centre)), replace=False)
+    centre, normal = centre[pick], normal[pick]
+    steps = np.linspace(0.02, 1.0, 50) * max_thickness
+    inside = np.stack([exact.signed_distance(centre - t * normal) < 0 for t in steps], axis=1)
+    # Thin: inside just below the surface, outside again before max_thickness.
+    thin = inside[:, 0] & ~inside.all(axis=1)
+    exit_step = np.argmax(~inside & np.cumsum(inside, axis=1).astype(bool), axis=1)
+    thickness = steps[exit_step]
+    order = np.flatnonzero(thin)[:count]
+    return centre[order], normal[order], thickness[order]
+
+
+VOXEL_TOO_COARSE = pytest.mark.xfail(strict=True, reason=(
+    "a limit found: the teapot's spout and handle (0.02-0.09 units thick) are thinner than a "
+    "64^3 voxel cell (0.12): the grid blurs them and some contacts land past the far face"))
+
+
+@pytest.mark.parametrize("name, thin_m, kind", [
+    ("stanford-bunny.obj", 0.006, "mesh"), ("stanford-bunny.obj", 0.006, "voxel"),
+    ("teapot.obj", 0.1, "mesh"), pytest.param("teapot.obj", 0.1, "voxel", marks=VOXEL_TOO_COARSE)])
+def test_thin_features_never_get_their_contact_on_the_far_side(name, thin_m, kind, load_shared_mesh):
+    """Points just inside a feature thinner than 2 eps (bunny ears, teapot spout and handle) are
+    pushed out, never on through the far face. Measured: every contact short of the far face;
+    99 % (bunny) and 97-99 % (teapot) back out through the near face itself; the others leave
+    sideways at creases, or (teapot, eps larger than the gap between its parts) land in another
+    part: a limit of any eps wider than the features and gaps it is used near."""
+    from collider_server.bake import bake_collider
+    from collider_server.meshes import ExactSDF
+
+    mesh = load_shared_mesh(name)
+    exact = ExactSDF(mesh)
+    spots, normals, thickness = thin_spots(mesh, exact, thin_m, 200, seed=14)
+    assert len(spots) > 50, f"too few features of {name} thinner than {thin_m} m"
+    eps = thin_m  # every feature found is thinner than 2 eps
+    entered = spots - 0.25 * thickness[:, None] * normals  # just through the near face
+    collider = bake_collider(mesh, kind, name, resolution=64, show_progress=False)
+    result = collider.query(entered, ["distance", "contact", "collides"], eps=eps)
+    assert result.collides.all()
+    along = np.einsum("ij,ij->i", result.contact - entered, normals)
+    assert (along > -0.75 * thickness).all()  # never past the far face
+    assert np.mean(along > 0) >= 0.95, np.mean(along > 0)  # nearly all out through the near face
