@@ -433,6 +433,7 @@ def test_shipped_bunny_gives_sane_answers_on_the_hard_points(shipped_bunny):
 OPEN_MESHES = ["stanford-bunny.obj", "teapot.obj", "spot.obj", "suzanne.obj"]
 
 
+@pytest.mark.slow  # bakes four meshes and sums the exact winding number (~1 min)
 @pytest.mark.parametrize("name", OPEN_MESHES)
 def test_open_meshes_sign_agrees_with_the_exact_winding_number(name, load_shared_mesh):
     import igl
@@ -485,6 +486,7 @@ VOXEL_TOO_COARSE = pytest.mark.xfail(strict=True, reason=(
     "64^3 voxel cell (0.12): the grid blurs them and some contacts land past the far face"))
 
 
+@pytest.mark.slow  # bakes the bunny and the teapot (~1-2 min)
 @pytest.mark.parametrize("name, thin_m, kind", [
     ("stanford-bunny.obj", 0.006, "mesh"), ("stanford-bunny.obj", 0.006, "voxel"),
     ("teapot.obj", 0.1, "mesh"), pytest.param("teapot.obj", 0.1, "voxel", marks=VOXEL_TOO_COARSE)])
