@@ -1,0 +1,88 @@
+#!/usr/bin/env bash
+# Mutation testing of the core modules with mutmut (PyPI), each module against the tests that
+# cover it. Not run in CI: it is CPU-heavy (every mutant re-runs its covering tests).
+#
+#   scripts/mutation.sh                  # every core module (hours on a 2-core machine)
+#   scripts/mutation.sh pose response    # only these (names below)
+#   JOBS=1 scripts/mutation.sh pose      # mutmut workers (default 2)
+#
+# Needs: pip install mutmut (the dev extra). Each module runs in its own scratch copy of the
+# repository under ${MUTATION_DIR:-/tmp/neural-collider-mutation}/NAME (mutmut writes its mutants/
+# folder there; the shared meshes are linked in), so the working tree is never touched.
+# Per module it prints killed / survived / other and the score, and writes the surviving
+# mutants' diffs to NAME/survivors.txt. Read the survivors: each is a change no test notices.
+set -euo pipefail
+
+ROOT="$(cd "$(dirname "$0")/.." && pwd)"
+WORK="${MUTATION_DIR:-/tmp/neural-collider-mutation}"
+JOBS="${JOBS:-2}"
+
+# name | file to mutate (under server/ or client/) | tests that cover it
+MODULES=(
+  "collider|server/collider_server/collider.py|tests/engine/test_collider.py tests/hard_cases/test_engine_hard_cases.py"
+  "pose|server/collider_server/pose.py|tests/engine/test_pose.py tests/hard_cases/test_engine_hard_cases.py"
+  "kinds|server/collider_server/kinds/*|tests/engine/kinds tests/engine/test_analytic.py tests/hard_cases/test_engine_hard_cases.py"
+  "batching|server/collider_server/batching.py|tests/server/test_batching.py"
+  "response|client/collider_client/response.py|tests/client/test_response.py tests/hard_cases/test_simulator_hard_cases.py"
+  "sim|client/collider_client/sim/*|tests/hard_cases/test_simulator_hard_cases.py tests/client/test_scene.py tests/client/test_simulator.py"
+)
+
+run_module() {
+  local name=$1 target=$2 tests=$3
+  local dir="$WORK/$name"
+  rm -rf "$dir" && mkdir -p "$dir"
+  # A scratch copy of the tracked files (models included), and the shared meshes beside it
+  # where tests/conftest.py looks for them (../shared/data/meshes from the repository root).
+  git -C "$ROOT" ls-files -z | (cd "$ROOT" && xargs -0 cp --parents -t "$dir")
+  ln -s "$(cd "$ROOT/.." && pwd)/shared" "$dir/shared"
+  # mutmut imports the mutated code from mutants/src and names modules by their path under it:
+  # put both packages there (collider_server imports collider_client).
+  mkdir "$dir/src"
+  mv "$dir/server/collider_server" "$dir/client/collider_client" "$dir/src/"
+  {
+    echo "[mutmut]"
+    echo "source_paths = src"
+    echo "only_mutate = src/${target#*/}"
+    echo "pytest_add_cli_args_test_selection ="
+    for t in $tests; do echo "    $t"; done
+    echo "pytest_add_cli_args ="
+    echo "    -p"
+    echo "    no:cacheprovider"
+    echo "    -m"
+    echo "    not slow"
+    echo "also_copy ="
+    echo "    models"
+  } > "$dir/setup.cfg"
+  echo "== $name: mutating $target against: $tests"
+  (
+    cd "$dir"
+    unset PYTHONPATH
+    export OMP_NUM_THREADS=1
+    mutmut run --max-children "$JOBS" > run.log 2>&1 || true
+    mutmut results --all true > results.txt 2>&1 || true
+    killed=$(grep -c ": killed" results.txt || true)
+    survived=$(grep -c ": survived" results.txt || true)
+    total=$(grep -c ": " results.txt || true)
+    other=$((total - killed - survived))
+    score=$(python3 -c "k,s=$killed,$survived; print(f'{100*k/max(k+s,1):.1f} %')")
+    echo "$name: killed $killed, survived $survived, other (timeout, no tests, ...) $other; score $score"
+    : > survivors.txt
+    for m in $(grep ": survived" results.txt | sed 's/: survived//'); do
+      mutmut show "$m" >> survivors.txt 2>&1 || true
+    done
+  )
+}
+
+# The modules named on the command line, in that order; none: all of them.
+names=("$@")
+if [ ${#names[@]} -eq 0 ]; then
+  for entry in "${MODULES[@]}"; do names+=("${entry%%|*}"); done
+fi
+for wanted in "${names[@]}"; do
+  found=""
+  for entry in "${MODULES[@]}"; do
+    IFS="|" read -r name target tests <<< "$entry"
+    if [ "$name" = "$wanted" ]; then found=1; run_module "$name" "$target" "$tests"; fi
+  done
+  [ -n "$found" ] || { echo "unknown module $wanted (known: ${MODULES[*]%%|*})" >&2; exit 2; }
+done
