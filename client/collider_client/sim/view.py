@@ -66,7 +66,16 @@ def url_of(server) -> str:
 
 
 def wait_until_interrupted(server, message: str) -> None:
-    """Print ``message`` and serve until Ctrl-C (SIGINT), then stop the server cleanly."""
+    """Print ``message`` and serve until Ctrl-C (SIGINT) or SIGTERM, then stop the server
+    cleanly. (A job started in the background by a non-interactive shell ignores SIGINT; SIGTERM
+    still stops it cleanly.)"""
+    import signal
+
+    def stop(signum, frame):
+        raise KeyboardInterrupt
+
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGTERM, stop)
     print(message, flush=True)
     try:
         threading.Event().wait()

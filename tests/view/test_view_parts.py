@@ -1,0 +1,122 @@
+"""The browser views' geometry and controls without a browser: the level surface of a collider,
+its error colours, the probe and the click ray, the live controls' play / pause / step, and the
+command's errors. Sphere of radius 0.1 m (exact ``mesh`` collider), collider frame = world frame.
+"""
+
+from __future__ import annotations
+
+import threading
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from tests.conftest import SPHERE_RADIUS, make_sphere
+
+
+@pytest.fixture(scope="module")
+def sphere():
+    from collider_server.bake import bake_collider
+
+    shape = make_sphere()
+    return shape, bake_collider(shape.mesh, "mesh", "sphere", show_progress=False)
+
+
+def test_level_surface_lies_at_the_level(sphere):
+    from collider_server.view import distance_grid, level_surface
+
+    shape, collider = sphere
+    grid = distance_grid(collider, 40, show_progress=False)
+    for level in (0.0, 0.005):  # the surface, and an eps offset surface 5 mm out
+        verts, faces = level_surface(grid, level)
+        radius = np.linalg.norm(verts, axis=1)
+        # Trilinear marching cubes on a 40^3 grid (7 mm cells): within a fraction of a cell.
+        assert np.abs(radius - (SPHERE_RADIUS + level)).max() < 1.5e-3
+        assert faces.max() < len(verts)
+    assert level_surface(grid, 10.0) is None  # no such level in the domain
+
+
+def test_error_colours_and_surface_error(sphere):
+    from collider_server.meshes import ExactSDF
+    from collider_server.view import error_colors, surface_error_mm
+
+    shape, collider = sphere
+    colours = error_colors(np.array([-2.0, 0.0, 0.5, 1.0, 3.0]), clip_mm=1.0)
+    assert colours[1].tolist() == [245, 245, 245]            # no error: white
+    assert colours[3].tolist() == colours[4].tolist()        # clipped at +clip
+    assert colours[3][0] > 150 > colours[3][2]               # outside: red
+    assert colours[0][2] > 150 > colours[0][0]               # inside: blue
+    # Points 1 mm outside the exact sphere, shown as the level-0 surface: +1 mm error.
+    points = np.array([[SPHERE_RADIUS + 1e-3, 0, 0], [0, 0, -(SPHERE_RADIUS + 1e-3)]])
+    error = surface_error_mm(ExactSDF(shape.mesh), points, 0.0, 1.0)
+    np.testing.assert_allclose(error, 1.0, atol=0.05)
+
+
+def test_probe_and_click_ray(sphere):
+    from collider_server.view import probe_text, sphere_trace
+
+    _, collider = sphere
+    # A ray from outside along -x hits the sphere at x = +r.
+    hit = sphere_trace(collider, np.array([0.5, 0.0, 0.0]), np.array([-1.0, 0.0, 0.0]))
+    np.testing.assert_allclose(hit, [SPHERE_RADIUS, 0, 0], atol=1e-4)
+    assert sphere_trace(collider, np.array([0.5, 0.5, 0.5]), np.array([1.0, 0.0, 0.0])) is None
+    text, fields = probe_text(collider, np.array([0.0, 0.0, SPHERE_RADIUS + 5e-4]), eps=1e-3)
+    assert fields["collides"] and abs(fields["distance"] - 5e-4) < 1e-4
+    np.testing.assert_allclose(fields["normal"], [0, 0, 1], atol=1e-3)
+    np.testing.assert_allclose(fields["contact"], [0, 0, SPHERE_RADIUS + 1e-3], atol=1e-4)
+    assert "0.5" in text and "collides **True**" in text
+
+
+class _Handle(SimpleNamespace):
+    """A viser GUI handle's surface the controls use (label, disabled, content, on_click): the
+    clicks come from the test instead of a browser."""
+
+    def on_click(self, fn):
+        self.click = fn
+
+
+def _controls(total: int, paused: bool):
+    from collider_client.sim.view import LiveControls
+
+    shown = []
+    view = SimpleNamespace(show=lambda v, t, c: shown.append(t))
+    gui = SimpleNamespace(add_button=lambda label: _Handle(label=label),
+                          add_markdown=lambda text: _Handle(content=text))
+    controls = LiveControls(SimpleNamespace(gui=gui), view, total, refresh_s=1e9, paused=paused)
+    return controls, shown
+
+
+def test_live_controls_pause_step_and_play():
+    controls, shown = _controls(total=10, paused=True)
+    sim = SimpleNamespace(vertices=np.zeros((4, 3)), t=0.0, colliding=np.array([1, 0, 0, 1], bool))
+    done = threading.Event()
+    finished = []
+
+    def run():  # the simulator's loop, in its own thread as in `collider simulate --view`
+        for i in range(1, 11):
+            sim.t = i * 0.1
+            controls.on_step(sim, i)
+            finished.append(i)
+        done.set()
+
+    worker = threading.Thread(target=run, daemon=True)
+    worker.start()
+    # Started paused: the loop waits after step 1 until "step" (one more step) or "play".
+    controls.step.click(None)
+    controls.step.click(None)
+    controls.play.click(None)  # play: the run goes to the end
+    assert done.wait(timeout=60)
+    assert finished == list(range(1, 11))
+    assert "step 10 / 10" in controls.status.content and "colliding vertices: 2" in controls.status.content
+    assert controls.play.label == "finished"
+
+
+def test_view_command_errors(capsys):
+    from collider_server.cli import main
+
+    assert main(["view"]) == 2
+    assert "give a model NAME or --replay" in capsys.readouterr().err
+    assert main(["view", "bunny", "--replay", "out/x"]) == 2
+    pytest.importorskip("viser")
+    assert main(["view", "--replay", "no/such/run"]) == 2
+    assert "no/such/run.obj: no such file" in capsys.readouterr().err
