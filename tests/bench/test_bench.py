@@ -217,7 +217,7 @@ def test_bench_places_the_mesh_like_every_command_and_reports_errors_in_mm(tmp_p
     for label, placement in (("m", []), ("mm", ["--scale", "1000", "--units", "mm"])):
         out = tmp_path / label
         code, stdout, err = collider_here(capsys, "bench", bunny, *placement, "--kinds", "kdtree", "--no-served",
-                                          "--sizes", "1000", "--accuracy-points", "3000", "--repeats", "1",
+                                          "--sizes", "1k", "--accuracy-points", "3000", "--repeats", "1",
                                           "--quiet", "--output", out, "--cache", tmp_path / "cache")
         assert code == 0, stdout + err
         reports[label] = json.loads((out / "bench.json").read_text())

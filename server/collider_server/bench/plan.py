@@ -123,8 +123,8 @@ def plan_candidates(mesh: Mesh, transform: np.ndarray, config: PlanConfig,
             size = resolution**3 * VOXEL_BYTES_PER_SAMPLE
             if size > config.max_memory_bytes:
                 skipped.append({"name": f"voxel-{resolution}", "reason": (
-                    f"{size / 2**20:.0f} MiB grid exceeds --max-memory "
-                    f"{config.max_memory_bytes / 2**20:.0f} MiB; larger grids not tried")})
+                    f"{size / 1e6:.2f} MB grid exceeds --max-memory "
+                    f"{config.max_memory_bytes / 1e6:.2f} MB; larger grids not tried")})
                 break
             candidates.append(Candidate(f"voxel-{resolution}", f"voxel {resolution}^3", "voxel",
                                         {"resolution": resolution, "padding": config.padding}))

@@ -12,11 +12,21 @@ import numpy as np
 from .options import add_placement_arguments, placement_from_args
 
 
+SUFFIXES = {"k": 1_000, "M": 1_000_000}
+
+
 def _ints(text: str) -> tuple[int, ...]:
-    try:
-        return tuple(int(v.replace("_", "")) for v in text.split(",") if v.strip())
-    except ValueError:
-        raise ValueError(f"expected comma-separated integers, got {text!r}") from None
+    """``"10k,40k,1M"`` or ``"10000,40000"`` -> (10000, 40000, ...)."""
+    values = []
+    for item in (v.strip().replace("_", "") for v in text.split(",")):
+        if not item:
+            continue
+        factor = SUFFIXES.get(item[-1], 1)
+        try:
+            values.append(int(item[:-1] if factor > 1 else item) * factor)
+        except ValueError:
+            raise ValueError(f"expected comma-separated integers (10k, 1M allowed), got {text!r}") from None
+    return tuple(values)
 
 
 def register(subparsers) -> None:
@@ -39,7 +49,7 @@ def register(subparsers) -> None:
     bench.add_argument("--train-minutes", type=float, default=None,
                        help="train each neural preset without a trained model of this mesh for this long "
                             "(default 0: list them as not measured)")
-    bench.add_argument("--sizes", default=None, help="points per query call (default 10000,40000,1000000)")
+    bench.add_argument("--sizes", default=None, help="points per query call (default 10k,40k,1M)")
     bench.add_argument("--accuracy-points", type=int, default=None, help="points per band (default 40000)")
     bench.add_argument("--repeats", type=int, default=None, help="most timed calls per cell (default 5)")
     bench.add_argument("--cell-seconds", type=float, default=None,
