@@ -102,6 +102,11 @@ def test_plan_stops_voxels_at_the_memory_budget_and_lists_every_neural_preset(mo
     with_training = plan_candidates(mesh, np.eye(4), PlanConfig(kinds=("neural",), train_minutes=0.5),
                                     REPO_ROOT / "models")
     assert "neural-bench-test-preset" in [c.name for c in with_training.candidates]
+    only = plan_candidates(mesh, np.eye(4), PlanConfig(kinds=("neural",), presets=("bench-test-preset",),
+                                                       train_minutes=0.5), REPO_ROOT / "models")
+    assert [c.name for c in only.candidates] == ["neural-bench-test-preset"] and not only.skipped
+    with pytest.raises(ValueError, match="--presets must name some of"):
+        PlanConfig(presets=("no-such-preset",)).check()
     other = plan_candidates(mesh, np.diag([2.0, 2.0, 2.0, 1.0]), PlanConfig(kinds=("neural",), train_minutes=0),
                             REPO_ROOT / "models")
     assert "another placement" in {s["name"]: s["reason"] for s in other.skipped}["neural-bunny"]

@@ -43,6 +43,7 @@ class PlanConfig:
     train_minutes : training time per neural preset that has no trained model of the mesh
         (0: such presets are listed as skipped)
     padding : domain padding, fraction of the largest side (voxel, mesh, kdtree)
+    presets : the neural presets to include (None: every preset of the registry)
     """
 
     kinds: tuple[str, ...] = KINDS
@@ -50,6 +51,7 @@ class PlanConfig:
     max_memory_bytes: int = 128 * 2**20
     train_minutes: float = 0.0
     padding: float = 0.1
+    presets: tuple[str, ...] | None = None
 
     def check(self) -> None:
         unknown = set(self.kinds) - set(KINDS)
@@ -61,6 +63,12 @@ class PlanConfig:
             raise ValueError(f"--max-memory must be > 0, got {self.max_memory_bytes}")
         if not (np.isfinite(self.train_minutes) and self.train_minutes >= 0):
             raise ValueError(f"--train-minutes must be a finite number >= 0, got {self.train_minutes}")
+        if self.presets is not None:
+            from ..kinds.neural import PRESETS
+
+            unknown = sorted(set(self.presets) - set(PRESETS))
+            if unknown or not self.presets:
+                raise ValueError(f"--presets must name some of {sorted(PRESETS)}, got {list(self.presets)}")
 
 
 @dataclass
@@ -162,7 +170,10 @@ def neural_candidates(mesh: Mesh, transform: np.ndarray, config: PlanConfig,
         preset = preset_of(info.settings.get("architecture", {}))
         trained.setdefault(preset, []).append((name, path, info))
     candidates, skipped = [], []
-    for preset in list(PRESETS) + sorted(set(trained) - set(PRESETS)):
+    wanted = list(PRESETS) + sorted(set(trained) - set(PRESETS))
+    if config.presets is not None:
+        wanted = [p for p in wanted if p in config.presets]
+    for preset in wanted:
         for name, path, info in trained.get(preset, []):
             seconds = info.settings.get("training", {}).get("seconds")
             candidates.append(Candidate(

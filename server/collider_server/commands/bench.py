@@ -49,6 +49,8 @@ def register(subparsers) -> None:
     bench.add_argument("--train-minutes", type=float, default=None,
                        help="train each neural preset without a trained model of this mesh for this long "
                             "(default 0: list them as not measured)")
+    bench.add_argument("--presets", default=None,
+                       help="comma-separated neural presets to include (default: every preset)")
     bench.add_argument("--sizes", default=None, help="points per query call (default 10k,40k,1M)")
     bench.add_argument("--accuracy-points", type=int, default=None, help="points per band (default 40000)")
     bench.add_argument("--repeats", type=int, default=None, help="most timed calls per cell (default 5)")
@@ -90,6 +92,8 @@ def bench_config(args):
         plan = dataclasses.replace(plan, max_memory_bytes=size_bytes(args.max_memory))
     if args.train_minutes is not None:
         plan = dataclasses.replace(plan, train_minutes=args.train_minutes)
+    if args.presets is not None:
+        plan = dataclasses.replace(plan, presets=tuple(p.strip() for p in args.presets.split(",") if p.strip()))
     timing = base.timing
     if args.repeats is not None:
         timing = dataclasses.replace(timing, repeats=args.repeats)
