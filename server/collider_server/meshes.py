@@ -163,8 +163,7 @@ class ExactSDF:
         )
         lengths = np.linalg.norm(normals, axis=1, keepdims=True)
         self._face_normals = normals / np.where(lengths > 0, lengths, 1.0)
-        self._edge_normals, self._vertex_normals = _pseudo_normals(
-            self._vertices, self._faces, self._face_normals)
+        self._pseudo = None  # edge and vertex pseudo-normals, built on first use
 
     def query(self, points: np.ndarray, chunk_points: int = 200_000):
         """Signed distance, closest point and closest face for (n, 3) float64 points, mesh
@@ -212,6 +211,9 @@ class ExactSDF:
         normal inside a face, the mean of the two faces' normals on an edge, the angle-weighted
         vertex normal at a vertex. A face normal alone at a concave crease points into the
         neighbouring face's solid: pushing a point there along it would move it inside."""
+        if self._pseudo is None:
+            self._pseudo = _pseudo_normals(self._vertices, self._faces, self._face_normals)
+        edge_normals, vertex_normals = self._pseudo
         tri = self._vertices[self._faces[face]]
         bary = _barycentric(closest, tri)
         tol = 1e-6
@@ -220,9 +222,9 @@ class ExactSDF:
         at_vertex = bary[np.arange(len(face)), corner] > 1.0 - tol
         opposite = np.argmin(bary, axis=1)
         on_edge = ~at_vertex & (bary[np.arange(len(face)), opposite] < tol)
-        normals[on_edge] = self._edge_normals[face[on_edge], opposite[on_edge]]
+        normals[on_edge] = edge_normals[face[on_edge], opposite[on_edge]]
         vertex = self._faces[face[at_vertex], corner[at_vertex]]
-        normals[at_vertex] = self._vertex_normals[vertex]
+        normals[at_vertex] = vertex_normals[vertex]
         # Degenerate features (zero-area faces) have no normal: keep the face's, zero or not;
         # the caller's fallback turns a zero vector into a unit one.
         bad = np.linalg.norm(normals, axis=1) < 0.5
