@@ -137,3 +137,105 @@ if numba is not None:
                                   + ax * (dy if by else -dy) * az * grad_jacobian[p, level, f, 1]
                                   + ax * ay * (dz if bz else -dz) * grad_jacobian[p, level, f, 2])
                         grad_table[row, f] += g
+
+    @numba.njit(cache=True, fastmath=True, nogil=True, parallel=True)
+    def network_query(u, table, resolution, offset, rows, dense, smooth, weights, biases, w_out, b_out,
+                      scale, want_gradient, distance, gradient):
+        """The whole network at normalised points ``u`` (n, 3), fused per point: encoding,
+        ReLU MLP (``weights[k]`` (out, in), ``biases[k]`` (out,)), linear output ``w_out`` (in,),
+        ``b_out``; ``distance`` (n,) = output * ``scale``; when ``want_gradient``, ``gradient``
+        (n, 3) = d output / d u (the MLP backward through the ReLU masks, times the encoding's
+        Jacobian). Points are processed in blocks so that the scratch vectors are allocated once
+        per block, not per point. Inference only: no table gradients."""
+        n = u.shape[0]
+        levels = resolution.shape[0]
+        width = table.shape[1]
+        n_in = levels * width
+        depth = len(weights)
+        widest = n_in
+        for k in range(depth):
+            widest = max(widest, weights[k].shape[0])
+        block = 256
+        for b in numba.prange((n + block - 1) // block):
+            feature = np.empty(n_in)
+            jac = np.empty((n_in, 3))
+            act = np.empty((depth, widest))
+            g = np.empty(widest)
+            g_next = np.empty(widest)
+            for p in range(b * block, min(n, (b + 1) * block)):
+                # Encoding and its Jacobian (as in ``encode``).
+                for level in range(levels):
+                    r = resolution[level]
+                    cx, wx, dx = _axis(u[p, 0], r, smooth)
+                    cy, wy, dy = _axis(u[p, 1], r, smooth)
+                    cz, wz, dz = _axis(u[p, 2], r, smooth)
+                    base = level * width
+                    for f in range(width):
+                        feature[base + f] = 0.0
+                        jac[base + f, 0] = 0.0
+                        jac[base + f, 1] = 0.0
+                        jac[base + f, 2] = 0.0
+                    for corner in range(8):
+                        bx, by, bz = corner & 1, (corner >> 1) & 1, (corner >> 2) & 1
+                        ax = wx if bx else 1.0 - wx
+                        ay = wy if by else 1.0 - wy
+                        az = wz if bz else 1.0 - wz
+                        row = offset[level] + _row(cx + bx, cy + by, cz + bz, r, rows[level], dense[level])
+                        weight = ax * ay * az
+                        if want_gradient:
+                            gx = (dx if bx else -dx) * ay * az
+                            gy = ax * (dy if by else -dy) * az
+                            gz = ax * ay * (dz if bz else -dz)
+                            for f in range(width):
+                                v = table[row, f]
+                                feature[base + f] += weight * v
+                                jac[base + f, 0] += gx * v
+                                jac[base + f, 1] += gy * v
+                                jac[base + f, 2] += gz * v
+                        else:  # distance only: no Jacobian work
+                            for f in range(width):
+                                feature[base + f] += weight * table[row, f]
+                # MLP forward, activations kept for the backward pass.
+                for k in range(depth):
+                    w = weights[k]
+                    bias = biases[k]
+                    for o in range(w.shape[0]):
+                        s = bias[o]
+                        if k == 0:
+                            for i in range(w.shape[1]):
+                                s += w[o, i] * feature[i]
+                        else:
+                            for i in range(w.shape[1]):
+                                s += w[o, i] * act[k - 1, i]
+                        act[k, o] = s if s > 0.0 else 0.0
+                last = weights[depth - 1].shape[0]
+                s = b_out
+                for i in range(last):
+                    s += w_out[i] * act[depth - 1, i]
+                distance[p] = s * scale
+                if not want_gradient:
+                    continue
+                # Backward: d output / d activation, layer by layer, then through the encoding.
+                for i in range(last):
+                    g[i] = w_out[i]
+                for k in range(depth - 1, -1, -1):
+                    w = weights[k]
+                    for i in range(w.shape[1]):
+                        g_next[i] = 0.0
+                    for o in range(w.shape[0]):
+                        if act[k, o] > 0.0:
+                            go = g[o]
+                            for i in range(w.shape[1]):
+                                g_next[i] += go * w[o, i]
+                    for i in range(w.shape[1]):
+                        g[i] = g_next[i]
+                gu0 = 0.0
+                gu1 = 0.0
+                gu2 = 0.0
+                for i in range(n_in):
+                    gu0 += g[i] * jac[i, 0]
+                    gu1 += g[i] * jac[i, 1]
+                    gu2 += g[i] * jac[i, 2]
+                gradient[p, 0] = gu0
+                gradient[p, 1] = gu1
+                gradient[p, 2] = gu2

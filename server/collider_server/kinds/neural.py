@@ -134,6 +134,10 @@ class NeuralCollider(Collider):
     def evaluate(self, local, want_gradient):
         torch = self._torch
         x = torch.as_tensor(local, dtype=torch.float32, device=self._device)
+        if hasattr(self.network, "can_fuse") and self.network.can_fuse(x):
+            # The CPU fast path: one fused kernel for the whole network (grid_kernels).
+            d, g = self.network.fused_query(x, want_gradient)
+            return d.double().numpy(), (g.double().numpy() if want_gradient else None)
         if not want_gradient:
             with torch.inference_mode():
                 return self.network(x).double().cpu().numpy(), None

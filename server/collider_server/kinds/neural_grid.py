@@ -257,7 +257,7 @@ def build_grid_network(arch: GridArchitecture, centre, radius: float):
             On a CPU with numba: the fused kernels (:mod:`.grid_kernels`; gradients flow to the
             table only). Otherwise, or with ``self.fused = False``: plain torch ops (the
             reference, and the CUDA path)."""
-            if self.fused and u.device.type == "cpu" and grid_kernels.available():
+            if self.can_fuse(u):
                 features, jacobian = _FusedEncoding.apply(u.contiguous(), self.table, self.spec, want_jacobian)
                 return features, (jacobian if want_jacobian else None)
             rows, weight, dweight = self.corner_rows(u)
@@ -273,6 +273,29 @@ def build_grid_network(arch: GridArchitecture, centre, radius: float):
             return self.body(features.flatten(1)).squeeze(-1) * self.radius
 
         # -- the analytic gradient -----------------------------------------------------------
+
+        def fused_query(self, x, want_gradient: bool):
+            """Distance (n,) and, when asked, gradient (n, 3) at collider-frame points ``x``
+            (n, 3) by one fused CPU kernel for the whole network (numba; inference only, the
+            query fast path). Same values as :meth:`value_and_gradient`."""
+            linears = [m for m in self.body if isinstance(m, nn.Linear)]
+            u = ((x - self.centre) / self.radius).contiguous().numpy()
+            weights = tuple(m.weight.detach().numpy() for m in linears[:-1])
+            biases = tuple(m.bias.detach().numpy() for m in linears[:-1])
+            out = linears[-1]
+            n = len(u)
+            distance = np.empty(n, np.float32)
+            gradient = np.empty((n if want_gradient else 0, 3), np.float32)
+            spec = self.spec
+            grid_kernels.network_query(u, self.table.detach().numpy(), spec.resolution, spec.offset, spec.rows,
+                                       spec.dense, spec.smooth, weights, biases, out.weight.detach().numpy()[0],
+                                       float(out.bias.detach()[0]), float(self.radius), want_gradient,
+                                       distance, gradient)
+            return torch.from_numpy(distance), (torch.from_numpy(gradient) if want_gradient else None)
+
+        def can_fuse(self, x) -> bool:
+            """Whether the fused CPU kernels serve points on ``x``'s device."""
+            return self.fused and x.device.type == "cpu" and grid_kernels.available()
 
         def value_and_gradient(self, x):
             """Distance (n,) and its gradient (n, 3) at collider-frame points ``x`` (n, 3).

@@ -106,6 +106,26 @@ def test_fused_kernels_match_the_torch_reference(smooth):
 
 
 @needs_numba
+@pytest.mark.parametrize("smooth", [True, False])
+def test_fused_network_query_matches_the_torch_reference(smooth):
+    """The query fast path (the whole network in one kernel) against the torch analytic path
+    and autograd, points inside and outside the [-1, 1] box; distance only too."""
+    network = random_network(seed=12, smooth=smooth, hidden_layers=3)
+    network.fused = False
+    x = points(3000, 13, pad=0.05)
+    xr = x.clone().requires_grad_(True)
+    reference = network(xr)
+    (autograd,) = torch.autograd.grad(reference.sum(), xr)
+    network.fused = True
+    distance, gradient = network.fused_query(x, True)
+    only, none = network.fused_query(x, False)
+    assert none is None
+    torch.testing.assert_close(distance, reference.detach(), rtol=0, atol=1e-5 * float(reference.abs().max()))
+    torch.testing.assert_close(only, distance, rtol=0, atol=0)
+    torch.testing.assert_close(gradient, autograd, rtol=0, atol=1e-4 * float(autograd.abs().max()))
+
+
+@needs_numba
 def test_fused_forward_matches_reference_on_the_default_preset():
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(11)
@@ -164,3 +184,39 @@ def test_architecture_from_dict_reads_old_and_new_files():
         GridArchitecture(table_dtype="int8")
     with pytest.raises(ValueError, match="max_resolution"):
         GridArchitecture(base_resolution=64, max_resolution=32)
+
+
+@pytest.mark.parametrize("name", ["bunny", "dragon"])
+def test_shipped_grid_models_analytic_gradient_matches_autograd(name):
+    """On each shipped grid model: the fused kernels, the torch analytic gradient and autograd
+    through the torch forward agree (points in the model's domain)."""
+    from collider_server.modelfile import load_collider
+    from collider_server.repository import ModelRepository
+
+    path = ModelRepository().path(name)
+    if not path.is_file():
+        pytest.skip(f"no shipped model at {path}")
+    collider = load_collider(path, "cpu")
+    if not isinstance(collider.architecture, GridArchitecture):
+        pytest.skip(f"{name} is not a grid network")
+    network = collider.network
+    lo, hi = collider.domain_min, collider.domain_max
+    x = torch.from_numpy((lo + np.random.default_rng(3).random((3000, 3)) * (hi - lo)).astype(np.float32))
+    try:
+        network.fused = False
+        xr = x.clone().requires_grad_(True)
+        with torch.enable_grad():
+            reference = network(xr)
+            (autograd,) = torch.autograd.grad(reference.sum(), xr)
+        with torch.inference_mode():
+            torch_path = network.value_and_gradient(x)
+            network.fused = grid_kernels.available()
+            fused_path = network.value_and_gradient(x)
+            paths = [torch_path, fused_path]
+            if grid_kernels.available():
+                paths.append(network.fused_query(x, True))
+    finally:
+        network.fused = True
+    for distance, gradient in paths:
+        torch.testing.assert_close(distance, reference.detach(), rtol=0, atol=1e-6 * float(reference.abs().max()))
+        torch.testing.assert_close(gradient, autograd, rtol=0, atol=1e-4 * float(autograd.abs().max()))
