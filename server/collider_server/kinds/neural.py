@@ -16,6 +16,7 @@ import numpy as np
 
 from ..collider import Collider, ColliderInfo
 from ..devices import resolve_device
+from . import grid_kernels
 from .neural_grid import GridArchitecture, build_grid_network
 
 
@@ -135,7 +136,9 @@ class NeuralCollider(Collider):
         torch = self._torch
         x = torch.as_tensor(local, dtype=torch.float32, device=self._device)
         if hasattr(self.network, "can_fuse") and self.network.can_fuse(x):
-            # The CPU fast path: one fused kernel for the whole network (grid_kernels).
+            # The CPU fast path: one fused kernel for the whole network (grid_kernels), on as
+            # many threads as torch is given (the service's --compute-threads, a simulator's).
+            grid_kernels.set_threads(torch.get_num_threads())
             d, g = self.network.fused_query(x, want_gradient)
             return d.double().numpy(), (g.double().numpy() if want_gradient else None)
         if not want_gradient:
