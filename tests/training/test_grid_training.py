@@ -15,27 +15,23 @@ from collider_server.training import (VALIDATIONS_PER_BUDGET, RunClock, TrainCon
                                       train_neural)
 
 
-def equal_budget(preset: str) -> TrainConfig:
-    # Same samples, steps and batch for both; the learning rates are each preset's own.
-    return TrainConfig(preset=preset, samples=40_000, steps=300, batch_size=2048, validate_every=100,
-                       validation_points=2000, threads=1)
-
-
 @pytest.mark.slow
-def test_default_preset_beats_the_old_default_at_equal_steps(analytic_shape):
-    """On the torus (0.1 m across), 300 steps of 2,048 points: the grid default meets bounds that
-    the paper's network, the default before it, misses (both measured here, not remembered)."""
-    torus = analytic_shape("torus").mesh
+def test_default_preset_meets_a_bound_the_old_default_missed(load_shared_mesh):
+    """The bunny, 300 steps of 4,096 points from 100k cached samples, in its own frame (metres).
+    Measured on the loaded 2-core machine (docs/neural.md): the grid default 0.090 mm mean, 0.47 %
+    sign errors, 7.8 deg normals in 163 s; the paper's network (the default before it) with the
+    same steps, samples and batch 0.182 mm, 4.8 %, 8.6 deg in 534 s, so it misses these bounds
+    even given 3.3x the time. (Training both here would take ~12 min of the suite's 5.)"""
+    mesh = load_shared_mesh("stanford-bunny.obj")
     assert isinstance(PRESETS[DEFAULT_PRESET], GridArchitecture)
-    reports = {}
-    for preset in (DEFAULT_PRESET, "paper-bunny"):
-        result = train_neural(torus, preset, equal_budget(preset), show_progress=False)
-        reports[preset] = evaluate_collider(result.collider, torus, points=4000, reconstruction=False,
-                                            show_progress=False)["band_1mm"]
-    grid, paper = reports[DEFAULT_PRESET], reports["paper-bunny"]
-    BOUND_MM, BOUND_DEG = 0.03, 3.0
-    assert grid["distance_mean_mm"] < BOUND_MM and grid["normal_mean_deg"] < BOUND_DEG, grid
-    assert paper["distance_mean_mm"] > BOUND_MM or paper["normal_mean_deg"] > BOUND_DEG, paper
+    config = TrainConfig(samples=100_000, steps=300, batch_size=4096, validate_every=100,
+                         validation_points=2000, threads=1)
+    result = train_neural(mesh, "bunny", config, show_progress=False)
+    band = evaluate_collider(result.collider, mesh, points=4000, reconstruction=False,
+                             show_progress=False)["band_1mm"]
+    assert band["distance_mean_mm"] < 0.13, band
+    assert band["sign_errors_percent"] < 1.5, band
+    assert band["normal_mean_deg"] < 10.0, band
 
 
 def test_clock_follows_steps_without_a_budget():
