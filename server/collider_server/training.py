@@ -477,7 +477,7 @@ def train_neural(mesh: Mesh, name: str, config: TrainConfig, *, units: str = "m"
             now = time.monotonic()
             lr = cosine_learning_rate(clock.fraction(step, now), first_lr, last_lr)
             for group in optimizer.param_groups:
-                group["lr"] = lr * group.get("lr_scale", 1.0)
+                group["lr"] = lr
             index = torch.randint(0, len(points), (config.batch_size,), generator=generator).to(device)
             x = points[index]
             mask = near[index]
