@@ -189,3 +189,16 @@ def test_simulate_view_in_chromium(tmp_path):
         assert replay.interrupt() == 0
     finally:
         replay.kill()
+
+
+def test_chromium_reports_javascript_errors(tmp_path):
+    """The error check above is not vacuous: a page that throws and logs an error is caught."""
+    page = ("data:text/html,<canvas></canvas><script>console.error('logged');"
+            "setTimeout(() => { throw new Error('thrown'); }, 0);</script>")
+    with Browser(BROWSER, tmp_path / "profile") as browser:
+        browser.open(page)
+        browser.call("Runtime.evaluate", expression="new Promise(r => setTimeout(r, 50))",
+                     awaitPromise=True)  # lets the page's timer fire before the check
+        errors = list(browser.errors)
+    assert any("logged" in e for e in errors), errors
+    assert any("thrown" in e for e in errors), errors
