@@ -120,3 +120,24 @@ def test_view_command_errors(capsys):
     pytest.importorskip("viser")
     assert main(["view", "--replay", "no/such/run"]) == 2
     assert "no/such/run.obj: no such file" in capsys.readouterr().err
+
+
+def test_view_address_warning(capsys):
+    from collider_client.sim.view import _is_loopback, start_server
+
+    assert _is_loopback("127.0.0.1") and _is_loopback("::1") and _is_loopback("localhost")
+    assert not _is_loopback("0.0.0.0") and not _is_loopback("192.168.1.2")
+    pytest.importorskip("viser")
+    server = start_server("127.0.0.1", _free_port())
+    try:
+        assert "warning" not in capsys.readouterr().err
+    finally:
+        server.stop()
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]

@@ -286,14 +286,12 @@ def replay(out_prefix: Path, host: str, port: int, scene: Scene | None = None, c
            infos=None) -> None:
     """Serve a view of a finished run: ``out_prefix``.obj (first frame, quads) and .pc2 (every
     frame), with a frame slider and play/pause; the scene's colliders when ``scene`` is given."""
-    from .output import read_pc2
-
     obj, pc2 = out_prefix.with_suffix(".obj"), out_prefix.with_suffix(".pc2")
     for path in (obj, pc2):
         if not path.is_file():
             raise FileNotFoundError(f"{path}: no such file (run `collider simulate` first; "
                                     "--replay takes the output prefix, e.g. out/drape_bunny)")
-    frames = read_pc2(pc2)
+    frames = _pc2_frames(pc2)
     if len(frames) == 0:
         raise ValueError(f"{pc2}: holds no frames")
     # Frame k was written at step k * frame_every (the last one may be the run's final step).
@@ -337,6 +335,22 @@ def replay(out_prefix: Path, host: str, port: int, scene: Scene | None = None, c
     threading.Thread(target=player, daemon=True).start()
     wait_until_interrupted(server, f"replaying {len(frames)} frames of {out_prefix} at "
                                    f"{url_of(server)}  (Ctrl-C to stop)")
+
+
+def _pc2_frames(path: Path) -> np.ndarray:
+    """(frames, n, 3) float32 of a PC2 file, memory-mapped (a long run's cache can be GBs)."""
+    import struct
+
+    from .output import PC2_MAGIC
+
+    with open(path, "rb") as fh:
+        header = fh.read(32)
+    if len(header) < 32 or header[:12] != PC2_MAGIC:
+        raise ValueError(f"{path}: not a PC2 file")
+    _, _, points, _, _, samples = struct.unpack("<12siiffi", header)
+    if samples == 0 or points == 0:
+        return np.zeros((0, max(points, 0), 3), np.float32)
+    return np.memmap(path, dtype="<f4", mode="r", offset=32, shape=(samples, points, 3))
 
 
 def _grid_from_obj(obj: Path, n: int) -> tuple[int, int]:
