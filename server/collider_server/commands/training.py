@@ -20,14 +20,19 @@ def register(subparsers) -> None:
     train = subparsers.add_parser("train", help="train a neural collider from a mesh")
     train.add_argument("mesh", help="mesh file (OBJ, PLY, STL, OFF, GLB)")
     train.add_argument("--name", required=True, help="model name (file NAME.safetensors)")
-    train.add_argument("--preset", default=defaults.preset, choices=sorted(PRESETS))
+    train.add_argument("--preset", default=defaults.preset, choices=sorted(PRESETS),
+                       help="network (default %(default)s: a feature grid + tiny MLP, the fastest to train "
+                            "and to query; paper-bunny / paper-dragon reproduce the paper; docs/neural.md)")
     train.add_argument("--samples", type=int, default=defaults.samples, help="cached training samples")
     train.add_argument("--steps", type=int, default=defaults.steps)
     train.add_argument("--batch-size", type=int, default=defaults.batch_size)
-    train.add_argument("--learning-rate", type=float, default=defaults.learning_rate)
+    train.add_argument("--learning-rate", type=float, default=defaults.learning_rate,
+                       help="initial Adam learning rate (default: the preset's, 1e-2 grid / 1e-3 paper)")
     train.add_argument("--normal-weight", type=float, default=defaults.normal_weight,
-                       help="weight of the 1 - cos(normal) term (0: the paper's pure L1)")
-    train.add_argument("--max-minutes", type=float, default=None, help="stop after this long (keeps the best)")
+                       help="weight of the 1 - cos(normal) term (default: the preset's, 0.1 grid / 0.05 paper; 0: pure L1)")
+    train.add_argument("--max-minutes", type=float, default=None,
+                       help="time budget: the learning-rate schedule, progress bar and validations follow it; "
+                            "keeps the best weights")
     train.add_argument("--seed", type=int, default=defaults.seed)
     train.add_argument("--threads", type=int, default=None, help="CPU threads for torch")
     add_placement_arguments(train)
