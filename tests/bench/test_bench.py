@@ -181,9 +181,10 @@ def test_budget_bake_picks_the_fastest_collider_that_meets_it_and_checks_it_afre
     assert info.accuracy["band_1mm"]["distance_mean_mm"] <= 0.1  # the fresh evaluation, seed 1234
     assert "meets the budget" in result.stdout
 
-    # Under 1 MB only the shipped network (0.79 MB) is accurate enough: the trained model's own file.
+    # Under 1.6 MB only the shipped network (1.59 MB) is accurate enough (the exact mesh is
+    # 1.67 MB, voxel 64^3 too coarse): the trained model's own file.
     small = collider("bake", mesh, "--name", "small", "--models", tmp_path, "--max-error", "0.05mm",
-                     "--max-memory", "1MB", "--bench", out / "result" / "bench.json", "--quiet")
+                     "--max-memory", "1.6MB", "--bench", out / "result" / "bench.json", "--quiet")
     assert small.returncode == 0, small.stdout + small.stderr
     info = read_info(tmp_path / "small.safetensors")
     assert info.kind == "neural" and info.settings["picked_for_budget"]["candidate"] == "neural-bunny"
