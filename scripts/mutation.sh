@@ -20,7 +20,7 @@ JOBS="${JOBS:-2}"
 # name | file to mutate (under server/ or client/) | tests that cover it
 MODULES=(
   "collider|server/collider_server/collider.py|tests/engine/test_collider.py tests/hard_cases/test_engine_hard_cases.py"
-  "pose|server/collider_server/pose.py|tests/engine/test_pose.py tests/hard_cases/test_engine_hard_cases.py"
+  "pose|server/collider_server/pose.py|tests/engine/test_pose.py tests/engine/test_collider.py tests/hard_cases/test_engine_hard_cases.py"
   "kinds|server/collider_server/kinds/*|tests/engine/kinds tests/engine/test_analytic.py tests/hard_cases/test_engine_hard_cases.py"
   "batching|server/collider_server/batching.py|tests/server/test_batching.py"
   "response|client/collider_client/response.py|tests/client/test_response.py tests/hard_cases/test_simulator_hard_cases.py"
