@@ -67,14 +67,16 @@ def url_of(server) -> str:
 
 def wait_until_interrupted(server, message: str) -> None:
     """Print ``message`` and serve until Ctrl-C (SIGINT) or SIGTERM, then stop the server
-    cleanly. (A job started in the background by a non-interactive shell ignores SIGINT; SIGTERM
-    still stops it cleanly.)"""
+    cleanly. Both handlers are installed here: a job started in the background by a
+    non-interactive shell (a CI script, ``cmd &``) inherits SIGINT ignored, and Python then
+    never turns Ctrl-C into KeyboardInterrupt."""
     import signal
 
     def stop(signum, frame):
         raise KeyboardInterrupt
 
     if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGINT, stop)
         signal.signal(signal.SIGTERM, stop)
     print(message, flush=True)
     try:
