@@ -101,19 +101,28 @@ def test_queries_are_spread_by_model(repo, tmp_path):
 def test_killing_a_replica_loses_no_query(repo, tmp_path):
     """Four callers keep querying every model; after 48 answers one replica is SIGKILLed (no
     drain: a crash). Every query still gets a correct 200: those the dead replica held or would
-    have got are resent by nginx to the survivor."""
+    have got are resent by nginx to the survivor. The one case nginx cannot resend is a response
+    the replica had begun (headers sent, body cut by the kill): the caller sees a dropped
+    response and resends the query itself (queries are idempotent). That can happen only to a
+    query in flight at the kill, so at most one per caller."""
     replicas, nginx = start(repo, tmp_path)
     total, kill_after = 192, 48
     answered = 0
+    cut_by_the_kill = 0
     lock = threading.Lock()
     killed = threading.Event()
     victim = replicas[0]
 
     def caller(worker: int) -> None:
-        nonlocal answered
+        nonlocal answered, cut_by_the_kill
         with httpx.Client(timeout=60) as client:
             for j in range(worker, total, 4):
-                query(client, nginx.url, MODELS[j % len(MODELS)], j)
+                try:
+                    query(client, nginx.url, MODELS[j % len(MODELS)], j)
+                except httpx.RemoteProtocolError:  # a response begun by the killed replica
+                    with lock:
+                        cut_by_the_kill += 1
+                    query(client, nginx.url, MODELS[j % len(MODELS)], j)
                 with lock:
                     answered += 1
                     if answered == kill_after:
@@ -131,7 +140,12 @@ def test_killing_a_replica_loses_no_query(repo, tmp_path):
         stop(replicas, nginx)
 
     assert answered == total
-    assert all(status == 200 for _, status, _ in log) and len(log) == total
+    assert cut_by_the_kill <= 4, f"{cut_by_the_kill} responses cut: more than the queries in flight"
+    # A cut response is logged once with whatever status nginx recorded for it, on the victim
+    # alone; the caller's resend is a row of its own. Every other row is a 200.
+    assert len(log) == total + cut_by_the_kill
+    others = [(status, tried) for _, status, tried in log if status != 200]
+    assert len(others) <= cut_by_the_kill and all(t == [victim.address] for _, t in others), others
     # nginx met the dead replica and resent to the survivor (a row naming both, dead one first) ...
     resent = [tried for _, _, tried in log if len(tried) == 2]
     assert resent and all(t == [victim.address, replicas[1].address] for t in resent)
