@@ -39,6 +39,11 @@ run_module() {
   # put both packages there (collider_server imports collider_client).
   mkdir "$dir/src"
   mv "$dir/server/collider_server" "$dir/client/collider_client" "$dir/src/"
+  # mutmut runs the tests once in its own process, then forks a worker per mutant; a child
+  # forked after torch has started its OpenMP pool deadlocks in it. Keep torch on one thread.
+  printf '%s\n' '"""Loaded by scripts/mutation.sh only: torch on one thread, fork-safe."""' \
+    'import torch' 'torch.set_num_threads(1)' 'torch.set_num_threads = lambda threads: None' \
+    > "$dir/mutation_one_thread.py"
   {
     echo "[mutmut]"
     echo "source_paths = src"
@@ -48,16 +53,19 @@ run_module() {
     echo "pytest_add_cli_args ="
     echo "    -p"
     echo "    no:cacheprovider"
+    echo "    -p"
+    echo "    mutation_one_thread"
     echo "    -m"
     echo "    not slow"
     echo "also_copy ="
     echo "    models"
+    echo "    mutation_one_thread.py"
   } > "$dir/setup.cfg"
   echo "== $name: mutating $target against: $tests"
   (
     cd "$dir"
     unset PYTHONPATH
-    export OMP_NUM_THREADS=1
+    export OMP_NUM_THREADS=1 NUMBA_NUM_THREADS=1 PYTHONPATH=.
     mutmut run --max-children "$JOBS" > run.log 2>&1 || true
     mutmut results --all true > results.txt 2>&1 || true
     killed=$(grep -c ": killed" results.txt || true)

@@ -30,6 +30,21 @@ def metric(url: str, name: str, headers=None) -> float:
     return float(found.group(1)) if found else 0.0
 
 
+def wait_until(condition, what: str, timeout_s: float = 30.0) -> None:
+    """Poll ``condition`` until it holds; fail naming ``what`` after ``timeout_s`` (a bound on a
+    hung server, not a guess at how fast this machine is)."""
+    end = time.monotonic() + timeout_s
+    while not condition():
+        assert time.monotonic() < end, f"timed out waiting until {what}"
+        time.sleep(0.01)
+
+
+def wait_for_a_pending_request(url: str) -> None:
+    """Until the server holds one request besides the scrape asking (``in_flight`` counts it)."""
+    wait_until(lambda: metric(url, "collider_requests_in_flight") >= 2,
+               "the server has received the request")
+
+
 def test_concurrent_callers_are_coalesced_and_each_gets_its_own_answers(repo, engine):
     with ServerThread(models=repo, device="cpu", max_wait_ms=50) as server:
         inputs = [sample_points(100 + i, 100 + i) for i in range(24)]
@@ -187,7 +202,8 @@ def test_admin_load_and_unload_while_others_query(tmp_path, model_files, engine)
             (repo / "broken.safetensors").write_bytes(b"not a model")
             broken = httpx.put(f"{server.url}/v1/admin/models/broken", headers=admin)
             assert broken.status_code == 422 and broken.json()["type"] == "bad-model-file"
-            time.sleep(0.2)
+            answered = len(statuses)  # and the queries go on after every admin change
+            wait_until(lambda: len(statuses) >= answered + 3, "three more queries were answered")
         finally:
             stop.set()
             thread.join(30)
@@ -204,6 +220,7 @@ def test_metrics_count_requests_by_status(server):
     for name in ("collider_queue_seconds_bucket", "collider_compute_seconds_sum",
                  "collider_points_total", "collider_points_per_second", "collider_models_loaded"):
         assert name in text
+    assert metric(server.url, "collider_requests_in_flight") == 1  # only the scrape asking
 
 
 def test_client_gone_mid_body_is_a_499_not_a_500(server):
@@ -218,10 +235,8 @@ def test_client_gone_mid_body_is_a_499_not_a_500(server):
         sock.sendall(b"POST /v1/models/sphere/query HTTP/1.1\r\nHost: x\r\n"
                      b"Content-Type: application/json\r\nContent-Length: 100000\r\n\r\n"
                      b'{"points": [[0, 0, 0], ')
-        time.sleep(0.2)  # let the server start reading the body before the client goes
-    deadline = time.monotonic() + 10
-    while count("499") == before_499 and time.monotonic() < deadline:
-        time.sleep(0.05)  # the server notices the disconnect asynchronously
+        wait_for_a_pending_request(server.url)  # it reads the body; now the client goes
+    wait_until(lambda: count("499") != before_499, "the server counted the client gone")
     assert count("499") == before_499 + 1
     assert count("500") == before_500
 
@@ -234,7 +249,9 @@ def test_a_reload_while_a_body_arrives_does_not_fail_that_request(tmp_path, mode
             sock.sendall(b"POST /v1/models/sphere/query HTTP/1.1\r\nHost: x\r\nConnection: close\r\n"
                          b"Content-Type: application/json\r\nAccept: application/json\r\n"
                          b"Content-Length: " + str(len(body)).encode() + b"\r\n\r\n" + body[:5])
-            time.sleep(0.2)  # the server has looked the model up and waits for the rest
+            # The handler has looked the model up and waits for the rest of the body (nothing
+            # between receiving the request and reading its body awaits anything else).
+            wait_for_a_pending_request(server.url)
             reloaded = httpx.put(f"{server.url}/v1/admin/models/sphere",
                                  headers={"Authorization": f"Bearer {ADMIN_TOKEN}"}, timeout=60)
             assert reloaded.status_code == 200

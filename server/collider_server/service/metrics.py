@@ -3,6 +3,8 @@
 The two an autoscaler and an operator read first: ``collider_queue_points{model}`` (points
 waiting for a batch, read from the batcher when scraped) and ``collider_request_seconds{route}``
 (end-to-end latency of each answered request, from the app receiving it to its last byte sent).
+``collider_requests_in_flight`` counts requests received and not yet answered: a body still
+arriving, a query waiting for its batch.
 """
 
 from __future__ import annotations
@@ -56,6 +58,9 @@ class ServiceMetrics:
         self.queue_points = Gauge("collider_queue_points",
                                   "points waiting in the model's queue for a batch", ["model"],
                                   registry=r)
+        self.requests_in_flight = Gauge("collider_requests_in_flight",
+                                        "HTTP requests received and not yet answered (a scrape "
+                                        "counts itself)", registry=r)
         self.request_seconds = Histogram("collider_request_seconds",
                                          "end-to-end latency of answered requests, seconds",
                                          ["route"], buckets=REQUEST_BUCKETS, registry=r)
@@ -116,6 +121,7 @@ class RequestObserver:
                 status[0] = message["status"]
             await send(message)
 
+        self.metrics.requests_in_flight.inc()
         try:
             await self.app(scope, receive, send_and_record)
         except Exception as exc:
@@ -126,6 +132,7 @@ class RequestObserver:
                               {"Connection": "close"})
             await problem.response()(scope, receive, send_and_record)
         finally:
+            self.metrics.requests_in_flight.dec()
             route = getattr(scope.get("route"), "path", None) or "unmatched"
             self.metrics.requests.labels(scope["method"], route, str(status[0] or 500)).inc()
             self.metrics.request_seconds.labels(route).observe(time.perf_counter() - started)
