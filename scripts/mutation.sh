@@ -17,14 +17,17 @@ ROOT="$(cd "$(dirname "$0")/.." && pwd)"
 WORK="${MUTATION_DIR:-/tmp/neural-collider-mutation}"
 JOBS="${JOBS:-2}"
 
-# name | file to mutate (under server/ or client/) | tests that cover it
+# name | files to mutate (under server/ or client/, space-separated globs) | tests that cover them
+SIM=client/collider_client/sim
 MODULES=(
-  "collider|server/collider_server/collider.py|tests/engine/test_collider.py tests/hard_cases/test_engine_hard_cases.py"
+  "collider|server/collider_server/collider.py|tests/engine/test_collider.py tests/engine/test_only_colliding.py tests/hard_cases/test_engine_hard_cases.py"
   "pose|server/collider_server/pose.py|tests/engine/test_pose.py tests/engine/test_collider.py tests/hard_cases/test_engine_hard_cases.py"
-  "kinds|server/collider_server/kinds/*|tests/engine/kinds tests/engine/test_analytic.py tests/hard_cases/test_engine_hard_cases.py"
+  "kinds|server/collider_server/kinds/*|tests/engine/kinds tests/engine/test_analytic.py tests/engine/test_only_colliding.py tests/hard_cases/test_engine_hard_cases.py"
   "batching|server/collider_server/batching.py|tests/server/test_batching.py"
-  "response|client/collider_client/response.py|tests/client/test_response.py tests/hard_cases/test_simulator_hard_cases.py"
-  "sim|client/collider_client/sim/*|tests/hard_cases/test_simulator_hard_cases.py tests/client/test_scene.py tests/client/test_simulator.py"
+  "response|client/collider_client/response.py|tests/client/test_response.py tests/client/test_newton_adapter.py tests/hard_cases/test_simulator_hard_cases.py"
+  "sim|$SIM/cloth.py $SIM/exact.py $SIM/output.py $SIM/run.py $SIM/scene.py $SIM/simulator.py $SIM/command.py|tests/hard_cases/test_simulator_hard_cases.py tests/client/test_scene.py tests/client/test_simulator.py"
+  # The live view (viser): its parts have unit tests; the page itself is checked in a browser.
+  "sim-view|$SIM/view.py|tests/view/test_view_parts.py"
 )
 
 run_module() {
@@ -40,14 +43,16 @@ run_module() {
   mkdir "$dir/src"
   mv "$dir/server/collider_server" "$dir/client/collider_client" "$dir/src/"
   # mutmut runs the tests once in its own process, then forks a worker per mutant; a child
-  # forked after torch has started its OpenMP pool deadlocks in it. Keep torch on one thread.
+  # forked after torch has started its OpenMP pool deadlocks in it, and numba's OpenMP layer
+  # kills such a child (SIGTERM). Keep torch on one thread and numba on its workqueue layer.
   printf '%s\n' '"""Loaded by scripts/mutation.sh only: torch on one thread, fork-safe."""' \
     'import torch' 'torch.set_num_threads(1)' 'torch.set_num_threads = lambda threads: None' \
     > "$dir/mutation_one_thread.py"
   {
     echo "[mutmut]"
     echo "source_paths = src"
-    echo "only_mutate = src/${target#*/}"
+    echo "only_mutate ="
+    for t in $target; do echo "    src/${t#*/}"; done
     echo "pytest_add_cli_args_test_selection ="
     for t in $tests; do echo "    $t"; done
     echo "pytest_add_cli_args ="
@@ -65,17 +70,18 @@ run_module() {
   (
     cd "$dir"
     unset PYTHONPATH
-    export OMP_NUM_THREADS=1 NUMBA_NUM_THREADS=1 PYTHONPATH=.
+    export OMP_NUM_THREADS=1 NUMBA_NUM_THREADS=1 NUMBA_THREADING_LAYER=workqueue PYTHONPATH=.
     mutmut run --max-children "$JOBS" > run.log 2>&1 || true
     mutmut results --all true > results.txt 2>&1 || true
-    killed=$(grep -c ": killed" results.txt || true)
-    survived=$(grep -c ": survived" results.txt || true)
-    total=$(grep -c ": " results.txt || true)
-    other=$((total - killed - survived))
-    score=$(python3 -c "k,s=$killed,$survived; print(f'{100*k/max(k+s,1):.1f} %')")
-    echo "$name: killed $killed, survived $survived, other (timeout, no tests, ...) $other; score $score"
+    count() { grep -c ": $1\$" results.txt || true; }
+    killed=$(count killed); timeout=$(count timeout); survived=$(count survived)
+    untested=$(count "no tests"); suspicious=$(count suspicious)
+    # mutmut's convention: a timeout is a kill. A mutant no test runs is a survivor.
+    score=$(python3 -c "k,s=$killed+$timeout,$survived+$untested; print(f'{100*k/max(k+s,1):.1f} %')")
+    echo "$name: killed $killed, timeout $timeout, survived $survived, no tests $untested," \
+         "suspicious $suspicious; score $score (killed + timeout over those + survived + no tests)"
     : > survivors.txt
-    for m in $(grep ": survived" results.txt | sed 's/: survived//'); do
+    for m in $(grep -E ": (survived|no tests)$" results.txt | sed -E 's/: (survived|no tests)$//'); do
       mutmut show "$m" >> survivors.txt 2>&1 || true
     done
   )
