@@ -226,34 +226,45 @@ def _baked(shape_name: str, kind: str, resolution: int):
 
 def make_neural_collider(domain_min, domain_max, *, seed: int = 0, device: str = "cpu",
                          name: str = "tiny", fourier_features: int = 8, hidden_layers: int = 2,
-                         hidden_width: int = 16, fourier_scale: float = 1.0):
+                         hidden_width: int = 16, fourier_scale: float = 1.0, grid: bool = False):
     """An untrained (randomly initialised, seeded) small :class:`NeuralCollider` over the box
-    ``[domain_min, domain_max]`` (collider frame, metres): for plumbing tests, not accuracy."""
+    ``[domain_min, domain_max]`` (collider frame, metres): for plumbing tests, not accuracy.
+    ``grid``: a small grid-encoded network (the default preset's kind, with its CPU fused
+    kernels), its feature table filled with values large enough to vary the field."""
     import torch
 
     from collider_server.collider import ColliderInfo
     from collider_server.kinds.neural import Architecture, NeuralCollider, build_network
+    from collider_server.kinds.neural_grid import GridArchitecture
 
-    arch = Architecture(fourier_features, hidden_layers, hidden_width, fourier_scale)
+    if grid:
+        arch = GridArchitecture(levels=4, max_resolution=32, table_log2=12,
+                                hidden_layers=hidden_layers, hidden_width=hidden_width)
+    else:
+        arch = Architecture(fourier_features, hidden_layers, hidden_width, fourier_scale)
     lo, hi = np.asarray(domain_min, np.float64), np.asarray(domain_max, np.float64)
     info = ColliderInfo(name, "neural", lo.tolist(), hi.tolist(),
                         settings={"architecture": arch.__dict__.copy()})
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(seed)
         network = build_network(arch, 0.5 * (lo + hi), 0.5 * float((hi - lo).max()))
+        if grid:
+            with torch.no_grad():
+                network.table.uniform_(-0.5, 0.5)
     return NeuralCollider(info, network, device)
 
 
 @pytest.fixture(scope="session")
 def shape_collider() -> Callable:
     """``shape_collider("sphere", "voxel")`` -> a CPU collider of that procedural shape, shared
-    by the session (do not mutate it). Kinds: voxel (64^3), mesh, kdtree, and neural (a tiny
-    untrained network over the voxel kind's padded domain)."""
+    by the session (do not mutate it). Kinds: voxel (64^3), mesh, kdtree, and neural / grid (a
+    tiny untrained Fourier / grid network over the voxel kind's padded domain)."""
 
     def get(shape_name: str, kind: str, resolution: int = TEST_VOXEL_RESOLUTION):
-        if kind == "neural":
+        if kind in ("neural", "grid"):
             box = _baked(shape_name, "kdtree", resolution)
-            return make_neural_collider(box.domain_min, box.domain_max, name=f"{shape_name}-neural")
+            return make_neural_collider(box.domain_min, box.domain_max, grid=kind == "grid",
+                                        name=f"{shape_name}-{kind}")
         return _baked(shape_name, kind, resolution)
 
     return get
