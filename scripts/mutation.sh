@@ -5,6 +5,8 @@
 #   scripts/mutation.sh                  # every core module (hours on a 2-core machine)
 #   scripts/mutation.sh pose response    # only these (names below)
 #   JOBS=1 scripts/mutation.sh pose      # mutmut workers (default 2)
+#   RECHECK=1 scripts/mutation.sh pose   # after adding tests: copy tests/ into the scratch copy
+#                                        # and re-run only the last run's survivors
 #
 # Needs: pip install mutmut (the dev extra). Each module runs in its own scratch copy of the
 # repository under ${MUTATION_DIR:-/tmp/neural-collider-mutation}/NAME (mutmut writes its mutants/
@@ -20,7 +22,7 @@ JOBS="${JOBS:-2}"
 # name | files to mutate (under server/ or client/, space-separated globs) | tests that cover them
 SIM=client/collider_client/sim
 MODULES=(
-  "collider|server/collider_server/collider.py|tests/engine/test_collider.py tests/engine/test_only_colliding.py tests/hard_cases/test_engine_hard_cases.py"
+  "collider|server/collider_server/collider.py|tests/engine/test_collider.py tests/engine/test_only_colliding.py tests/engine/test_modelfile.py tests/hard_cases/test_engine_hard_cases.py tests/client/test_backends.py"
   "pose|server/collider_server/pose.py|tests/engine/test_pose.py tests/engine/test_collider.py tests/hard_cases/test_engine_hard_cases.py"
   "kinds|server/collider_server/kinds/*|tests/engine/kinds tests/engine/test_analytic.py tests/engine/test_only_colliding.py tests/hard_cases/test_engine_hard_cases.py"
   "batching|server/collider_server/batching.py|tests/server/test_batching.py"
@@ -30,9 +32,22 @@ MODULES=(
   "sim-view|$SIM/view.py|tests/view/test_view_parts.py"
 )
 
-run_module() {
-  local name=$1 target=$2 tests=$3
-  local dir="$WORK/$name"
+write_config() {  # the mutmut section of NAME's setup.cfg: files to mutate, tests to run
+  local target=$1 tests=$2
+  echo "[mutmut]"
+  echo "source_paths = src"
+  echo "only_mutate ="
+  for t in $target; do echo "    src/${t#*/}"; done
+  echo "pytest_add_cli_args_test_selection ="
+  for t in $tests; do echo "    $t"; done
+  echo "pytest_add_cli_args ="
+  printf '    %s\n' -p no:cacheprovider -p mutation_one_thread -m "not slow"
+  echo "also_copy ="
+  printf '    %s\n' models mutation_one_thread.py
+}
+
+make_scratch_copy() {
+  local dir=$1
   rm -rf "$dir" && mkdir -p "$dir"
   # A scratch copy of the tracked files (models included), and the shared meshes beside it
   # where tests/conftest.py looks for them (../shared/data/meshes from the repository root).
@@ -48,42 +63,51 @@ run_module() {
   printf '%s\n' '"""Loaded by scripts/mutation.sh only: torch on one thread, fork-safe."""' \
     'import torch' 'torch.set_num_threads(1)' 'torch.set_num_threads = lambda threads: None' \
     > "$dir/mutation_one_thread.py"
-  {
-    echo "[mutmut]"
-    echo "source_paths = src"
-    echo "only_mutate ="
-    for t in $target; do echo "    src/${t#*/}"; done
-    echo "pytest_add_cli_args_test_selection ="
-    for t in $tests; do echo "    $t"; done
-    echo "pytest_add_cli_args ="
-    echo "    -p"
-    echo "    no:cacheprovider"
-    echo "    -p"
-    echo "    mutation_one_thread"
-    echo "    -m"
-    echo "    not slow"
-    echo "also_copy ="
-    echo "    models"
-    echo "    mutation_one_thread.py"
-  } > "$dir/setup.cfg"
-  echo "== $name: mutating $target against: $tests"
+}
+
+survivors() {  # the last run's surviving and untested mutants, one name per line
+  grep -E ": (survived|no tests)$" results.txt | sed -E 's/^ *//; s/: (survived|no tests)$//'
+}
+
+summarise() {
+  local name=$1
+  mutmut results --all true > results.txt 2>&1 || true
+  count() { grep -c ": $1\$" results.txt || true; }
+  local killed timeout survived untested suspicious score
+  killed=$(count killed); timeout=$(count timeout); survived=$(count survived)
+  untested=$(count "no tests"); suspicious=$(count suspicious)
+  # mutmut's convention: a timeout is a kill. A mutant no test runs is a survivor.
+  score=$(python3 -c "k,s=$killed+$timeout,$survived+$untested; print(f'{100*k/max(k+s,1):.1f} %')")
+  echo "$name: killed $killed, timeout $timeout, survived $survived, no tests $untested," \
+       "suspicious $suspicious; score $score (killed + timeout over those + survived + no tests)"
+  : > survivors.txt
+  for m in $(survivors); do mutmut show "$m" >> survivors.txt 2>&1 || true; done
+}
+
+run_module() {
+  local name=$1 target=$2 tests=$3
+  local dir="$WORK/$name"
+  local only=()
+  if [ -n "${RECHECK:-}" ]; then
+    [ -f "$dir/results.txt" ] || { echo "$name: no earlier run in $dir to recheck" >&2; exit 2; }
+    rm -rf "$dir/tests" && cp -r "$ROOT/tests" "$dir/tests"
+    mapfile -t only < <(cd "$dir" && survivors)
+    # The test files stay those of the first run (a new selection resets every verdict):
+    # a new test file in a module's list needs a fresh run.
+    echo "== $name: rechecking ${#only[@]} survivors"
+  else
+    make_scratch_copy "$dir"
+    write_config "$target" "$tests" > "$dir/setup.cfg"
+    echo "== $name: mutating $target against: $tests"
+  fi
   (
     cd "$dir"
     unset PYTHONPATH
     export OMP_NUM_THREADS=1 NUMBA_NUM_THREADS=1 NUMBA_THREADING_LAYER=workqueue PYTHONPATH=.
-    mutmut run --max-children "$JOBS" > run.log 2>&1 || true
-    mutmut results --all true > results.txt 2>&1 || true
-    count() { grep -c ": $1\$" results.txt || true; }
-    killed=$(count killed); timeout=$(count timeout); survived=$(count survived)
-    untested=$(count "no tests"); suspicious=$(count suspicious)
-    # mutmut's convention: a timeout is a kill. A mutant no test runs is a survivor.
-    score=$(python3 -c "k,s=$killed+$timeout,$survived+$untested; print(f'{100*k/max(k+s,1):.1f} %')")
-    echo "$name: killed $killed, timeout $timeout, survived $survived, no tests $untested," \
-         "suspicious $suspicious; score $score (killed + timeout over those + survived + no tests)"
-    : > survivors.txt
-    for m in $(grep -E ": (survived|no tests)$" results.txt | sed -E 's/: (survived|no tests)$//'); do
-      mutmut show "$m" >> survivors.txt 2>&1 || true
-    done
+    if [ -z "${RECHECK:-}" ] || [ ${#only[@]} -gt 0 ]; then
+      mutmut run --max-children "$JOBS" "${only[@]}" > run.log 2>&1 || true
+    fi
+    summarise "$name"
   )
 }
 

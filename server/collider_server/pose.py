@@ -80,12 +80,13 @@ class Pose:
 
 
 def rotate_rows(vectors: np.ndarray, matrix: np.ndarray) -> np.ndarray:
-    """``vectors @ matrix.T`` for (n, 3) rows, computed element-wise in a fixed order, so that
-    each row's result is bit-identical whatever the batch around it (a BLAS matrix product picks
-    its kernel by the batch's shape and may differ in the last bit)."""
+    """``vectors @ matrix.T`` for (n, 3) rows and a (3, 3) float64 ``matrix``, computed
+    element-wise in a fixed order, so that each row's result is bit-identical whatever the batch
+    around it (a BLAS matrix product picks its kernel by the batch's shape and may differ in the
+    last bit)."""
     vectors = np.asarray(vectors)
-    m = np.asarray(matrix, dtype=np.float64)
-    return vectors[:, 0:1] * m[:, 0] + vectors[:, 1:2] * m[:, 1] + vectors[:, 2:3] * m[:, 2]
+    return (vectors[:, 0:1] * matrix[:, 0] + vectors[:, 1:2] * matrix[:, 1]
+            + vectors[:, 2:] * matrix[:, 2])
 
 
 IDENTITY = Pose(np.eye(3), np.zeros(3), 1.0)

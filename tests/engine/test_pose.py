@@ -43,6 +43,16 @@ def test_to_local_inverts_the_pose(scale):
     np.testing.assert_allclose(pose.to_world_directions(np.eye(3)), rotation.T, atol=1e-12)
 
 
+@pytest.mark.parametrize("pose", [None, "moved"])
+def test_to_local_gives_a_float64_copy_whatever_the_input(pose):
+    pose = IDENTITY if pose is None else as_pose(matrix(random_rotation(3), [0.5, 0, 0]))
+    points = np.random.default_rng(4).uniform(-0.2, 0.2, (10, 3))
+    assert pose.to_local(points.astype(np.float32)).dtype == np.float64
+    local = pose.to_local(points)
+    local[:] = 7.0  # a copy: the caller's points are not touched
+    assert (points != 7.0).all()
+
+
 def test_float32_rotations_are_accepted_and_reorthonormalised():
     rotation = random_rotation(2).astype(np.float32)
     pose = as_pose(matrix(rotation.astype(np.float64), [0, 0, 0]).astype(np.float32))
