@@ -42,6 +42,9 @@ write_config() {  # the mutmut section of NAME's setup.cfg: files to mutate, tes
   for t in $tests; do echo "    $t"; done
   echo "pytest_add_cli_args ="
   printf '    %s\n' -p no:cacheprovider -p mutation_one_thread -m "not slow"
+  # A mutant whose tests run 3x longer than unmutated ones (plus 10 s) is a timeout (a kill):
+  # mutmut's default of 15x lets a mutant that makes chunks tiny run for many minutes.
+  printf '%s\n' "timeout_multiplier = 3" "timeout_constant = 10"
   echo "also_copy ="
   printf '    %s\n' models mutation_one_thread.py
 }
