@@ -133,11 +133,7 @@ def unit_vectors(vectors: np.ndarray, fallback: np.ndarray) -> np.ndarray:
     """Normalise rows of ``vectors``; rows of (near) zero length take the matching row of
     ``fallback`` (already unit), so the result never holds NaN."""
     length = np.linalg.norm(vectors, axis=1, keepdims=True)
-    degenerate = length[:, 0] < 1e-20
-    out = vectors / np.where(degenerate[:, None], 1.0, length)
-    if degenerate.any():
-        out[degenerate] = fallback[degenerate]
-    return out
+    return np.where(length < 1e-20, fallback, vectors / np.maximum(length, 1e-20))
 
 
 def _domain_corner(value, name: str) -> np.ndarray:
@@ -241,10 +237,10 @@ class Collider(abc.ABC):
         then turns it into one request's fields.
         """
         n = len(local)
-        distance = np.empty(n, dtype=np.float64)
-        normal = np.empty((n, 3), dtype=np.float64) if want_gradient else None
+        distance = np.empty(n)  # float64, as is normal
+        normal = np.empty((n, 3)) if want_gradient else None
         if want_gradient and gradient_below is not None:
-            gradient_below = np.broadcast_to(np.asarray(gradient_below, dtype=np.float64), (n,))
+            gradient_below = np.broadcast_to(gradient_below, (n,))
         for start in range(0, n, self.chunk_points):
             stop = min(start + self.chunk_points, n)
             chunk = local[start:stop]
@@ -312,7 +308,7 @@ def gradient_threshold(eps: float, pose: Pose) -> float:
 
 def assemble_result(points: np.ndarray, pose: Pose, eps: float, fields: tuple[str, ...],
                     distance: np.ndarray, normal: np.ndarray | None,
-                    only_colliding: bool = False) -> QueryResult:
+                    only_colliding: bool) -> QueryResult:
     """One request's fields from collider-frame ``distance`` and ``normal`` (see
     :meth:`Collider.query_local`): distances scaled to world units, normals rotated into the
     world frame, contacts ``p + (eps - d) * n`` computed in float64 in the world frame.
@@ -330,9 +326,9 @@ def assemble_result(points: np.ndarray, pose: Pose, eps: float, fields: tuple[st
     if "normal" in fields:
         result.normal = normal.astype(np.float32)
     if "contact" in fields:
-        # A zero normal leaves the point where it is, the documented contact of a free point.
-        push = np.where(collides, eps - distance, 0.0) if only_colliding else eps - distance
-        contact = points.astype(np.float64) + push[:, None] * normal
+        # In float64 (normal is); a zero normal leaves the point where it is, the documented
+        # contact of a free point.
+        contact = points + (eps - distance)[:, None] * normal
         result.contact = contact.astype(points.dtype)
     if "collides" in fields:
         result.collides = collides
@@ -347,7 +343,7 @@ def nearest_collider(world_distance: np.ndarray) -> np.ndarray:
     world_distance : (k, n) float64, world units, one row per collider of the scene
     Returns (n,) int32 indices into the scene's colliders.
     """
-    world_distance = np.asarray(world_distance, dtype=np.float64)
+    world_distance = np.asarray(world_distance)  # (float64 or not: the same order)
     if world_distance.ndim != 2 or len(world_distance) == 0:
         raise ValueError(f"world_distance must be (k, n) with k >= 1, got {world_distance.shape}")
     return np.argmin(world_distance, axis=0).astype(np.int32)
@@ -355,7 +351,7 @@ def nearest_collider(world_distance: np.ndarray) -> np.ndarray:
 
 def assemble_scene_result(points: np.ndarray, poses: list[Pose], eps: list[float],
                           fields: tuple[str, ...], answers: list,
-                          only_colliding: bool = False) -> tuple[QueryResult, np.ndarray]:
+                          only_colliding: bool) -> tuple[QueryResult, np.ndarray]:
     """A scene query's fields: per point, those of the nearest collider (:func:`nearest_collider`).
 
     points : (n, 3) world frame; poses, eps : per collider (eps in world units)
@@ -367,9 +363,8 @@ def assemble_scene_result(points: np.ndarray, poses: list[Pose], eps: list[float
         nearest collider, whose answer then holds its normal)
     """
     n = len(points)
-    world = np.stack([d * pose.scale for (d, _), pose in zip(answers, poses)]) if answers \
-        else np.zeros((0, n))
-    nearest = nearest_collider(world)
+    # (Both backends refuse an empty scene before this; np.stack would too.)
+    nearest = nearest_collider(np.stack([d * pose.scale for (d, _), pose in zip(answers, poses)]))
     dtypes = {"distance": np.float32, "normal": np.float32, "contact": points.dtype,
               "collides": np.bool_}
     out = {f: np.empty((n, 3) if f in ("normal", "contact") else n, dtypes[f]) for f in fields}
