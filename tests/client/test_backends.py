@@ -116,6 +116,50 @@ def test_scene_ties_and_near_ties_resolve_the_same_in_both_backends(embedded, re
         assert a.collider.any() and not a.collider.all()
 
 
+def _scaled_pose(rotation_deg, translation, scale):
+    m = _pose(rotation_deg, translation)
+    m[:3, :3] *= scale
+    return m
+
+
+@pytest.mark.parametrize("only_colliding", [False, True])
+@pytest.mark.parametrize("fields", [ALL_FIELDS, ["distance", "collides"]], ids=["all", "no-gradient"])
+@pytest.mark.parametrize("backend", ["embedded", "remote"])
+def test_scene_fields_are_the_nearest_colliders_own(backend, request, points, fields,
+                                                    only_colliding):
+    """Per point, every field of a scene query is, bit for bit, what its nearest collider gives
+    alone (same pose, that collider's own default eps: 1 mm times its pose's scale). The first
+    collider, 5 m away, is nearest to no point; the sphere is scaled by 1.5 (radius 0.15 m)."""
+    client = request.getfixturevalue(backend)
+    scene = [("box", _pose([0, 0, 0], [5.0, 0, 0])),
+             ("sphere", _scaled_pose([0, 0, 30], [0.1, 0, 0], 1.5)),
+             ("box", _pose([20, 0, 0], [-0.1, 0, 0]))]
+    # Points 0.5 to 1.5 mm outside the sphere: some within its 1.5 mm eps, not within 1 mm.
+    directions = np.array([[1.0, 0, 0], [0.6, 0.8, 0], [0.6, 0, -0.8], [0.8, -0.36, 0.48]])
+    offsets = np.linspace(0.5e-3, 1.5e-3, 5)
+    near_sphere = np.array([0.1, 0, 0]) + directions[:, None] * (0.15 + offsets[:, None])
+    p = np.concatenate([points, near_sphere.reshape(-1, 3)])
+    result = client.scene_query(scene, p, fields=fields, eps=None, only_colliding=only_colliding)
+    alone = [client.query(model, p, fields=ALL_FIELDS, pose=pose, eps=None,
+                          only_colliding=only_colliding) for model, pose in scene]
+    nearest, rows = result.collider, np.arange(len(p))
+    assert nearest.dtype == np.int32 and nearest.shape == (len(p),)
+    assert set(np.unique(nearest)) == {1, 2}
+    distances = np.stack([a.distance for a in alone])
+    np.testing.assert_array_equal(distances[nearest, rows], distances.min(axis=0))
+    assert list(result.fields()) == fields
+    for name in fields:
+        expected = np.stack([getattr(a, name) for a in alone])[nearest, rows]
+        value = getattr(result, name)
+        assert value.dtype == expected.dtype and value.shape == expected.shape, name
+        np.testing.assert_array_equal(value, expected, err_msg=name)
+    between = (nearest == 1) & (result.distance > 1.01e-3) & (result.distance < 1.49e-3)
+    assert between.sum() >= 2 and result.collides[between].all()
+    if "normal" in fields:
+        free = ~result.collides
+        assert not result.normal[free].any() if only_colliding else result.normal[free].any()
+
+
 def test_list_models_same(embedded, remote):
     a = {m.name: m for m in embedded.list_models()}
     b = {m.name: m for m in remote.list_models()}

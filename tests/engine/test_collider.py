@@ -5,12 +5,14 @@ Units: metres; the sphere has radius 0.1 m and is centred at the origin of its f
 from __future__ import annotations
 
 import itertools
+import re
 
 import numpy as np
 import pytest
 
-from collider_server.collider import FIELDS, Collider
-from collider_server.pose import PoseError
+from collider_server.collider import (FIELDS, MAX_POINTS_PER_CALL, Collider, ColliderInfo,
+                                      nearest_collider)
+from collider_server.pose import MAX_COORDINATE_M, PoseError
 
 KINDS = ["neural", "voxel", "mesh", "kdtree"]
 ALL_FIELDS = list(FIELDS)
@@ -145,6 +147,43 @@ def test_tiny_chunks_give_identical_results(fresh_collider, kind):
     np.testing.assert_allclose(chunked.contact, whole.contact, rtol=0, atol=1e-15)
 
 
+@pytest.mark.parametrize("only_colliding", [False, True])
+def test_no_evaluate_call_takes_more_than_chunk_points(fresh_collider, only_colliding):
+    """The chunking bounds the memory of a call: every point's distance is evaluated once, in
+    pieces of at most ``chunk_points`` (the collide-only gradient pass too)."""
+    collider = fresh_collider("voxel")
+    collider.chunk_points = 7  # an instance attribute: this collider only
+    calls = []
+    evaluate = collider.evaluate
+
+    def recording(local, want_gradient):
+        calls.append((len(local), bool(want_gradient)))
+        return evaluate(local, want_gradient)
+
+    collider.evaluate = recording
+    points = mixed_points(30, seed=5)  # inside and far outside the domain box
+    collider.query(points, ALL_FIELDS, eps=0.05, only_colliding=only_colliding)
+    if only_colliding:
+        assert [n for n, gradient in calls if not gradient] == [7, 7, 7, 7, 2]
+        assert 0 < max(n for n, gradient in calls if gradient) <= 7
+    else:
+        assert calls == [(7, True), (7, True), (7, True), (7, True), (2, True)]
+
+
+def test_query_local_gives_no_normal_unless_asked(shape_collider):
+    collider = shape_collider("sphere", "voxel")
+    local = mixed_points(20, seed=6)
+    distance, normal = collider.query_local(local, False)
+    assert normal is None and distance.shape == (20,) and distance.dtype == np.float64
+    with_normal = collider.query_local(local, True)
+    np.testing.assert_array_equal(with_normal[0], distance)
+    assert with_normal[1].shape == (20, 3) and with_normal[1].dtype == np.float64
+
+
+def test_repr_names_the_kind_the_model_and_the_device(shape_collider):
+    assert repr(shape_collider("sphere", "voxel")) == "<VoxelCollider 'sphere-voxel' on cpu>"
+
+
 @pytest.mark.parametrize("kind", KINDS)
 def test_float32_float64_and_list_points(shape_collider, kind):
     collider = shape_collider("sphere", kind)
@@ -182,6 +221,14 @@ def test_bad_points_are_rejected_with_a_clear_message(shape_collider, points, me
         shape_collider("sphere", "mesh").query(points, "distance")
 
 
+def test_too_many_points_are_rejected_before_any_work(shape_collider):
+    # A broadcast view: MAX_POINTS_PER_CALL + 1 rows without the memory.
+    points = np.broadcast_to(np.zeros(3), (MAX_POINTS_PER_CALL + 1, 3))
+    with pytest.raises(ValueError, match=rf"too many points in one call: {MAX_POINTS_PER_CALL + 1} "
+                                         rf"> {MAX_POINTS_PER_CALL}"):
+        shape_collider("sphere", "voxel").query(points, "distance")
+
+
 def test_ragged_point_lists_are_rejected_with_a_clear_message(shape_collider):
     with pytest.raises(ValueError, match=r"points must be an \(n, 3\) array"):
         shape_collider("sphere", "mesh").query([[0.0, 0.0, 0.0], [1.0, 2.0]], "distance")
@@ -202,10 +249,20 @@ def test_bad_fields_are_rejected(shape_collider, fields, message):
 
 @pytest.mark.parametrize("eps, message", [(float("nan"), "eps must be finite"),
                                           (float("inf"), "eps must be finite"),
-                                          ("big", "eps must be a number")])
+                                          ("big", "eps must be a number"),
+                                          (MAX_COORDINATE_M * 1.5, r"eps=1\.5e\+06 is outside the "
+                                           r"coordinate range \+-1e\+06 \(world units\)$"),
+                                          (-MAX_COORDINATE_M * 1.5, r"eps=-1\.5e\+06 is outside")])
 def test_bad_eps_is_rejected(shape_collider, eps, message):
     with pytest.raises(ValueError, match=message):
         shape_collider("sphere", "voxel").query(np.zeros((1, 3)), "contact", eps=eps)
+
+
+def test_eps_up_to_the_coordinate_range_is_accepted(shape_collider):
+    collider = shape_collider("sphere", "voxel")
+    points = np.array([[0.0, 0.0, 0.5], [0.0, 0.0, 0.0]])  # 0.4 m outside, 0.1 m inside
+    assert collider.query(points, "collides", eps=MAX_COORDINATE_M).collides.all()
+    assert not collider.query(points, "collides", eps=-MAX_COORDINATE_M).collides.any()
 
 
 def _pose(block=np.eye(3), translation=(0.0, 0.0, 0.0), bottom=(0.0, 0.0, 0.0, 1.0)):
@@ -312,6 +369,88 @@ def test_voxel_far_points_are_never_below_the_distance_to_the_box(shape_collider
     box_distance = np.linalg.norm(far - np.clip(far, collider.domain_min, collider.domain_max), axis=1)
     distance = collider.query(far, "distance").distance
     assert (distance >= box_distance * (1 - 1e-6)).all()
+
+
+def test_the_normal_is_continuous_across_the_domain_box(shape_collider):
+    """Just outside the box the normal is the model's normal at the box (the clamped point's),
+    as just inside: the rule joins the inside without a jump (where the model is positive on the
+    box, as a baked voxel grid is)."""
+    collider = shape_collider("sphere", "voxel")
+    hi = collider.domain_max[0]
+    rng = np.random.default_rng(8)
+    on_face = np.column_stack([np.full(20, hi), rng.uniform(-0.05, 0.05, (20, 2))])
+    step = np.array([1e-7, 0.0, 0.0])
+    inside = collider.query(on_face - step, ["distance", "normal"])
+    outside = collider.query(on_face + step, ["distance", "normal"])
+    assert (inside.distance > 0.005).all()  # the face is off the sphere
+    assert np.einsum("ij,ij->i", inside.normal, outside.normal).min() > 0.999
+
+
+class ConstantCollider(Collider):
+    """A model that gives one value everywhere in its box [-1, 1]^3 (metres) and a zero gradient
+    (what a collapsed network answers): the base class alone decides every normal."""
+
+    kind = "constant"
+
+    def __init__(self, value: float):
+        super().__init__(ColliderInfo("flat", "constant", [-1.0] * 3, [1.0] * 3))
+        self.value = value
+
+    def evaluate(self, local, want_gradient):
+        gradient = np.zeros((len(local), 3)) if want_gradient else None
+        return np.full(len(local), self.value), gradient
+
+    def tensors(self):
+        return {"value": np.array([self.value])}
+
+    @classmethod
+    def from_tensors(cls, info, tensors, device=None):
+        return cls(float(tensors["value"][0]))
+
+
+@pytest.mark.parametrize("value", [0.3, -1.5])
+def test_a_zero_gradient_takes_the_documented_fallback_normals(value):
+    """Inside the box: the direction from the box centre. Outside: the direction to ``p`` from
+    ``c - f(c) n(c)``, ``c`` the clamped point and ``n(c)`` (no gradient there) the direction
+    away from the box; the distance is ``|p - c| + max(f(c), 0)``. World = collider frame."""
+    collider = ConstantCollider(value)
+    inside = np.array([[0.5, 0.0, 0.0], [0.0, -0.3, 0.4]])
+    outside = np.array([[1.2, 0.0, 0.0], [2.8, 0.0, 0.0], [1.2, 0.5, 3.0], [-3.0, -3.0, 0.0],
+                        [0.0, 0.0, 9.0]])
+    if value < 0:  # only points farther from the box than -f(c) (there the normal turns back)
+        outside = outside[1:]
+    result = collider.query(np.concatenate([inside, outside]), ["distance", "normal"])
+    np.testing.assert_allclose(result.distance[:2], value)
+    np.testing.assert_allclose(result.normal[:2], inside / np.linalg.norm(inside, axis=1)[:, None],
+                               atol=1e-7)
+    clamped = np.clip(outside, -1.0, 1.0)
+    away = outside - clamped
+    away_unit = away / np.linalg.norm(away, axis=1)[:, None]
+    np.testing.assert_allclose(result.distance[2:], np.linalg.norm(away, axis=1) + max(value, 0.0),
+                               rtol=1e-7)
+    direction = outside - (clamped - value * away_unit)
+    np.testing.assert_allclose(result.normal[2:],
+                               direction / np.linalg.norm(direction, axis=1)[:, None], atol=1e-7)
+    assert np.einsum("ij,ij->i", result.normal[2:], away_unit).min() > 0.999  # away from the box
+
+
+def test_nearest_collider_is_the_smallest_distance_and_a_tie_goes_to_the_first():
+    world_distance = np.array([[0.3, -0.1, 0.2, 0.5, -2.0],   # collider 0, metres
+                               [0.3, -0.2, 0.1, 0.5, 1.0],    # collider 1
+                               [0.1, 0.0, 0.1, 0.5, -1.0]])   # collider 2
+    nearest = nearest_collider(world_distance)
+    assert nearest.dtype == np.int32 and nearest.shape == (5,)
+    np.testing.assert_array_equal(nearest, [2, 1, 1, 0, 0])
+    np.testing.assert_array_equal(nearest_collider(world_distance[1:2]), np.zeros(5))
+    # Compared in float64: 1e-12 m apart is not a tie.
+    np.testing.assert_array_equal(nearest_collider([[0.05], [0.05 - 1e-12]]), [1])
+
+
+@pytest.mark.parametrize("world_distance", [np.zeros(3), np.zeros((0, 4)), np.zeros((2, 2, 2))])
+def test_nearest_collider_needs_one_row_per_collider(world_distance):
+    with pytest.raises(ValueError, match=r"world_distance must be \(k, n\) with k >= 1, got "
+                                         + re.escape(str(world_distance.shape))):
+        nearest_collider(world_distance)
 
 
 def test_cpu_path_is_explicit(fresh_collider):

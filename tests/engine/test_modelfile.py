@@ -156,12 +156,25 @@ def test_malformed_metadata(tmp_path, info, message):
     expect_error(path, message)
 
 
-def test_bad_domain_in_metadata(tmp_path):
-    for domain_min, message in (([-1.0, -1.0], "domain_min must be 3 finite numbers"),
-                                ([2.0, -1.0, -1.0], "domain_min must be below domain_max")):
-        path = write_model(tmp_path / "x.safetensors", {"grid": np.zeros((4, 4, 4), np.float32)},
-                           base_info(domain_min=domain_min))
-        expect_error(path, message)
+@pytest.mark.parametrize("changes, message", [
+    ({"domain_min": [-1.0, -1.0]}, r"domain_min must be 3 finite numbers, got \[-1\.0, -1\.0\]"),
+    ({"domain_min": ["a", -1.0, -1.0]}, "domain_min must be 3 finite numbers"),
+    ({"domain_min": [[-1.0], [-1.0], [-1.0]]}, "domain_min must be 3 finite numbers"),
+    ({"domain_max": [1.0, 1.0, 1.0, 1.0]}, r"domain_max must be 3 finite numbers, got \[1\.0"),
+    ({"domain_max": [1.0, None, 1.0]}, "domain_max must be 3 finite numbers"),
+    ({"domain_max": [1.0, 1e400, 1.0]}, "domain_max must be 3 finite numbers"),  # JSON Infinity
+    ({"domain_min": [2.0, -1.0, -1.0]},
+     r"domain_min must be below domain_max on every axis, got \[2\.0, -1\.0, -1\.0\] and "
+     r"\[1\.0, 1\.0, 1\.0\]"),
+    ({"domain_min": [-1.0, 1.0, -1.0]}, "domain_min must be below domain_max"),  # equal on y
+    ({"meters_per_unit": 0.0}, r"meters_per_unit must be a number > 0, got 0\.0"),
+    ({"meters_per_unit": -0.001}, "meters_per_unit must be a number > 0"),
+    ({"meters_per_unit": "1"}, r"meters_per_unit must be a number > 0, got '1'"),
+])
+def test_bad_domain_or_units_in_metadata(tmp_path, changes, message):
+    path = write_model(tmp_path / "x.safetensors", {"grid": np.zeros((4, 4, 4), np.float32)},
+                       base_info(**changes))
+    expect_error(path, message)
 
 
 class _Payload:

@@ -100,6 +100,31 @@ def test_points_exactly_at_eps_follow_collides(fresh_collider, kind):
         assert not result.normal[~result.collides].any()
 
 
+@pytest.mark.parametrize("kind", ["voxel", "mesh"])
+def test_collides_is_strict_and_the_gradient_pass_is_exact_to_a_relative_1e9(fresh_collider, kind):
+    """Against the exact float64 world distance ``d`` of a point (identity pose, metres):
+    ``eps = d`` does not collide, the next float64 above does and gets its unit normal, and
+    ``eps`` 0.1 nm below ``d`` (more than a relative 1e-9 of it) costs no gradient."""
+    collider = fresh_collider(kind)
+    points = near_surface(40, seed=3, band=0.03)
+    distance, _ = collider.query_local(points.astype(np.float64), False)
+    chosen = np.flatnonzero((distance > 0.002) & (distance < 0.05))[:4]
+    assert len(chosen) == 4
+    sizes = record_gradient_points(collider)
+    for i in chosen:
+        d = float(distance[i])
+        at = collider.query(points, FIELDS, eps=d, only_colliding=True)
+        assert not at.collides[i] and not at.normal[i].any()
+        above = collider.query(points, FIELDS, eps=float(np.nextafter(d, np.inf)),
+                               only_colliding=True)
+        assert above.collides[i]
+        assert np.linalg.norm(above.normal[i]) == pytest.approx(1.0, abs=1e-6)
+        sizes.clear()
+        below = collider.query(points, FIELDS, eps=d - 1e-10, only_colliding=True)
+        assert not below.collides[i]
+        assert sum(sizes) == below.collides.sum()  # the colliding points, not point i
+
+
 @pytest.mark.parametrize("kind", ["voxel", "neural"])
 def test_without_gradient_fields_the_mode_changes_nothing(fresh_collider, kind):
     collider = fresh_collider(kind)
@@ -127,3 +152,6 @@ def test_query_local_takes_a_threshold_per_point(fresh_collider):
     middle = np.arange(100, 200)[distance[100:200] < 0.001]
     np.testing.assert_array_equal(n2[middle], normal[middle])
     assert not np.delete(n2, np.concatenate([np.arange(100), middle]), axis=0).any()
+    # Strictly below: a threshold equal to each point's own distance gives no normal at all.
+    _, n3 = collider.query_local(local, True, distance)
+    assert not n3.any()
