@@ -7,7 +7,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from collider_server.collider import FIELDS, Collider
+from collider_server.collider import FIELDS, Collider, assemble_result, assemble_scene_result
+from collider_server.pose import as_pose
 
 from .test_collider import KINDS, fresh_collider, mixed_points  # noqa: F401  (fixture)
 
@@ -155,3 +156,30 @@ def test_query_local_takes_a_threshold_per_point(fresh_collider):
     # Strictly below: a threshold equal to each point's own distance gives no normal at all.
     _, n3 = collider.query_local(local, True, distance)
     assert not n3.any()
+
+
+def test_assembly_answers_free_points_whatever_normal_it_is_given(fresh_collider):
+    """``assemble_result`` and ``assemble_scene_result`` with ``only_colliding``: a point with
+    ``distance >= eps`` gets normal [0, 0, 0] and contact = the point even when the normal handed
+    in is a full one (a point a hair above eps gets one from the gradient pass); a colliding point
+    gets the full answer. Scene: the sphere at the origin and the same sphere 1 km away along x
+    (nearest to none of these points), eps 2 mm and 3 mm, metres."""
+    collider = fresh_collider("voxel")
+    points = np.concatenate([near_surface(200, seed=5), mixed_points(50, seed=5)])
+    poses = [as_pose(None), as_pose(np.array([[1.0, 0, 0, 1e3], [0, 1, 0, 0], [0, 0, 1, 0],
+                                               [0, 0, 0, 1]]))]
+    eps = [2e-3, 3e-3]
+    answers = [collider.query_local(pose.to_local(points), True) for pose in poses]  # all normals
+    full = assemble_result(points, poses[0], eps[0], FIELDS, *answers[0], False)
+    hit = full.collides
+    assert 0 < hit.sum() < len(points)
+    single = assemble_result(points, poses[0], eps[0], FIELDS, *answers[0], True)
+    scene, nearest = assemble_scene_result(points, poses, eps, FIELDS, answers, True)
+    assert not nearest.any()
+    for only in (single, scene):
+        np.testing.assert_array_equal(only.collides, hit)
+        np.testing.assert_array_equal(only.distance, full.distance)
+        np.testing.assert_array_equal(only.normal[hit], full.normal[hit])
+        np.testing.assert_array_equal(only.contact[hit], full.contact[hit])
+        assert not only.normal[~hit].any()
+        np.testing.assert_array_equal(only.contact[~hit], points[~hit])
