@@ -45,6 +45,9 @@ write_config() {  # the mutmut section of NAME's setup.cfg: files to mutate, tes
   # A mutant whose tests run 3x longer than unmutated ones (plus 10 s) is a timeout (a kill):
   # mutmut's default of 15x lets a mutant that makes chunks tiny run for many minutes.
   printf '%s\n' "timeout_multiplier = 3" "timeout_constant = 10"
+  # Help and description texts of CLI options are documentation, not behaviour: not mutated
+  # (their first line; the tests check that help states each option's real default).
+  printf '%s\n' "do_not_mutate_patterns =" "    \\b(help|description)="
   echo "also_copy ="
   printf '    %s\n' models mutation_one_thread.py
 }
