@@ -312,17 +312,17 @@ class CollisionHook:
         self.stats.response_s += (time.perf_counter() - started) - query_s
         return positions, velocities, mask
 
-    def _near(self, positions, poses, margin: float, sweep=None, moves=None) -> np.ndarray:
-        """(n,) bool: points inside some collider's world box grown by ``margin`` (all points
-        when culling is off); with ``sweep`` (n, 3) displacements, points whose path from
-        ``positions - sweep`` to ``positions`` may meet such a box grown by the collider's own
-        move (``moves``, m)."""
+    def _near(self, positions, poses, margin: float, sweep, moves: list[float]) -> np.ndarray:
+        """(n,) bool: points inside some collider's world box grown by ``margin`` plus the
+        collider's own move over the step (``moves``, m; all points when culling is off); with
+        ``sweep`` (n, 3) displacements (None: none), points whose path from ``positions - sweep``
+        to ``positions`` may meet such a box."""
         n = len(positions)
         if not self.cull:
             return np.ones(n, dtype=bool)
         near = np.zeros(n, dtype=bool)
         for k, (placement, pose) in enumerate(zip(self.colliders, poses)):
-            grow = margin + (moves[k] if moves else 0.0)
+            grow = margin + moves[k]
             lo, hi = world_box(self.infos[placement.model], pose, grow)
             if sweep is None:
                 near |= np.all((positions >= lo) & (positions <= hi), axis=1)

@@ -9,7 +9,7 @@ import pytest
 from collider_client import (
     ColliderPlacement, CollisionHook, collider_velocity, project_to_contacts, respond_velocities,
 )
-from collider_client.response import world_box
+from collider_client.response import TunnellingError, world_box
 from collider_client._models import ModelInfo
 
 UP = np.array([[0.0, 0.0, 1.0]])
@@ -162,3 +162,157 @@ def test_hook_against_embedded_sphere(models_dir):
         assert inward.min() > -0.05  # no velocity left into the sphere (up to voxel normals)
         with pytest.raises(ValueError, match="unknown model"):
             CollisionHook(client, [ColliderPlacement("nope")])
+
+
+# -- the helpers' edges: defaults, dtypes, inputs left alone ----------------------------------------
+
+
+def test_respond_velocities_defaults_to_frictionless_and_inelastic():
+    v = np.array([[0.3, -0.2, -2.0]])
+    np.testing.assert_allclose(respond_velocities(v, UP, np.array([True])), [[0.3, -0.2, 0.0]])
+
+
+def test_fully_elastic_restitution_is_accepted_and_reflects_the_normal_velocity():
+    v = np.array([[0.5, 0.0, -2.0]])
+    out = respond_velocities(v, UP, np.array([True]), restitution=1.0)
+    np.testing.assert_allclose(out, [[0.5, 0.0, 2.0]])
+
+
+def test_slowly_separating_points_keep_their_velocity():
+    # u_n = +0.5 m/s (< 1): separating, however slowly; friction must not touch it either.
+    v = np.array([[0.2, 0.0, 0.5]])
+    out = respond_velocities(v, UP, np.array([True]), friction=0.8, restitution=0.5)
+    np.testing.assert_array_equal(out, v)
+
+
+def test_integer_velocities_give_exact_fractional_responses():
+    # Velocities given as integers (m/s): the response (-0.25 x -2 = 0.5 m/s) is not truncated.
+    out = respond_velocities(np.array([[0, 0, -2]]), UP, np.array([True]), restitution=0.25)
+    np.testing.assert_allclose(out, [[0.0, 0.0, 0.5]])
+
+
+def test_a_head_on_contact_without_tangential_velocity_raises_no_numpy_warning():
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # a 0/0 in Coulomb's shrink factor would warn
+        out = respond_velocities(np.array([[0.0, 0.0, -1.0]]), UP, np.array([True]), friction=0.0)
+    np.testing.assert_array_equal(out, [[0.0, 0.0, 0.0]])
+
+
+def test_unit_rows_keeps_zero_rows_zero_without_warning():
+    import warnings
+
+    from collider_client.response import _unit_rows
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        out = _unit_rows(np.array([[0.0, 0.0, 0.0], [0.0, 3.0, 4.0]]))
+    np.testing.assert_allclose(out, [[0.0, 0.0, 0.0], [0.0, 0.6, 0.8]])
+
+
+def test_project_to_contacts_leaves_its_input_alone_and_keeps_float32():
+    positions = np.array([[0.0, 0.0, -0.002], [0.1, 0.0, 0.5]])
+    before = positions.copy()
+    contact = np.array([[0.0, 0.0, 0.001], [9.0, 9.0, 9.0]])
+    out = project_to_contacts(positions, contact, np.array([True, False]))
+    np.testing.assert_array_equal(positions, before)  # a new array, not the input edited
+    np.testing.assert_array_equal(out, [[0.0, 0.0, 0.001], [0.1, 0.0, 0.5]])
+    single = project_to_contacts(positions.astype(np.float32), contact, np.array([True, False]))
+    assert single.dtype == np.float32  # a float32 simulator gets float32 back
+    # Integer positions (a grid in whole metres) are not truncated on the way out.
+    out = project_to_contacts(np.array([[0, 0, -1], [2, 3, 4]]), contact, np.array([True, False]))
+    assert out.dtype == np.float64
+    np.testing.assert_array_equal(out, [[0.0, 0.0, 0.001], [2.0, 3.0, 4.0]])
+
+
+def test_world_box_grows_both_sides_by_the_margin():
+    info = ModelInfo("m", "voxel", domain_min=np.array([-1.0, -2.0, -3.0]),
+                     domain_max=np.array([1.0, 2.0, 3.0]))
+    lo, hi = world_box(info, None, 0.25)
+    np.testing.assert_allclose(lo, [-1.25, -2.25, -3.25])
+    np.testing.assert_allclose(hi, [1.25, 2.25, 3.25])
+
+
+def test_placement_static_flag_and_float_poses():
+    assert ColliderPlacement("m").static is True
+    fixed = ColliderPlacement("m", [[1, 0, 0, 0], [0, 1, 0, 2], [0, 0, 1, 0], [0, 0, 0, 1]])
+    assert fixed.static is True
+    assert fixed.pose(3.0).dtype == np.float64
+    np.testing.assert_array_equal(fixed.pose(3.0)[:3, 3], [0.0, 2.0, 0.0])
+    moving = ColliderPlacement("m", lambda t: [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, t], [0, 0, 0, 1]])
+    assert moving.static is False
+    assert moving.pose(1).dtype == np.float64
+
+
+# -- the hook's substep count and collider moves, closed forms (no queries) ------------------------
+
+
+BOX = ModelInfo("box", "mesh", domain_min=np.array([-0.1, -0.5, -0.9]),
+                domain_max=np.array([0.2, 0.3, 0.7]))
+
+
+def _hook(colliders, **kwargs):
+    """A hook that only computes (no query is sent): the model's domain box given as ``infos``."""
+    return CollisionHook(None, colliders, infos={"box": BOX}, **kwargs)
+
+
+def _pose_at(t: float) -> np.ndarray:
+    """Rotation about z by 0.5 t rad, translation (0.1 + 0.3 t^2, -0.2, 0.05 t) m: accelerating."""
+    c, s = np.cos(0.5 * t), np.sin(0.5 * t)
+    return np.array([[c, -s, 0, 0.1 + 0.3 * t * t], [s, c, 0, -0.2], [0, 0, 1, 0.05 * t],
+                     [0, 0, 0, 1.0]])
+
+
+def test_collider_moves_is_the_largest_corner_displacement_over_the_step():
+    t, dt = 1.0, 0.1
+    hook = _hook([ColliderPlacement("box"), ColliderPlacement("box", np.eye(4)),
+                  ColliderPlacement("box", _pose_at)])
+    corners = np.array([[x, y, z] for x in (-0.1, 0.2) for y in (-0.5, 0.3) for z in (-0.9, 0.7)])
+
+    def world(pose):
+        return corners @ pose[:3, :3].T + pose[:3, 3]
+
+    expected = np.linalg.norm(world(_pose_at(t)) - world(_pose_at(t - dt)), axis=1).max()
+    poses = [np.eye(4), np.eye(4), _pose_at(t)]
+    moves = hook.collider_moves(poses, t, dt)
+    assert moves[:2] == [0.0, 0.0]  # static ones
+    assert moves[2] == pytest.approx(expected, rel=1e-12)
+
+
+def test_substeps_is_floor_of_relative_displacement_over_eps_plus_one():
+    hook = _hook([ColliderPlacement("box")], eps=1e-3)
+    v = np.array([[3.0, 4.0, 0.0], [0.0, 0.0, 4.0], [0.0, 0.0, 100.0]])  # m/s; the last not near
+    # own: the fastest near point, 5 m/s x 1 ms = 5 mm; the collider 2.5 mm: 7.5 eps -> 8 checks.
+    assert hook.substeps(v, np.array([0, 1]), [0.0, 2.5e-3], 0.0, 1e-3) == 8
+    # No near point: the collider's move alone, 2.5 eps -> 3.
+    assert hook.substeps(v, np.array([], dtype=int), [2.5e-3], 0.0, 1e-3) == 3
+    # Slow (0.3 mm a step) and no collider move: a single check.
+    assert hook.substeps(np.array([[0.3, 0.0, 0.0]]), np.array([0]), [], 0.0, 1e-3) == 1
+    # 63.5 eps: 64 checks, the most allowed; 64.5 eps is refused.
+    assert hook.substeps(np.array([[63.5, 0.0, 0.0]]), np.array([0]), [0.0], 0.0, 1e-3) == 64
+    with pytest.raises(TunnellingError):
+        hook.substeps(np.array([[64.5, 0.0, 0.0]]), np.array([0]), [0.0], 0.0, 1e-3)
+
+
+def test_substeps_refusal_messages_give_the_numbers():
+    hook = _hook([ColliderPlacement("box")], eps=0.001994)
+    with pytest.raises(TunnellingError) as caught:
+        hook.substeps(np.array([[56.7, 0.0, 0.0]]), np.array([0]), [0.0797], 0.25, 1e-3)
+    assert str(caught.value) == (
+        "at t = 0.25 s a point near a collider moved 136 mm relative to it in one step (56.7 mm "
+        "itself at 56.7 m/s, 79.7 mm the collider): more than 64 x eps = 1.99 mm, it could pass "
+        "through a thin feature unseen. Keep speed x dt below eps: lower dt or raise eps")
+    with pytest.raises(TunnellingError, match=r"^at t = 0.5 s a point near a collider has a "
+                                              r"non-finite velocity$"):
+        hook.substeps(np.array([[np.nan, 0.0, 0.0]]), np.array([0]), [0.0], 0.5, 1e-3)
+
+
+def test_hook_arguments_are_checked():
+    with pytest.raises(ValueError, match="^eps must be > 0, got 0.0$"):
+        _hook([ColliderPlacement("box")], eps=0.0)
+    with pytest.raises(ValueError, match="^CollisionHook needs at least one collider$"):
+        _hook([])
+    hook = _hook([ColliderPlacement("box")], friction=0.3)
+    assert hook.eps == 1e-3 and hook.restitution == 0.0 and hook.check_step
+    assert hook.stats.fields == hook.fields == ["distance", "contact", "collides", "normal"]
