@@ -3,6 +3,8 @@ below and sliding above its threshold, restitution, moving colliders. World fram
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 import pytest
 
@@ -316,3 +318,223 @@ def test_hook_arguments_are_checked():
     hook = _hook([ColliderPlacement("box")], friction=0.3)
     assert hook.eps == 1e-3 and hook.restitution == 0.0 and hook.check_step
     assert hook.stats.fields == hook.fields == ["distance", "contact", "collides", "normal"]
+
+
+# -- the hook against exact boxes: responses in closed form ----------------------------------------
+
+
+def _box_mesh(extents, centre, name):
+    import trimesh
+
+    from collider_server.meshes import Mesh
+
+    box = trimesh.creation.box(extents=extents)
+    return Mesh(np.asarray(box.vertices) + np.asarray(centre, float), np.asarray(box.faces), name)
+
+
+@pytest.fixture(scope="module")
+def exact_client(tmp_path_factory):
+    """Embedded client over exact (``mesh`` kind) boxes, metres: ``floor`` 1 x 1 x 0.1 m, top face
+    at z = 0; ``plate`` 0.3 x 0.3 m, 0.2 mm thick, faces at z = 0 and z = -0.2 mm."""
+    pytest.importorskip("collider_server")
+    import collider_client as cc
+    from collider_server.bake import bake_collider
+    from collider_server.modelfile import save_collider
+
+    root = tmp_path_factory.mktemp("exact")
+    for name, mesh in {"floor": _box_mesh((1.0, 1.0, 0.1), (0, 0, -0.05), "floor"),
+                       "plate": _box_mesh((0.3, 0.3, 2e-4), (0, 0, -1e-4), "plate")}.items():
+        save_collider(bake_collider(mesh, "mesh", name, show_progress=False), root / f"{name}.safetensors")
+    with cc.Client(models=root, device="cpu") as client:
+        yield client
+
+
+class Recorder:
+    """The real client, logging what the hook asks of it: (method, colliders, n points, options)."""
+
+    def __init__(self, client):
+        self.client, self.calls = client, []
+
+    def list_models(self):
+        return self.client.list_models()
+
+    def query(self, model, points, **options):
+        self.calls.append(("query", model, len(points), options))
+        return self.client.query(model, points, **options)
+
+    def scene_query(self, colliders, points, **options):
+        self.calls.append(("scene_query", colliders, len(points), options))
+        return self.client.scene_query(colliders, points, **options)
+
+
+def _translation(x, y, z):
+    pose = np.eye(4)
+    pose[:3, 3] = [x, y, z]
+    return pose
+
+
+# A point that crosses the floor's top (z = 0) within one step: from z = 2 mm to z = -2 mm at
+# v = (1, 0, -4) m/s in dt = 1 ms. |v| dt = 4.12 eps: 5 checks, at 1/5 .. 5/5 of the step; the
+# second (z = 0.4 mm < eps, x = 0.4 mm) catches it, 0.4 ms into the step, 0.6 ms before its end.
+# After the response the point sits at the contact (z = eps) minus the tangential part of the
+# velocity change over the 0.4 ms travelled, then moves on 0.6 ms with the new velocity.
+@pytest.mark.parametrize("options, velocity, position", [
+    ({}, [0.0, 0.0, 0.0], [0.0, 0.0, 1e-3]),  # sticky: stops where it met the floor, no creep
+    ({"friction": 0.0}, [1.0, 0.0, 0.0], [1e-3, 0.0, 1e-3]),  # default restitution 0
+    ({"friction": 0.0, "restitution": 0.5}, [1.0, 0.0, 2.0], [1e-3, 0.0, 1e-3 + 1.2e-3]),
+    # Coulomb, sliding: |u_t| = 1 > mu dv_n = 0.4: u_t -> 0.6 m/s; x = 0.4 - 0.16 + 0.36 mm.
+    ({"friction": 0.1}, [0.6, 0.0, 0.0], [0.6e-3, 0.0, 1e-3]),
+    # Sticking: mu dv_n = 5 >= 1; the bounce 0.25 x 4 = 1 m/s for 0.6 ms.
+    ({"friction": 1.0, "restitution": 0.25}, [0.0, 0.0, 1.0], [0.0, 0.0, 1.6e-3]),
+])
+def test_hook_catches_a_point_part_way_through_the_step(exact_client, options, velocity, position):
+    hook = CollisionHook(exact_client, [ColliderPlacement("floor")], **options)
+    x = np.array([[1e-3, 0.0, -2e-3], [0.3, 0.2, 0.05]])  # the second: near, never in contact
+    v = np.array([[1.0, 0.0, -4.0], [0.0, 0.0, 0.0]])
+    x_in, v_in = x.copy(), v.copy()
+    started = time.perf_counter()
+    pos, vel, mask = hook.apply(x, v, t=0.5, dt=1e-3)
+    wall = time.perf_counter() - started
+    np.testing.assert_array_equal(x, x_in)  # the caller's arrays are not edited
+    np.testing.assert_array_equal(v, v_in)
+    np.testing.assert_allclose(pos[0], position, atol=1e-12)
+    np.testing.assert_allclose(vel[0], velocity, atol=1e-12)
+    np.testing.assert_array_equal(pos[1], x[1])
+    np.testing.assert_array_equal(vel[1], v[1])
+    np.testing.assert_array_equal(mask, [True, False])
+    # Checks at 1/5 (both sent), 2/5 (both; the first caught), then 3/5 .. 5/5 (the second).
+    assert hook.stats.queries == 5 and hook.stats.points_sent == 7
+    assert hook.stats.colliding_last == hook.stats.colliding_max == 1
+    assert 0 < hook.stats.query_s and 0 < hook.stats.response_s
+    assert hook.stats.query_s + hook.stats.response_s <= wall  # the two split the call's time
+
+
+def test_hook_responds_to_integer_velocities_without_truncating(exact_client):
+    hook = CollisionHook(exact_client, [ColliderPlacement("floor")], friction=0.0, restitution=0.5)
+    pos, vel, mask = hook.apply(np.array([[0.1, 0.0, 5e-4]]), np.array([[0, 0, -3]]), 0.1, 1e-3)
+    assert mask.all()
+    np.testing.assert_allclose(vel, [[0.0, 0.0, 1.5]], atol=1e-12)
+    np.testing.assert_allclose(pos, [[0.1, 0.0, 1e-3]], atol=1e-12)
+
+
+def test_hook_without_check_step_is_refused_by_default_for_a_fast_point(exact_client):
+    hook = CollisionHook(exact_client, [ColliderPlacement("floor")])
+    with pytest.raises(TunnellingError, match="speed x dt below eps"):
+        hook.apply(np.array([[0.0, 0.0, 5e-4]]), np.array([[0.0, 0.0, -200.0]]), 0.1, 1e-3)
+
+
+@pytest.mark.parametrize("only_colliding", [True, False])
+@pytest.mark.parametrize("two", [False, True])
+def test_hook_sends_its_eps_fields_and_only_colliding(exact_client, two, only_colliding):
+    """eps = 2 mm (not the client's 1 mm default): penetrating points land 2 mm above the top
+    face of the floor they are in; one collider is one query, several are one scene query."""
+    spy = Recorder(exact_client)
+    far = _translation(5.0, 0.0, 0.0)  # a second floor 5 m along x
+    colliders = [ColliderPlacement("floor")] + ([ColliderPlacement("floor", far)] if two else [])
+    hook = CollisionHook(spy, colliders, eps=2e-3, friction=0.5, only_colliding=only_colliding)
+    x = np.array([[0.1, 0.2, -3e-3], [5.1, -0.2, -5e-4], [0.3, 0.0, 0.05]])
+    pos, vel, mask = hook.apply(x, np.zeros((3, 3)), 0.0, 1e-3)
+    expected = x.copy()
+    expected[0, 2] = 2e-3
+    if two:
+        expected[1, 2] = 2e-3
+    np.testing.assert_allclose(pos, expected, atol=1e-12)
+    np.testing.assert_array_equal(vel, 0.0)
+    np.testing.assert_array_equal(mask, [True, two, False])
+    assert hook.stats.deepest_m == pytest.approx(-3e-3, abs=1e-9)  # float32 distances
+    options = {"fields": ["distance", "contact", "collides", "normal"], "eps": 2e-3,
+               "only_colliding": only_colliding}
+    assert len(spy.calls) == 1
+    method, sent_colliders, n, sent_options = spy.calls[0]
+    assert n == 2 + two and sent_options == options
+    if two:
+        assert method == "scene_query"
+        assert [m for m, _ in sent_colliders] == ["floor", "floor"]
+        np.testing.assert_array_equal(sent_colliders[0][1], np.eye(4))
+        np.testing.assert_array_equal(sent_colliders[1][1], far)
+    else:
+        assert (method, sent_colliders) == ("query", "floor")
+
+
+@pytest.mark.parametrize("friction", [None, 0.0])
+def test_hook_gives_each_point_its_own_colliders_velocity(exact_client, friction):
+    """A static floor first, then a floor at x = 5 m rising at 0.5 m/s: points resting in each
+    take that floor's velocity (sticky, or frictionless with restitution 0: the normal part)."""
+    rising = ColliderPlacement("floor", lambda t: _translation(5.0, 0.0, 0.5 * t))
+    hook = CollisionHook(exact_client, [ColliderPlacement("floor"), rising], friction=friction)
+    t = 0.1  # the rising floor's top at z = 0.05
+    x = np.array([[0.1, 0.0, -5e-4], [5.1, 0.0, 0.05 - 5e-4]])
+    pos, vel, mask = hook.apply(x, np.zeros((2, 3)), t, 1e-3)
+    assert mask.all()
+    np.testing.assert_allclose(vel, [[0.0, 0.0, 0.0], [0.0, 0.0, 0.5]], atol=1e-9)
+    np.testing.assert_allclose(pos, [[0.1, 0.0, 1e-3], [5.1, 0.0, 0.05 + 1e-3]], atol=1e-9)
+
+
+def test_a_plate_moving_past_a_resting_point_in_one_step_is_caught(exact_client):
+    """The 0.2 mm plate falls 0.2 m in one step (20 m/s, dt = 10 ms) past a point at z = -5 cm
+    that ends the step outside the plate's box: only its move brings the point into the check.
+    eps = 5 mm: 41 checks; the 10th finds the plate's underside at z = -0.2 x 10/41 m - 0.2 mm,
+    within eps; the point is pushed under it and carried down with it (sticky): it ends eps
+    below the underside at the step's end, at 20 m/s downwards."""
+    eps, dt, t = 5e-3, 1e-2, 1e-2
+    plate = ColliderPlacement("plate", lambda time: _translation(0.0, 0.0, -20.0 * time))
+    hook = CollisionHook(exact_client, [plate], eps=eps)
+    info = {m.name: m for m in exact_client.list_models()}["plate"]
+    z_point = -0.05
+    assert z_point - (-0.2 + info.domain_max[2]) > eps  # outside the plate's box at t
+    pos, vel, mask = hook.apply(np.array([[0.01, 0.02, z_point]]), np.zeros((1, 3)), t, dt)
+    assert mask.all() and hook.stats.queries == 10
+    np.testing.assert_allclose(pos, [[0.01, 0.02, -0.2 - 2e-4 - eps]], atol=1e-9)
+    np.testing.assert_allclose(vel, [[0.0, 0.0, -20.0]], atol=1e-9)
+
+
+@pytest.mark.parametrize("check_step", [False, True])
+def test_hook_sends_only_the_points_near_a_collider(exact_client, check_step):
+    """Floors at x = 0 (static) and at x = 5 m (rising at 1 m/s; its top at z = t): the points in
+    either's box (padded 0.1 m) grown by eps, by its move over the step and along each point's
+    path when the step is checked, are sent; no others."""
+    rising = ColliderPlacement("floor", lambda t: _translation(5.0, 0.0, t))
+    hook = CollisionHook(exact_client, [ColliderPlacement("floor"), rising], check_step=check_step)
+    dt = 0.1 if not check_step else 0.01  # the rising floor moves 0.1 m / 10 mm in the step
+    x = np.array([[0.2, 0.0, 0.05],     # in the static floor's box
+                  [5.2, 0.0, 0.15],     # in the rising one's box
+                  [2.5, 0.0, 0.0],      # between the two
+                  [1.2, 0.0, 0.0],      # 0.5 m outside the static box
+                  [5.0, 0.0, 0.25],     # 5 cm above the rising box: within its 0.1 m move
+                  [0.2, 0.0, 0.5]])     # above the static box, coming from inside it
+    v = np.zeros((6, 3))
+    v[5, 2] = 0.45 / dt  # from z = 0.05 to 0.5 in the step
+    if check_step:
+        x[4, 2], x[5, 2], v[5, 2] = 0.215, 0.3, 0.1  # 5 mm above its 10 mm move; slow, far
+    pos, vel, mask = hook.apply(x, v, 0.1, dt)
+    assert not mask.any()
+    np.testing.assert_array_equal(pos, x)
+    sent = hook.stats.points_sent
+    if check_step:
+        assert sent == 2 * hook.stats.queries  # the first two, at every check
+    else:
+        assert sent == 2 and hook.stats.queries == 1
+    unculled = CollisionHook(exact_client, [ColliderPlacement("floor")], cull=False,
+                             check_step=False)
+    unculled.apply(x, np.zeros((6, 3)), 0.1, dt)
+    assert unculled.stats.points_sent == 6
+
+
+def test_hook_stats_add_up_over_calls(exact_client):
+    hook = CollisionHook(exact_client, [ColliderPlacement("floor")])
+    near = np.array([[0.1, 0.0, -2e-3], [0.2, 0.0, 0.05], [5.0, 0.0, 0.0]])
+    far = np.array([[5.0, 0.0, 0.0], [0.0, 6.0, 0.0]])
+    wall = 0.0
+    history = []
+    for x in (near, far, near):
+        started = time.perf_counter()
+        hook.apply(x, np.zeros_like(x), 0.0, 1e-3)
+        wall += time.perf_counter() - started
+        s = hook.stats
+        history.append((s.calls, s.points_total, s.points_sent, s.queries, s.colliding_last,
+                        s.colliding_max, s.query_s, s.response_s))
+        assert s.query_s + s.response_s <= wall
+    assert [h[:6] for h in history] == [(1, 3, 2, 1, 1, 1), (2, 5, 2, 1, 0, 1), (3, 8, 4, 2, 1, 1)]
+    assert 0 < history[0][6] == history[1][6] < history[2][6]  # query time adds up
+    assert 0 < history[0][7] <= history[1][7] <= history[2][7]  # so does the response's
+    assert hook.stats.deepest_m == pytest.approx(-2e-3, abs=1e-9)
