@@ -24,7 +24,7 @@ SIM=client/collider_client/sim
 MODULES=(
   "collider|server/collider_server/collider.py|tests/engine/test_collider.py tests/engine/test_only_colliding.py tests/engine/test_modelfile.py tests/hard_cases/test_engine_hard_cases.py tests/client/test_backends.py"
   "pose|server/collider_server/pose.py|tests/engine/test_pose.py tests/engine/test_collider.py tests/hard_cases/test_engine_hard_cases.py"
-  "kinds|server/collider_server/kinds/*|tests/engine/kinds tests/engine/test_analytic.py tests/engine/test_only_colliding.py tests/hard_cases/test_engine_hard_cases.py"
+  "kinds|server/collider_server/kinds/*|tests/engine/kinds tests/engine/test_modelfile.py tests/engine/test_analytic.py tests/engine/test_only_colliding.py tests/hard_cases/test_engine_hard_cases.py"
   "batching|server/collider_server/batching.py|tests/server/test_batching.py"
   "response|client/collider_client/response.py|tests/client/test_response.py tests/client/test_newton_adapter.py tests/hard_cases/test_simulator_hard_cases.py"
   "sim|$SIM/cloth.py $SIM/exact.py $SIM/output.py $SIM/run.py $SIM/scene.py $SIM/simulator.py $SIM/command.py|tests/hard_cases/test_simulator_hard_cases.py tests/client/test_scene.py tests/client/test_simulator.py"
