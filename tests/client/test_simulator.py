@@ -200,3 +200,126 @@ def test_check_mesh_places_the_mesh_as_the_model_was_made(tmp_path):
     check = json.loads((out / "drop.report.json").read_text())["exact_check"]
     assert check["max_depth_m"] < 1e-3  # the raw 1 m file would put every vertex ~0.9 m inside
     assert check["min_distance_m"] < 3e-3  # and the cloth did reach the sphere
+
+
+# -- what a run writes: OBJ, PC2, the PNG preview ------------------------------------------------
+
+
+def test_write_obj_writes_metres_and_one_based_faces(tmp_path):
+    from collider_client.sim.output import write_obj
+
+    vertices = np.array([[0.0, 0.0, 0.0], [0.01, 0.0, 0.0], [0.0, 0.01, 0.0], [0.01, 0.01, 0.5]])
+    write_obj(tmp_path / "a.obj", vertices, np.array([[0, 1, 3, 2]]))
+    lines = (tmp_path / "a.obj").read_text().splitlines()
+    assert lines[1] == "o cloth"  # the default object name
+    assert lines[2:] == ["v 0 0 0", "v 0.01 0 0", "v 0 0.01 0", "v 0.01 0.01 0.5", "f 1 2 4 3"]
+
+
+def test_pc2_header_frames_and_bad_frames(tmp_path):
+    """The 32-byte header Blender reads: magic, version 1, points, start frame 0, sample rate 1
+    (one sample a frame), samples; then float32 x, y, z per point per frame."""
+    import struct
+
+    from collider_client.sim.output import PC2Frames, PC2Writer, read_pc2
+
+    path = tmp_path / "a.pc2"
+    frames = [np.arange(6, dtype=np.float64).reshape(2, 3) * k / 3 for k in range(3)]
+    with PC2Writer(path, 2) as pc2:
+        for f in frames:
+            pc2.write(f)  # float64 in, float32 on disk
+        with pytest.raises(ValueError, match=r"frame must be \(2, 3\), got \(3, 3\)"):
+            pc2.write(np.zeros((3, 3)))
+    data = path.read_bytes()
+    assert len(data) == 32 + 3 * 2 * 3 * 4
+    assert struct.unpack("<12siiffi", data[:32]) == (b"POINTCACHE2\0", 1, 2, 0.0, 1.0, 3)
+    np.testing.assert_array_equal(read_pc2(path), np.array(frames, dtype=np.float32))
+    stored = PC2Frames(path, [0.0, 0.1, 0.2], 2)
+    assert stored[-3][0] == 0.0 and stored[2][0] == 0.2  # first and last, both ways
+    np.testing.assert_array_equal(stored[-3][1], frames[0].astype(np.float32))
+    with pytest.raises(IndexError, match="frame 3 of 3"):
+        stored[3]
+    with pytest.raises(IndexError, match="frame -4 of 3"):
+        stored[-4]
+
+
+def _preview_cloth(width, height, spacing=0.1):
+    """(W*H, 3) positions of a curved cloth, z = x^2 (metres, world frame)."""
+    x, y = np.meshgrid(np.arange(width) * spacing, np.arange(height) * spacing)
+    return np.stack([x, y, x ** 2], axis=-1).reshape(-1, 3)
+
+
+def test_preview_has_a_panel_per_frame_with_the_colliders_at_that_frames_pose():
+    from matplotlib.colors import to_rgb, to_rgba
+
+    from collider_client.sim.output import preview_figure
+
+    cloth = _preview_cloth(4, 3)  # x 0..0.3, y 0..0.2, z 0..0.09 m
+    collider = np.array([[0.0, 0.0, 0.0], [0.1, 0.0, 0.0], [0.0, 0.1, 0.05]])
+    frames = {5: cloth + [0.0, 0.0, -0.2], 0: cloth}
+    # A moving collider: at x + 1 m in frame 0, at z - 0.5 m in frame 5.
+    shown = {0: [collider + [1.0, 0.0, 0.0]], 5: [collider + [0.0, 0.0, -0.5]]}
+    fig = preview_figure(frames, 4, 3, {0: 0.0, 5: 0.05}, "drop", shown)
+    assert fig.get_suptitle() == "drop" and fig._suptitle.get_fontsize() == 10
+    np.testing.assert_allclose(fig.get_size_inches(), [8.4, 4.4])  # 4.2 x 4.4 in a panel
+    first, second = fig.axes
+    assert [ax.get_subplotspec().get_geometry() for ax in fig.axes] == [(1, 2, 0, 0), (1, 2, 1, 1)]
+    assert first.get_title() == "frame 0, t = 0.000 s" and second.get_title() == "frame 5, t = 0.050 s"
+    # Every panel has the same cube of limits holding all cloth and collider points:
+    # x 0..1.1, y 0..0.2, z -0.5..0.09, half the largest side 0.55 m.
+    for ax in fig.axes:
+        np.testing.assert_allclose(ax.get_xlim(), [0.55 - 0.55, 0.55 + 0.55])
+        np.testing.assert_allclose(ax.get_ylim(), [0.1 - 0.55, 0.1 + 0.55])
+        np.testing.assert_allclose(ax.get_zlim(), [-0.205 - 0.55, -0.205 + 0.55])
+        assert [ax.xaxis.label.get_text(), ax.yaxis.label.get_text(), ax.zaxis.label.get_text()] \
+            == ["x (m)", "y (m)", "z (m)"]
+        assert {ax.xaxis.label.get_fontsize(), ax.yaxis.label.get_fontsize(),
+                ax.zaxis.label.get_fontsize()} == {7.0}
+        assert ax.title.get_fontsize() == 9.0 and ax.xaxis.get_tick_params()["labelsize"] == 6
+        surface, points = ax.collections
+        # The cloth: blue faces shaded by their slope (each face the base colour scaled),
+        # dark blue edges; the collider: translucent red points.
+        faces = surface.get_facecolor()[:, :3] / to_rgb("#4a90d9")
+        np.testing.assert_allclose(faces, np.repeat(faces[:, :1], 3, axis=1), rtol=1e-6)
+        assert np.ptp(faces[:, 0]) > 0.01  # shaded: the faces differ
+        np.testing.assert_allclose(surface.get_edgecolor()[0, :3], to_rgb("#1f4e79"))
+        assert surface.get_alpha() == 0.9 and list(surface.get_linewidth()) == [0.2]
+        np.testing.assert_allclose(points.get_facecolor()[0], to_rgba("#c0392b", 0.4))
+        assert points.get_alpha() == 0.4 and list(points.get_sizes()) == [0.3]
+    # What each panel drew (its data limits): its own frame of the cloth, all 4 x 3 vertices,
+    # and the collider at its own pose.
+    np.testing.assert_allclose(first.xy_dataLim.get_points(), [[0.0, 0.0], [1.1, 0.2]])
+    np.testing.assert_allclose(first.zz_dataLim.intervalx, [0.0, 0.09])
+    np.testing.assert_allclose(second.xy_dataLim.get_points(), [[0.0, 0.0], [0.3, 0.2]])
+    np.testing.assert_allclose(second.zz_dataLim.intervalx, [-0.5, -0.11])
+
+
+def test_preview_draws_one_list_of_collider_points_in_every_panel_and_thins_a_large_cloth():
+    from collider_client.sim.output import preview_figure
+
+    # 120 x 3 vertices 0.01 m apart: drawn every second vertex (plot_surface is slow above
+    # ~60 x 60 cells), so the last column drawn is x = 1.18 m, the last row y = 0.02 m.
+    cloth = _preview_cloth(120, 3, spacing=0.01)
+    still = np.array([[0.5, 0.0, -1.0], [0.6, 0.01, -0.9]])
+    fig = preview_figure({0: cloth, 3: cloth}, 120, 3, {0: 0.0, 3: 0.3}, "t", [still])
+    for ax in fig.axes:
+        assert len(ax.collections) == 2  # the cloth and the one collider
+        np.testing.assert_allclose(ax.xy_dataLim.get_points(), [[0.0, 0.0], [1.18, 0.02]])
+        np.testing.assert_allclose(ax.zz_dataLim.intervalx, [-1.0, 1.18 ** 2])
+    fig = preview_figure({0: cloth}, 120, 3, {0: 0.0}, "t")  # no colliders: the cloth only
+    assert len(fig.axes[0].collections) == 1
+
+
+def test_write_preview_saves_a_png_of_462_x_484_pixels_a_panel(tmp_path):
+    import struct
+
+    import matplotlib.pyplot as plt
+
+    from collider_client.sim.output import write_preview
+
+    open_before = plt.get_fignums()
+    cloth = _preview_cloth(4, 3)
+    write_preview(tmp_path / "p.png", {0: cloth, 1: cloth}, 4, 3, {0: 0.0, 1: 0.1}, "t")
+    data = (tmp_path / "p.png").read_bytes()
+    assert data[:8] == b"\x89PNG\r\n\x1a\n"
+    assert struct.unpack(">II", data[16:24]) == (2 * 462, 484)  # 110 dpi
+    assert plt.get_fignums() == open_before  # the figure is closed, not left in pyplot

@@ -27,13 +27,13 @@ def write_obj(path: Path, vertices: np.ndarray, faces: np.ndarray, name: str = "
 class PC2Writer:
     """Appends frames of (n, 3) positions to a PC2 file; the sample count is fixed on close."""
 
-    def __init__(self, path: Path, points: int, frame_rate_hz: float):
+    def __init__(self, path: Path, points: int):
         self.path = Path(path)
         self.points = points
         self.samples = 0
         self._file = open(self.path, "wb")
+        # Start frame 0, sample rate 1.0: one sample per (Blender) frame.
         self._file.write(struct.pack("<12siiffi", PC2_MAGIC, 1, points, 0.0, 1.0, 0))
-        self.frame_rate_hz = frame_rate_hz
 
     def write(self, vertices: np.ndarray) -> None:
         if vertices.shape != (self.points, 3):
@@ -97,6 +97,21 @@ def write_preview(path: Path, frames: dict[int, np.ndarray], width: int, height:
     world frame, when given). ``frames`` maps frame index -> (W*H, 3) positions;
     ``collider_points`` is one list of (m, 3) arrays for every panel, or a dict frame index ->
     list (moving colliders, drawn at each frame's pose)."""
+    import matplotlib.pyplot as plt
+
+    fig = preview_figure(frames, width, height, times_s, title, collider_points)
+    fig.savefig(path, dpi=PREVIEW_DPI)
+    plt.close(fig)
+
+
+#: Resolution of the PNG preview: each panel is 4.2 x 4.4 inches, 462 x 484 pixels.
+PREVIEW_DPI = 110
+
+
+def preview_figure(frames: dict[int, np.ndarray], width: int, height: int,
+                   times_s: dict[int, float], title: str,
+                   collider_points: list[np.ndarray] | None = None):
+    """The matplotlib figure that :func:`write_preview` saves (same arguments, no path)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -126,5 +141,4 @@ def write_preview(path: Path, frames: dict[int, np.ndarray], width: int, height:
         ax.tick_params(labelsize=6)
     fig.suptitle(title, fontsize=10)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    return fig

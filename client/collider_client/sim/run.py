@@ -106,8 +106,7 @@ def run_scene(scene: Scene, client, out_dir: Path, *, show_progress: bool = True
     bar = _progress(total, stem, show_progress)
     started = time.perf_counter()
     per_frame_colliding = []
-    with PC2Writer(out_dir / f"{stem}.pc2", c.width * c.height,
-                   1.0 / (scene.dt_s * scene.frame_every)) as pc2:
+    with PC2Writer(out_dir / f"{stem}.pc2", c.width * c.height) as pc2:
         def keep_frame():
             vertices = sim.vertices.astype(np.float32)
             pc2.write(vertices)
