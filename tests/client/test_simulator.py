@@ -88,6 +88,9 @@ def test_drop_on_sphere_stays_outside(tmp_path, models_dir):
     assert client.fields == {"distance", "contact", "collides"}  # no friction: no normals asked for
     assert client.only_colliding == {True}  # contacts of the colliding points only
     assert client.calls == report.queries > 0
+    # Colliding vertices at each frame written: the last is the run's last count.
+    assert len(report.per_frame_colliding) == 13
+    assert report.per_frame_colliding[-1] == report.colliding_last > 0
     # The same check through the exact mesh SDF that `--check-mesh` uses.
     import trimesh
 
@@ -323,3 +326,66 @@ def test_write_preview_saves_a_png_of_462_x_484_pixels_a_panel(tmp_path):
     assert data[:8] == b"\x89PNG\r\n\x1a\n"
     assert struct.unpack(">II", data[16:24]) == (2 * 462, 484)  # 110 dpi
     assert plt.get_fignums() == open_before  # the figure is closed, not left in pyplot
+
+
+# -- run_scene: steps, progress, the per-step callback, errors before the run ----------------------
+
+FALL = ("[scene]\nduration_s = 0.05\ndt_s = 1e-3\nframe_every_steps = 10\n"
+        "[cloth]\nwidth = 4\nheight = 3\nspacing_m = 0.01\n[effects.gravity]\n")
+
+
+def test_run_scene_runs_the_steps_asked_with_a_progress_bar_and_calls_on_step(tmp_path, capsys):
+    path = tmp_path / "fall.toml"
+    path.write_text(FALL)  # 50 steps of 1 ms, a frame every 10
+    scene = load_scene(path)
+    calls = []
+    out = tmp_path / "a" / "b"  # made, parents too
+    report, frames = run_scene(scene, None, out, steps=30,
+                               on_step=lambda sim, i: calls.append((i, sim.t)))
+    assert [i for i, _ in calls] == list(range(1, 31))  # after each step, 1-based
+    np.testing.assert_allclose([t for _, t in calls], np.arange(1, 31) * 1e-3)
+    assert report.steps == 30 and report.backend == "embedded"
+    assert [t for t, _ in frames] == pytest.approx([0.0, 0.01, 0.02, 0.03])
+    assert report.per_frame_colliding == [0, 0, 0, 0]  # no colliders
+    assert (out / "fall.obj").read_text().splitlines()[1] == "o fall"
+    assert (out / "fall.png").is_file()  # the preview is on by default
+    bar = capsys.readouterr().err  # the progress bar (on by default) ends at 30 of 30 steps
+    assert "fall: 100%" in bar and "30/30" in bar and ("step/s" in bar or "s/step" in bar)
+    # Again into the same folder, quiet: no bar; and the scene's own 50 steps.
+    report, _ = run_scene(scene, None, out, show_progress=False, preview=False)
+    assert report.steps == 50 and capsys.readouterr().err == ""
+
+
+def test_run_scene_refuses_before_the_run(tmp_path, models_dir, monkeypatch):
+    import sys
+
+    path = tmp_path / "fall.toml"
+    path.write_text(FALL + "[effects.collisions]\n[[colliders]]\nmodel = 'teapot'\n")
+    scene = load_scene(path)
+    with cc.Client(models=models_dir, device="cpu") as client:
+        with pytest.raises(ValueError, match=r"colliders\[\]\.model \['teapot'\] not found; "
+                                             r"available models: \['box', 'sphere'\]$"):
+            run_scene(scene, client, tmp_path / "out", show_progress=False)
+    (tmp_path / "empty").mkdir()
+    with cc.Client(models=tmp_path / "empty", device="cpu") as client:
+        with pytest.raises(ValueError, match=r"\['teapot'\] not found; available models: none$"):
+            run_scene(scene, client, tmp_path / "out", show_progress=False)
+    with pytest.raises(ValueError, match="the scene has colliders; a client is needed"):
+        run_scene(scene, None, tmp_path / "out", show_progress=False)
+    # No matplotlib: said before the run, nothing written.
+    monkeypatch.setitem(sys.modules, "matplotlib", None)
+    with pytest.raises(ValueError) as info:
+        run_scene(scene, None, tmp_path / "late", show_progress=False)
+    assert str(info.value) == ("the PNG preview needs matplotlib (pip install matplotlib, or the "
+                               "server extras); or pass --no-preview")
+    assert not (tmp_path / "late").exists()
+
+
+def test_physical_memory_is_this_machines():
+    from collider_client.sim.run import _physical_memory
+
+    meminfo = Path("/proc/meminfo")
+    if not meminfo.is_file():
+        pytest.skip("no /proc/meminfo to compare with")
+    total_kib = int(meminfo.read_text().split("MemTotal:")[1].split()[0])
+    assert _physical_memory() == pytest.approx(total_kib * 1024, rel=0.05)
