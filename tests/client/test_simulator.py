@@ -183,16 +183,25 @@ def test_remote_and_embedded_runs_agree(tmp_path, models_dir, server_url):
     np.testing.assert_allclose(out["embedded"], out["remote"], atol=1e-5)
 
 
-def test_check_mesh_places_the_mesh_as_the_model_was_made(tmp_path):
+def test_check_mesh_places_the_mesh_as_the_model_was_made(tmp_path, monkeypatch):
     """A model baked from a 1 m sphere file with --fit-size 0.2 is a 0.1 m sphere: the exact
-    check must measure against the file placed the same way, not the raw 1 m sphere."""
+    check must measure against the file placed the same way, not the raw 1 m sphere; so must the
+    collider points drawn in the preview."""
     pytest.importorskip("collider_server", reason="the engine (server extras) is not installed")
     import trimesh
 
+    from collider_client.sim import run as run_module
     from collider_server.cli import main
 
+    seen, real_run_scene = [], run_module.run_scene
+
+    def spy(*args, **kwargs):
+        seen.append(kwargs)
+        return real_run_scene(*args, **kwargs)
+
+    monkeypatch.setattr(run_module, "run_scene", spy)
     big = tmp_path / "big.obj"
-    trimesh.creation.icosphere(subdivisions=4, radius=1.0).export(big)
+    trimesh.creation.icosphere(subdivisions=5, radius=1.0).export(big)  # 10,242 vertices
     models = tmp_path / "models"
     assert main(["bake", str(big), "--kind", "voxel", "--resolution", "48", "--name", "sphere",
                  "--fit-size", "0.2", "--models", str(models), "--quiet"]) == 0
@@ -203,6 +212,11 @@ def test_check_mesh_places_the_mesh_as_the_model_was_made(tmp_path):
     check = json.loads((out / "drop.report.json").read_text())["exact_check"]
     assert check["max_depth_m"] < 1e-3  # the raw 1 m file would put every vertex ~0.9 m inside
     assert check["min_distance_m"] < 3e-3  # and the cloth did reach the sphere
+    # The preview's collider points: 4,000 distinct vertices of the file, placed as the model.
+    (shown,) = seen
+    points = shown["collider_points"]["sphere"]
+    assert points.shape == (4000, 3) and len(np.unique(points, axis=0)) == 4000
+    np.testing.assert_allclose(np.linalg.norm(points, axis=1), SPHERE_RADIUS_M, rtol=1e-6)
 
 
 # -- what a run writes: OBJ, PC2, the PNG preview ------------------------------------------------
@@ -389,3 +403,246 @@ def test_physical_memory_is_this_machines():
         pytest.skip("no /proc/meminfo to compare with")
     total_kib = int(meminfo.read_text().split("MemTotal:")[1].split()[0])
     assert _physical_memory() == pytest.approx(total_kib * 1024, rel=0.05)
+
+
+# -- `collider simulate`: options, refusals, what it runs and prints (in process) -----------------
+
+
+def simulate_parser():
+    import argparse
+
+    from collider_client.sim.command import register
+
+    parser = argparse.ArgumentParser(prog="collider")
+    register(parser.add_subparsers(dest="command"))
+    return parser
+
+
+def simulate(*argv):
+    args = simulate_parser().parse_args(["simulate", *map(str, argv)])
+    return args.func(args)
+
+
+def free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_simulate_options_defaults_and_help(capsys, monkeypatch):
+    from collider_client.sim.command import run_simulate, shipped_scenes
+
+    parser = simulate_parser()
+    defaults = dict(command="simulate", scene="drop", server=None, token=None, models=None,
+                    device=None, threads=None, output=Path("out"), steps=None, no_preview=False,
+                    quiet=False, check_mesh=[], view=False, host="127.0.0.1", port=8080,
+                    paused=False, func=run_simulate)
+    assert vars(parser.parse_args(["simulate", "drop"])) == defaults
+    given = parser.parse_args([
+        "simulate", "drop", "--server", "http://h:1", "--token", "t", "--models", "m",
+        "--device", "cpu", "--threads", "3", "--output", "o", "--steps", "7", "--no-preview",
+        "--quiet", "--check-mesh", "a=b", "--check-mesh", "c=d", "--view", "--host", "0.0.0.0",
+        "--port", "9000", "--paused"])
+    assert vars(given) == dict(defaults, server="http://h:1", token="t", models=Path("m"),
+                               device="cpu", threads=3, output=Path("o"), steps=7, no_preview=True,
+                               quiet=True, check_mesh=["a=b", "c=d"], view=True, host="0.0.0.0",
+                               port=9000, paused=True)
+    # The help: what the command writes, the shipped scenes, each default as parsed above.
+    monkeypatch.setenv("COLUMNS", "1000")
+    with pytest.raises(SystemExit):
+        parser.parse_args(["simulate", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    for phrase in (
+            "Simulate a cloth scene with the reference Verlet simulator. SCENE is a TOML file or a "
+            f"shipped scene name ({', '.join(shipped_scenes())}). Writes OBJ + PC2 (Blender: import "
+            "the OBJ, add a Mesh Cache modifier with the PC2), a PNG preview and a report.",
+            "--output OUTPUT output folder (default out/)",
+            "--threads THREADS embedded engine CPU threads (default: cores - 1, at least 1, as the "
+            "server)",
+            "--check-mesh MODEL=MESH also measure penetration of every output frame against the "
+            "exact SDF of MESH (collider frame) for collider MODEL; repeatable",
+            "live view (extra [view]: pip install 'neural-collider[view]'):",
+            "--view show the run live in the browser (play / pause / step); the view stays up "
+            "after the run until Ctrl-C",
+            "--host HOST address the view listens on (default 127.0.0.1;",
+            "--port PORT port of the view (default 8080)"):
+        assert phrase in text
+
+
+def test_simulate_refuses_bad_options_before_the_run(tmp_path):
+    drop = scene_file(tmp_path)  # one collider, model "sphere"
+    fall = tmp_path / "fall.toml"
+    fall.write_text(FALL)  # no colliders
+    out = tmp_path / "out"
+    with pytest.raises(ValueError, match="^--steps must be >= 1, got 0$"):
+        simulate(drop, "--steps", "0", "--output", out)
+    for item in ("sphere", "=m.obj", "sphere="):
+        with pytest.raises(ValueError) as info:
+            simulate(drop, "--check-mesh", item, "--output", out)
+        assert str(info.value) == f"--check-mesh wants MODEL=MESH, got {item!r}"
+    with pytest.raises(ValueError) as info:
+        simulate(drop, "--check-mesh", "box=m.obj", "--output", out)
+    assert str(info.value) == ("--check-mesh names model(s) ['box'] that the scene does not use; "
+                               "its colliders: ['sphere']")
+    with pytest.raises(ValueError, match="its colliders: none$"):
+        simulate(fall, "--check-mesh", "box=m.obj", "--output", out)
+    missing = tmp_path / "a=b.obj"  # MODEL is up to the first "="
+    with pytest.raises(FileNotFoundError) as info:
+        simulate(drop, "--check-mesh", f"sphere={missing}", "--output", out)
+    assert str(info.value) == f"--check-mesh sphere={missing}: no such file"
+    assert not out.exists()
+
+
+class RecordingClient(cc.Client):
+    """A real client that records how it was made and whether it was closed."""
+
+    made: list = []
+
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self.args, self.kwargs, self.closed = args, kwargs, False
+        RecordingClient.made.append(self)
+
+    def close(self):
+        self.closed = True
+        super().close()
+
+
+@pytest.fixture
+def recording_client(monkeypatch):
+    RecordingClient.made = []
+    monkeypatch.setattr(cc, "Client", RecordingClient)
+    return RecordingClient.made
+
+
+def test_simulate_embedded_run_prints_and_writes(tmp_path, models_dir, recording_client, capsys,
+                                                 monkeypatch):
+    import os
+
+    import torch
+
+    threads = torch.get_num_threads()
+    out = tmp_path / "out"
+    try:
+        monkeypatch.setattr(os, "cpu_count", lambda: 8)
+        assert simulate(scene_file(tmp_path), "--models", models_dir, "--device", "cpu",
+                        "--steps", "2", "--no-preview", "--quiet", "--output", out) == 0
+        printed = capsys.readouterr()
+        (made,) = recording_client
+        assert made.kwargs == {"models": models_dir, "device": "cpu", "threads": 7}  # cores - 1
+        assert made.closed
+        assert "(embedded backend)" in printed.out and printed.err == ""  # --quiet: no bar
+        assert f"wrote {out / 'drop.obj'}, .pc2, .report.json\n" in printed.out
+        assert json.loads((out / "drop.report.json").read_text())["steps"] == 2
+        assert not (out / "drop.png").exists()
+        # Core count unknown: taken as 2, so 1 thread; --threads wins over it; with the preview
+        # and the progress bar.
+        monkeypatch.setattr(os, "cpu_count", lambda: None)
+        simulate(scene_file(tmp_path), "--models", models_dir, "--steps", "1", "--output", out)
+        simulate(scene_file(tmp_path), "--models", models_dir, "--steps", "1", "--output", out,
+                 "--threads", "2", "--quiet")
+    finally:
+        torch.set_num_threads(threads)
+    printed = capsys.readouterr()
+    assert [c.kwargs["threads"] for c in recording_client[1:]] == [1, 2]
+    assert f"wrote {out / 'drop.obj'}, .pc2, .png, .report.json\n" in printed.out
+    assert "drop: 100%" in printed.err and (out / "drop.png").is_file()
+    assert json.loads((out / "drop.report.json").read_text())["steps"] == 1
+
+
+def test_simulate_remote_run_and_an_unreachable_server(tmp_path, server_url, recording_client,
+                                                       capsys):
+    out = tmp_path / "out"
+    simulate(scene_file(tmp_path), "--server", server_url, "--token", "secret", "--steps", "2",
+             "--no-preview", "--quiet", "--output", out)
+    (made,) = recording_client
+    assert made.args == (server_url,) and made.kwargs == {"token": "secret"} and made.closed
+    assert "(remote backend)" in capsys.readouterr().out
+    down = f"http://127.0.0.1:{free_port()}"
+    with pytest.raises(ValueError, match="cannot connect"):
+        simulate(scene_file(tmp_path), "--server", down, "--no-preview", "--quiet", "--output", out)
+    mesh = tmp_path / "m.obj"
+    mesh.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
+    with pytest.raises(ValueError, match="cannot connect"):  # asked for the mesh placement
+        simulate(scene_file(tmp_path), "--server", down, "--check-mesh", f"sphere={mesh}",
+                 "--no-preview", "--quiet", "--output", out)
+    assert [c.closed for c in recording_client] == [True, True, True]
+
+
+def test_simulate_view_shows_the_run_and_stays_up(tmp_path, models_dir, monkeypatch, capsys):
+    """--view: the view on the given port follows the run to its last step, then stays up
+    (here: the wait for Ctrl-C records what it was given and stops the view at once)."""
+    pytest.importorskip("viser")
+    from collider_client.sim import run as run_module
+    from collider_client.sim import view as view_module
+
+    waited, seen = [], []
+    monkeypatch.setattr(view_module, "wait_until_interrupted",
+                        lambda server, message: (waited.append((server, message)), server.stop()))
+    real_run_scene = run_module.run_scene
+
+    def spy(*args, **kwargs):
+        seen.append(kwargs)
+        return real_run_scene(*args, **kwargs)
+
+    monkeypatch.setattr(run_module, "run_scene", spy)
+    port = free_port()
+    assert simulate(scene_file(tmp_path), "--models", models_dir, "--device", "cpu", "--view",
+                    "--port", port, "--steps", "3", "--no-preview", "--quiet",
+                    "--output", tmp_path / "out") == 0
+    url = f"http://127.0.0.1:{port}/"
+    assert f"view at {url}  (Ctrl-C to stop)" in capsys.readouterr().out
+    ((server, message),) = waited
+    assert server.get_port() == port
+    assert message == f"run finished; the view stays at {url} (Ctrl-C to stop)"
+    controls = seen[0]["on_step"].__self__
+    assert controls.status.content.startswith("**step 3 / 3**")  # shown to the last step
+    assert controls.play.label == "finished"
+    assert len(controls.view.colliders.handles) == 1  # the sphere, drawn through the client
+
+
+def test_start_live_view_paused_and_the_view_closed_when_the_run_fails(tmp_path, models_dir,
+                                                                        monkeypatch):
+    import argparse
+
+    pytest.importorskip("viser")
+    from collider_client.sim import view as view_module
+    from collider_client.sim.command import start_live_view
+
+    fall = tmp_path / "fall.toml"
+    fall.write_text(FALL)
+    port = free_port()
+    args = argparse.Namespace(host="127.0.0.1", port=port, steps=None, paused=True)
+    server, on_step = start_live_view(args, load_scene(fall), None)
+    try:
+        assert server.get_port() == port
+        controls = on_step.__self__
+        assert controls.play.label == "play"  # paused: the button starts the run
+        assert controls.status.content.startswith("**step 0 / 50**")  # the scene's 50 steps
+        assert controls.view.colliders.handles == []
+    finally:
+        server.stop()
+    # A server that is down: the view started for the run is stopped again.
+    started, real_start_server = [], view_module.start_server
+
+    def start_server(host, port):
+        server = real_start_server(host, port)
+        stop = server.stop
+        server.stop = lambda: (started.append("stopped"), stop())
+        started.append(server)
+        return server
+
+    monkeypatch.setattr(view_module, "start_server", start_server)
+    with pytest.raises(ValueError, match="cannot connect"):  # said before the view opens
+        simulate(scene_file(tmp_path), "--server", f"http://127.0.0.1:{free_port()}", "--view",
+                 "--port", free_port(), "--no-preview", "--quiet", "--output", tmp_path / "out")
+    assert started == []
+    # The run refused after the view opened (a model the repository lacks): the view is stopped.
+    teapot = tmp_path / "teapot.toml"
+    teapot.write_text(FALL + "[effects.collisions]\n[[colliders]]\nmodel = 'teapot'\n")
+    with pytest.raises(ValueError, match=r"\['teapot'\] not found"):
+        simulate(teapot, "--models", models_dir, "--device", "cpu", "--view", "--port", free_port(),
+                 "--no-preview", "--quiet", "--output", tmp_path / "out")
+    assert started[1:] == ["stopped"]

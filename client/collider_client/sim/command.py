@@ -129,13 +129,11 @@ def run_simulate(args: argparse.Namespace) -> int:
                                    steps=args.steps, preview=not args.no_preview,
                                    backend="remote" if args.server else "embedded",
                                    collider_points=shown, on_step=on_step)
-    except ColliderError as exc:  # a server that is down or refuses: one line, no traceback
+    except BaseException as exc:  # Ctrl-C or an error mid-run: do not leave the view's port open
         if server is not None:
             server.stop()
-        raise ValueError(str(exc)) from None
-    except BaseException:  # Ctrl-C or an error mid-run: do not leave the view's port open
-        if server is not None:
-            server.stop()
+        if isinstance(exc, ColliderError):  # a server that is down or refuses: one line
+            raise ValueError(str(exc)) from None
         raise
     finally:
         if client is not None:
@@ -166,10 +164,11 @@ def start_live_view(args: argparse.Namespace, scene, client):
     from .cloth import grid_positions
     from .view import ClothView, LiveControls, start_server, url_of
 
+    # The models first: a server that is down fails here, before the view opens.
+    infos = {m.name: m for m in client.list_models()} if client is not None else None
     server = start_server(args.host, args.port)
     c = scene.cloth
     rest = grid_positions(c.width, c.height, c.spacing_m, c.origin_m, c.axes).reshape(-1, 3)
-    infos = {m.name: m for m in client.list_models()} if client is not None else None
     view = ClothView(server, scene, rest, client, infos)
     total = scene.steps if args.steps is None else args.steps
     controls = LiveControls(server, view, total, paused=args.paused)
