@@ -646,3 +646,131 @@ def test_start_live_view_paused_and_the_view_closed_when_the_run_fails(tmp_path,
         simulate(teapot, "--models", models_dir, "--device", "cpu", "--view", "--port", free_port(),
                  "--no-preview", "--quiet", "--output", tmp_path / "out")
     assert started[1:] == ["stopped"]
+
+
+# -- quad faces, the run report and the exact --check-mesh measurement, from known inputs --------
+
+
+def test_quad_faces_of_a_4_by_3_grid_are_listed_row_by_row_counter_clockwise():
+    from collider_client.sim.cloth import grid_positions, quad_faces
+
+    # Vertices (flat index r * W + c):  8  9 10 11  /  4  5  6  7  /  0  1  2  3  (row 0 at the bottom)
+    faces = quad_faces(4, 3)
+    assert faces.dtype == np.int64
+    np.testing.assert_array_equal(faces, [[0, 1, 5, 4], [1, 2, 6, 5], [2, 3, 7, 6],
+                                          [4, 5, 9, 8], [5, 6, 10, 9], [6, 7, 11, 10]])
+    # Counter-clockwise seen from +normal (+z for an "xy" cloth): each corner turns left.
+    p = grid_positions(4, 3, 0.01, np.zeros(3), "xy").reshape(-1, 3)[faces]
+    turn = np.cross(np.roll(p, -1, axis=1) - p, np.roll(p, -2, axis=1) - np.roll(p, -1, axis=1))
+    np.testing.assert_allclose(turn[..., 2], 1e-4)  # spacing^2 at every corner of every quad
+    np.testing.assert_allclose(turn[..., :2], 0.0)
+
+
+def run_report(**kwargs):
+    from collider_client.sim.simulator import RunReport, Timings
+
+    values = dict(scene="drop", backend="embedded", vertices=6, steps=4, dt_s=2e-4, frames=3,
+                  effects=["gravity", "stretch", "collisions"], fields=["distance", "contact"],
+                  wall_s=0.2, timings=Timings(integration_s=0.08, collision_s=0.04, query_s=0.02),
+                  points_total=200, points_sent=25, queries=7, colliding_max=5, colliding_last=3,
+                  deepest_penetration_m=-0.0025)
+    values.update(kwargs)
+    return RunReport(**values)
+
+
+def test_run_report_times_per_step_are_the_sums_over_the_steps_in_ms():
+    ms = run_report().per_step_ms()
+    assert ms == pytest.approx({"total": 50.0, "integration": 20.0, "collision": 10.0,
+                                "query": 5.0}, rel=1e-12)
+    # One step: the sums themselves; no step at all: the sums too, not a division by zero.
+    for steps in (1, 0):
+        assert run_report(steps=steps).per_step_ms() == pytest.approx(
+            {"total": 200.0, "integration": 80.0, "collision": 40.0, "query": 20.0}, rel=1e-12)
+
+
+def test_run_report_text_states_each_figure():
+    lines = run_report().text().split("\n")
+    assert lines == [
+        "scene            drop  (embedded backend)",
+        "cloth            6 vertices, 4 steps of 0.0002 s, 3 frames written",
+        "effects          gravity, stretch, collisions",
+        "fields asked     distance, contact",
+        "time per step    50.000 ms = integration 20.000 + collision 10.000 + query "
+        "(engine/transport) 5.000 ms",
+        "points sent      25 of 200 (12.5 %) in 7 queries",
+        "colliding        max 5, at the end 3 vertices",
+        "deepest penetration (reported by the collider, before projection) 2.500 mm",
+    ]
+    # No collisions: no fields, no points; a collider that was never entered: 0 mm deep.
+    text = run_report(fields=[], points_total=0, points_sent=0, queries=0,
+                      deepest_penetration_m=0.004, exact_check={"max_depth_m": 0.0}).text()
+    assert "fields asked     none (no collisions)\n" in text
+    assert "points sent      0 of 0 (0.0 %) in 0 queries" in text
+    assert text.split("\n")[-2].endswith(" 0.000 mm")
+    assert text.split("\n")[-1] == "exact check      {'max_depth_m': 0.0}"
+    assert "(100.0 %)" in run_report(points_total=1, points_sent=1).text()
+
+
+def test_run_report_dict_carries_the_timings_and_the_per_step_times():
+    d = run_report().to_dict()
+    assert d["timings_s"] == {"integration_s": 0.08, "collision_s": 0.04, "query_s": 0.02}
+    assert d["time_per_step_ms"]["total"] == pytest.approx(50.0)
+    assert "timings" not in d and d["effects"] == ["gravity", "stretch", "collisions"]
+    assert json.loads(json.dumps(d))["deepest_penetration_m"] == -0.0025
+
+
+def _spec(model, position=(0.0, 0.0, 0.0), velocity=None):
+    from collider_client.sim.scene import ColliderSpec, Motion
+
+    motion = Motion() if velocity is None else Motion("velocity", np.asarray(velocity, float))
+    return ColliderSpec(model, np.asarray(position, float), np.zeros(3), motion)
+
+
+def test_exact_penetration_measures_each_placed_collider_at_each_frame(tmp_path):
+    """Box of 0.2 m (faces at +-0.1 m in its frame), exact. Colliders, in order: ``ghost`` (no
+    mesh given: skipped), ``box`` at x = 1 m rising at 1 m/s along z, ``box`` again at x = 5 m
+    (nothing near it). Depths in metres, world frame."""
+    pytest.importorskip("collider_server", reason="the engine (server extras) is not installed")
+    import trimesh
+
+    from collider_client.sim.exact import exact_penetration
+    from collider_client.sim.scene import Scene
+
+    mesh = tmp_path / "box.obj"
+    trimesh.creation.box(extents=(0.2, 0.2, 0.2)).export(mesh)
+    scene = Scene(tmp_path / "s.toml", "s", 1.0, 1e-3, 1, [], None,
+                  [_spec("ghost"), _spec("box", (1.0, 0.0, 0.0), velocity=(0.0, 0.0, 1.0)),
+                   _spec("box", (5.0, 0.0, 0.0))], {})
+    frames = [
+        (0.0, np.array([[1.0, 0.0, 0.05], [3.0, 0.0, 0.0]], np.float32)),  # 0.05 m deep at t = 0
+        (0.5, np.array([[1.0, 0.0, 0.5], [3.0, 0.0, 0.0]], np.float32)),   # the box's centre then
+    ]
+    check = exact_penetration(scene, frames, {"box": mesh})
+    assert check["by_model"] == {"box": pytest.approx(0.1, abs=1e-6)}
+    assert check["max_depth_m"] == pytest.approx(0.1, abs=1e-6)
+    assert check["min_distance_m"] == pytest.approx(-0.1, abs=1e-6)
+    assert check["frames"] == 2
+    # Only outside: no depth, and the closest distance is how near the cloth came (0.02 m).
+    outside = [(0.0, np.array([[1.0, 0.0, 0.12]])), (0.5, np.array([[1.0, 0.0, 0.65]]))]
+    check = exact_penetration(scene, outside, {"box": mesh})
+    assert check["max_depth_m"] == 0.0 and check["by_model"] == {"box": 0.0}
+    assert check["min_distance_m"] == pytest.approx(0.02, abs=1e-6)
+    # The mesh file placed in the collider frame by its source transform: a 2 m box scaled by 0.1.
+    big = tmp_path / "big.obj"
+    trimesh.creation.box(extents=(2.0, 2.0, 2.0)).export(big)
+    check = exact_penetration(scene, frames, {"box": big}, {"box": np.diag([0.1, 0.1, 0.1, 1.0])})
+    assert check["max_depth_m"] == pytest.approx(0.1, abs=1e-6)
+
+
+def test_exact_penetration_without_meshes_measures_nothing_and_refuses_unknown_models(tmp_path):
+    pytest.importorskip("collider_server", reason="the engine (server extras) is not installed")
+    from collider_client.sim.exact import exact_penetration
+    from collider_client.sim.scene import Scene
+
+    scene = Scene(tmp_path / "s.toml", "s", 1.0, 1e-3, 1, [], None, [_spec("box")], {})
+    frames = [(0.0, np.zeros((1, 3)))]
+    assert exact_penetration(scene, frames, {}) == {
+        "max_depth_m": 0.0, "min_distance_m": float("inf"), "frames": 1, "by_model": {}}
+    with pytest.raises(ValueError, match=r"--check-mesh names model\(s\) \['ghost'\] that the "
+                                         "scene does not use"):
+        exact_penetration(scene, frames, {"ghost": tmp_path / "ghost.obj"})

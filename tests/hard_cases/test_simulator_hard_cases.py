@@ -197,6 +197,58 @@ def test_pins_hold_exactly_the_declared_vertices_and_nothing_else(tmp_path):
     np.testing.assert_allclose(sim.x[~pinned][:, 2] - sim.rest[~pinned][:, 2], fall, rtol=1e-9)
 
 
+# -- energies against their closed forms -------------------------------------------------------
+
+
+ENERGY_ORIGIN = (0.2, -0.1, 0.5)  # metres, world frame: away from the origin, 0.5 m up
+
+
+def stretched_3_by_2(dx: float, spacing=0.01) -> tuple[np.ndarray, np.ndarray]:
+    """Rest positions of a 3 wide x 2 high "xy" cloth, and the same with its right column
+    (column 2) moved by ``dx`` metres along +x."""
+    from collider_client.sim.cloth import grid_positions
+
+    rest = grid_positions(3, 2, spacing, np.array(ENERGY_ORIGIN), "xy")
+    x = rest.copy()
+    x[:, 2, 0] += dx
+    return rest, x
+
+
+@pytest.mark.parametrize("dx", [3e-3, -2e-3])
+def test_spring_energy_of_each_family_is_half_k_times_its_stretch_squared(dx):
+    from collider_client.sim.cloth import SpringFamily
+
+    s, k = 0.01, 40.0
+    rest, x = stretched_3_by_2(dx, s)
+    # stretch: the 2 springs from column 1 to column 2 change by dx (column 2's own vertical
+    # spring moved as a whole); bend: the 2 springs from column 0 to column 2 likewise; shear:
+    # 2 of the 4 diagonals (those ending in column 2) go from s sqrt(2) to sqrt((s + dx)^2 + s^2).
+    diagonal = np.hypot(s + dx, s) - s * np.sqrt(2)
+    expected = {"stretch": 2 * 0.5 * k * dx**2, "bend": 2 * 0.5 * k * dx**2,
+                "shear": 2 * 0.5 * k * diagonal**2}
+    for name, energy in expected.items():
+        family = SpringFamily(name, rest, k)
+        assert family.energy(rest) == 0.0
+        assert family.energy(x) == pytest.approx(energy, rel=1e-9), name
+
+
+def test_simulator_energy_is_kinetic_plus_gravity_plus_springs_in_closed_form(tmp_path):
+    s, density, dt, dx = 0.01, 0.5, 2e-4, 3e-3
+    sim = simulator(tmp_path, "[effects.gravity]\n[effects.stretch]\nstiffness_n_m = 40.0\n"
+                              "[effects.shear]\nstiffness_n_m = 10.0", width=3, height=2,
+                    spacing=s, density=density, dt=dt, origin=ENERGY_ORIGIN)
+    _, x = stretched_3_by_2(dx, s)
+    v = np.array([0.3, -0.2, 0.1])  # m/s, every vertex
+    sim.x, sim.x_prev = x, x - v * dt
+    m = density * s**2  # kg per vertex
+    kinetic = 6 * 0.5 * m * (v @ v)
+    gravity = 6 * m * G * ENERGY_ORIGIN[2]  # m g h, zero at the world origin
+    springs = 40.0 * dx**2 + 10.0 * (np.hypot(s + dx, s) - s * np.sqrt(2)) ** 2
+    energy = sim.energy()
+    assert energy == pytest.approx({"kinetic": kinetic, "gravity": gravity, "springs": springs,
+                                    "total": kinetic + gravity + springs}, rel=1e-9)
+
+
 # -- collisions, friction, restitution, moving colliders (exact floor) ---------------------------
 
 

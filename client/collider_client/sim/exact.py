@@ -38,7 +38,7 @@ def exact_penetration(scene: Scene, frames: list, meshes: dict[str, Path],
         worst = 0.0
         for t, vertices in frames:
             pose = pose_at(t)
-            local = (vertices.astype(np.float64) - pose[:3, 3]) @ pose[:3, :3]
+            local = (vertices - pose[:3, 3]) @ pose[:3, :3]  # float64: the pose is
             distance = sdf.query(local)[0]
             worst = max(worst, float(-distance.min()))
             closest = min(closest, float(distance.min()))
