@@ -8,6 +8,8 @@ approximation: a floor (top face at z = 0) and a thin plate (0.2 mm thick, thinn
 
 from __future__ import annotations
 
+import re
+import time
 from pathlib import Path
 
 import numpy as np
@@ -547,3 +549,85 @@ def test_newton_style_placement_takes_a_fixed_matrix(client):
     np.testing.assert_allclose(positions[0, 2], 0.5 + EPS, atol=1e-9)
     with pytest.raises(ValueError, match="finite 4x4"):
         ColliderPlacement("floor", np.eye(3))
+
+
+# -- the step's declared effects, pins against contacts, the blow-up check and its message -------
+
+
+def test_every_declared_effect_is_listed_in_step_order_and_configures_the_hook(tmp_path, client):
+    springs = "".join(f"[effects.{n}]\nstiffness_n_m = 1.0\n" for n in ("stretch", "shear", "bend"))
+    effects = (f"[effects.gravity]\n{springs}[effects.wind]\nvelocity_m_s = [1, 0, 0]\n"
+               "[effects.damping]\ncoefficient_1_s = 2.0\n[effects.pins]\ncorners = ['top-left']\n"
+               f"[effects.collisions]\neps_m = 2e-3\n")
+    sim = simulator(tmp_path, effects + "[effects.friction]\ncoefficient = 0.4\nrestitution = 0.3",
+                    client=client, colliders=floor_scene(), dt=1e-4)
+    assert sim.effects == ["gravity", "stretch", "shear", "bend", "wind", "damping", "pins",
+                           "collisions", "friction"]
+    assert (sim.hook.eps, sim.hook.friction, sim.hook.restitution) == (2e-3, 0.4, 0.3)
+    sim = simulator(tmp_path, effects, client=client, colliders=floor_scene(), dt=1e-4)
+    assert sim.effects[-1] == "collisions"  # no friction: the contact keeps the collider's velocity
+    assert (sim.hook.friction, sim.hook.restitution) == (None, 0.0)
+
+
+def test_a_scene_with_colliders_and_no_client_is_refused(tmp_path):
+    path = write_scene(tmp_path, f"[effects.gravity]\n[effects.collisions]\neps_m = {EPS}",
+                       colliders=floor_scene())
+    with pytest.raises(ValueError, match=f"^{re.escape(str(path))}: the scene has colliders; a "
+                                         "client is needed$"):
+        Simulator(load_scene(path), None)
+
+
+def test_pins_at_the_four_corners_hold_exactly_those(tmp_path):
+    sim = simulator(tmp_path, "[effects.gravity]\n[effects.pins]\ncorners = ['bottom-left', "
+                              "'bottom-right', 'top-left', 'top-right']", width=4, height=3)
+    run(sim, 10)
+    pinned = np.zeros((3, 4), bool)
+    pinned[[0, 0, 2, 2], [0, 3, 0, 3]] = True  # rows 0 and H - 1, columns 0 and W - 1
+    np.testing.assert_array_equal(sim.x[pinned], sim.rest[pinned])
+    assert (sim.x[~pinned][:, 2] < sim.rest[~pinned][:, 2]).all()  # every other vertex fell
+
+
+def test_a_pin_wins_over_the_contact_and_colliding_is_the_last_steps_mask(tmp_path, client):
+    """A 3 x 3 cloth 0.5 mm above the floor, inside eps (1 mm): the contact lifts every vertex to
+    eps, except the pinned bottom-left one, which stays where it was pinned, at rest."""
+    sim = simulator(tmp_path, f"[effects.gravity]\n[effects.pins]\ncorners = ['bottom-left']\n"
+                              f"[effects.collisions]\neps_m = {EPS}", client=client,
+                    colliders=floor_scene(), origin=(0.0, 0.0, 5e-4))
+    started = time.perf_counter()
+    run(sim, 2)
+    elapsed = time.perf_counter() - started
+    np.testing.assert_array_equal(sim.x[0, 0], sim.rest[0, 0])
+    np.testing.assert_array_equal(sim.x_prev[0, 0], sim.rest[0, 0])  # no velocity either
+    np.testing.assert_allclose(sim.x[..., 2].ravel()[1:], EPS, atol=1e-9)
+    assert sim.colliding.shape == (9,) and sim.colliding.all()
+    # The time spent: all of the hook's query time, and the rest split, within the steps' time.
+    t = sim.timings
+    assert t.query_s == sim.hook.stats.query_s > 0.0
+    assert t.integration_s > 0.0 and t.collision_s > 0.0
+    assert t.integration_s + t.collision_s + t.query_s <= elapsed
+    lifted = sim.rest + np.array([0.0, 0.0, 0.5])  # all but the pinned vertex far above the floor
+    lifted[0, 0] = sim.rest[0, 0]
+    sim.x, sim.x_prev = lifted, lifted.copy()
+    sim.step()
+    np.testing.assert_array_equal(sim.colliding, np.arange(9) == 0)  # this step's contacts only
+
+
+def test_a_vertex_moving_farther_than_the_cloth_diagonal_stops_the_run_and_says_where(tmp_path):
+    # A 4 x 3 cloth 1 cm apart: its rest diagonal is hypot(3, 2) cm = 0.0361 m. No forces, so each
+    # step moves every vertex by exactly x - x_prev.
+    path = write_scene(tmp_path, "[effects.gravity]\nacceleration_m_s2 = [0, 0, 0]", width=4,
+                       height=3, dt=1e-3)
+    sim = Simulator(load_scene(path))
+    sim.x_prev = sim.x - np.array([0.0360, 0.0, 0.0])  # just within the diagonal: two steps run
+    run(sim, 2)
+    sim.x_prev = sim.x - np.array([0.0, 0.0365, 0.0])
+    with pytest.raises(SimulationError, match=f"^{re.escape(str(path))}: the cloth blew up at step "
+                       r"3 \(t = 0\.003 s\): a vertex moved 0\.0365 m in one step, more than the "
+                       r"cloth's size \(0\.0361 m\); lower scene\.dt_s, the spring stiffness, the "
+                       "damping or the wind drag$"):
+        sim.step()
+    sim = Simulator(load_scene(path))
+    sim.x[2, 3, 1] = np.nan
+    with pytest.raises(SimulationError, match=f"^{re.escape(str(path))}: the cloth blew up at step "
+                       r"1 \(t = 0\.001 s\): a position became non-finite; lower scene\.dt_s, "):
+        sim.step()

@@ -137,18 +137,18 @@ class Simulator:
             placements = [ColliderPlacement(spec.model, pose_function(spec))
                           for spec in scene.colliders]
             friction = fx.get("friction")
-            self.hook = CollisionHook(
-                client, placements, eps=fx["collisions"]["eps_m"],
-                friction=None if friction is None else friction["coefficient"],
-                restitution=0.0 if friction is None else friction["restitution"],
-                infos=model_infos)
+            # Without friction the hook keeps the collider's velocity (restitution has no use).
+            response = {} if friction is None else {"friction": friction["coefficient"],
+                                                    "restitution": friction["restitution"]}
+            self.hook = CollisionHook(client, placements, eps=fx["collisions"]["eps_m"],
+                                      infos=model_infos, **response)
             self.effects.append("collisions")
             if friction is not None:
                 self.effects.append("friction")
 
     def _check_state(self, x_new: np.ndarray, x: np.ndarray) -> None:
         """Stop at the first non-finite or runaway state, naming the step and what to change."""
-        step = np.abs(x_new - x).max(initial=0.0)  # NaN propagates: caught below
+        step = np.abs(x_new - x).max()  # NaN propagates: caught below
         if np.isfinite(step) and step <= self.runaway_m:
             return
         what = ("a position became non-finite" if not np.isfinite(step) else
