@@ -6,7 +6,9 @@
 #   scripts/mutation.sh pose response    # only these (names below)
 #   JOBS=1 scripts/mutation.sh pose      # mutmut workers (default 2)
 #   RECHECK=1 scripts/mutation.sh pose   # after adding tests: copy tests/ into the scratch copy
-#                                        # and re-run only the last run's survivors
+#                                        # and re-run the last run's survivors, and the mutants
+#                                        # an interrupted run left unchecked
+#   RECHECK=1 SAMPLE=300 ...             # ... only a random 300 of those unchecked (an estimate)
 #
 # Needs: pip install mutmut (the dev extra). Each module runs in its own scratch copy of the
 # repository under ${MUTATION_DIR:-/tmp/neural-collider-mutation}/NAME (mutmut writes its mutants/
@@ -71,9 +73,13 @@ make_scratch_copy() {
     > "$dir/mutation_one_thread.py"
 }
 
-survivors() {  # the last run's surviving and untested mutants, one name per line
-  grep -E ": (survived|no tests)$" results.txt | sed -E 's/^ *//; s/: (survived|no tests)$//'
+with_status() {  # the mutants of results.txt with one of the statuses given, one name per line
+  local pattern
+  pattern=$(IFS="|"; echo "$*")
+  grep -E ": ($pattern)$" results.txt | sed -E "s/^ *//; s/: ($pattern)$//"
 }
+
+survivors() { with_status survived "no tests"; }
 
 summarise() {
   local name=$1
@@ -81,11 +87,12 @@ summarise() {
   count() { grep -c ": $1\$" results.txt || true; }
   local killed timeout survived untested suspicious score
   killed=$(count killed); timeout=$(count timeout); survived=$(count survived)
-  untested=$(count "no tests"); suspicious=$(count suspicious)
+  untested=$(count "no tests"); suspicious=$(count suspicious); unchecked=$(count "not checked")
   # mutmut's convention: a timeout is a kill. A mutant no test runs is a survivor.
   score=$(python3 -c "k,s=$killed+$timeout,$survived+$untested; print(f'{100*k/max(k+s,1):.1f} %')")
   echo "$name: killed $killed, timeout $timeout, survived $survived, no tests $untested," \
-       "suspicious $suspicious; score $score (killed + timeout over those + survived + no tests)"
+       "suspicious $suspicious, not checked $unchecked; score $score (killed + timeout over" \
+       "those + survived + no tests)"
   : > survivors.txt
   for m in $(survivors); do mutmut show "$m" >> survivors.txt 2>&1 || true; done
 }
@@ -97,10 +104,14 @@ run_module() {
   if [ -n "${RECHECK:-}" ]; then
     [ -f "$dir/results.txt" ] || { echo "$name: no earlier run in $dir to recheck" >&2; exit 2; }
     rm -rf "$dir/tests" && cp -r "$ROOT/tests" "$dir/tests"
+    (cd "$dir" && env -u PYTHONPATH mutmut results --all true > results.txt 2>&1) || true
     mapfile -t only < <(cd "$dir" && survivors)
+    local survivors=${#only[@]}
+    mapfile -t -O "$survivors" only < <(cd "$dir" && with_status "not checked" \
+                                        | shuf --random-source=<(yes) | head -n "${SAMPLE:--0}")
     # The test files stay those of the first run (a new selection resets every verdict):
     # a new test file in a module's list needs a fresh run.
-    echo "== $name: rechecking ${#only[@]} survivors"
+    echo "== $name: rechecking $survivors survivors and $((${#only[@]} - survivors)) unchecked mutants"
   else
     make_scratch_copy "$dir"
     write_config "$target" "$tests" > "$dir/setup.cfg"
