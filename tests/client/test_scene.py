@@ -216,14 +216,16 @@ def test_minimal_scene_takes_the_documented_defaults(tmp_path):
 
 def test_declared_values_replace_the_defaults(tmp_path):
     scene = load_scene(write(tmp_path, BASE.replace("[cloth]", "[cloth]\naxes = 'yz'\n"
-                                                    "origin_m = [1, 2.5, -3]\ndensity_kg_m2 = 0.3")
+                                                    "origin_m = [1, 2, -3]\ndensity_kg_m2 = 0.3")
                              .replace("dt_s = 1e-4", "dt_s = 0.1\nname = 'drape'\n"
                                       "frame_every_steps = 1\npreview_frames = []")
                              .replace("duration_s = 0.01", "duration_s = 0.3")))
     assert (scene.name, scene.frame_every, scene.preview_frames) == ("drape", 1, [])
     assert scene.steps == 3  # 0.3 / 0.1 = 2.9999999999999996 in floating point: rounded
     assert (scene.cloth.axes, scene.cloth.density_kg_m2) == ("yz", 0.3)
-    assert scene.cloth.origin_m.tolist() == [1.0, 2.5, -3.0]
+    # integers in the file still give float64 vectors (the simulator updates them in place)
+    assert scene.cloth.origin_m.dtype == np.float64
+    assert scene.cloth.origin_m.tolist() == [1.0, 2.0, -3.0]
 
 
 def test_each_effect_takes_its_documented_defaults(tmp_path):
@@ -281,12 +283,19 @@ KNOWN_EFFECTS = sorted(["gravity", "wind", "damping", "stretch", "shear", "bend"
     ("dt_s = 1e-4", "dt_s = true", "scene.dt_s: must be a number, got bool True"),
     ("dt_s = 1e-4", "dt_s = [1e-4]", "scene.dt_s: must be a number, got list [0.0001]"),
     ("dt_s = 1e-4", "dt_s = 0.02", "scene.dt_s: is longer than duration_s (0.02 > 0.01)"),
+    ("dt_s = 1e-4", "", "scene.dt_s: missing (required)"),
+    ("duration_s = 0.01", "duration_s = 0", "scene.duration_s: must be > 0, got 0"),
+    ("duration_s = 0.01", "duration_s = -1.0", "scene.duration_s: must be > 0, got -1.0"),
+    ("[scene]", "speed = 3\n[scene]", "unknown key(s) ['speed']; "
+     "known here: ['cloth', 'colliders', 'effects', 'scene']"),
     ("dt_s = 1e-4", "dt_s = 1e-4\nframe_every_steps = 0",
      "scene.frame_every_steps: must be >= 1, got 0"),
     ("dt_s = 1e-4", "dt_s = 1e-4\nframe_every_steps = 2.0",
      "scene.frame_every_steps: must be an integer, got float 2.0"),
     ("dt_s = 1e-4", "dt_s = 1e-4\npreview_frames = 'last'",
      "scene.preview_frames: must be a list of frame indices (negative from the end), got 'last'"),
+    ("dt_s = 1e-4", "dt_s = 1e-4\npreview_frames = ''",
+     "scene.preview_frames: must be a list of frame indices (negative from the end), got ''"),
     ("dt_s = 1e-4", "dt_s = 1e-4\npreview_frames = [0, true]",
      "scene.preview_frames: must be a list of frame indices (negative from the end), got [0, True]"),
     ("dt_s = 1e-4", "dt_s = 1e-4\npreview_frames = [0, 1.5]",
@@ -450,6 +459,7 @@ def test_each_invalid_value_is_refused_with_its_whole_message(tmp_path, old, new
 
 @pytest.mark.parametrize("old, new", [
     ("width = 10", "width = 2"), ("height = 8", "height = 4096"),
+    ("width = 10", "width = 4096"), ("height = 8", "height = 2"),
     ("dt_s = 1e-4", "dt_s = 0.01"),  # dt_s = duration_s: one step
     ("dt_s = 1e-4", "dt_s = 1e-4\nframe_every_steps = 1"),
     ("[effects.gravity]", "[effects.wind]\nvelocity_m_s = [1, 0, 0]\ndrag_1_s = 0"),

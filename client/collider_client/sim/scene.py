@@ -205,7 +205,7 @@ def load_scene(path: str | Path) -> Scene:
         model = t.string("model", required=True)
         position = t.vector("position_m", default=[0.0, 0.0, 0.0])
         rotation = t.vector("rotation_deg", default=[0.0, 0.0, 0.0])
-        motion = _motion(t.table("motion"), path, f"colliders[{i}].motion")
+        motion = _motion(t.table("motion"))
         t.done()
         colliders.append(ColliderSpec(model, position, rotation, motion))
 
@@ -224,7 +224,8 @@ def load_scene(path: str | Path) -> Scene:
     return scene
 
 
-def _motion(t: _Table | None, path: Path, where: str) -> Motion:
+def _motion(t: _Table | None) -> Motion:
+    """A collider's [colliders.motion] table (it names its own keys in errors)."""
     if t is None:
         return Motion()
     kind = t.string("kind", default="static", choices=("static", "velocity", "keyframes"))
