@@ -265,8 +265,9 @@ def test_motion_defaults_are_still(tmp_path):
     motion = keyed.colliders[0].motion
     assert motion.positions_m.tolist() == [[0.0, 0.0, 0.0], [1.0, 2.0, 3.0]]
     assert motion.rotations_deg.tolist() == [[0.0, 0.0, 0.0], [0.0, 0.0, 90.0]]
-    static = load_scene(write(tmp_path, base + "motion = { kind = 'static' }\n")).colliders[0]
-    assert static.motion.kind == "static"
+    for motion in ("{ kind = 'static' }", "{}"):  # kind defaults to static
+        static = load_scene(write(tmp_path, base + f"motion = {motion}\n")).colliders[0]
+        assert static.motion.kind == "static"
 
 
 COLLIDER = "[effects.collisions]\n[[colliders]]\nmodel = 'sphere'\n"
