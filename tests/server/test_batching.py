@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import threading
+import time
 
 import numpy as np
 import pytest
@@ -11,11 +12,14 @@ import pytest
 from collider_server.batching import (
     BatchContractError,
     BatcherClosed,
+    BatchPart,
     BatchSettings,
+    BatchStats,
     DeadlineExceeded,
     DeviceWorkers,
     PointBatcher,
     QueueFull,
+    RowBatcher,
 )
 
 
@@ -355,3 +359,403 @@ def test_a_dead_loop_fails_its_waiting_requests_instead_of_hanging(workers):
         return "drained"
 
     assert run(main()) == "drained"
+
+
+# -- the row batcher itself: exact parts, numbers and messages ------------------------------------
+
+
+class Clock:
+    """An injected clock (seconds): moves only when a test (or a batch function) moves it."""
+
+    def __init__(self, now: float = 0.0):
+        self.now = now
+
+    def __call__(self) -> float:
+        return self.now
+
+
+class RowRecorder:
+    """A batch function for RowBatcher. Request ``payload`` (an int) has rows whose answer is
+    ``row = 1000 * payload + row index``; payloads in ``fail`` are answered with
+    ``ValueError("bad request <payload>")``. Records every call's parts as (payload, start, stop)
+    and the thread it ran in. While ``gated``, each call waits for one :meth:`release`; each call
+    moves ``clock`` by the next value of ``advance`` (its compute time, seconds; 0 when none)."""
+
+    def __init__(self, gated: bool = False, clock: Clock | None = None, advance=(), fail=()):
+        self.gated = gated
+        self.clock = clock
+        self.advance = list(advance)
+        self.fail = set(fail)
+        self.calls: list[list[tuple]] = []
+        self.threads: list[str] = []
+        self._permits = threading.Semaphore(0)
+        self._called = threading.Condition()
+
+    def release(self, n: int = 1):
+        for _ in range(n):
+            self._permits.release()
+
+    def __call__(self, parts):
+        with self._called:
+            self.calls.append([(p.payload, p.start, p.stop) for p in parts])
+            self.threads.append(threading.current_thread().name)
+            self._called.notify_all()
+        if self.gated:
+            assert self._permits.acquire(timeout=10)
+        if self.clock is not None and self.advance:
+            self.clock.now += self.advance.pop(0)
+        return [ValueError(f"bad request {p.payload}") if p.payload in self.fail
+                else {"row": 1000 * p.payload + np.arange(p.start, p.stop)} for p in parts]
+
+    async def wait_calls(self, count: int):
+        """Wait (off the event loop) until ``count`` calls have started."""
+        def wait():
+            with self._called:
+                return self._called.wait_for(lambda: len(self.calls) >= count, 10)
+        assert await asyncio.get_running_loop().run_in_executor(None, wait)
+
+
+def rows_of(payload: int, size: int) -> np.ndarray:
+    return 1000 * payload + np.arange(size)
+
+
+async def settle(steps: int = 20):
+    """Let every ready task run (no real time passes)."""
+    for _ in range(steps):
+        await asyncio.sleep(0)
+
+
+def test_queue_full_reports_its_numbers_and_message(workers):
+    recorder = RowRecorder(gated=True)
+
+    async def main():
+        batcher = RowBatcher(recorder, BatchSettings(max_queue_points=100), workers.executor("cpu"))
+        busy = asyncio.create_task(batcher.submit_rows(0, 10))
+        await recorder.wait_calls(1)
+        waiting = [asyncio.create_task(batcher.submit_rows(1, 80)),
+                   asyncio.create_task(batcher.submit_rows(2, 20))]  # exactly fills the queue
+        await settle()
+        assert batcher.queued_points == 100 and batcher.queued_requests == 2
+        assert batcher.in_flight_points == 10
+        with pytest.raises(QueueFull) as info:
+            await batcher.submit_rows(3, 1)
+        recorder.release(2)
+        results = await asyncio.gather(busy, *waiting)
+        await batcher.drain()
+        return info.value, results
+
+    error, results = run(main())
+    assert str(error) == "queue full: 100 points queued, 1 more would exceed max_queue_points=100"
+    assert (error.points, error.queued_points, error.max_queue_points) == (1, 100, 100)
+    assert error.retry_after_s == 1  # no batch has finished yet: no throughput to estimate from
+    for payload, size, answer in zip((0, 1, 2), (10, 80, 20), results):
+        np.testing.assert_array_equal(answer["row"], rows_of(payload, size))
+    assert recorder.calls == [[(0, 0, 10)], [(1, 0, 80), (2, 0, 20)]]
+
+
+@pytest.mark.parametrize("history, in_flight, queued, points, max_queue_points, expected_s", [
+    # (rows, seconds) per finished batch; throughput is an average 0.8 old + 0.2 new:
+    # 100 / 2 s = 50/s, then 100 / 0.25 s = 400/s -> 0.8 * 50 + 0.2 * 400 = 120/s;
+    # backlog 100 in flight + 100 queued + 50 asked = 250 points -> ceil(250 / 120) = 3 s
+    ([(100, 2.0), (100, 0.25)], 100, 100, 50, 100, 3),
+    ([(100, 0.25)], 1, 99, 2, 100, 1),  # 102 points at 400/s: 0.26 s, rounded up to 1 s
+    ([(1, 2.0)], 1, 9, 2, 10, 24),  # 0.5 point/s (below 1/s): 12 points take 24 s
+    ([(1, 10.0)], 1, 9, 2, 10, 60),  # 0.1 point/s: 120 s, capped at 60 s
+])
+def test_queue_full_retry_after_comes_from_the_measured_throughput(
+        workers, history, in_flight, queued, points, max_queue_points, expected_s):
+    clock = Clock()
+    recorder = RowRecorder(gated=True, clock=clock, advance=[s for _, s in history])
+
+    async def main():
+        settings = BatchSettings(max_batch_points=1000, max_queue_points=max_queue_points)
+        batcher = RowBatcher(recorder, settings, workers.executor("cpu"), clock=clock)
+        for payload, (rows, _) in enumerate(history):
+            recorder.release()
+            await batcher.submit_rows(payload, rows)
+        busy = asyncio.create_task(batcher.submit_rows(10, in_flight))
+        await recorder.wait_calls(len(history) + 1)
+        waiting = asyncio.create_task(batcher.submit_rows(11, queued))
+        await settle()
+        assert (batcher.in_flight_points, batcher.queued_points) == (in_flight, queued)
+        with pytest.raises(QueueFull) as info:
+            await batcher.submit_rows(12, points)
+        recorder.release(2)
+        await asyncio.gather(busy, waiting)
+        await batcher.drain()
+        return info.value
+
+    error = run(main())
+    assert error.retry_after_s == expected_s
+    assert (error.points, error.queued_points, error.max_queue_points) == (
+        points, queued, max_queue_points)
+
+
+def test_batches_take_queued_rows_in_order_and_never_exceed_max_batch_points(workers):
+    recorder = RowRecorder(gated=True)
+    sizes = {1: 4, 2: 7, 3: 3, 4: 9}
+
+    async def main():
+        batcher = RowBatcher(recorder, BatchSettings(max_batch_points=10), workers.executor("cpu"))
+        busy = asyncio.create_task(batcher.submit_rows(0, 1))
+        await recorder.wait_calls(1)
+        tasks = [asyncio.create_task(batcher.submit_rows(p, n)) for p, n in sizes.items()]
+        await settle()
+        assert batcher.queued_points == 23 and batcher.queued_requests == 4
+        recorder.release(4)
+        await busy
+        return await asyncio.gather(*tasks)
+
+    results = run(main())
+    assert recorder.calls == [
+        [(0, 0, 1)],
+        [(1, 0, 4), (2, 0, 6)],
+        [(2, 6, 7), (3, 0, 3), (4, 0, 6)],
+        [(4, 6, 9)],
+    ]
+    for (payload, size), answer in zip(sizes.items(), results):
+        assert list(answer) == ["row"]
+        np.testing.assert_array_equal(answer["row"], rows_of(payload, size))
+
+
+def test_a_request_split_into_single_rows_is_reassembled(workers):
+    recorder = RowRecorder()
+
+    async def main():
+        batcher = RowBatcher(recorder, BatchSettings(max_batch_points=1), workers.executor("cpu"))
+        answer = await batcher.submit_rows(3, 2)
+        await batcher.drain()
+        return answer
+
+    np.testing.assert_array_equal(run(main())["row"], [3000, 3001])
+    assert recorder.calls == [[(3, 0, 1)], [(3, 1, 2)]]
+
+
+def test_a_part_answered_with_an_exception_fails_only_its_own_request(workers):
+    recorder = RowRecorder(gated=True, fail={2})
+
+    async def main():
+        batcher = RowBatcher(recorder, BatchSettings(), workers.executor("cpu"))
+        busy = asyncio.create_task(batcher.submit_rows(0, 1))
+        await recorder.wait_calls(1)
+        tasks = [asyncio.create_task(batcher.submit_rows(p, 3)) for p in (1, 2, 3)]
+        await settle()
+        recorder.release(2)
+        await busy
+        return await asyncio.gather(*tasks, return_exceptions=True)
+
+    ok1, bad, ok3 = run(main())
+    assert recorder.calls[1] == [(1, 0, 3), (2, 0, 3), (3, 0, 3)]  # one batch
+    assert isinstance(bad, ValueError) and str(bad) == "bad request 2"
+    np.testing.assert_array_equal(ok1["row"], rows_of(1, 3))
+    np.testing.assert_array_equal(ok3["row"], rows_of(3, 3))
+
+
+def test_a_split_request_that_fails_leaves_the_queue_and_the_batcher_keeps_serving(workers):
+    recorder = RowRecorder(fail={5})
+
+    async def main():
+        batcher = RowBatcher(recorder, BatchSettings(max_batch_points=10), workers.executor("cpu"))
+        with pytest.raises(ValueError, match="bad request 5"):
+            await batcher.submit_rows(5, 25)
+        assert batcher.queued_points == 0 and batcher.queued_requests == 0
+        answer = await batcher.submit_rows(6, 3)
+        await batcher.drain()
+        return answer
+
+    np.testing.assert_array_equal(run(main())["row"], rows_of(6, 3))
+    # The failure of rows [0, 10) reaches the caller while rows [10, 20) are computed; rows
+    # [20, 25) never are. The second failed piece is discarded without harming the loop.
+    assert recorder.calls == [[(5, 0, 10)], [(5, 10, 20)], [(6, 0, 3)]]
+
+
+def test_a_cancelled_split_request_gives_back_its_untaken_rows(workers):
+    recorder = RowRecorder(gated=True)
+
+    async def main():
+        batcher = RowBatcher(recorder, BatchSettings(max_batch_points=10), workers.executor("cpu"))
+        gone = asyncio.create_task(batcher.submit_rows(1, 25))
+        await recorder.wait_calls(1)  # rows [0, 10) are being computed
+        assert (batcher.in_flight_points, batcher.queued_points) == (10, 15)
+        gone.cancel()
+        await settle()
+        assert batcher.queued_points == 0 and batcher.queued_requests == 0
+        stays = asyncio.create_task(batcher.submit_rows(2, 3))
+        recorder.release(2)
+        answer = await stays
+        await batcher.drain()
+        return gone, answer
+
+    gone, answer = run(main())
+    assert gone.cancelled()
+    np.testing.assert_array_equal(answer["row"], rows_of(2, 3))
+    assert recorder.calls == [[(1, 0, 10)], [(2, 0, 3)]]
+
+
+def test_a_cancelled_request_in_flight_leaves_the_queue_counts_alone(workers):
+    recorder = RowRecorder(gated=True)
+
+    async def main():
+        batcher = RowBatcher(recorder, BatchSettings(), workers.executor("cpu"))
+        gone = asyncio.create_task(batcher.submit_rows(1, 5))
+        await recorder.wait_calls(1)
+        stays = asyncio.create_task(batcher.submit_rows(2, 4))
+        await settle()
+        gone.cancel()
+        await settle()
+        assert (batcher.in_flight_points, batcher.queued_points) == (5, 4)
+        recorder.release(2)
+        answer = await stays
+        await batcher.drain()
+        return answer
+
+    np.testing.assert_array_equal(run(main())["row"], rows_of(2, 4))
+    assert recorder.calls == [[(1, 0, 5)], [(2, 0, 4)]]
+
+
+def test_deadline_exceeded_says_how_much_was_computed_and_the_rows_are_never_computed(workers):
+    recorder = RowRecorder(gated=True)
+
+    async def main():
+        batcher = RowBatcher(recorder, BatchSettings(), workers.executor("cpu"))
+        busy = asyncio.create_task(batcher.submit_rows(0, 10))
+        await recorder.wait_calls(1)
+        deadline = time.monotonic() + 0.02
+        with pytest.raises(DeadlineExceeded) as info:
+            await batcher.submit_rows(1, 40, deadline=deadline)
+        assert time.monotonic() >= deadline
+        assert batcher.queued_points == 0 and batcher.queued_requests == 0
+        recorder.release()
+        await busy
+        await batcher.drain()
+        return info.value
+
+    assert str(run(main())) == "the deadline passed with 0 of 40 points computed"
+    assert recorder.calls == [[(0, 0, 10)]]
+
+
+def test_a_deadline_at_or_before_now_is_refused_before_queueing(workers):
+    clock = Clock(5.0)
+    recorder = RowRecorder()
+
+    async def main():
+        batcher = RowBatcher(recorder, BatchSettings(), workers.executor("cpu"), clock=clock)
+        for deadline in (5.0, 4.0):
+            with pytest.raises(DeadlineExceeded) as info:
+                await batcher.submit_rows(1, 3, deadline=deadline)
+            assert str(info.value) == "the deadline passed before the request was queued"
+            assert batcher.queued_points == 0
+        answer = await batcher.submit_rows(2, 3, deadline=5.5)  # still ahead: answered
+        await batcher.drain()
+        return answer
+
+    np.testing.assert_array_equal(run(main())["row"], rows_of(2, 3))
+    assert recorder.calls == [[(2, 0, 3)]]
+
+
+def test_batch_stats_report_points_requests_queue_waits_and_compute_time(workers):
+    clock = Clock()
+    recorder = RowRecorder(gated=True, clock=clock, advance=[2.0, 0.5])
+    stats = []
+
+    async def main():
+        batcher = RowBatcher(recorder, BatchSettings(), workers.executor("cpu"), clock=clock,
+                             on_batch=stats.append)
+        busy = asyncio.create_task(batcher.submit_rows(0, 3))  # queued at 0 s, starts at 0 s
+        await recorder.wait_calls(1)
+        clock.now = 1.0
+        first = asyncio.create_task(batcher.submit_rows(1, 4))  # queued at 1 s
+        await settle()
+        clock.now = 3.0
+        second = asyncio.create_task(batcher.submit_rows(2, 5))  # queued at 3 s
+        await settle()
+        clock.now = 5.0
+        recorder.release(2)  # the first batch ends at 7 s, the second starts then, ends at 7.5 s
+        await asyncio.gather(busy, first, second)
+        await batcher.drain()
+
+    run(main())
+    assert stats == [
+        BatchStats(points=3, requests=1, queue_wait_s=(0.0,), compute_s=7.0),
+        BatchStats(points=9, requests=2, queue_wait_s=(6.0, 4.0), compute_s=0.5),
+    ]
+
+
+def test_a_failing_on_batch_hook_does_not_stop_the_batcher(workers):
+    recorder = RowRecorder()
+    seen = []
+
+    def hook(stats):
+        seen.append(stats.points)
+        raise RuntimeError("metrics are down")
+
+    async def main():
+        batcher = RowBatcher(recorder, BatchSettings(), workers.executor("cpu"), on_batch=hook)
+        answers = [await batcher.submit_rows(p, p) for p in (1, 2)]
+        await batcher.drain()
+        return answers
+
+    answers = run(main())
+    assert seen == [1, 2]
+    for payload, answer in zip((1, 2), answers):
+        np.testing.assert_array_equal(answer["row"], rows_of(payload, payload))
+
+
+def test_the_batch_function_runs_in_the_devices_worker_thread(workers):
+    recorder = RowRecorder()
+
+    async def main():
+        batcher = RowBatcher(recorder, BatchSettings(), workers.executor("cuda:1"))
+        await batcher.submit_rows(1, 2)
+        await batcher.drain()
+
+    run(main())
+    assert recorder.threads[0].startswith("collider-cuda:1")
+
+
+def test_an_empty_request_is_answered_on_the_event_loop_without_queueing(workers):
+    recorder = RowRecorder(fail={9})
+
+    async def main():
+        batcher = RowBatcher(recorder, BatchSettings(max_queue_points=1), workers.executor("cpu"))
+        answer = await batcher.submit_rows(4, 0)
+        assert batcher.queued_points == 0 and batcher.in_flight_points == 0
+        with pytest.raises(ValueError, match="bad request 9"):
+            await batcher.submit_rows(9, 0)
+        await batcher.drain()
+        return answer
+
+    answer = run(main())
+    assert answer["row"].shape == (0,)
+    assert recorder.calls == [[(4, 0, 0)], [(9, 0, 0)]]
+    assert recorder.threads == [threading.current_thread().name] * 2
+
+
+@pytest.mark.parametrize("rows, answers, message", [
+    (3, [], "the batch function returned 0 answers for 1 parts"),
+    (3, {"row": np.zeros(3)}, "the batch function returned dict answers for 1 parts"),
+    (3, [{"row": np.zeros(4)}], "the batch function returned row of shape (4,) for a part of 3 "
+                                "rows"),
+    (3, [{"row": [0, 0, 0]}], "the batch function returned row of shape list for a part of 3 rows"),
+    (0, [{"row": np.zeros(0)}, {}], "the batch function returned 2 answers for 1 parts"),
+    (0, [{"row": np.zeros(1)}], "the batch function returned row of shape (1,) for a part of 0 "
+                                "rows"),
+])
+def test_batch_contract_violations_are_typed_errors_saying_what_was_wrong(workers, rows, answers,
+                                                                          message):
+    def batch(parts):  # request 1 gets the wrong answers, the others the right ones
+        if parts[0].payload == 1:
+            return answers
+        return tuple({"row": np.full(p.rows, p.payload)} for p in parts)  # a tuple is fine
+
+    async def main():
+        batcher = RowBatcher(batch, BatchSettings(), workers.executor("cpu"))
+        with pytest.raises(BatchContractError) as info:
+            await batcher.submit_rows(1, rows)
+        after = await batcher.submit_rows(2, 2)
+        await batcher.drain()
+        return info.value, after
+
+    error, after = run(main())
+    assert str(error) == message
+    np.testing.assert_array_equal(after["row"], [2, 2])
