@@ -152,10 +152,9 @@ class _Pending:
     size: int
     enqueued_at: float
     future: asyncio.Future
-    pieces: list = field(default_factory=list)  # (start, answer) of a split request
+    pieces: list = field(default_factory=list)  # answers of a split request, in row order
     taken: int = 0  # rows handed to batches so far
     done: int = 0  # rows answered so far
-    dropped: bool = False
 
 
 class _Part(NamedTuple):
@@ -284,7 +283,8 @@ class RowBatcher:
             raise
 
     def _drop(self, request: _Pending) -> None:
-        request.dropped = True
+        """The caller left (deadline, cancellation, or its request already failed): its future
+        is done, so answers still in flight are discarded (see :func:`_deliver`)."""
         try:
             self._queue.remove(request)
         except ValueError:
@@ -414,7 +414,7 @@ class RowBatcher:
 def _deliver(part: _Part, answer) -> None:
     """Hand one part's answer to its request (joining the pieces of a split request)."""
     request = part.request
-    if request.dropped or request.future.done():
+    if request.future.done():  # the caller left or the request already failed
         return
     if isinstance(answer, BaseException):
         request.future.set_exception(answer)
@@ -422,11 +422,13 @@ def _deliver(part: _Part, answer) -> None:
     if part.start == 0 and part.stop == request.size:  # the common case: the whole request
         request.future.set_result(answer)
         return
-    request.pieces.append((part.start, answer))
+    # Pieces arrive in row order: a request is taken from the queue head front to back, and
+    # batches run one after another.
+    request.pieces.append(answer)
     request.done += part.stop - part.start
     if request.done == request.size:
-        pieces = [a for _, a in sorted(request.pieces, key=lambda piece: piece[0])]
-        request.future.set_result({k: np.concatenate([a[k] for a in pieces]) for k in pieces[0]})
+        request.future.set_result(
+            {k: np.concatenate([a[k] for a in request.pieces]) for k in answer})
 
 
 def _check_answers(answers, rows: list[int]) -> None:
