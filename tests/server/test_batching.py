@@ -759,3 +759,231 @@ def test_batch_contract_violations_are_typed_errors_saying_what_was_wrong(worker
     error, after = run(main())
     assert str(error) == message
     np.testing.assert_array_equal(after["row"], [2, 2])
+
+
+def test_a_batch_waits_max_wait_ms_from_its_oldest_request_on_the_batchers_clock(workers):
+    clock = Clock()
+    recorder = RowRecorder()
+
+    async def main():
+        batcher = RowBatcher(recorder, BatchSettings(max_wait_ms=5), workers.executor("cpu"),
+                             clock=clock)
+        first = asyncio.create_task(batcher.submit_rows(1, 3))  # queued at 0 s
+        await settle()
+        clock.now = 0.004
+        second = asyncio.create_task(batcher.submit_rows(2, 4))  # queued at 0.004 s
+        clock.now = 0.0049
+        # However long the loop waits in real time, the batch is 0.1 ms short of its 5 ms on the
+        # batcher's clock: nothing may start. (The sleep only gives a wrong loop time to start.)
+        await asyncio.sleep(0.02)
+        assert recorder.calls == [] and batcher.queued_points == 7
+        clock.now = 0.005  # 5 ms after the oldest request (only 1 ms after the newest)
+        answers = await asyncio.gather(first, second)
+        await batcher.drain()
+        return answers
+
+    answers = run(main())
+    assert recorder.calls == [[(1, 0, 3), (2, 0, 4)]]
+    np.testing.assert_array_equal(answers[1]["row"], rows_of(2, 4))
+
+
+def test_a_request_cancelled_while_its_batch_waits_is_never_computed(workers):
+    recorder = RowRecorder()
+    stats = []
+
+    async def main():
+        batcher = RowBatcher(recorder, BatchSettings(max_wait_ms=60_000), workers.executor("cpu"),
+                             clock=Clock(), on_batch=stats.append)
+        gone = asyncio.create_task(batcher.submit_rows(1, 3))
+        await settle()
+        gone.cancel()
+        await settle()
+        assert batcher.queued_points == 0
+        await batcher.drain()  # wakes the waiting loop, which finds nothing to compute
+
+    run(main())
+    assert recorder.calls == [] and stats == []
+
+
+def test_drain_dispatches_a_waiting_batch_at_once(workers):
+    recorder = RowRecorder()
+
+    async def main():
+        batcher = RowBatcher(recorder, BatchSettings(max_wait_ms=60_000), workers.executor("cpu"),
+                             clock=Clock())  # the batch would wait a minute on a frozen clock
+        waiting = asyncio.create_task(batcher.submit_rows(1, 3))
+        await settle()
+        assert recorder.calls == []
+        await batcher.drain()
+        assert batcher.closed
+        return await waiting
+
+    np.testing.assert_array_equal(run(main())["row"], rows_of(1, 3))
+    assert recorder.calls == [[(1, 0, 3)]]
+
+
+def test_a_closed_batcher_refuses_requests_with_a_message(workers):
+    recorder = RowRecorder()
+
+    async def main():
+        batcher = RowBatcher(recorder, BatchSettings(), workers.executor("cpu"))
+        assert not batcher.closed
+        batcher.close()
+        assert batcher.closed
+        with pytest.raises(BatcherClosed) as info:
+            await batcher.submit_rows(1, 3)
+        await batcher.drain()
+        return info.value
+
+    assert str(run(main())) == "the model is shutting down or being unloaded"
+    assert recorder.calls == []
+
+
+def test_a_dead_loop_says_so_to_every_waiting_request_and_empties_the_queue(workers, caplog):
+    recorder = RowRecorder(gated=True)
+
+    async def main():
+        batcher = RowBatcher(recorder, BatchSettings(), workers.executor("cpu"))
+        busy = asyncio.create_task(batcher.submit_rows(1, 3))
+        await recorder.wait_calls(1)
+        queued = [asyncio.create_task(batcher.submit_rows(p, 2)) for p in (2, 3)]
+        await settle()
+        batcher._task.cancel()  # stands for a bug that kills the loop
+        results = await asyncio.gather(busy, *queued, return_exceptions=True)
+        state = (batcher.closed, batcher.queued_points, batcher.queued_requests)
+        recorder.release()
+        await batcher.drain()
+        return results, state
+
+    results, state = run(main())
+    assert [type(r) for r in results] == [BatcherClosed] * 3
+    assert [str(r) for r in results] == ["the batching loop ended (cancelled)"] * 3
+    assert state == (True, 0, 0)
+    assert "batching loop ended: cancelled" in caplog.text
+    assert recorder.calls == [[(1, 0, 3)]]
+
+
+def test_device_workers_shutdown_waits_for_the_running_batch():
+    workers = DeviceWorkers()
+    started, release, finished = threading.Event(), threading.Event(), []
+
+    def batch():
+        started.set()
+        assert release.wait(10)
+        time.sleep(0.05)  # the rest of the batch's work, still running when shutdown is called
+        finished.append("batch")
+
+    workers.executor("cpu").submit(batch)
+    assert started.wait(10)
+    release.set()
+    workers.shutdown()
+    assert finished == ["batch"]
+    # A device used after shutdown gets a fresh worker.
+    assert workers.executor("cpu").submit(lambda: 42).result(10) == 42
+    workers.shutdown()
+
+
+def test_device_workers_one_thread_per_device_each_initialised():
+    initialised = []
+    workers = DeviceWorkers(initializer=lambda: initialised.append(
+        threading.current_thread().name))
+    try:
+        cpu, gpu = workers.executor("cpu"), workers.executor("cuda:0")
+        assert workers.executor("cpu") is cpu and gpu is not cpu
+        names = {cpu.submit(lambda: threading.current_thread().name).result(10) for _ in range(3)}
+        gpu_name = gpu.submit(lambda: threading.current_thread().name).result(10)
+    finally:
+        workers.shutdown()
+    assert len(names) == 1
+    cpu_name = names.pop()
+    assert cpu_name.startswith("collider-cpu") and gpu_name.startswith("collider-cuda:0")
+    assert sorted(initialised) == sorted([cpu_name, gpu_name])  # once per thread
+
+
+def test_batch_part_rows():
+    assert BatchPart("payload", 3, 7).rows == 4 and BatchPart(None, 0, 0).rows == 0
+
+
+@pytest.mark.parametrize("kwargs, message", [
+    ({"max_batch_points": True}, "max_batch_points must be a positive integer, got True"),
+    ({"max_batch_points": 1.5}, "max_batch_points must be a positive integer, got 1.5"),
+    ({"max_queue_points": 0}, "max_queue_points must be a positive integer, got 0"),
+    ({"max_wait_ms": "5"}, "max_wait_ms must be a finite number >= 0, got '5'"),
+    ({"max_wait_ms": float("inf")}, "max_wait_ms must be a finite number >= 0, got inf"),
+    ({"max_wait_ms": -0.5}, "max_wait_ms must be a finite number >= 0, got -0.5"),
+])
+def test_settings_refusals_name_the_setting_and_value(kwargs, message):
+    with pytest.raises(ValueError) as info:
+        BatchSettings(**kwargs)
+    assert str(info.value) == message
+
+
+def test_settings_accept_their_smallest_values():
+    settings = BatchSettings(max_batch_points=1, max_queue_points=1, max_wait_ms=0)
+    assert (settings.max_batch_points, settings.max_queue_points, settings.max_wait_ms) == (1, 1, 0)
+    assert BatchSettings(max_wait_ms=2.5).max_wait_ms == 2.5
+
+
+@pytest.mark.parametrize("output, want_gradient, message", [
+    (lambda n: ([0.0] * n, None), False, "compute returned distance of shape list for 3 points"),
+    (lambda n: (np.zeros(n + 1), None), False, "compute returned distance of shape (4,) for 3 "
+                                                "points"),
+    (lambda n: (np.zeros((n, 1)), None), False, "compute returned distance of shape (3, 1) for 3 "
+                                                 "points"),
+    (lambda n: (np.zeros(n), None), True, "compute returned normal of shape NoneType for 3 points"),
+    (lambda n: (np.zeros(n), np.zeros((n, 2))), True, "compute returned normal of shape (3, 2) "
+                                                       "for 3 points"),
+])
+def test_compute_contract_violations_say_what_was_wrong(workers, output, want_gradient, message):
+    async def main():
+        batcher = PointBatcher(lambda local, g: output(len(local)), BatchSettings(),
+                               workers.executor("cpu"))
+        with pytest.raises(BatchContractError) as info:
+            await batcher.submit(points(3, 0), want_gradient)
+        await batcher.drain()
+        return info.value
+
+    assert str(run(main())) == message
+
+
+def test_point_batcher_asks_for_normals_only_when_a_request_wants_them(workers):
+    calls = []
+
+    def compute(local, want_gradient):
+        calls.append((len(local), want_gradient))
+        return local[:, 0].copy(), (2.0 * local if want_gradient else None)
+
+    async def main():
+        batcher = PointBatcher(compute, BatchSettings(max_batch_points=5), workers.executor("cpu"))
+        plain = await batcher.submit(points(5, 1), False)
+        empty = await batcher.submit(np.empty((0, 3)), False)
+        mixed = await asyncio.gather(batcher.submit(points(2, 2), False),
+                                     batcher.submit(points(3, 3), True))
+        await batcher.drain()
+        return plain, empty, mixed
+
+    plain, empty, (no_normal, with_normal) = run(main())
+    assert calls == [(5, False), (5, True)]  # the empty request computes nothing
+    assert plain[1] is None and no_normal[1] is None
+    assert empty[0].shape == (0,) and empty[1] is None
+    np.testing.assert_array_equal(no_normal[0], points(2, 2)[:, 0])
+    np.testing.assert_array_equal(with_normal[0], points(3, 3)[:, 0])
+    np.testing.assert_array_equal(with_normal[1], 2.0 * points(3, 3))
+
+
+def test_a_lone_request_is_computed_on_the_callers_array_without_a_copy(workers):
+    seen = []
+
+    def compute(local, want_gradient):
+        seen.append(local)
+        return local[:, 0].copy(), None
+
+    local = points(4, 0)
+
+    async def main():
+        batcher = PointBatcher(compute, BatchSettings(), workers.executor("cpu"))
+        await batcher.submit(local, False)
+        await batcher.drain()
+
+    run(main())
+    assert np.shares_memory(seen[0], local)
