@@ -987,3 +987,29 @@ def test_a_lone_request_is_computed_on_the_callers_array_without_a_copy(workers)
 
     run(main())
     assert np.shares_memory(seen[0], local)
+
+
+def test_a_wrong_answer_after_a_failed_part_still_fails_the_whole_batch(workers):
+    gate = threading.Event()
+
+    def batch(parts):
+        if parts[0].payload == 0:  # the first request holds the worker while the others queue
+            assert gate.wait(10)
+            return [{"row": np.zeros(p.rows)} for p in parts]
+        return [ValueError("bad request"), {"row": np.zeros(parts[1].rows + 1)}]
+
+    async def main():
+        batcher = RowBatcher(batch, BatchSettings(), workers.executor("cpu"))
+        busy = asyncio.create_task(batcher.submit_rows(0, 1))
+        await settle()
+        tasks = [asyncio.create_task(batcher.submit_rows(p, 2)) for p in (1, 2)]
+        await settle()
+        gate.set()
+        await busy
+        results = await asyncio.gather(*tasks, return_exceptions=True)
+        await batcher.drain()
+        return results
+
+    for error in run(main()):
+        assert isinstance(error, BatchContractError)
+        assert str(error) == "the batch function returned row of shape (3,) for a part of 2 rows"
