@@ -623,7 +623,6 @@ def test_deadline_exceeded_says_how_much_was_computed_and_the_rows_are_never_com
         deadline = time.monotonic() + 0.02
         with pytest.raises(DeadlineExceeded) as info:
             await batcher.submit_rows(1, 40, deadline=deadline)
-        assert time.monotonic() >= deadline
         assert batcher.queued_points == 0 and batcher.queued_requests == 0
         recorder.release()
         await busy
