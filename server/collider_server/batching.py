@@ -480,7 +480,7 @@ class PointBatcher(RowBatcher):
         want_gradient = any(p.payload[1] for p in parts)
         n = len(local)
         if n == 0:
-            distance, normal = np.empty(0), (np.empty((0, 3)) if want_gradient else None)
+            distance, normal = np.empty(0), np.empty((0, 3))  # (only handed to who wants it)
         else:
             distance, normal = self._compute(local, want_gradient)
         _check_output(distance, normal, n, want_gradient)

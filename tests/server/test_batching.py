@@ -680,7 +680,7 @@ def test_batch_stats_report_points_requests_queue_waits_and_compute_time(workers
     ]
 
 
-def test_a_failing_on_batch_hook_does_not_stop_the_batcher(workers):
+def test_a_failing_on_batch_hook_does_not_stop_the_batcher(workers, caplog):
     recorder = RowRecorder()
     seen = []
 
@@ -696,6 +696,7 @@ def test_a_failing_on_batch_hook_does_not_stop_the_batcher(workers):
 
     answers = run(main())
     assert seen == [1, 2]
+    assert caplog.text.count("on_batch hook failed") == 2 and "metrics are down" in caplog.text
     for payload, answer in zip((1, 2), answers):
         np.testing.assert_array_equal(answer["row"], rows_of(payload, payload))
 
@@ -826,7 +827,7 @@ def test_a_closed_batcher_refuses_requests_with_a_message(workers):
 
     async def main():
         batcher = RowBatcher(recorder, BatchSettings(), workers.executor("cpu"))
-        assert not batcher.closed
+        assert batcher.closed is False
         batcher.close()
         assert batcher.closed
         with pytest.raises(BatcherClosed) as info:
@@ -880,6 +881,20 @@ def test_device_workers_shutdown_waits_for_the_running_batch():
     # A device used after shutdown gets a fresh worker.
     assert workers.executor("cpu").submit(lambda: 42).result(10) == 42
     workers.shutdown()
+
+
+def test_device_workers_run_one_batch_at_a_time_per_device():
+    workers = DeviceWorkers()
+    second_started = threading.Event()
+    try:
+        executor = workers.executor("cpu")
+        # The first batch waits a little for the second to start: it never can, on one thread.
+        first = executor.submit(second_started.wait, 0.1)
+        second = executor.submit(second_started.set)
+        assert first.result(10) is False
+        second.result(10)
+    finally:
+        workers.shutdown()
 
 
 def test_device_workers_one_thread_per_device_each_initialised():
