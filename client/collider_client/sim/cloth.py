@@ -26,7 +26,7 @@ def grid_positions(width: int, height: int, spacing_m: float, origin_m: np.ndarr
     x = np.zeros((height, width, 3))
     x[:, :, first] = np.arange(width)[None, :] * spacing_m
     x[:, :, second] = np.arange(height)[:, None] * spacing_m
-    return x + np.asarray(origin_m, dtype=np.float64)
+    return x + origin_m  # (3,), broadcast over the grid
 
 
 def quad_faces(width: int, height: int) -> np.ndarray:
@@ -39,12 +39,9 @@ def quad_faces(width: int, height: int) -> np.ndarray:
 def _pair(x: np.ndarray, dr: int, dc: int):
     """Slices (A, B) of the (H, W, ...) grid so that B[i] is A[i]'s neighbour at (+dr, +dc)."""
     h, w = x.shape[:2]
-    rows_a, rows_b = slice(0, h - dr), slice(dr, h)
     if dc >= 0:
-        cols_a, cols_b = slice(0, w - dc), slice(dc, w)
-    else:
-        cols_a, cols_b = slice(-dc, w), slice(0, w + dc)
-    return (rows_a, cols_a), (rows_b, cols_b)
+        return np.s_[:h - dr, :w - dc], np.s_[dr:, dc:]
+    return np.s_[:h - dr, -dc:], np.s_[dr:, :w + dc]
 
 
 class SpringFamily:
@@ -75,7 +72,6 @@ class SpringFamily:
         """Elastic energy (J) ``sum k (|d| - L)^2 / 2`` of this family at positions ``x``."""
         total = 0.0
         for (a, b), rest in zip(self.slices, self.rest):
-            d = x[b] - x[a]
-            length = np.sqrt(np.einsum("...i,...i->...", d, d))
+            length = np.linalg.norm(x[b] - x[a], axis=-1)
             total += 0.5 * self.k * float(np.sum((length - rest) ** 2))
         return total

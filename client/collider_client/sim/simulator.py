@@ -111,7 +111,6 @@ class Simulator:
         self.mass_kg = c.density_kg_m2 * c.spacing_m ** 2
         self.timings = Timings()
         self.effects: list[str] = []
-        self._forces: list = []
         self._accel = np.zeros(3)
         fx = scene.effects
         if "gravity" in fx:
@@ -202,7 +201,7 @@ class Simulator:
                 accel += self.wind["drag_1_s"] * (self.wind["velocity_m_s"] - velocity_dt / dt)
         else:
             accel = self._accel
-        keep = 1.0 - self.damping * dt if self.damping else 1.0
+        keep = 1.0 - self.damping * dt  # 1 without damping
         x_new = x + keep * velocity_dt + accel * (dt * dt)
         if self.pinned is not None:
             x_new[self.pinned] = self.rest[self.pinned]
