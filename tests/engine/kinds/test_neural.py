@@ -123,3 +123,105 @@ def test_loading_leaves_the_callers_random_stream_alone(network_collider):
 def test_parameters_are_frozen_for_queries(network_collider):
     assert not any(p.requires_grad for p in network_collider.network.parameters())
     assert not network_collider.network.training
+
+
+def test_presets_are_the_documented_ones():
+    """docs/neural.md's preset table: shapes and parameter counts; ``grid`` is the default."""
+    from collider_server.kinds.neural import DEFAULT_PRESET, GridArchitecture
+
+    assert DEFAULT_PRESET == "grid"
+    assert PRESETS["paper-bunny"] == Architecture(128, 3, 256, 3.0)
+    assert PRESETS["paper-dragon"] == Architecture(128, 8, 256, 3.0)
+    assert PRESETS["fast"] == Architecture(64, 3, 128, 3.0)
+    assert PRESETS["grid"] == GridArchitecture(levels=8, features=2, base_resolution=16, max_resolution=256,
+                                               table_log2=16, hidden_layers=2, hidden_width=32, smooth=True,
+                                               table_dtype="float16", surface_rows=False)
+    counts = {"grid": 791_381, "paper-bunny": 198_017, "paper-dragon": 526_977, "fast": 49_857}
+    assert {name: arch.parameter_count() for name, arch in PRESETS.items()} == counts
+
+
+@pytest.mark.parametrize("bad, message", [
+    (dict(fourier_features=0), "architecture fourier_features must be a positive integer, got 0"),
+    (dict(hidden_layers=2.5), "architecture hidden_layers must be a positive integer, got 2.5"),
+    (dict(hidden_width="8"), "architecture hidden_width must be a positive integer, got '8'"),
+    (dict(fourier_scale=-1.0), "fourier_scale must be > 0, got -1.0"),
+    (dict(fourier_scale=0.0), "fourier_scale must be > 0, got 0.0"),
+    (dict(fourier_scale=float("nan")), "fourier_scale must be > 0, got nan"),
+])
+def test_architecture_validation_messages(bad, message):
+    with pytest.raises(ValueError) as error:
+        Architecture(**bad)
+    assert str(error.value) == message
+
+
+def test_smallest_valid_architecture_is_accepted():
+    """One of everything and any positive scale: a valid (if useless) network."""
+    arch = Architecture(fourier_features=1, hidden_layers=1, hidden_width=1, fourier_scale=0.5)
+    network = build_network(arch, [0.0, 0.0, 0.0], 1.0)
+    # 3 x 1 Fourier matrix, 2 -> 1 ReLU layer (2 + 1), 1 -> 1 output (1 + 1).
+    assert arch.parameter_count() == 3 + 3 + 2 == sum(p.numel() for p in network.parameters())
+
+
+def test_fourier_matrix_is_drawn_with_the_given_scale():
+    """B ~ N(0, fourier_scale^2) per entry (the paper's initialisation, normalised coordinates)."""
+    import torch
+
+    torch.manual_seed(0)
+    for scale in (0.5, 3.0):
+        network = build_network(Architecture(2000, 1, 4, scale), [0.0, 0.0, 0.0], 1.0)
+        assert abs(float(network.fourier.std()) / scale - 1) < 0.05
+        assert abs(float(network.fourier.mean())) < 0.05 * scale
+
+
+def numpy_fourier_network(network, points):
+    """The documented network, evaluated independently in float64: u = (x - centre) / radius,
+    [cos(u B), sin(u B)], ReLU layers, linear output, times radius."""
+    state = {k: v.detach().double().numpy() for k, v in network.state_dict().items()}
+    u = (points - state["centre"]) / state["radius"]
+    phase = u @ state["fourier"]
+    h = np.concatenate([np.cos(phase), np.sin(phase)], axis=1)
+    layers = sorted({int(k.split(".")[1]) for k in state if k.startswith("body.")})
+    for index in layers[:-1]:
+        h = np.maximum(h @ state[f"body.{index}.weight"].T + state[f"body.{index}.bias"], 0.0)
+    last = layers[-1]
+    return (h @ state[f"body.{last}.weight"].T + state[f"body.{last}.bias"])[:, 0] * state["radius"]
+
+
+def test_fourier_network_is_the_documented_function(network_collider):
+    points = inside_points(100, 6)
+    expected = numpy_fourier_network(network_collider.network, points)
+    distance, _ = network_collider.evaluate(points, False)
+    np.testing.assert_allclose(distance, expected, rtol=1e-4, atol=1e-5 * np.abs(expected).max())
+    assert np.ptp(expected) > 0  # a field worth comparing
+
+
+def test_architecture_dict_round_trip():
+    from collider_server.kinds.neural import architecture_dict, architecture_from_dict
+
+    for arch in PRESETS.values():
+        stored = architecture_dict(arch)
+        assert architecture_from_dict(stored) == arch
+    fourier = Architecture(8, 2, 16, 1.0)
+    assert "encoding" not in architecture_dict(fourier)  # Fourier files never carried one
+    assert architecture_from_dict({**architecture_dict(fourier), "encoding": "fourier"}) == fourier
+    assert architecture_dict(PRESETS["grid"])["encoding"] == "grid"
+
+
+def test_from_tensors_messages(network_collider):
+    tensors = network_collider.tensors()
+    info = network_collider.info
+    missing = dict(tensors)
+    missing.pop("fourier")
+    with pytest.raises(ValueError) as error:
+        NeuralCollider.from_tensors(info, missing, "cpu")
+    assert str(error.value).startswith("weights do not match the architecture {'fourier_features': ")
+    assert ": expected {'fourier': (3, 8), 'centre': (3,), 'radius': (), " in str(error.value)
+    assert ", found {'centre': (3,), 'radius': (), 'body.0.weight': " in str(error.value)
+    for settings, reason in [({}, "'architecture'"),
+                             ({"architecture": {"hidden_width": 4, "colour": 1}}, "colour"),
+                             ({"architecture": None}, "NoneType")]:
+        bad = ColliderInfo.from_dict({**info.to_dict(), "settings": settings})
+        with pytest.raises(ValueError) as error:
+            NeuralCollider.from_tensors(bad, tensors, "cpu")
+        assert str(error.value).startswith("neural settings lack a valid architecture: ")
+        assert reason in str(error.value)
