@@ -220,3 +220,153 @@ def test_shipped_grid_models_analytic_gradient_matches_autograd(name):
     for distance, gradient in paths:
         torch.testing.assert_close(distance, reference.detach(), rtol=0, atol=1e-6 * float(reference.abs().max()))
         torch.testing.assert_close(gradient, autograd, rtol=0, atol=1e-4 * float(autograd.abs().max()))
+
+
+@pytest.mark.parametrize("bad, message", [
+    (dict(levels=0), "architecture levels must be a positive integer, got 0"),
+    (dict(features=True), "architecture features must be a positive integer, got True"),
+    (dict(base_resolution=1.5), "architecture base_resolution must be a positive integer, got 1.5"),
+    (dict(max_resolution=-4), "architecture max_resolution must be a positive integer, got -4"),
+    (dict(table_log2="16"), "architecture table_log2 must be a positive integer, got '16'"),
+    (dict(hidden_layers=0), "architecture hidden_layers must be a positive integer, got 0"),
+    (dict(hidden_width=None), "architecture hidden_width must be a positive integer, got None"),
+    (dict(base_resolution=64, max_resolution=32), "max_resolution (32) must be >= base_resolution (64)"),
+    (dict(table_log2=25), "table_log2 must be <= 24 (16M rows per level), got 25"),
+    (dict(table_dtype="int8"), "table_dtype must be 'float16' or 'float32', got 'int8'"),
+    (dict(encoding="fourier"), "a GridArchitecture has encoding 'grid', got 'fourier'"),
+])
+def test_grid_architecture_validation_messages(bad, message):
+    with pytest.raises(ValueError) as error:
+        GridArchitecture(**bad)
+    assert str(error.value) == message
+
+
+def test_grid_architecture_bounds_are_inclusive():
+    """The limits themselves are valid: one of everything, max == base, 2^24 rows, float32."""
+    tiny = GridArchitecture(levels=1, features=1, base_resolution=1, max_resolution=1, table_log2=1,
+                            hidden_layers=1, hidden_width=1)
+    assert tiny.resolutions() == [1]
+    assert tiny.level_rows() == [2]  # 2^3 corners do not fit in 2^1 rows: hashed
+    # 2 table rows x 1 feature, 1 -> 1 ReLU layer (1 + 1), 1 -> 1 output (1 + 1).
+    assert tiny.parameter_count() == 2 + 2 + 2
+    network = build_network(tiny, CENTRE, RADIUS)
+    assert sum(p.numel() for p in network.parameters()) == 6
+    assert network.dense.tolist() == [False]
+    assert GridArchitecture(table_log2=24).level_rows()[-1] == 2**24
+    assert GridArchitecture(base_resolution=32, max_resolution=32, levels=3).resolutions() == [32, 32, 32]
+    assert GridArchitecture(table_dtype="float32").table_dtype == "float32"
+
+
+@pytest.mark.parametrize("levels, base, top, expected", [
+    (1, 16, 256, [16]),
+    (2, 4, 9, [4, 9]),
+    (3, 16, 144, [16, 48, 144]),  # growth 3
+    (5, 16, 256, [16, 32, 64, 128, 256]),
+    (3, 10, 20, [10, 14, 20]),  # 10 * sqrt(2) = 14.14 rounds to 14
+])
+def test_resolutions_grow_geometrically(levels, base, top, expected):
+    assert GridArchitecture(levels=levels, base_resolution=base, max_resolution=top).resolutions() == expected
+
+
+@pytest.mark.parametrize("arch, expected", [
+    # cap 2^16; r = 16: 17^3 = 4913 corners fit (dense); r = 32: share 2^16 / 16 = 2^12, raised to
+    # 2^14; r = 64: share 2^14; r = 128: the whole 2^16.
+    (dict(levels=4, base_resolution=16, max_resolution=128, table_log2=16), [4913, 16384, 16384, 65536]),
+    # cap 2^18; r = 48: share 2^18 / 9 = 29127.1, down to the power of two 2^14; r = 144: 2^18.
+    (dict(levels=3, base_resolution=16, max_resolution=144, table_log2=18), [4913, 16384, 262144]),
+    # cap 2^18; r = 64: share 2^18 / 4 = 2^16 (65^3 corners do not fit).
+    (dict(levels=3, base_resolution=32, max_resolution=128, table_log2=18), [16384, 65536, 262144]),
+    # cap 2^13 below the 2^14 floor: never more than the cap.
+    (dict(levels=2, base_resolution=32, max_resolution=64, table_log2=13), [8192, 8192]),
+])
+def test_surface_rows_grow_like_the_surface(arch, expected):
+    """``surface_rows``: hashed levels get cap * (r / r_max)^2 rows, rounded down to a power of
+    two, at least 2^14 and at most the cap; dense levels keep one row per corner."""
+    grid = GridArchitecture(surface_rows=True, hidden_layers=1, hidden_width=4, **arch)
+    assert grid.level_rows() == expected
+    plain = GridArchitecture(surface_rows=False, hidden_layers=1, hidden_width=4, **arch)
+    assert plain.level_rows() == [min((r + 1) ** 3, 2 ** arch["table_log2"]) for r in plain.resolutions()]
+    network = build_network(grid, CENTRE, RADIUS)
+    assert tuple(network.table.shape) == (sum(expected), grid.features)
+    assert sum(p.numel() for p in network.parameters()) == grid.parameter_count()
+
+
+def numpy_grid_features(arch, table, u):
+    """The encoding as documented (grid_kernels' layout), independently in float64: per level,
+    the cell holding the clamped point, smoothstep or trilinear weights of its 8 corners, rows
+    ``i + (r+1) (j + (r+1) k)`` (dense) or ``(i P0 ^ j P1 ^ k P2) & (rows - 1)`` (hashed)."""
+    table = np.asarray(table, np.float64)
+    u = np.clip(np.asarray(u, np.float64), -1.0, 1.0)
+    features = np.zeros((len(u), arch.levels, arch.features))
+    offset = 0
+    for level, (r, rows) in enumerate(zip(arch.resolutions(), arch.level_rows())):
+        position = (u + 1.0) * 0.5 * r
+        cell = np.minimum(np.floor(position), r - 1).astype(np.int64)
+        t = position - cell
+        w1 = t * t * (3 - 2 * t) if arch.smooth else t
+        for corner in range(8):
+            bits = np.array([corner & 1, (corner >> 1) & 1, (corner >> 2) & 1])
+            weight = np.prod(np.where(bits == 1, w1, 1 - w1), axis=1)
+            i, j, k = (cell + bits).T
+            if (r + 1) ** 3 <= rows:
+                row = i + (r + 1) * (j + (r + 1) * k)
+            else:
+                row = (i * 1 ^ j * 2_654_435_761 ^ k * 805_459_861) & (rows - 1)
+            features[:, level] += weight[:, None] * table[offset + row]
+        offset += rows
+    return features
+
+
+def numpy_grid_network(network, arch, x):
+    """The whole documented network in float64: normalise, encode, ReLU MLP, times radius."""
+    state = {k: v.detach().double().numpy() for k, v in network.state_dict().items()}
+    u = (np.asarray(x, np.float64) - state["centre"]) / state["radius"]
+    h = numpy_grid_features(arch, state["table"], u).reshape(len(u), -1)
+    layers = sorted({int(k.split(".")[1]) for k in state if k.startswith("body.")})
+    for index in layers[:-1]:
+        h = np.maximum(h @ state[f"body.{index}.weight"].T + state[f"body.{index}.bias"], 0.0)
+    last = layers[-1]
+    return (h @ state[f"body.{last}.weight"].T + state[f"body.{last}.bias"])[:, 0] * state["radius"]
+
+
+@pytest.mark.parametrize("smooth", [True, False])
+def test_encoding_is_the_documented_layout(smooth):
+    """Features from the torch reference and the fused kernels against an independent numpy
+    evaluation of the documented grid (dense and hashed levels, points beyond [-1, 1])."""
+    arch = GridArchitecture(**{**SMALL, "smooth": smooth})
+    network = random_network(seed=14, smooth=smooth)
+    x = points(400, 15, pad=0.03)
+    u = (x - network.centre) / network.radius
+    expected = numpy_grid_features(arch, network.table.detach().numpy(), u.numpy())
+    for fused in ([False, True] if grid_kernels.available() else [False]):
+        network.fused = fused
+        with torch.no_grad():
+            features, _ = network.encode_parts(u, False)
+        np.testing.assert_allclose(features.numpy(), expected, rtol=0, atol=1e-5)
+
+
+def test_grid_collider_answers_the_documented_network():
+    """A grid NeuralCollider's distances (the query path, fused where it can be) equal the
+    documented network evaluated in numpy; its architecture reads back from the settings."""
+    arch = GridArchitecture(**{**SMALL, "hidden_layers": 1})
+    network = random_network(seed=16, hidden_layers=1)
+    with torch.no_grad():
+        network.body[0].bias.uniform_(-0.5, 0.5)
+    info = ColliderInfo("g", "neural", LO.tolist(), HI.tolist(), settings={"architecture": arch.__dict__.copy()})
+    collider = NeuralCollider(info, network, "cpu")
+    assert collider.architecture == arch and collider.device == "cpu"
+    x = points(300, 17).numpy().astype(np.float64)
+    expected = numpy_grid_network(network, arch, x)
+    assert np.ptp(expected) > 0
+    for want_gradient in (False, True):
+        distance, gradient = collider.evaluate(x, want_gradient)
+        np.testing.assert_allclose(distance, expected, rtol=0, atol=1e-5 * np.abs(expected).max())
+        assert (gradient is not None) == want_gradient
+
+
+def test_the_fused_kernels_serve_cpu_points_unless_switched_off():
+    network = random_network()
+    x = points(4, 18)
+    assert network.can_fuse(x) == grid_kernels.available()
+    network.fused = False
+    assert not network.can_fuse(x)
