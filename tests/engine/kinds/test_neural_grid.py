@@ -370,3 +370,21 @@ def test_the_fused_kernels_serve_cpu_points_unless_switched_off():
     assert network.can_fuse(x) == grid_kernels.available()
     network.fused = False
     assert not network.can_fuse(x)
+
+
+def test_a_new_network_starts_from_small_features():
+    """instant-NGP's initialisation: table entries uniform in [-1e-4, 1e-4] (the MLP starts
+    from a near-constant input); a float32 table stays float32 in the model's tensors."""
+    arch = GridArchitecture(**{**SMALL, "table_dtype": "float32"})
+    torch.manual_seed(0)
+    network = build_network(arch, CENTRE, RADIUS)
+    table = network.table.detach()
+    assert float(table.abs().max()) <= 1e-4 and float(table.abs().max()) > 0.9e-4
+    assert abs(float(table.mean())) < 1e-5 and float(table.std()) > 0.5e-4
+    info = ColliderInfo("g", "neural", LO.tolist(), HI.tolist(), settings={"architecture": arch.__dict__.copy()})
+    tensors = NeuralCollider(info, network, "cpu").tensors()
+    assert tensors["table"].dtype == np.float32
+    assert set(tensors) == {"centre", "radius", "table", "body.0.weight", "body.0.bias", "body.2.weight",
+                            "body.2.bias", "body.4.weight", "body.4.bias"}
+    np.testing.assert_array_equal(tensors["centre"], CENTRE.astype(np.float32))
+    assert tensors["radius"].shape == () and float(tensors["radius"]) == np.float32(RADIUS)
