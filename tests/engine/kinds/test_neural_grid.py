@@ -388,3 +388,19 @@ def test_a_new_network_starts_from_small_features():
                             "body.2.bias", "body.4.weight", "body.4.bias"}
     np.testing.assert_array_equal(tensors["centre"], CENTRE.astype(np.float32))
     assert tensors["radius"].shape == () and float(tensors["radius"]) == np.float32(RADIUS)
+
+
+@needs_numba
+def test_kernel_threads_are_bounded_by_the_cores_numba_found():
+    import numba
+
+    before = numba.get_num_threads()
+    try:
+        grid_kernels.set_threads(10**6)  # more than there are: all numba found, no error
+        assert numba.get_num_threads() == numba.config.NUMBA_NUM_THREADS
+        grid_kernels.set_threads(0)  # fewer than one: one
+        assert numba.get_num_threads() == 1
+        grid_kernels.set_threads(1.0)
+        assert numba.get_num_threads() == 1
+    finally:
+        numba.set_num_threads(before)
