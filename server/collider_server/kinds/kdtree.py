@@ -57,7 +57,7 @@ class KDTreeCollider(Collider):
     def from_tensors(cls, info, tensors, device=None):
         if set(tensors) != {"vertices", "normals"}:
             raise ValueError(f"kdtree model must hold 'vertices' and 'normals', found {sorted(tensors)}")
-        if tensors["vertices"].shape != tensors["normals"].shape or tensors["vertices"].shape[-1:] != (3,):
+        if tensors["vertices"].shape != tensors["normals"].shape or tensors["vertices"].shape[1:] != (3,):
             raise ValueError("kdtree vertices and normals must both be (v, 3)")
         if len(tensors["vertices"]) == 0:
             raise ValueError("kdtree model holds no vertices")

@@ -86,6 +86,8 @@ def test_kdtree_tensors_round_trip():
      "kdtree model must hold 'vertices' and 'normals', found ['faces', 'normals', 'vertices']"),
     ({"vertices": VERTICES, "normals": VERTICES[:3]}, "kdtree vertices and normals must both be (v, 3)"),
     ({"vertices": VERTICES[:, :2], "normals": VERTICES[:, :2]}, "kdtree vertices and normals must both be (v, 3)"),
+    ({"vertices": VERTICES[:, None], "normals": VERTICES[:, None]}, "kdtree vertices and normals must both be (v, 3)"),
+    ({"vertices": VERTICES.ravel(), "normals": VERTICES.ravel()}, "kdtree vertices and normals must both be (v, 3)"),
     ({"vertices": np.zeros((0, 3)), "normals": np.zeros((0, 3))}, "kdtree model holds no vertices"),
 ])
 def test_kdtree_from_tensors_messages(tensors, message):
