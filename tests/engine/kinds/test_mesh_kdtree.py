@@ -151,3 +151,14 @@ def test_mesh_from_tensors_messages(tensors, message):
     with pytest.raises(ValueError) as error:
         MeshCollider.from_tensors(info("mesh"), tensors)
     assert str(error.value) == message
+
+
+def test_mesh_file_dtypes_whatever_the_arrays_held():
+    """The file holds float64 vertices and int32 faces; a loaded mesh float64 and int64 (the
+    dtypes Mesh documents), from float32 / int32 arrays too."""
+    loose = Mesh(VERTICES.astype(np.float32), FACES.astype(np.int32), "tet")
+    tensors = MeshCollider(info("mesh"), loose).tensors()
+    assert tensors["vertices"].dtype == np.float64 and tensors["faces"].dtype == np.int32
+    rebuilt = MeshCollider.from_tensors(info("mesh"), {"vertices": VERTICES.astype(np.float32),
+                                                      "faces": FACES.astype(np.int32)})
+    assert rebuilt.mesh.vertices.dtype == np.float64 and rebuilt.mesh.faces.dtype == np.int64
