@@ -225,3 +225,11 @@ def test_from_tensors_messages(network_collider):
             NeuralCollider.from_tensors(bad, tensors, "cpu")
         assert str(error.value).startswith("neural settings lack a valid architecture: ")
         assert reason in str(error.value)
+
+
+def test_the_device_is_checked(network_collider):
+    with pytest.raises(ValueError, match=r"^unknown device 'abacus'; use 'cpu', 'cuda' or 'auto'$"):
+        NeuralCollider(network_collider.info, network_collider.network, "abacus")
+    with pytest.raises(ValueError, match=r"^unknown device 'abacus'"):
+        NeuralCollider.from_tensors(network_collider.info, network_collider.tensors(), "abacus")
+    assert NeuralCollider.from_tensors(network_collider.info, network_collider.tensors(), "cpu").device == "cpu"

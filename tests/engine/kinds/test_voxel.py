@@ -213,3 +213,13 @@ def test_bake_grid_smallest_resolution_and_its_progress_bar(analytic_shape, caps
     assert "bake 8^3" in err and "512/512" in err and "pt" in err
     bake_grid(ExactSDF(shape.mesh), lo, hi, 8, show_progress=False)
     assert capsys.readouterr().err == ""
+
+
+def test_the_device_is_checked():
+    """The device argument is resolved (and refused when unknown), also through from_tensors."""
+    info = ColliderInfo("g", "voxel", LO.tolist(), HI.tolist())
+    with pytest.raises(ValueError, match=r"^unknown device 'abacus'; use 'cpu', 'cuda' or 'auto'$"):
+        VoxelCollider(info, np.zeros(SHAPE), "abacus")
+    with pytest.raises(ValueError, match=r"^unknown device 'abacus'"):
+        VoxelCollider.from_tensors(info, {"grid": np.zeros(SHAPE)}, "abacus")
+    assert VoxelCollider.from_tensors(info, {"grid": np.zeros(SHAPE)}, "cpu").device == "cpu"
