@@ -141,17 +141,14 @@ def _fused_encoding_class():
 
         @staticmethod
         def backward(ctx, grad_features, grad_jacobian):
+            # Autograd hands zeros for an output the loss does not use (materialised gradients),
+            # so both are tensors; without a Jacobian the second has 0 rows, like the output.
             u, table = ctx.saved_tensors
             spec = ctx.spec
-            if grad_features is None:
-                grad_features = torch.zeros(len(u), spec.levels, spec.features)
-            has_jacobian = ctx.want_jacobian and grad_jacobian is not None
-            if not has_jacobian:
-                grad_jacobian = torch.zeros(0, spec.levels, spec.features, 3)
             grad_table = np.zeros(tuple(table.shape), np.float32)
             grid_kernels.encode_backward(u.detach().numpy(), spec.resolution, spec.offset, spec.rows,
                                          spec.dense, spec.smooth, grad_features.contiguous().numpy(),
-                                         grad_jacobian.contiguous().numpy(), has_jacobian, grad_table)
+                                         grad_jacobian.contiguous().numpy(), ctx.want_jacobian, grad_table)
             return None, torch.from_numpy(grad_table), None, None
 
     return FusedEncoding

@@ -404,3 +404,27 @@ def test_kernel_threads_are_bounded_by_the_cores_numba_found():
         assert numba.get_num_threads() == 1
     finally:
         numba.set_num_threads(before)
+
+
+@needs_numba
+@pytest.mark.parametrize("loss", ["distance", "gradient", "features"])
+def test_fused_table_gradient_of_partial_losses(loss):
+    """The table gradient through the fused encoding when the loss uses only the distance (no
+    Jacobian asked), only the gradient (the features' gradient is zero) or only the features
+    of a call that also asked for the Jacobian: the torch reference's, every time."""
+    network = random_network(seed=19, levels=2, max_resolution=9)
+    x = points(300, 20, pad=0.02)
+    grads = {}
+    for fused in (False, True):
+        network.fused = fused
+        network.zero_grad()
+        if loss == "distance":
+            value = network(x).square().sum()
+        elif loss == "gradient":
+            value = network.value_and_gradient(x)[1][:, 0].sum()
+        else:
+            value = network.encode_parts((x - network.centre) / network.radius, True)[0].sum()
+        value.backward()
+        grads[fused] = network.table.grad.clone()
+    assert grads[False].abs().max() > 0
+    torch.testing.assert_close(grads[True], grads[False], rtol=0, atol=1e-5 * float(grads[False].abs().max()))
