@@ -184,7 +184,7 @@ class NeuralCollider(Collider):
                 f"weights do not match the architecture {asdict(arch)}: "
                 f"expected {expected}, found {found}"
             )
-        # float32 in memory whatever the stored dtype (a float16 feature table).
-        network.load_state_dict({k: torch.from_numpy(np.array(v, dtype=np.float32 if np.asarray(v).dtype == np.float16
-                                                              else None)) for k, v in tensors.items()})
+        # load_state_dict copies into the float32 parameters and buffers: float32 in memory
+        # whatever the stored dtype (a float16 feature table).
+        network.load_state_dict({k: torch.from_numpy(np.array(v)) for k, v in tensors.items()})
         return cls(info, network, device)

@@ -233,3 +233,13 @@ def test_the_device_is_checked(network_collider):
     with pytest.raises(ValueError, match=r"^unknown device 'abacus'"):
         NeuralCollider.from_tensors(network_collider.info, network_collider.tensors(), "abacus")
     assert NeuralCollider.from_tensors(network_collider.info, network_collider.tensors(), "cpu").device == "cpu"
+
+
+def test_weights_of_any_float_dtype_load_as_float32(network_collider):
+    import torch
+
+    tensors = {k: v.astype(np.float64) for k, v in network_collider.tensors().items()}
+    rebuilt = NeuralCollider.from_tensors(network_collider.info, tensors, "cpu")
+    assert {v.dtype for v in rebuilt.network.state_dict().values()} == {torch.float32}
+    points = inside_points(20, 7)
+    np.testing.assert_array_equal(rebuilt.query(points).distance, network_collider.query(points).distance)
