@@ -358,10 +358,17 @@ def test_grid_collider_answers_the_documented_network():
     x = points(300, 17).numpy().astype(np.float64)
     expected = numpy_grid_network(network, arch, x)
     assert np.ptp(expected) > 0
-    for want_gradient in (False, True):
-        distance, gradient = collider.evaluate(x, want_gradient)
-        np.testing.assert_allclose(distance, expected, rtol=0, atol=1e-5 * np.abs(expected).max())
-        assert (gradient is not None) == want_gradient
+    gradients = []
+    for fused in (True, False):  # the fused query path, and the torch one (CUDA's)
+        network.fused = fused
+        for want_gradient in (False, True):
+            distance, gradient = collider.evaluate(x, want_gradient)
+            assert distance.dtype == np.float64 and distance.shape == (300,)
+            np.testing.assert_allclose(distance, expected, rtol=0, atol=1e-5 * np.abs(expected).max())
+            assert (gradient is not None) == want_gradient
+        gradients.append(gradient)
+    assert gradients[1].dtype == np.float64 and gradients[1].shape == (300, 3)
+    np.testing.assert_allclose(gradients[0], gradients[1], rtol=0, atol=1e-4 * np.abs(gradients[1]).max())
 
 
 def test_the_fused_kernels_serve_cpu_points_unless_switched_off():
