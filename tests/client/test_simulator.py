@@ -209,7 +209,9 @@ def test_check_mesh_places_the_mesh_as_the_model_was_made(tmp_path, monkeypatch)
     code = main(["simulate", str(scene_file(tmp_path)), "--models", str(models), "--steps", "300",
                  "--no-preview", "--quiet", "--output", str(out), "--check-mesh", f"sphere={big}"])
     assert code == 0
-    check = json.loads((out / "drop.report.json").read_text())["exact_check"]
+    text = (out / "drop.report.json").read_text()
+    assert text.startswith('{\n  "')  # rewritten with the check, indented as before
+    check = json.loads(text)["exact_check"]
     assert check["max_depth_m"] < 1e-3  # the raw 1 m file would put every vertex ~0.9 m inside
     assert check["min_distance_m"] < 3e-3  # and the cloth did reach the sphere
     # The preview's collider points: 4,000 distinct vertices of the file, placed as the model.
@@ -469,6 +471,16 @@ def test_simulate_options_defaults_and_help(capsys, monkeypatch):
             "--host HOST address the view listens on (default 127.0.0.1;",
             "--port PORT port of the view (default 8080)"):
         assert phrase in text
+
+
+def test_resolve_scene_names_the_shipped_scenes_when_none_matches(tmp_path):
+    from collider_client.sim.command import SCENES_DIR, resolve_scene, shipped_scenes
+
+    assert resolve_scene("flag_in_wind") == SCENES_DIR / "flag_in_wind.toml"
+    with pytest.raises(FileNotFoundError) as info:
+        resolve_scene(str(tmp_path / "nope"))
+    assert str(info.value) == (f"no scene file {str(tmp_path / 'nope')!r}; shipped scenes: "
+                               + ", ".join(shipped_scenes()))
 
 
 def test_simulate_refuses_bad_options_before_the_run(tmp_path):
