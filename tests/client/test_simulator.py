@@ -4,6 +4,7 @@ runs only the declared effects, outputs load back, and both backends give the sa
 from __future__ import annotations
 
 import json
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -88,6 +89,9 @@ def test_drop_on_sphere_stays_outside(tmp_path, models_dir):
     assert client.fields == {"distance", "contact", "collides"}  # no friction: no normals asked for
     assert client.only_colliding == {True}  # contacts of the colliding points only
     assert client.calls == report.queries > 0
+    assert report.fields == ["distance", "contact", "collides"]
+    # Every vertex of every step asked for (the cloth stays inside the sphere's inflated box).
+    assert report.points_total == report.points_sent == 600 * 256
     # Colliding vertices at each frame written: the last is the run's last count.
     assert len(report.per_frame_colliding) == 13
     assert report.per_frame_colliding[-1] == report.colliding_last > 0
@@ -282,7 +286,8 @@ def test_preview_has_a_panel_per_frame_with_the_colliders_at_that_frames_pose():
     np.testing.assert_allclose(fig.get_size_inches(), [8.4, 4.4])  # 4.2 x 4.4 in a panel
     first, second = fig.axes
     assert [ax.get_subplotspec().get_geometry() for ax in fig.axes] == [(1, 2, 0, 0), (1, 2, 1, 1)]
-    assert first.get_title() == "frame 0, t = 0.000 s" and second.get_title() == "frame 5, t = 0.050 s"
+    assert first.get_title() == "frame 0, t = 0.000 s"
+    assert second.get_title() == "frame 5, t = 0.050 s"
     # Every panel has the same cube of limits holding all cloth and collider points:
     # x 0..1.1, y 0..0.2, z -0.5..0.09, half the largest side 0.55 m.
     for ax in fig.axes:
@@ -352,21 +357,30 @@ FALL = ("[scene]\nduration_s = 0.05\ndt_s = 1e-3\nframe_every_steps = 10\n"
 
 def test_run_scene_runs_the_steps_asked_with_a_progress_bar_and_calls_on_step(tmp_path, capsys):
     path = tmp_path / "fall.toml"
-    path.write_text(FALL)  # 50 steps of 1 ms, a frame every 10
+    path.write_text(FALL)  # 50 steps of 1 ms, a frame every 10; run for 60
     scene = load_scene(path)
     calls = []
     out = tmp_path / "a" / "b"  # made, parents too
-    report, frames = run_scene(scene, None, out, steps=30,
+    import time
+
+    started = time.perf_counter()
+    report, frames = run_scene(scene, None, out, steps=60,
                                on_step=lambda sim, i: calls.append((i, sim.t)))
-    assert [i for i, _ in calls] == list(range(1, 31))  # after each step, 1-based
-    np.testing.assert_allclose([t for _, t in calls], np.arange(1, 31) * 1e-3)
-    assert report.steps == 30 and report.backend == "embedded"
-    assert [t for t, _ in frames] == pytest.approx([0.0, 0.01, 0.02, 0.03])
-    assert report.per_frame_colliding == [0, 0, 0, 0]  # no colliders
+    assert 0 < report.wall_s <= time.perf_counter() - started
+    assert (report.scene, report.vertices, report.frames) == ("fall", 12, 7)
+    # No colliders: nothing asked, nothing colliding.
+    assert (report.fields, report.points_total, report.points_sent, report.queries,
+            report.colliding_max, report.colliding_last, report.deepest_penetration_m) \
+        == ([], 0, 0, 0, 0, 0, 0.0)
+    assert [i for i, _ in calls] == list(range(1, 61))  # after each step, 1-based
+    np.testing.assert_allclose([t for _, t in calls], np.arange(1, 61) * 1e-3)
+    assert report.steps == 60 and report.backend == "embedded"
+    assert [t for t, _ in frames] == pytest.approx([0.0, 0.01, 0.02, 0.03, 0.04, 0.05, 0.06])
+    assert report.per_frame_colliding == [0] * 7  # no colliders
     assert (out / "fall.obj").read_text().splitlines()[1] == "o fall"
     assert (out / "fall.png").is_file()  # the preview is on by default
-    bar = capsys.readouterr().err  # the progress bar (on by default) ends at 30 of 30 steps
-    assert "fall: 100%" in bar and "30/30" in bar and ("step/s" in bar or "s/step" in bar)
+    bar = capsys.readouterr().err  # the progress bar (on by default) ends at 60 of 60 steps
+    assert "fall: 100%" in bar and "60/60" in bar and ("step/s" in bar or "s/step" in bar)
     # Again into the same folder, quiet: no bar; and the scene's own 50 steps.
     report, _ = run_scene(scene, None, out, show_progress=False, preview=False)
     assert report.steps == 50 and capsys.readouterr().err == ""
@@ -458,8 +472,8 @@ def test_simulate_options_defaults_and_help(capsys, monkeypatch):
     text = " ".join(capsys.readouterr().out.split())
     for phrase in (
             "Simulate a cloth scene with the reference Verlet simulator. SCENE is a TOML file or a "
-            f"shipped scene name ({', '.join(shipped_scenes())}). Writes OBJ + PC2 (Blender: import "
-            "the OBJ, add a Mesh Cache modifier with the PC2), a PNG preview and a report.",
+            f"shipped scene name ({', '.join(shipped_scenes())}). Writes OBJ + PC2 (Blender: "
+            "import the OBJ, add a Mesh Cache modifier with the PC2), a PNG preview and a report.",
             "--output OUTPUT output folder (default out/)",
             "--threads THREADS embedded engine CPU threads (default: cores - 1, at least 1, as the "
             "server)",
@@ -561,6 +575,7 @@ def test_simulate_embedded_run_prints_and_writes(tmp_path, models_dir, recording
     assert [c.kwargs["threads"] for c in recording_client[1:]] == [1, 2]
     assert f"wrote {out / 'drop.obj'}, .pc2, .png, .report.json\n" in printed.out
     assert "drop: 100%" in printed.err and (out / "drop.png").is_file()
+    assert re.search(r"colliding=\d+", printed.err)  # the bar shows the colliding count
     assert json.loads((out / "drop.report.json").read_text())["steps"] == 1
 
 
@@ -786,3 +801,46 @@ def test_exact_penetration_without_meshes_measures_nothing_and_refuses_unknown_m
     with pytest.raises(ValueError, match=r"--check-mesh names model\(s\) \['ghost'\] that the "
                                          "scene does not use"):
         exact_penetration(scene, frames, {"ghost": tmp_path / "ghost.obj"})
+
+
+def test_preview_draws_a_moving_collider_at_each_frames_pose(tmp_path, models_dir, monkeypatch):
+    from collider_client.sim import run as run_module
+
+    drawn, real_write_preview = [], run_module.write_preview
+
+    def spy(path, frames, width, height, times_s, title, collider_points=None):
+        drawn.append((times_s, collider_points))
+        return real_write_preview(path, frames, width, height, times_s, title, collider_points)
+
+    monkeypatch.setattr(run_module, "write_preview", spy)
+    # The sphere rises at 0.5 m/s and turns at 90 deg/s about z: frames every 50 steps of 0.2 ms.
+    motion = ("position_m = [0.0, 0.0, -0.05]\nmotion = { kind = 'velocity', "
+              "velocity_m_s = [0.0, 0.0, 0.5], angular_velocity_deg_s = [0.0, 0.0, 90.0] }")
+    scene = load_scene(scene_file(tmp_path, motion=motion))
+    points = np.array([[0.1, 0.0, 0.0], [0.0, 0.0, 0.1]])  # collider frame
+    with cc.Client(models=models_dir, device="cpu") as client:
+        run_scene(scene, client, tmp_path / "out", show_progress=False, steps=100,
+                  collider_points={"sphere": points})
+    ((times_s, shown),) = drawn
+    assert times_s == pytest.approx({0: 0.0, 2: 0.02})  # preview_frames [0, -1] of 3 frames
+    for i, t in times_s.items():
+        turn = np.radians(90.0 * t)
+        expected = np.array([[0.1 * np.cos(turn), 0.1 * np.sin(turn), -0.05 + 0.5 * t],
+                             [0.0, 0.0, 0.1 - 0.05 + 0.5 * t]])
+        (placed,) = shown[i]
+        np.testing.assert_allclose(placed, expected, atol=1e-12)
+
+
+def test_run_report_gives_the_deepest_penetration_seen(tmp_path, models_dir):
+    # A 4 x 3 cloth 1 cm apart starting inside the 0.1 m sphere, its row y = 0 at z = 0.09 m:
+    # the first query finds its centre vertices about 1 cm deep.
+    path = tmp_path / "inside.toml"
+    path.write_text("[scene]\nduration_s = 2e-4\ndt_s = 2e-4\n[cloth]\nwidth = 4\nheight = 3\n"
+                    "spacing_m = 0.01\norigin_m = [-0.015, -0.01, 0.09]\n[[colliders]]\n"
+                    "model = 'sphere'\n[effects.collisions]\neps_m = 1e-3\n")
+    with cc.Client(models=models_dir, device="cpu") as client:
+        report, frames = run_scene(load_scene(path), client, tmp_path / "out", show_progress=False,
+                                   preview=False)
+    deepest = -(SPHERE_RADIUS_M - np.linalg.norm(frames[0][1], axis=1).min())
+    assert report.deepest_penetration_m == pytest.approx(deepest, abs=2e-3)  # voxel model
+    assert report.deepest_penetration_m < -5e-3
