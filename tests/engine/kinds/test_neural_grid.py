@@ -435,3 +435,29 @@ def test_fused_table_gradient_of_partial_losses(loss):
         grads[fused] = network.table.grad.clone()
     assert grads[False].abs().max() > 0
     torch.testing.assert_close(grads[True], grads[False], rtol=0, atol=1e-5 * float(grads[False].abs().max()))
+
+
+@pytest.mark.parametrize("smooth", [True, False])
+def test_gradient_on_the_faces_of_the_normalised_cube(smooth):
+    """Points exactly on u = +-1 (the encoding's own box; inside, not clamped): the derivative
+    along that axis counts, as autograd's and the fused kernels' do."""
+    network = random_network(seed=21, smooth=smooth)
+    network.fused = False
+    centre, radius = network.centre, network.radius
+    x = points(60, 22)
+    for row in range(60):
+        axis, sign = row % 3, (1.0 if row % 2 else -1.0)
+        x[row, axis] = centre[axis] + sign * radius
+    u = (x - centre) / radius
+    assert (u.abs() == 1.0).any(dim=1).all()
+    xr = x.clone().requires_grad_(True)
+    (autograd,) = torch.autograd.grad(network(xr).sum(), xr)
+    with torch.no_grad():
+        _, gradient = network.value_and_gradient(x)
+    torch.testing.assert_close(gradient, autograd, rtol=1e-5, atol=1e-5)
+    if not smooth:  # (smoothstep's derivative is 0 at a cell's end anyway)
+        assert autograd[u.abs() == 1.0].abs().min() > 0  # the face derivative is not dropped
+    if grid_kernels.available():
+        network.fused = True
+        _, fused = network.fused_query(x, True)
+        torch.testing.assert_close(fused, gradient, rtol=0, atol=1e-4 * float(gradient.abs().max()))
