@@ -173,10 +173,11 @@ class NeuralCollider(Collider):
         if np.shape(tensors.get("radius")) == (1,):
             # Files written before scalars kept their shape hold the radius as (1,).
             tensors["radius"] = np.asarray(tensors["radius"]).reshape(())
-        # The initial weights are overwritten below: draw them from a forked generator, so that
-        # loading a model leaves the caller's torch random stream (a seeded simulation) as it was.
+        # The initial weights (and the placeholder centre and radius) are overwritten below: draw
+        # them from a forked generator, so that loading a model leaves the caller's torch random
+        # stream (a seeded simulation) as it was.
         with torch.random.fork_rng(devices=[]):
-            network = build_network(arch, tensors.get("centre", np.zeros(3)), 1.0)
+            network = build_network(arch, np.zeros(3), 1.0)
         expected = {k: tuple(v.shape) for k, v in network.state_dict().items()}
         found = {k: tuple(v.shape) for k, v in tensors.items()}
         if expected != found:

@@ -235,11 +235,16 @@ def test_the_device_is_checked(network_collider):
     assert NeuralCollider.from_tensors(network_collider.info, network_collider.tensors(), "cpu").device == "cpu"
 
 
-def test_weights_of_any_float_dtype_load_as_float32(network_collider):
+def test_weights_of_any_float_dtype_load_as_float32(tiny_neural_collider):
+    """float64 weights load as float32, centre and radius (an off-origin box) included."""
     import torch
 
-    tensors = {k: v.astype(np.float64) for k, v in network_collider.tensors().items()}
-    rebuilt = NeuralCollider.from_tensors(network_collider.info, tensors, "cpu")
+    shift = np.array([0.5, -0.25, 2.0])
+    collider = tiny_neural_collider(LO + shift, HI + shift, seed=4)
+    tensors = {k: v.astype(np.float64) for k, v in collider.tensors().items()}
+    rebuilt = NeuralCollider.from_tensors(collider.info, tensors, "cpu")
     assert {v.dtype for v in rebuilt.network.state_dict().values()} == {torch.float32}
-    points = inside_points(20, 7)
-    np.testing.assert_array_equal(rebuilt.query(points).distance, network_collider.query(points).distance)
+    np.testing.assert_allclose(rebuilt.network.centre.numpy(), shift, rtol=1e-6)
+    assert float(rebuilt.network.radius) == pytest.approx(0.12, rel=1e-6)  # half the largest side
+    points = inside_points(20, 7) + shift
+    np.testing.assert_array_equal(rebuilt.query(points).distance, collider.query(points).distance)
