@@ -201,7 +201,6 @@ def build_grid_network(arch: GridArchitecture, centre, radius: float):
                 width = arch.hidden_width
             layers.append(nn.Linear(width, 1))
             self.body = nn.Sequential(*layers)
-            self.arch = arch
             self.spec = _KernelSpec(np.asarray(resolutions, np.int64), offsets.astype(np.int64),
                                     np.asarray(rows, np.int64), np.asarray(dense), arch.smooth,
                                     arch.levels, arch.features)
