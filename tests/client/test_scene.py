@@ -306,6 +306,8 @@ KNOWN_EFFECTS = sorted(["gravity", "wind", "damping", "stretch", "shear", "bend"
      "['dt_s', 'duration_s', 'frame_every_steps', 'name', 'preview_frames']"),
     # [cloth]
     ("[cloth]\nwidth = 10\nheight = 8\nspacing_m = 0.01\n", "", "cloth: missing (required)"),
+    ("width = 10\n", "", "cloth.width: missing (required)"),
+    ("height = 8\n", "", "cloth.height: missing (required)"),
     ("width = 10", "width = 4097", "cloth.width: must be <= 4096, got 4097"),
     ("height = 8", "height = 4097", "cloth.height: must be <= 4096, got 4097"),
     ("height = 8", "height = 1", "cloth.height: must be >= 2, got 1"),
