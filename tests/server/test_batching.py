@@ -1027,3 +1027,53 @@ def test_a_wrong_answer_after_a_failed_part_still_fails_the_whole_batch(workers)
     for error in run(main()):
         assert isinstance(error, BatchContractError)
         assert str(error) == "the batch function returned row of shape (3,) for a part of 2 rows"
+
+
+def test_a_waiting_batch_goes_as_soon_as_it_is_exactly_full(workers):
+    recorder = RowRecorder()
+
+    async def main():
+        settings = BatchSettings(max_batch_points=100, max_wait_ms=60_000)
+        batcher = RowBatcher(recorder, settings, workers.executor("cpu"), clock=Clock())
+        first = asyncio.create_task(batcher.submit_rows(1, 50))
+        await settle()  # the loop now waits (a minute, on a frozen clock) for more points
+        assert recorder.calls == []
+        second = asyncio.create_task(batcher.submit_rows(2, 50))  # 100 points: the batch is full
+        answers = await asyncio.gather(first, second)
+        await batcher.drain()
+        return answers
+
+    answers = run(main())  # waiting out the minute would time the test out
+    assert recorder.calls == [[(1, 0, 50), (2, 0, 50)]]
+    np.testing.assert_array_equal(answers[1]["row"], rows_of(2, 50))
+
+
+class TickingClock(Clock):
+    """A clock that moves ``tick`` seconds every time it is read: time passes while a request is
+    being queued."""
+
+    def __init__(self, tick: float):
+        super().__init__(0.0)
+        self.tick = tick
+
+    def __call__(self) -> float:
+        now = self.now
+        self.now += self.tick
+        return now
+
+
+def test_time_spent_queueing_counts_against_the_deadline(workers):
+    recorder = RowRecorder()
+
+    async def main():
+        batcher = RowBatcher(recorder, BatchSettings(), workers.executor("cpu"),
+                             clock=TickingClock(0.5))
+        # Still ahead when the request is queued (at 0 s), already behind once it is (0.5 s): it
+        # expires at once, however fast the batch would have answered it.
+        with pytest.raises(DeadlineExceeded) as info:
+            await batcher.submit_rows(1, 3, deadline=0.25)
+        assert batcher.queued_points == 0
+        await batcher.drain()
+        return info.value
+
+    assert str(run(main())) == "the deadline passed with 0 of 3 points computed"
