@@ -772,8 +772,8 @@ def test_a_batch_waits_max_wait_ms_from_its_oldest_request_on_the_batchers_clock
         await settle()
         clock.now = 0.004
         second = asyncio.create_task(batcher.submit_rows(2, 4))  # queued at 0.004 s
-        clock.now = 0.0049
-        # However long the loop waits in real time, the batch is 0.1 ms short of its 5 ms on the
+        clock.now = 0.004999
+        # However long the loop waits in real time, the batch is 1 us short of its 5 ms on the
         # batcher's clock: nothing may start. (The sleep only gives a wrong loop time to start.)
         await asyncio.sleep(0.02)
         assert recorder.calls == [] and batcher.queued_points == 7
@@ -1077,3 +1077,27 @@ def test_time_spent_queueing_counts_against_the_deadline(workers):
         return info.value
 
     assert str(run(main())) == "the deadline passed with 0 of 3 points computed"
+
+
+def test_point_batcher_reports_on_the_injected_clock_from_the_devices_thread(workers, caplog):
+    clock = Clock(10.0)
+    stats, threads = [], []
+
+    def compute(local, want_gradient):
+        threads.append(threading.current_thread().name)
+        clock.now += 0.25
+        return local[:, 0].copy(), None
+
+    async def main():
+        batcher = PointBatcher(compute, BatchSettings(), workers.executor("cpu"), clock=clock,
+                               on_batch=stats.append)
+        with pytest.raises(DeadlineExceeded):  # the deadline is on the injected clock
+            await batcher.submit(points(2, 0), False, deadline=9.5)
+        distance, _ = await batcher.submit(points(4, 1), False, deadline=11.0)
+        await batcher.drain()
+        return distance
+
+    np.testing.assert_array_equal(run(main()), points(4, 1)[:, 0])
+    assert stats == [BatchStats(points=4, requests=1, queue_wait_s=(0.0,), compute_s=0.25)]
+    assert len(threads) == 1 and threads[0].startswith("collider-cpu")
+    assert "batching loop ended" not in caplog.text  # a normal drain is no error
