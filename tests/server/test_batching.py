@@ -494,9 +494,11 @@ def test_queue_full_retry_after_comes_from_the_measured_throughput(
 def test_batches_take_queued_rows_in_order_and_never_exceed_max_batch_points(workers):
     recorder = RowRecorder(gated=True)
     sizes = {1: 4, 2: 7, 3: 3, 4: 9}
+    stats = []
 
     async def main():
-        batcher = RowBatcher(recorder, BatchSettings(max_batch_points=10), workers.executor("cpu"))
+        batcher = RowBatcher(recorder, BatchSettings(max_batch_points=10), workers.executor("cpu"),
+                             on_batch=stats.append)
         busy = asyncio.create_task(batcher.submit_rows(0, 1))
         await recorder.wait_calls(1)
         tasks = [asyncio.create_task(batcher.submit_rows(p, n)) for p, n in sizes.items()]
@@ -504,9 +506,12 @@ def test_batches_take_queued_rows_in_order_and_never_exceed_max_batch_points(wor
         assert batcher.queued_points == 23 and batcher.queued_requests == 4
         recorder.release(4)
         await busy
-        return await asyncio.gather(*tasks)
+        answers = await asyncio.gather(*tasks)
+        assert batcher.in_flight_points == 0 and batcher.queued_points == 0
+        return answers
 
     results = run(main())
+    assert [(s.points, s.requests) for s in stats] == [(1, 1), (10, 2), (10, 3), (3, 1)]
     assert recorder.calls == [
         [(0, 0, 1)],
         [(1, 0, 4), (2, 0, 6)],
