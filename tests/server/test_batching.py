@@ -950,6 +950,8 @@ def test_settings_accept_their_smallest_values():
     (lambda n: (np.zeros((n, 1)), None), False, "compute returned distance of shape (3, 1) for 3 "
                                                  "points"),
     (lambda n: (np.zeros(n), None), True, "compute returned normal of shape NoneType for 3 points"),
+    (lambda n: (np.zeros(n), [[0.0] * 3] * n), True, "compute returned normal of shape list for 3 "
+                                                      "points"),
     (lambda n: (np.zeros(n), np.zeros((n, 2))), True, "compute returned normal of shape (3, 2) "
                                                        "for 3 points"),
 ])
