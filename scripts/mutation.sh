@@ -5,9 +5,9 @@
 #   scripts/mutation.sh                  # every core module (hours on a 2-core machine)
 #   scripts/mutation.sh pose response    # only these (names below)
 #   JOBS=1 scripts/mutation.sh pose      # mutmut workers (default 2)
-#   RECHECK=1 scripts/mutation.sh pose   # after adding tests: copy tests/ into the scratch copy
-#                                        # and re-run the last run's survivors, and the mutants
-#                                        # an interrupted run left unchecked
+#   RECHECK=1 scripts/mutation.sh pose   # after changing code or tests: bring both into the
+#                                        # scratch copy and re-run the last run's survivors, and
+#                                        # the mutants unchecked (new, or left by an interrupted run)
 #   RECHECK=1 SAMPLE=300 ...             # ... only a random 300 of those unchecked (an estimate)
 #
 # Needs: pip install mutmut (the dev extra). Each module runs in its own scratch copy of the
@@ -97,21 +97,22 @@ summarise() {
   for m in $(survivors); do mutmut show "$m" >> survivors.txt 2>&1 || true; done
 }
 
+recheck_list() {  # last run's survivors, then the unchecked mutants (SAMPLE: a random N of them)
+  survivors
+  with_status "not checked" | shuf --random-source=<(yes) | head -n "${SAMPLE:--0}"
+}
+
 run_module() {
   local name=$1 target=$2 tests=$3
   local dir="$WORK/$name"
-  local only=()
   if [ -n "${RECHECK:-}" ]; then
-    [ -f "$dir/results.txt" ] || { echo "$name: no earlier run in $dir to recheck" >&2; exit 2; }
-    rm -rf "$dir/tests" && cp -r "$ROOT/tests" "$dir/tests"
-    (cd "$dir" && env -u PYTHONPATH mutmut results --all true > results.txt 2>&1) || true
-    mapfile -t only < <(cd "$dir" && survivors)
-    local survivors=${#only[@]}
-    mapfile -t -O "$survivors" only < <(cd "$dir" && with_status "not checked" \
-                                        | shuf --random-source=<(yes) | head -n "${SAMPLE:--0}")
-    # The test files stay those of the first run (a new selection resets every verdict):
-    # a new test file in a module's list needs a fresh run.
-    echo "== $name: rechecking $survivors survivors and $((${#only[@]} - survivors)) unchecked mutants"
+    [ -f "$dir/setup.cfg" ] || { echo "$name: no earlier run in $dir to recheck" >&2; exit 2; }
+    # Today's code and tests into the scratch copy: mutmut keeps the verdicts of functions that
+    # did not change and makes new mutants of those that did. The test files stay those of the
+    # first run (a new selection resets every verdict): a new file in the list needs a fresh run.
+    rm -rf "$dir/tests" "$dir/src/collider_server" "$dir/src/collider_client"
+    cp -r "$ROOT/tests" "$dir/tests"
+    cp -r "$ROOT/server/collider_server" "$ROOT/client/collider_client" "$dir/src/"
   else
     make_scratch_copy "$dir"
     write_config "$target" "$tests" > "$dir/setup.cfg"
@@ -121,13 +122,21 @@ run_module() {
     cd "$dir"
     unset PYTHONPATH
     export OMP_NUM_THREADS=1 NUMBA_NUM_THREADS=1 NUMBA_THREADING_LAYER=workqueue PYTHONPATH=.
-    if [ -n "${RECHECK:-}" ] && [ ${#only[@]} -gt 0 ]; then
-      # mutmut collects the stats of new tests first; mutants run in that same invocation were
-      # seen to miss the new tests (half the kills lost): collect them with one mutant first.
-      mutmut run --max-children 1 "${only[0]}" > run.log 2>&1 || true
-    fi
-    if [ -z "${RECHECK:-}" ] || [ ${#only[@]} -gt 0 ]; then
-      mutmut run --max-children "$JOBS" "${only[@]}" >> run.log 2>&1 || true
+    if [ -n "${RECHECK:-}" ]; then
+      # A first invocation makes the new mutants and collects the new tests' stats, then stops
+      # (no mutant has that name): mutants run in the invocation that collects the stats were
+      # seen to miss the new tests.
+      mutmut run --max-children 1 collect-stats-only > run.log 2>&1 || true
+      mutmut results --all true > results.txt 2>&1 || true
+      local only=()
+      mapfile -t only < <(recheck_list)
+      echo "== $name: rechecking $(survivors | wc -l) survivors and" \
+           "$((${#only[@]} - $(survivors | wc -l))) unchecked mutants"
+      if [ ${#only[@]} -gt 0 ]; then
+        mutmut run --max-children "$JOBS" "${only[@]}" >> run.log 2>&1 || true
+      fi
+    else
+      mutmut run --max-children "$JOBS" > run.log 2>&1 || true
     fi
     summarise "$name"
   )
