@@ -67,7 +67,7 @@ def architecture_from_dict(values: dict) -> Architecture | GridArchitecture:
     """The architecture stored in a model's ``settings["architecture"]`` (files written before
     the grid encoding have no ``encoding`` key: they are Fourier networks)."""
     values = dict(values)
-    if values.get("encoding", "fourier") == "grid":
+    if values.get("encoding") == "grid":
         return GridArchitecture(**values)
     values.pop("encoding", None)
     return Architecture(**values)

@@ -248,3 +248,10 @@ def test_weights_of_any_float_dtype_load_as_float32(tiny_neural_collider):
     assert float(rebuilt.network.radius) == pytest.approx(0.12, rel=1e-6)  # half the largest side
     points = inside_points(20, 7) + shift
     np.testing.assert_array_equal(rebuilt.query(points).distance, collider.query(points).distance)
+
+
+def test_fourier_weights_are_float32(network_collider):
+    """The model file holds float32 arrays: the Fourier matrix, the layers, centre and radius."""
+    tensors = network_collider.tensors()
+    assert {"fourier", "centre", "radius"} <= set(tensors)
+    assert {v.dtype for v in tensors.values()} == {np.dtype(np.float32)}

@@ -461,3 +461,25 @@ def test_gradient_on_the_faces_of_the_normalised_cube(smooth):
         network.fused = True
         _, fused = network.fused_query(x, True)
         torch.testing.assert_close(fused, gradient, rtol=0, atol=1e-4 * float(gradient.abs().max()))
+
+
+def test_the_collider_queries_through_the_fused_network_kernel_on_a_cpu():
+    """docs/neural.md, query fast path: on a CPU with numba a grid collider's answers are the
+    fused whole-network kernel's (bit for bit); with it switched off, the torch analytic path,
+    which needs no autograd graph (it answers inside torch.inference_mode)."""
+    arch = GridArchitecture(**SMALL)
+    network = random_network(seed=23)
+    info = ColliderInfo("g", "neural", LO.tolist(), HI.tolist(), settings={"architecture": arch.__dict__.copy()})
+    collider = NeuralCollider(info, network, "cpu")
+    x = points(200, 24)
+    if grid_kernels.available():
+        distance, gradient = collider.evaluate(x.numpy().astype(np.float64), True)
+        kernel_distance, kernel_gradient = network.fused_query(x, True)
+        np.testing.assert_array_equal(distance, kernel_distance.numpy())
+        np.testing.assert_array_equal(gradient, kernel_gradient.numpy())
+    network.fused = False
+    with torch.inference_mode():
+        distance, gradient = collider.evaluate(x.numpy().astype(np.float64), True)
+        reference = network.value_and_gradient(x)
+    np.testing.assert_array_equal(distance, reference[0].numpy())
+    np.testing.assert_array_equal(gradient, reference[1].numpy())
