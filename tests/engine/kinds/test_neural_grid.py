@@ -372,6 +372,10 @@ def test_grid_collider_answers_the_documented_network():
 
 
 def test_the_fused_kernels_serve_cpu_points_unless_switched_off():
+    """They can run exactly when numba (a serve dependency) is installed."""
+    import importlib.util
+
+    assert grid_kernels.available() == (importlib.util.find_spec("numba") is not None)
     network = random_network()
     x = points(4, 18)
     assert network.can_fuse(x) == grid_kernels.available()
