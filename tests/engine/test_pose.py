@@ -69,3 +69,51 @@ def test_float32_rotations_are_accepted_and_reorthonormalised():
 def test_near_misses_are_rejected(block, message):
     with pytest.raises(PoseError, match=message):
         as_pose(matrix(np.asarray(block, float), [0, 0, 0]))
+
+
+def _refusal(pose) -> str:
+    with pytest.raises(PoseError) as caught:
+        as_pose(pose)
+    return str(caught.value)
+
+
+def test_each_refusal_says_exactly_what_is_wrong_and_where():
+    far = matrix(np.eye(3), [0.0, 0.0, -2e6])
+    assert _refusal(far) == ("pose translation [0.0, 0.0, -2000000.0] is outside the coordinate "
+                             "range +-1e+06 (world units; row 2, column 3)")
+    nan = np.eye(4)
+    nan[1, 2] = np.nan
+    assert _refusal(nan) == "pose contains NaN or Inf (first at row 1, column 2)"
+    assert _refusal(np.eye(3)) == "pose must be a 4x4 matrix, got shape (3, 3)"
+    assert _refusal([["a"] * 4] * 4).startswith("pose must be a 4x4 matrix of numbers: ")
+    bottom = np.eye(4)
+    bottom[3, 3] = 2e6  # a bad bottom row, not a far translation
+    assert _refusal(bottom) == "pose bottom row must be [0, 0, 0, 1], got [0.0, 0.0, 0.0, 2000000.0]"
+    assert _refusal(matrix(np.zeros((3, 3)), [0, 0, 0])) == "pose rotation block is zero (scale 0)"
+    assert _refusal(matrix(np.diag([1.0, 1.0, 1.001]), [0, 0, 0])) == (
+        "pose is not rigid: its 3x3 block is not a rotation times a uniform scale "
+        "(shear or non-uniform scale)")
+    assert _refusal(matrix(-np.eye(3), [0, 0, 0])) == (
+        "pose is a reflection (negative determinant); only rotations are allowed")
+    assert _refusal(matrix(np.eye(3), [0, 0, 0], 2e6)) == "pose scale 2e+06 is outside [1e-06, 1e+06]"
+    assert _refusal(matrix(np.eye(3), [0, 0, 0], 5e-7)) == "pose scale 5e-07 is outside [1e-06, 1e+06]"
+
+
+def test_the_limits_themselves_are_accepted():
+    assert as_pose(matrix(np.eye(3), [1e6, -1e6, 0.0])).translation.tolist() == [1e6, -1e6, 0.0]
+    assert as_pose(matrix(np.eye(3), [0, 0, 0], 1e6)).scale == pytest.approx(1e6, rel=1e-12)
+    assert as_pose(matrix(np.eye(3), [0, 0, 0], 1e-6)).scale == pytest.approx(1e-6, rel=1e-9)
+    # The bottom row is checked to 1e-9: 5e-10 off passes, 5e-9 off does not.
+    nearly = np.eye(4)
+    nearly[3, 0] = 5e-10
+    as_pose(nearly)
+    nearly[3, 0] = 5e-9
+    assert _refusal(nearly).startswith("pose bottom row must be [0, 0, 0, 1]")
+
+
+@pytest.mark.parametrize("scale, kept", [(1.0 + 5e-6, 1.0), (1.0 + 2e-5, 1.0 + 2e-5), (2.0, 2.0)])
+def test_a_scale_within_the_tolerance_of_one_is_one_and_others_divide(scale, kept):
+    pose = as_pose(matrix(np.eye(3), [0.1, 0, 0], scale))
+    assert pose.scale == pytest.approx(kept, rel=1e-12, abs=0)
+    world = np.array([[0.1 + kept * 0.3, 0.0, 0.0]])
+    np.testing.assert_allclose(pose.to_local(world), [[0.3, 0.0, 0.0]], rtol=0, atol=1e-12)
