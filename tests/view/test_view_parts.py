@@ -123,10 +123,11 @@ def test_view_command_errors(capsys):
 
 
 def test_view_address_warning(capsys):
-    from collider_client.sim.view import _is_loopback, start_server
+    from collider_client._net import is_loopback
+    from collider_client.sim.view import start_server
 
-    assert _is_loopback("127.0.0.1") and _is_loopback("::1") and _is_loopback("localhost")
-    assert not _is_loopback("0.0.0.0") and not _is_loopback("192.168.1.2")
+    assert is_loopback("127.0.0.1") and is_loopback("::1") and is_loopback("localhost")
+    assert not is_loopback("0.0.0.0") and not is_loopback("192.168.1.2")
     pytest.importorskip("viser")
     server = start_server("127.0.0.1", _free_port())
     try:

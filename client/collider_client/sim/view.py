@@ -11,7 +11,6 @@ by its pose at the shown time).
 
 from __future__ import annotations
 
-import ipaddress
 import sys
 import threading
 import time
@@ -20,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .._net import is_loopback
 from .cloth import quad_faces
 from .scene import Scene, pose_function
 
@@ -43,21 +43,12 @@ def start_server(host: str = "127.0.0.1", port: int = DEFAULT_PORT, label: str =
     """A started ``viser.ViserServer`` on ``host:port``; warns on stderr when ``host`` is not a
     loopback address (the view has no authentication: anyone who reaches the port sees it)."""
     viser = require_viser()
-    if not _is_loopback(host):
+    if not is_loopback(host):
         print(f"warning: the view listens on {host}: anyone who can reach port {port} can see "
               "and drive it (no authentication)", file=sys.stderr)
     server = viser.ViserServer(host=host, port=port, label=label, verbose=False)
     server.scene.set_up_direction("+z")
     return server
-
-
-def _is_loopback(host: str) -> bool:
-    if host == "localhost":
-        return True
-    try:
-        return ipaddress.ip_address(host).is_loopback
-    except ValueError:
-        return False
 
 
 def url_of(server) -> str:

@@ -3,10 +3,11 @@
 from __future__ import annotations
 
 import argparse
-import ipaddress
 import logging
 import sys
 from pathlib import Path
+
+from collider_client._net import is_loopback
 
 
 def register(subparsers) -> None:
@@ -58,15 +59,6 @@ SETTING_FLAGS = ("host", "port", "models", "device", "max_batch_points", "max_wa
                  "max_queue_points", "coalesce", "max_request_points", "max_body_bytes",
                  "max_scene_colliders", "default_deadline_ms", "compute_threads", "cors_origins", "warmup",
                  "log_level", "body_timeout_s", "graceful_shutdown_s")
-
-
-def is_loopback(host: str) -> bool:
-    if host == "localhost":
-        return True
-    try:
-        return ipaddress.ip_address(host).is_loopback
-    except ValueError:
-        return False
 
 
 def run_serve(args) -> int:
