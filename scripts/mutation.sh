@@ -13,8 +13,8 @@
 # Needs: pip install mutmut (the dev extra). Each module runs in its own scratch copy of the
 # repository under ${MUTATION_DIR:-/tmp/neural-collider-mutation}/NAME (mutmut writes its mutants/
 # folder there; the shared meshes are linked in), so the working tree is never touched.
-# Per module it prints killed / survived / other and the score, and writes the surviving
-# mutants' diffs to NAME/survivors.txt. Read the survivors: each is a change no test notices.
+# Per module it prints killed / timeout / survived / untested / not checked and the score, and
+# writes the surviving and untested mutants' diffs to NAME/survivors.txt. Read the survivors: each is a change no test notices.
 set -euo pipefail
 
 ROOT="$(cd "$(dirname "$0")/.." && pwd)"
