@@ -24,7 +24,7 @@ REPO = Path(__file__).resolve().parents[1]
 MESHES = REPO.parent / "shared" / "data" / "meshes"
 sys.path.insert(0, str(REPO / "client"))
 
-from collider_client import wire  # noqa: E402
+from collider_contract import wire  # noqa: E402
 from collider_server.service.launch import free_port  # noqa: E402,F401  (one home for it)
 
 

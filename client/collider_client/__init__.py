@@ -9,6 +9,8 @@ Points and results are world frame, metres. See :mod:`collider_client.response` 
 collision response a simulator applies after its step.
 """
 
+from collider_contract import FIELDS, ModelInfo, QueryResult
+
 from ._base import USE_CLIENT_DEFAULT, RetryPolicy, SceneCollider, UseClientDefault
 from ._client import AsyncClient, Client
 from ._exceptions import (
@@ -29,7 +31,6 @@ from ._exceptions import (
     UnsupportedMediaTypeError,
     error_for_status,
 )
-from ._models import FIELDS, ModelInfo, QueryResult
 from .response import (
     ColliderPlacement,
     CollisionHook,

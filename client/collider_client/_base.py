@@ -13,10 +13,9 @@ from typing import Any, Iterable, Sequence
 
 import numpy as np
 
-from . import wire
-from .wire import check_fields  # noqa: F401  (used by the clients)
+from collider_contract import ModelInfo, QueryResult, wire
+
 from ._exceptions import ProtocolError, ServerError, error_for_status
-from ._models import ModelInfo, QueryResult
 
 #: Statuses worth another try after a pause: the server is busy or (re)starting.
 RETRY_STATUSES = frozenset({429, 503})

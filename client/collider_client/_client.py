@@ -19,13 +19,13 @@ from typing import Iterable, Sequence
 import httpx
 import numpy as np
 
-from . import wire
+from collider_contract import ModelInfo, QueryResult, check_fields, wire
+
 from ._base import (
     USE_CLIENT_DEFAULT, Attempts, RetryPolicy, UseClientDefault, as_points, as_scene,
-    check_fields, decode_models, decode_query, query_body, scene_body,
+    decode_models, decode_query, query_body, scene_body,
 )
 from ._exceptions import ConnectError, TimeoutError, TransportError
-from ._models import ModelInfo, QueryResult
 
 DEFAULT_TIMEOUT_S = 30.0
 

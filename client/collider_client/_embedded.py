@@ -13,8 +13,9 @@ from pathlib import Path
 
 import numpy as np
 
+from collider_contract import GRADIENT_FIELDS, ModelInfo, QueryResult
+
 from ._exceptions import InvalidValueError, ModelNotFoundError
-from ._models import GRADIENT_FIELDS, ModelInfo, QueryResult
 from ._base import SceneCollider
 
 

@@ -20,7 +20,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from ._models import ModelInfo
+from collider_contract import ModelInfo
 
 __all__ = [
     "project_to_contacts",

@@ -6,9 +6,10 @@ collider: ``neural`` (the paper's network), ``voxel``, ``mesh`` (exact) and ``kd
 paper's approximate baseline). Lengths are in the collider's units (metres for the shipped models).
 """
 
+from collider_contract import MAX_COORDINATE_M, Pose, PoseError, as_pose
+
 from .collider import FIELDS, Collider, ColliderInfo, QueryResult
 from .modelfile import ModelFileError, load_collider, save_collider
-from .pose import MAX_COORDINATE_M, Pose, PoseError, as_pose
 from .repository import ModelRepository
 
 __all__ = [

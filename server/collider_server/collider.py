@@ -29,10 +29,7 @@ from typing import ClassVar, Iterable
 
 import numpy as np
 
-from collider_client._models import QueryResult  # one result type for engine and SDK
-from collider_client.wire import FIELDS, GRADIENT_FIELDS, check_fields  # the shared contract
-
-from .pose import MAX_COORDINATE_M, Pose, as_pose  # MAX_COORDINATE_M: the coordinate range
+from collider_contract import FIELDS, GRADIENT_FIELDS, MAX_COORDINATE_M, Pose, QueryResult, as_pose, check_fields
 
 DEFAULT_EPS_METERS = 1e-3
 MAX_POINTS_PER_CALL = 200_000_000

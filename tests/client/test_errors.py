@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 import collider_client as cc
-from collider_client import wire
+from collider_contract import wire
 
 EXPECTED = {
     400: cc.BadRequestError, 401: cc.UnauthorizedError, 404: cc.ModelNotFoundError,

@@ -12,7 +12,7 @@ from collider_client import (
     ColliderPlacement, CollisionHook, collider_velocity, project_to_contacts, respond_velocities,
 )
 from collider_client.response import TunnellingError, world_box
-from collider_client._models import ModelInfo
+from collider_contract import ModelInfo
 
 UP = np.array([[0.0, 0.0, 1.0]])
 

@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from collider_server.pose import as_pose
+from collider_contract.pose import as_pose
 
 EPS = 1e-3
 N_POINTS = 600

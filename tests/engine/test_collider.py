@@ -12,7 +12,7 @@ import pytest
 
 from collider_server.collider import (FIELDS, MAX_POINTS_PER_CALL, Collider, ColliderInfo,
                                       nearest_collider)
-from collider_server.pose import MAX_COORDINATE_M, PoseError
+from collider_contract.pose import MAX_COORDINATE_M, PoseError
 
 KINDS = ["neural", "voxel", "mesh", "kdtree"]
 ALL_FIELDS = list(FIELDS)

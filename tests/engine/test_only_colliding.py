@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from collider_server.collider import FIELDS, Collider, assemble_result, assemble_scene_result
-from collider_server.pose import as_pose
+from collider_contract.pose import as_pose
 
 from .test_collider import KINDS, fresh_collider, mixed_points  # noqa: F401  (fixture)
 

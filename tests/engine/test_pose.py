@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from collider_server.pose import IDENTITY, Pose, PoseError, as_pose
+from collider_contract.pose import IDENTITY, Pose, PoseError, as_pose
 
 
 def random_rotation(seed) -> np.ndarray:

@@ -14,7 +14,7 @@ import pytest
 from pathlib import Path
 
 from collider_server.collider import MAX_COORDINATE_M, Collider
-from collider_server.pose import PoseError, as_pose
+from collider_contract.pose import PoseError, as_pose
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 

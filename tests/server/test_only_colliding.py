@@ -9,7 +9,7 @@ import asyncio
 import httpx
 import numpy as np
 import pytest
-from collider_client import wire
+from collider_contract import wire
 
 from collider_server.collider import FIELDS
 
@@ -126,7 +126,7 @@ def test_a_batch_joins_collide_only_jobs_with_others(repo):
     one wanting none: each gets its own answer, the collide-only one's gradient work only for its
     colliding points."""
     from collider_server.batching import BatchPart
-    from collider_server.pose import as_pose
+    from collider_contract.pose import as_pose
     from collider_server.repository import ModelRepository
     from collider_server.service.answers import QueryJob, answer_batch
 

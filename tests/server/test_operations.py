@@ -18,7 +18,7 @@ from concurrent.futures import ThreadPoolExecutor
 import httpx
 import numpy as np
 import pytest
-from collider_client import wire
+from collider_contract import wire
 
 from .conftest import ADMIN_TOKEN, ServerThread, make_repo
 from .test_queries import decode, post, sample_points

@@ -10,7 +10,7 @@ import httpx
 import msgpack
 import numpy as np
 import pytest
-from collider_client import wire
+from collider_contract import wire
 
 from collider_server.collider import FIELDS
 

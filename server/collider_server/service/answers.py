@@ -13,11 +13,11 @@ from dataclasses import dataclass
 from typing import Sequence
 
 import numpy as np
+from collider_contract import MAX_COORDINATE_M, Pose
 
 from ..batching import BatcherClosed, BatchPart, DeadlineExceeded, QueueFull
 from ..collider import (GRADIENT_FIELDS, Collider, QueryResult, assemble_result, assemble_scene_result,
                         gradient_threshold)
-from ..pose import MAX_COORDINATE_M, Pose
 from .bodies import QuerySpec, SceneSpec
 from .problems import Problem
 from .registry import LoadedModel

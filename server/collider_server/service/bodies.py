@@ -1,6 +1,6 @@
 """Request and response bodies: media types, size limits, and the query fields' validation.
 
-The arrays follow :mod:`collider_client.wire` (msgpack maps of raw little-endian bytes, or JSON
+The arrays follow :mod:`collider_contract.wire` (msgpack maps of raw little-endian bytes, or JSON
 nested lists). Status codes: 400 a body that cannot be parsed, 413 too large, 415 a media type
 that is neither msgpack nor JSON, 422 a parsed body whose values are wrong.
 """
@@ -12,12 +12,11 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from collider_client import wire
+from collider_contract import Pose, PoseError, as_pose, wire
 from starlette.requests import Request
 from starlette.responses import Response
 
 from ..collider import check_fields, check_points
-from ..pose import Pose, PoseError, as_pose
 from .problems import Problem
 
 DEADLINE_HEADER = "x-deadline-ms"

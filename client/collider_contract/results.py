@@ -1,4 +1,5 @@
-"""What the client hands back: query results and model descriptions (plain numpy, no torch)."""
+"""What a query answers and what a model is: :class:`QueryResult` and :class:`ModelInfo`
+(plain numpy, no torch), the same types from the engine, the service and both SDK backends."""
 
 from __future__ import annotations
 
@@ -8,9 +9,8 @@ from typing import Any
 
 import numpy as np
 
-from .wire import FIELDS, GRADIENT_FIELDS  # noqa: F401  (re-exported)
+from .wire import FIELDS
 
-DEFAULT_EPS_METERS = 1e-3
 
 
 @dataclass
