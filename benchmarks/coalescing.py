@@ -221,7 +221,7 @@ def main() -> int:
 
     import torch
 
-    from collider_server.modelfile import load_collider
+    from collider_server.engine.modelfile import load_collider
     from collider_server.service.settings import ServiceSettings
 
     # The in-process reference runs with the server's compute thread count, so the transport

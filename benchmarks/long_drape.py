@@ -34,9 +34,9 @@ DEFAULT_MESH = REPO.parent / "shared" / "data" / "meshes" / "stanford-bunny.obj"
 
 
 def bake_voxel_bunny(mesh_path: Path, resolution: int, folder: Path) -> None:
-    from collider_server.bake import bake_collider
-    from collider_server.meshes import load_mesh
-    from collider_server.modelfile import save_collider
+    from collider_server.engine.modelfile import save_collider
+    from collider_server.making.bake import bake_collider
+    from collider_server.making.mesh_files import load_mesh
 
     collider = bake_collider(load_mesh(mesh_path), "voxel", "bunny", resolution=resolution)
     save_collider(collider, folder / "bunny.safetensors")
@@ -52,7 +52,8 @@ def main() -> None:
 
     from tqdm import tqdm
 
-    from collider_server.meshes import ExactSDF, load_mesh
+    from collider_server.engine.meshes import ExactSDF
+    from collider_server.making.mesh_files import load_mesh
 
     scene = load_scene(SCENES_DIR / "drape_bunny.toml")
     steps = scene.steps if args.steps is None else args.steps

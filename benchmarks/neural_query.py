@@ -46,12 +46,12 @@ def best_seconds(call, repeat: int) -> float:
 def main(argv=None) -> int:
     import torch
 
-    from collider_server.bake import bake_collider
-    from collider_server.kinds import grid_kernels
-    from collider_server.meshes import load_mesh
-    from collider_server.modelfile import load_collider
-    from collider_server.repository import ModelRepository
-    from collider_server.sampling import surface_band_points
+    from collider_server.engine.kinds import grid_kernels
+    from collider_server.engine.modelfile import load_collider
+    from collider_server.engine.repository import ModelRepository
+    from collider_server.making.bake import bake_collider
+    from collider_server.making.mesh_files import load_mesh
+    from collider_server.making.sampling import surface_band_points
 
     args = parse_args(argv)
     if args.threads:

@@ -158,7 +158,7 @@ def main() -> int:
     if min(args.models, args.simulators, args.cloth) < 1 or not args.duration > 0:
         parser.error("--models, --simulators, --cloth must be >= 1 and --duration > 0")
 
-    from collider_server.modelfile import read_info
+    from collider_server.engine.modelfile import read_info
 
     info = read_info(args.collider)
     lo, hi = np.asarray(info.domain_min), np.asarray(info.domain_max)

@@ -109,9 +109,9 @@ def prepare_models(root: Path, resolution: int = 128) -> dict[str, str]:
     ``resolution``^3) and ``bunny-neural`` (``models/bunny.safetensors`` when it exists, else an
     untrained network of the paper's bunny architecture: the same compute per point).
     Returns ``{name: description}``."""
-    from collider_server.bake import bake_collider
-    from collider_server.meshes import load_mesh
-    from collider_server.modelfile import load_collider, save_collider
+    from collider_server.engine.modelfile import load_collider, save_collider
+    from collider_server.making.bake import bake_collider
+    from collider_server.making.mesh_files import load_mesh
 
     root.mkdir(parents=True, exist_ok=True)
     notes = {}
@@ -137,8 +137,8 @@ def prepare_models(root: Path, resolution: int = 128) -> dict[str, str]:
 def untrained_paper_bunny(voxel):
     import torch
 
-    from collider_server.collider import ColliderInfo
-    from collider_server.kinds.neural import PRESETS, NeuralCollider, build_network
+    from collider_server.engine.collider import ColliderInfo
+    from collider_server.engine.kinds.neural import PRESETS, NeuralCollider, build_network
 
     arch = PRESETS["paper-bunny"]
     lo, hi = voxel.domain_min, voxel.domain_max

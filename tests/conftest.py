@@ -31,7 +31,7 @@ def shared_mesh_path(name: str) -> Path:
 
 @functools.lru_cache(maxsize=None)
 def _load_shared_mesh(name: str):
-    from collider_server.meshes import load_mesh
+    from collider_server.making.mesh_files import load_mesh
 
     return load_mesh(MESHES_DIR / name)
 
@@ -46,7 +46,7 @@ def meshes_dir() -> Path:
 
 @pytest.fixture(scope="session")
 def load_shared_mesh() -> Callable:
-    """``load_shared_mesh("stanford-bunny.obj")`` -> :class:`collider_server.meshes.Mesh`
+    """``load_shared_mesh("stanford-bunny.obj")`` -> :class:`collider_server.engine.meshes.Mesh`
     (cached for the session); skips when the file is absent."""
 
     def load(name: str):
@@ -77,7 +77,7 @@ def device(request) -> str:
 class Shape:
     """A procedural solid with its exact SDF.
 
-    mesh : :class:`collider_server.meshes.Mesh`, a high-resolution triangulation (metres)
+    mesh : :class:`collider_server.engine.meshes.Mesh`, a high-resolution triangulation (metres)
     sdf : (n, 3) float64 points -> (n,) float64 signed distance, negative inside
     gradient : (n, 3) float64 points -> (n, 3) unit outward SDF gradient
     sample : (n, seed) -> (n, 3) float64 points near the surface where the SDF is smooth
@@ -100,7 +100,7 @@ def _unit(v: np.ndarray) -> np.ndarray:
 
 
 def _mesh(tri, name: str):
-    from collider_server.meshes import Mesh
+    from collider_server.engine.meshes import Mesh
 
     return Mesh(np.asarray(tri.vertices, np.float64), np.asarray(tri.faces, np.int64), name)
 
@@ -218,7 +218,7 @@ TEST_VOXEL_RESOLUTION = 64
 
 @functools.lru_cache(maxsize=None)
 def _baked(shape_name: str, kind: str, resolution: int):
-    from collider_server.bake import bake_collider
+    from collider_server.making.bake import bake_collider
 
     return bake_collider(procedural_shape(shape_name).mesh, kind, f"{shape_name}-{kind}",
                          resolution=resolution, device="cpu", show_progress=False)
@@ -233,9 +233,9 @@ def make_neural_collider(domain_min, domain_max, *, seed: int = 0, device: str =
     kernels), its feature table filled with values large enough to vary the field."""
     import torch
 
-    from collider_server.collider import ColliderInfo
-    from collider_server.kinds.neural import Architecture, NeuralCollider, build_network
-    from collider_server.kinds.neural_grid import GridArchitecture
+    from collider_server.engine.collider import ColliderInfo
+    from collider_server.engine.kinds.neural import Architecture, NeuralCollider, build_network
+    from collider_server.engine.kinds.neural_grid import GridArchitecture
 
     if grid:
         arch = GridArchitecture(levels=4, max_resolution=32, table_log2=12,
@@ -276,8 +276,8 @@ def small_sphere_model(tmp_path) -> Path:
     returns the file path (``.../models/sphere.safetensors``)."""
     import trimesh
 
-    from collider_server.bake import bake_collider
-    from collider_server.modelfile import save_collider
+    from collider_server.engine.modelfile import save_collider
+    from collider_server.making.bake import bake_collider
 
     mesh = _mesh(trimesh.creation.icosphere(subdivisions=3, radius=SPHERE_RADIUS), "sphere")
     collider = bake_collider(mesh, "voxel", "sphere", resolution=32, show_progress=False, device="cpu")

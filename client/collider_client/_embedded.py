@@ -15,8 +15,8 @@ import numpy as np
 
 from collider_contract import GRADIENT_FIELDS, ModelInfo, QueryResult
 
-from ._exceptions import InvalidValueError, ModelNotFoundError
 from ._base import SceneCollider
+from ._exceptions import InvalidValueError, ModelNotFoundError
 
 
 class EmbeddedBackend:
@@ -31,7 +31,7 @@ class EmbeddedBackend:
     def __init__(self, models: str | Path | None = None, device: str | None = None,
                  threads: int | None = None):
         try:
-            from collider_server.repository import ModelRepository
+            from collider_server.engine.repository import ModelRepository
         except ImportError as exc:  # the light install has no engine
             raise ImportError(
                 "the embedded backend needs the engine: pip install 'neural-collider[server]' "
@@ -71,9 +71,14 @@ class EmbeddedBackend:
 
     def scene_query(self, colliders: list[SceneCollider], points: np.ndarray, fields: list[str],
                     eps: float | None, only_colliding: bool = False) -> QueryResult:
-        from collider_server.collider import (assemble_scene_result, check_eps, check_fields,
-                                              check_points, gradient_threshold)
-        from collider_server.pose import as_pose
+        from collider_server.engine.collider import (
+            assemble_scene_result,
+            check_eps,
+            check_fields,
+            check_points,
+            gradient_threshold,
+        )
+        from collider_contract import as_pose
 
         try:
             fields_t = check_fields(fields)
@@ -95,7 +100,7 @@ class EmbeddedBackend:
         return QueryResult(**result.fields(), collider=nearest)
 
     def list_models(self) -> list[ModelInfo]:
-        from collider_server.modelfile import read_info
+        from collider_server.engine.modelfile import read_info
 
         out = []
         for name in self.repository.names():
@@ -107,7 +112,7 @@ class EmbeddedBackend:
         return out
 
     def _device_name(self) -> str:
-        from collider_server.devices import resolve_device
+        from collider_server.engine.devices import resolve_device
 
         return resolve_device(self.device)
 

@@ -22,9 +22,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .collider import Collider
-from .meshes import ExactSDF, Mesh
-from .progress import progress
+from .engine.collider import Collider
+from .engine.meshes import ExactSDF, Mesh
+from .making.progress import progress
 
 BOX_COLOR = (60, 60, 60)
 WIRE_COLOR = (40, 40, 40)

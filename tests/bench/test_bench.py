@@ -87,7 +87,7 @@ def test_rank_takes_the_fastest_that_meets_every_limit_and_explains_when_none_do
 
 
 def test_plan_stops_voxels_at_the_memory_budget_and_lists_every_neural_preset(monkeypatch, load_shared_mesh):
-    from collider_server.kinds import neural
+    from collider_server.engine.kinds import neural
 
     mesh = load_shared_mesh("stanford-bunny.obj")
     monkeypatch.setitem(neural.PRESETS, "bench-test-preset", neural.Architecture(16, 2, 32, 3.0))
@@ -172,7 +172,7 @@ def test_budget_bake_picks_the_fastest_collider_that_meets_it_and_checks_it_afre
     result = collider("bake", mesh, "--name", "picked", "--models", tmp_path, "--max-error", "0.1mm",
                       "--bench", out / "result" / "bench.json", "--quiet")
     assert result.returncode == 0, result.stdout + result.stderr
-    from collider_server.modelfile import read_info
+    from collider_server.engine.modelfile import read_info
 
     info = read_info(tmp_path / "picked.safetensors")
     expected = rank(report, Budget(0.1))[0]

@@ -17,9 +17,9 @@ SPHERE_RADIUS_M = 0.1
 def _bake(kind_shape: str, root: Path) -> None:
     import trimesh
 
-    from collider_server.bake import bake_collider
-    from collider_server.meshes import Mesh
-    from collider_server.modelfile import save_collider
+    from collider_server.engine.meshes import Mesh
+    from collider_server.engine.modelfile import save_collider
+    from collider_server.making.bake import bake_collider
 
     if kind_shape == "sphere":
         shape = trimesh.creation.icosphere(subdivisions=4, radius=SPHERE_RADIUS_M)

@@ -9,7 +9,11 @@ import numpy as np
 import pytest
 
 from collider_client import (
-    ColliderPlacement, CollisionHook, collider_velocity, project_to_contacts, respond_velocities,
+    ColliderPlacement,
+    CollisionHook,
+    collider_velocity,
+    project_to_contacts,
+    respond_velocities,
 )
 from collider_client.response import TunnellingError, world_box
 from collider_contract import ModelInfo
@@ -341,7 +345,7 @@ def test_hook_arguments_are_checked():
 def _box_mesh(extents, centre, name):
     import trimesh
 
-    from collider_server.meshes import Mesh
+    from collider_server.engine.meshes import Mesh
 
     box = trimesh.creation.box(extents=extents)
     return Mesh(np.asarray(box.vertices) + np.asarray(centre, float), np.asarray(box.faces), name)
@@ -353,8 +357,8 @@ def exact_client(tmp_path_factory):
     at z = 0; ``plate`` 0.3 x 0.3 m, 0.2 mm thick, faces at z = 0 and z = -0.2 mm."""
     pytest.importorskip("collider_server")
     import collider_client as cc
-    from collider_server.bake import bake_collider
-    from collider_server.modelfile import save_collider
+    from collider_server.engine.modelfile import save_collider
+    from collider_server.making.bake import bake_collider
 
     root = tmp_path_factory.mktemp("exact")
     for name, mesh in {"floor": _box_mesh((1.0, 1.0, 0.1), (0, 0, -0.05), "floor"),

@@ -142,9 +142,9 @@ def bake_sphere(path: Path, radius: float = SPHERE_RADIUS_M, resolution: int = 2
     """A small voxel sphere collider (metres, centred at the origin of its frame)."""
     import trimesh
 
-    from collider_server.bake import bake_collider
-    from collider_server.meshes import Mesh
-    from collider_server.modelfile import save_collider
+    from collider_server.engine.meshes import Mesh
+    from collider_server.engine.modelfile import save_collider
+    from collider_server.making.bake import bake_collider
 
     tri = trimesh.creation.icosphere(subdivisions=3, radius=radius)
     collider = bake_collider(Mesh(np.asarray(tri.vertices), np.asarray(tri.faces), path.stem),

@@ -6,10 +6,10 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
-import tomllib
 from pathlib import Path
 
 import pytest
+import tomllib
 from packaging.requirements import Requirement
 
 REPO = Path(__file__).resolve().parents[2]
@@ -90,7 +90,7 @@ def test_a_wheel_install_serves_the_shipped_models(tmp_path):
     empty.mkdir()
     env = {k: v for k, v in os.environ.items() if k not in ("COLLIDER_MODELS", "PYTHONPATH")}
     env["PYTHONPATH"] = str(site)
-    script = ("import collider_server, sys; from collider_server.repository import ModelRepository;"
+    script = ("import collider_server, sys; from collider_server.engine.repository import ModelRepository;"
               "r = ModelRepository(); print(collider_server.__file__); print(r.root);"
               "print(','.join(r.names()))")
     out = subprocess.run([sys.executable, "-c", script], cwd=empty, env=env, check=True,

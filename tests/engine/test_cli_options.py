@@ -11,8 +11,8 @@ import pytest
 
 from collider_server.cli import build_parser, main
 from collider_server.commands.options import finite_float
-from collider_server.meshes import Mesh
-from collider_server.placement import MeshPlacement
+from collider_server.engine.meshes import Mesh
+from collider_server.making.placement import MeshPlacement
 
 
 def subcommands() -> dict[str, argparse.ArgumentParser]:
@@ -128,7 +128,7 @@ def test_bake_takes_fit_size_and_z_up(capsys, tmp_path, box_mesh):
 def test_info_json_stays_strict_json_when_a_model_holds_nan(capsys, small_sphere_model):
     import json
 
-    from collider_server.modelfile import load_collider, save_collider
+    from collider_server.engine.modelfile import load_collider, save_collider
 
     collider = load_collider(small_sphere_model, "cpu")
     # What `collider train --max-minutes nan` stored before it was refused.
@@ -146,7 +146,7 @@ def test_info_json_stays_strict_json_when_a_model_holds_nan(capsys, small_sphere
 
 
 def test_train_config_refuses_a_non_finite_time_budget():
-    from collider_server.training import TrainConfig
+    from collider_server.making.training import TrainConfig
 
     for bad in (float("nan"), float("inf"), 0.0):
         with pytest.raises(ValueError, match="max_minutes must be a finite number > 0"):
@@ -156,7 +156,7 @@ def test_train_config_refuses_a_non_finite_time_budget():
 def test_eval_against_another_mesh_refuses_to_store_the_figures(capsys, tmp_path):
     import trimesh
 
-    from collider_server.modelfile import read_info
+    from collider_server.engine.modelfile import read_info
 
     ball, other = tmp_path / "ball.obj", tmp_path / "other.obj"
     trimesh.creation.icosphere(subdivisions=3, radius=0.1).export(ball)

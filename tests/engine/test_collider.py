@@ -10,9 +10,14 @@ import re
 import numpy as np
 import pytest
 
-from collider_server.collider import (FIELDS, MAX_POINTS_PER_CALL, Collider, ColliderInfo,
-                                      nearest_collider)
 from collider_contract.pose import MAX_COORDINATE_M, PoseError
+from collider_server.engine.collider import (
+    FIELDS,
+    MAX_POINTS_PER_CALL,
+    Collider,
+    ColliderInfo,
+    nearest_collider,
+)
 
 KINDS = ["neural", "voxel", "mesh", "kdtree"]
 ALL_FIELDS = list(FIELDS)
@@ -21,7 +26,7 @@ ALL_FIELDS = list(FIELDS)
 @pytest.fixture
 def fresh_collider(analytic_shape, tiny_neural_collider):
     """A new (unshared, so mutable) small sphere collider of ``kind`` on ``device``."""
-    from collider_server.bake import bake_collider
+    from collider_server.making.bake import bake_collider
 
     def make(kind: str, device: str = "cpu") -> Collider:
         mesh = analytic_shape("sphere").mesh

@@ -6,7 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from collider_server.meshes import ExactSDF, Mesh, MeshError, load_mesh
+from collider_server.engine.meshes import ExactSDF, Mesh
+from collider_server.making.mesh_files import MeshError, load_mesh
 
 
 def write(path, text: str | bytes):

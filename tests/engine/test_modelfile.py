@@ -9,8 +9,13 @@ import pickle
 import numpy as np
 import pytest
 
-from collider_server.modelfile import (
-    FORMAT, ModelFileError, content_hash, load_collider, read_info, save_collider,
+from collider_server.engine.modelfile import (
+    FORMAT,
+    ModelFileError,
+    content_hash,
+    load_collider,
+    read_info,
+    save_collider,
 )
 
 KINDS = ["neural", "voxel", "mesh", "kdtree"]

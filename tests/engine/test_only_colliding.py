@@ -7,10 +7,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from collider_server.collider import FIELDS, Collider, assemble_result, assemble_scene_result
 from collider_contract.pose import as_pose
+from collider_server.engine.collider import FIELDS, Collider, assemble_result, assemble_scene_result
 
 from .test_collider import KINDS, fresh_collider, mixed_points  # noqa: F401  (fixture)
+
 
 @pytest.fixture
 def collider_of(fresh_collider):
@@ -22,8 +23,8 @@ def collider_of(fresh_collider):
             return fresh_collider(kind)
         import torch
 
-        from collider_server.collider import ColliderInfo
-        from collider_server.kinds.neural import GridArchitecture, NeuralCollider, build_network
+        from collider_server.engine.collider import ColliderInfo
+        from collider_server.engine.kinds.neural import GridArchitecture, NeuralCollider, build_network
 
         box = fresh_collider("kdtree")
         arch = GridArchitecture(levels=4, features=2, base_resolution=4, max_resolution=40,

@@ -8,9 +8,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from collider_server.bake import bake_collider
-from collider_server.meshes import ExactSDF
-from collider_server.sampling import surface_band_points
+from collider_server.engine.meshes import ExactSDF
+from collider_server.making.bake import bake_collider
+from collider_server.making.sampling import surface_band_points
 
 MESHES = ["stanford-bunny.obj", "fandisk.obj", "suzanne.obj"]
 RESOLUTION = 64
@@ -103,8 +103,8 @@ def test_kdtree_kind_is_an_upper_bound_within_an_edge(load_shared_mesh, name):
 def test_trained_neural_bunny_if_shipped(load_shared_mesh):
     """The shipped neural bunny (``models/bunny.safetensors``, trained separately) against the
     exact SDF in the +-1 mm band, in the frame it was trained in (``source.transform``)."""
-    from collider_server.modelfile import load_collider
-    from collider_server.repository import ModelRepository
+    from collider_server.engine.modelfile import load_collider
+    from collider_server.engine.repository import ModelRepository
 
     path = ModelRepository().path("bunny")
     if not path.is_file():

@@ -6,7 +6,7 @@ import shutil
 
 import pytest
 
-from collider_server.repository import ModelRepository, check_name, default_models_dir
+from collider_server.engine.repository import ModelRepository, check_name, default_models_dir
 
 
 @pytest.fixture

@@ -8,13 +8,13 @@ for any network (finite answers, fallbacks, invariances) also on whatever ``mode
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
-from pathlib import Path
-
-from collider_server.collider import MAX_COORDINATE_M, Collider
 from collider_contract.pose import PoseError, as_pose
+from collider_server.engine.collider import MAX_COORDINATE_M, Collider
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 
@@ -73,7 +73,7 @@ def sphere_collider(request, shape_collider):
 @pytest.fixture(scope="module")
 def shipped_bunny():
     """``models/bunny`` as it is in the repository (any kind, any preset); skips when absent."""
-    from collider_server.repository import ModelRepository
+    from collider_server.engine.repository import ModelRepository
 
     path = REPO_ROOT / "models" / "bunny.safetensors"
     if not path.is_file():
@@ -286,7 +286,7 @@ def test_ten_million_points_in_one_call_are_chunked_and_match(shape_collider):
 def test_cpu_and_cuda_agree(shape_collider, device):
     if device == "cpu":
         pytest.skip("compares cuda against cpu")
-    from collider_server.modelfile import load_collider, save_collider  # noqa: F401
+    from collider_server.engine.modelfile import load_collider, save_collider  # noqa: F401
 
     cpu = shape_collider("sphere", "voxel")
     gpu = type(cpu).from_tensors(cpu.info, cpu.tensors(), device="cuda")
@@ -324,8 +324,8 @@ def test_projection_is_idempotent(shape_collider, kind):
 
 
 def test_points_exactly_on_vertices_edges_and_creases_of_fandisk(load_shared_mesh):
-    from collider_server.bake import bake_collider
-    from collider_server.meshes import ExactSDF
+    from collider_server.engine.meshes import ExactSDF
+    from collider_server.making.bake import bake_collider
 
     mesh = load_shared_mesh("fandisk.obj")
     collider = bake_collider(mesh, "mesh", "fandisk", show_progress=False)
@@ -353,7 +353,7 @@ def degenerate_box():
     every triangle wound inward; returns (Mesh, the clean box's analytic SDF)."""
     import trimesh
 
-    from collider_server.meshes import Mesh
+    from collider_server.engine.meshes import Mesh
 
     box = trimesh.creation.box(extents=(0.2, 0.2, 0.2)).subdivide().subdivide().subdivide()
     v = np.asarray(box.vertices, np.float64)
@@ -371,8 +371,8 @@ def degenerate_box():
 def test_degenerate_meshes_give_a_correct_collider(kind, tmp_path):
     import trimesh
 
-    from collider_server.bake import bake_collider
-    from collider_server.meshes import load_mesh
+    from collider_server.making.bake import bake_collider
+    from collider_server.making.mesh_files import load_mesh
 
     mesh, sdf = degenerate_box()
     path = tmp_path / "degenerate.obj"
@@ -400,8 +400,8 @@ def test_degenerate_meshes_give_a_correct_collider(kind, tmp_path):
     "measured |grad f| in [0.9, 1.1] for 90.0 % (bunny) and 77.8 % (dragon) of their +-1 mm band"))
 @pytest.mark.parametrize("name", ["bunny", "dragon"])
 def test_shipped_neural_models_are_distance_functions_in_the_band(name):
-    from collider_server.meshes import ExactSDF  # noqa: F401
-    from collider_server.repository import ModelRepository
+    from collider_server.engine.meshes import ExactSDF  # noqa: F401
+    from collider_server.engine.repository import ModelRepository
 
     if not (REPO_ROOT / "models" / f"{name}.safetensors").is_file():
         pytest.skip(f"models/{name}.safetensors is absent")
@@ -449,7 +449,7 @@ OPEN_MESHES = ["stanford-bunny.obj", "teapot.obj", "spot.obj", "suzanne.obj"]
 def test_open_meshes_sign_agrees_with_the_exact_winding_number(name, load_shared_mesh):
     import igl
 
-    from collider_server.bake import bake_collider
+    from collider_server.making.bake import bake_collider
 
     mesh = load_shared_mesh(name)
     size = float(np.ptp(mesh.vertices, axis=0).max())
@@ -507,8 +507,8 @@ def test_thin_features_never_get_their_contact_on_the_far_side(name, thin_m, kin
     99 % (bunny) and 97-99 % (teapot) back out through the near face itself; the others leave
     sideways at creases, or (teapot, eps larger than the gap between its parts) land in another
     part: a limit of any eps wider than the features and gaps it is used near."""
-    from collider_server.bake import bake_collider
-    from collider_server.meshes import ExactSDF
+    from collider_server.engine.meshes import ExactSDF
+    from collider_server.making.bake import bake_collider
 
     mesh = load_shared_mesh(name)
     exact = ExactSDF(mesh)

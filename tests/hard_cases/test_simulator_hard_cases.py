@@ -71,7 +71,7 @@ def velocity(sim: Simulator) -> np.ndarray:
 def _box(extents, centre):
     import trimesh
 
-    from collider_server.meshes import Mesh
+    from collider_server.engine.meshes import Mesh
 
     box = trimesh.creation.box(extents=extents)
     return Mesh(np.asarray(box.vertices) + np.asarray(centre, float), np.asarray(box.faces), "box")
@@ -82,8 +82,8 @@ def box_models(tmp_path_factory) -> Path:
     """``floor``: 1 x 1 x 0.1 m, top face at z = 0; ``plate``: 0.3 x 0.3 m, 0.2 mm thick, its
     faces at z = 0 and z = -0.2 mm. Exact mesh colliders, metres."""
     pytest.importorskip("collider_server")
-    from collider_server.bake import bake_collider
-    from collider_server.modelfile import save_collider
+    from collider_server.engine.modelfile import save_collider
+    from collider_server.making.bake import bake_collider
 
     root = tmp_path_factory.mktemp("boxes")
     for name, mesh in {"floor": _box((1.0, 1.0, 0.1), (0, 0, -0.05)),
@@ -438,12 +438,11 @@ def test_drape_on_a_voxel_bunny_stays_finite_bounded_and_outside(tmp_path, load_
     """The paper's drape, coarsened (40 x 40 vertices 6 mm apart, 0.25 s): no NaN, the energy
     never rises above its start, no vertex deeper than 0.1 mm inside the exact mesh at any frame.
     The full 5 s run is ``benchmarks/long_drape.py`` (README, hard cases)."""
-    from collider_server.bake import bake_collider
-    from collider_server.meshes import ExactSDF
-    from collider_server.modelfile import save_collider
-
     from collider_client.sim.command import SCENES_DIR
     from collider_client.sim.scene import pose_function
+    from collider_server.engine.meshes import ExactSDF
+    from collider_server.engine.modelfile import save_collider
+    from collider_server.making.bake import bake_collider
 
     mesh = load_shared_mesh("stanford-bunny.obj")
     save_collider(bake_collider(mesh, "voxel", "bunny", resolution=64, show_progress=False),

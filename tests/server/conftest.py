@@ -21,9 +21,9 @@ from collider_server.service.launch import ServerThread, free_port, wait_ready  
 def bake_sphere(path: Path, radius: float, resolution: int = 32) -> Path:
     import trimesh
 
-    from collider_server.bake import bake_collider
-    from collider_server.meshes import Mesh
-    from collider_server.modelfile import save_collider
+    from collider_server.engine.meshes import Mesh
+    from collider_server.engine.modelfile import save_collider
+    from collider_server.making.bake import bake_collider
 
     tri = trimesh.creation.icosphere(subdivisions=3, radius=radius)
     collider = bake_collider(Mesh(np.asarray(tri.vertices), np.asarray(tri.faces), path.stem),
@@ -55,7 +55,7 @@ def repo(tmp_path_factory, model_files) -> Path:
 @pytest.fixture(scope="session")
 def engine(repo):
     """The same models in process, for comparing numbers."""
-    from collider_server.repository import ModelRepository
+    from collider_server.engine.repository import ModelRepository
 
     repository = ModelRepository(repo)
     return {name: repository.load(name, "cpu") for name in repository.names()}

@@ -9,7 +9,7 @@ import time
 import numpy as np
 import pytest
 
-from collider_server.batching import (
+from collider_server.service.batching import (
     BatchContractError,
     BatcherClosed,
     BatchPart,

@@ -15,6 +15,7 @@ import httpx
 import msgpack
 import numpy as np
 import pytest
+
 from collider_contract import wire
 
 from .conftest import ServerThread
@@ -104,9 +105,9 @@ def test_finite_input_never_gets_a_non_finite_answer(server, case):
 def test_a_far_request_in_a_batch_fails_alone(repo, engine):
     """Coalesced with good requests, a request without a finite answer gets its 422; the others
     in the same batch get their answers (assembled in the compute thread, batch-wide)."""
-    from collider_server.batching import BatchPart
     from collider_contract.pose import as_pose
     from collider_server.service.answers import QueryJob, answer_batch
+    from collider_server.service.batching import BatchPart
     from collider_server.service.problems import Problem
 
     collider = engine["sphere"]

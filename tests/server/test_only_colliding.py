@@ -9,9 +9,9 @@ import asyncio
 import httpx
 import numpy as np
 import pytest
-from collider_contract import wire
 
-from collider_server.collider import FIELDS
+from collider_contract import wire
+from collider_server.engine.collider import FIELDS
 
 from .test_queries import decode, post, rotation_pose
 
@@ -125,10 +125,10 @@ def test_a_batch_joins_collide_only_jobs_with_others(repo):
     """One compute call for a batch holding a collide-only job, a job wanting every normal and
     one wanting none: each gets its own answer, the collide-only one's gradient work only for its
     colliding points."""
-    from collider_server.batching import BatchPart
     from collider_contract.pose import as_pose
-    from collider_server.repository import ModelRepository
+    from collider_server.engine.repository import ModelRepository
     from collider_server.service.answers import QueryJob, answer_batch
+    from collider_server.service.batching import BatchPart
 
     collider = ModelRepository(repo).load("sphere", "cpu")  # a fresh one: its method is wrapped
     calls = []

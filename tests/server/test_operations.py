@@ -18,6 +18,7 @@ from concurrent.futures import ThreadPoolExecutor
 import httpx
 import numpy as np
 import pytest
+
 from collider_contract import wire
 
 from .conftest import ADMIN_TOKEN, ServerThread, make_repo
@@ -356,7 +357,7 @@ def test_cors_is_off_by_default_and_on_when_configured(server, repo):
 
 
 def test_server_keeps_answering_while_a_batch_computes(tmp_path, tiny_neural_collider):
-    from collider_server.modelfile import save_collider
+    from collider_server.engine.modelfile import save_collider
 
     collider = tiny_neural_collider([-0.2] * 3, [0.2] * 3, name="net")
     save_collider(collider, tmp_path / "models" / "net.safetensors")

@@ -10,9 +10,9 @@ import httpx
 import msgpack
 import numpy as np
 import pytest
-from collider_contract import wire
 
-from collider_server.collider import FIELDS
+from collider_contract import wire
+from collider_server.engine.collider import FIELDS
 
 from .conftest import ServerThread
 

@@ -9,10 +9,15 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from collider_server.evaluation import evaluate_collider
-from collider_server.kinds.neural import DEFAULT_PRESET, PRESETS, GridArchitecture
-from collider_server.training import (VALIDATIONS_PER_BUDGET, RunClock, TrainConfig, cosine_learning_rate,
-                                      train_neural)
+from collider_server.engine.kinds.neural import DEFAULT_PRESET, PRESETS, GridArchitecture
+from collider_server.making.evaluation import evaluate_collider
+from collider_server.making.training import (
+    VALIDATIONS_PER_BUDGET,
+    RunClock,
+    TrainConfig,
+    cosine_learning_rate,
+    train_neural,
+)
 
 
 @pytest.mark.slow
@@ -83,7 +88,7 @@ def test_presets_choose_their_learning_rates_and_overrides_must_fit():
 
 
 def test_a_grid_network_trains_and_saves(tmp_path, analytic_shape):
-    from collider_server.modelfile import load_collider, save_collider
+    from collider_server.engine.modelfile import load_collider, save_collider
 
     sphere = analytic_shape("sphere").mesh
     small = {"levels": 4, "base_resolution": 4, "max_resolution": 32, "table_log2": 12}

@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 import trimesh
 
-from collider_server.evaluation import evaluate_collider
-from collider_server.meshes import Mesh
-from collider_server.training import TrainConfig, train_neural
+from collider_server.engine.meshes import Mesh
+from collider_server.making.evaluation import evaluate_collider
+from collider_server.making.training import TrainConfig, train_neural
 
 SMALL = {"fourier_features": 16, "hidden_layers": 2, "hidden_width": 64, "fourier_scale": 1.0}
 
@@ -111,8 +111,9 @@ def test_a_checkpoint_resumes_only_for_the_same_mesh_and_settings(sphere_mesh, t
 
 
 def test_a_checkpoint_without_a_run_identity_is_not_resumed(sphere_mesh, tmp_path):
-    from collider_server.training import read_checkpoint_state, save_tensors_atomically
     from safetensors.torch import load_file
+
+    from collider_server.making.training import read_checkpoint_state, save_tensors_atomically
 
     checkpoint = tmp_path / "run.ckpt.safetensors"
     train_neural(sphere_mesh, "s", small_config(samples=5000, steps=2, validate_every=1),
@@ -147,7 +148,7 @@ def test_bad_training_settings_are_rejected():
 
 
 def test_evaluation_of_the_exact_kind_is_exact(sphere_mesh):
-    from collider_server.bake import bake_collider
+    from collider_server.making.bake import bake_collider
 
     collider = bake_collider(sphere_mesh, "mesh", "sphere", show_progress=False)
     with pytest.raises(ValueError, match="positive integer, got 0"):  # not numpy's empty-max error
@@ -229,7 +230,7 @@ def test_train_refuses_an_unwritable_folder_before_training(sphere_mesh, tmp_pat
 
 
 def test_the_models_folder_is_created_when_missing(tmp_path):
-    from collider_server.repository import ModelRepository
+    from collider_server.engine.repository import ModelRepository
 
     repository = ModelRepository(tmp_path / "new" / "models")
     assert repository.check_writable().is_dir() and list(repository.root.iterdir()) == []

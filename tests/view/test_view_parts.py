@@ -10,13 +10,12 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
-
 from tests.conftest import SPHERE_RADIUS, make_sphere
 
 
 @pytest.fixture(scope="module")
 def sphere():
-    from collider_server.bake import bake_collider
+    from collider_server.making.bake import bake_collider
 
     shape = make_sphere()
     return shape, bake_collider(shape.mesh, "mesh", "sphere", show_progress=False)
@@ -37,7 +36,7 @@ def test_level_surface_lies_at_the_level(sphere):
 
 
 def test_error_colours_and_surface_error(sphere):
-    from collider_server.meshes import ExactSDF
+    from collider_server.engine.meshes import ExactSDF
     from collider_server.view import error_colors, surface_error_mm
 
     shape, collider = sphere

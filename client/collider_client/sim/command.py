@@ -111,7 +111,8 @@ def run_simulate(args: argparse.Namespace) -> int:
     shown = {}
     if checks:
         import numpy as np
-        from collider_server.meshes import load_mesh
+
+        from collider_server.making.mesh_files import load_mesh
 
         for model, mesh_path in checks.items():
             vertices = load_mesh(mesh_path).vertices

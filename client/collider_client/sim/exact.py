@@ -16,13 +16,14 @@ def exact_penetration(scene: Scene, frames: list, meshes: dict[str, Path],
 
     transforms : model name -> (4, 4) placing the mesh file in the collider frame: the model's
         ``source.transform`` (the scale / Z-up it was made with, see
-        :class:`collider_server.placement.MeshPlacement`); absent: the file is in that frame
+        :class:`collider_server.making.placement.MeshPlacement`); absent: the file is in that frame
 
     Returns ``{"max_depth_m": ..., "min_distance_m": ..., "frames": ..., "by_model": {model:
     depth_m}}``; ``min_distance_m`` is the smallest signed distance of any vertex (negative:
     inside), which shows how close the cloth came (about eps when it rests on the collider).
     """
-    from collider_server.meshes import ExactSDF, load_mesh
+    from collider_server.engine.meshes import ExactSDF
+    from collider_server.making.mesh_files import load_mesh
 
     by_model = {}
     closest = float("inf")

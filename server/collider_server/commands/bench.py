@@ -11,7 +11,6 @@ import numpy as np
 
 from .options import add_placement_arguments, placement_from_args
 
-
 SUFFIXES = {"k": 1_000, "M": 1_000_000}
 
 
@@ -71,7 +70,7 @@ def register(subparsers) -> None:
 
 def placed_mesh(args):
     """(mesh in the collider frame, 4x4 transform applied, units, metres per unit)."""
-    from ..meshes import load_mesh
+    from ..making.mesh_files import load_mesh
 
     placement = placement_from_args(args)
     mesh, transform = placement.apply(load_mesh(args.mesh))
@@ -174,7 +173,7 @@ def run_budget_bake(args, budget) -> int:
     """``collider bake MESH --max-error ...``: measure (or read) the front, build the fastest
     collider that meets the budget, check it with a fresh evaluation (another seed), save it."""
     from ..bench import NothingMeetsBudget, rank
-    from ..repository import check_name
+    from ..engine.repository import check_name
 
     check_name(args.name)
     mesh, transform, units, meters_per_unit = placed_mesh(args)
@@ -215,7 +214,7 @@ def print_ranking(report: dict, ranked: list[dict], budget, device: str) -> None
 
 
 def _bake_device(device: str | None) -> str:
-    from ..devices import resolve_device
+    from ..engine.devices import resolve_device
 
     resolved = resolve_device(device)
     return "cuda" if resolved.startswith("cuda") else "cpu"
@@ -257,9 +256,9 @@ def _build_and_check(args, row, report, budget, mesh, transform, units, meters_p
 
     from ..bench.plan import Candidate, build_candidate
     from ..bench.report import reference_seconds_per_point
-    from ..evaluation import evaluate_collider, format_report
-    from ..modelfile import save_collider
-    from ..repository import ModelRepository
+    from ..engine.modelfile import save_collider
+    from ..engine.repository import ModelRepository
+    from ..making.evaluation import evaluate_collider, format_report
 
     repo = ModelRepository(args.models)
     candidate = Candidate(row["name"], row["label"], row["kind"], row["settings"], build=row["build"])

@@ -9,8 +9,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..collider import FIELDS
-from ..placement import UNIT_METERS, meters_per_unit  # noqa: F401  (re-exported: older imports)
+from ..engine.collider import FIELDS
+from ..making.placement import UNIT_METERS, meters_per_unit  # noqa: F401  (re-exported: older imports)
 from .bench import add_budget_arguments, budget_from_args
 from .options import add_placement_arguments, placement_from_args
 
@@ -53,10 +53,10 @@ def register(subparsers) -> None:
 
 
 def run_bake(args) -> int:
-    from ..bake import bake_collider
-    from ..meshes import load_mesh
-    from ..modelfile import save_collider
-    from ..repository import ModelRepository, check_name
+    from ..engine.modelfile import save_collider
+    from ..engine.repository import ModelRepository, check_name
+    from ..making.bake import bake_collider
+    from ..making.mesh_files import load_mesh
 
     check_name(args.name)
     budget = budget_from_args(args)
@@ -102,7 +102,7 @@ def load_pose(path: Path | None):
 
 
 def run_query(args) -> int:
-    from ..repository import ModelRepository
+    from ..engine.repository import ModelRepository
 
     fields = [f.strip() for f in args.fields.split(",") if f.strip()]
     points = load_points(args)
@@ -142,8 +142,8 @@ def finite_json(value, where: str = ""):
 
 
 def run_info(args) -> int:
-    from ..modelfile import read_info
-    from ..repository import ModelRepository
+    from ..engine.modelfile import read_info
+    from ..engine.repository import ModelRepository
 
     repo = ModelRepository(args.models)
     if args.model is None:

@@ -5,7 +5,7 @@
   :func:`collider_server.cli.build_parser`, so options added later are covered too).
 - :func:`add_placement_arguments` / :func:`placement_from_args`: the mesh placement options
   (``--scale``, ``--fit-size``, ``--z-up``, ``--units``, ``--meters-per-unit``) of every command
-  that reads a mesh, applied with :class:`collider_server.placement.MeshPlacement`.
+  that reads a mesh, applied with :class:`collider_server.making.placement.MeshPlacement`.
 """
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ from __future__ import annotations
 import argparse
 import math
 
-from ..placement import MeshPlacement
+from ..making.placement import MeshPlacement
 
 
 def finite_float(text: str) -> float:

@@ -63,8 +63,8 @@ def run_view(args: argparse.Namespace) -> int:
 def run_collider_view(args: argparse.Namespace) -> int:
     from collider_client.sim.view import url_of, wait_until_interrupted
 
-    from ..meshes import load_mesh
-    from ..repository import ModelRepository
+    from ..engine.repository import ModelRepository
+    from ..making.mesh_files import load_mesh
     from ..view import serve_collider_view
 
     collider = ModelRepository(args.models).load(args.model, args.device)

@@ -13,11 +13,18 @@ from dataclasses import dataclass
 from typing import Sequence
 
 import numpy as np
+
 from collider_contract import MAX_COORDINATE_M, Pose
 
-from ..batching import BatcherClosed, BatchPart, DeadlineExceeded, QueueFull
-from ..collider import (GRADIENT_FIELDS, Collider, QueryResult, assemble_result, assemble_scene_result,
-                        gradient_threshold)
+from ..engine.collider import (
+    GRADIENT_FIELDS,
+    Collider,
+    QueryResult,
+    assemble_result,
+    assemble_scene_result,
+    gradient_threshold,
+)
+from .batching import BatcherClosed, BatchPart, DeadlineExceeded, QueueFull
 from .bodies import QuerySpec, SceneSpec
 from .problems import Problem
 from .registry import LoadedModel
@@ -198,7 +205,7 @@ async def answer_scene(models: list[LoadedModel], spec: SceneSpec,
                        deadline: float | None) -> tuple[QueryResult, np.ndarray]:
     """Per point, the fields of the collider with the smallest world-frame signed distance, and
     that collider's index ``(n,) int32`` into ``spec.colliders`` (the engine's scene rule,
-    :func:`~collider_server.collider.nearest_collider`, shared with the embedded backend)."""
+    :func:`~collider_server.engine.collider.nearest_collider`, shared with the embedded backend)."""
     poses = [pose for _, pose in spec.colliders]
     eps = [resolve_eps(m, pose, spec.eps) for m, pose in zip(models, poses)]
     answers = await asyncio.gather(*(

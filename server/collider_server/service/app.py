@@ -10,9 +10,9 @@ import logging
 from fastapi import FastAPI
 from fastapi.openapi.utils import get_openapi
 
-from ..batching import DeviceWorkers
-from ..devices import resolve_device
-from ..repository import ModelRepository
+from ..engine.devices import resolve_device
+from ..engine.repository import ModelRepository
+from .batching import DeviceWorkers
 from .fastpath import QueryFastPath, check_equivalent
 from .metrics import RequestObserver, ServiceMetrics
 from .openapi import add_security, query_body, scene_body

@@ -12,11 +12,12 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from collider_contract import Pose, PoseError, as_pose, wire
 from starlette.requests import Request
 from starlette.responses import Response
 
-from ..collider import check_fields, check_points
+from collider_contract import Pose, PoseError, as_pose, wire
+
+from ..engine.collider import check_fields, check_points
 from .problems import Problem
 
 DEADLINE_HEADER = "x-deadline-ms"

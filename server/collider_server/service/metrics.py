@@ -22,7 +22,7 @@ from prometheus_client import (
     generate_latest,
 )
 
-from ..batching import BatchStats, RowBatcher
+from .batching import BatchStats, RowBatcher
 from .problems import Problem
 
 log = logging.getLogger("collider_server.service")

@@ -9,9 +9,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..batching import BatchSettings, DeviceWorkers, RowBatcher
-from ..collider import Collider
-from ..repository import ModelRepository, check_name
+from ..engine.collider import Collider
+from ..engine.repository import ModelRepository, check_name
+from .batching import BatchSettings, DeviceWorkers, RowBatcher
 from .metrics import ServiceMetrics
 
 log = logging.getLogger("collider_server.service")
@@ -111,7 +111,7 @@ class ModelRegistry:
     def _load_and_warm(self, path) -> tuple[Collider, int]:
         """The collider in ``path``, warmed up, and the file's size in bytes (read first, so a
         file replaced or removed meanwhile fails here, before any batcher exists)."""
-        from ..modelfile import load_collider
+        from ..engine.modelfile import load_collider
 
         size_bytes = path.stat().st_size
         collider = load_collider(path, self.device)

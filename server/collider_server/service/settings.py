@@ -17,7 +17,7 @@ from pydantic_settings import (
     TomlConfigSettingsSource,
 )
 
-from ..batching import BatchSettings
+from .batching import BatchSettings
 
 LOG_LEVELS = ("critical", "error", "warning", "info", "debug")
 
@@ -38,7 +38,7 @@ class ServiceSettings(BaseSettings):
                                                       "unset: admin routes disabled")
     cors_origins: list[str] = Field(default_factory=list, description="allowed CORS origins; "
                                                                       "empty: CORS off")
-    # Coalescing (see collider_server.batching).
+    # Coalescing (see collider_server.service.batching).
     max_batch_points: int = Field(65_536, ge=1, description="most points in one compute call")
     # 0 as in Triton's dynamic batcher: whatever queued while the worker was busy forms the next
     # batch, and a lone request pays no timer (measured: 1 ms cost +2.4 ms p50 at K=1 on 2 cores).

@@ -6,7 +6,7 @@ from dataclasses import dataclass
 
 from fastapi import Request
 
-from ..batching import DeviceWorkers
+from .batching import DeviceWorkers
 from .metrics import ServiceMetrics
 from .problems import Problem
 from .registry import LoadedModel, ModelRegistry

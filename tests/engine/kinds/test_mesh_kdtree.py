@@ -7,10 +7,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from collider_server.collider import ColliderInfo
-from collider_server.kinds import KINDS, KDTreeCollider, MeshCollider, NeuralCollider, VoxelCollider
-from collider_server.kinds.kdtree import vertex_normals
-from collider_server.meshes import Mesh
+from collider_server.engine.collider import ColliderInfo
+from collider_server.engine.kinds import KINDS, KDTreeCollider, MeshCollider, NeuralCollider, VoxelCollider
+from collider_server.engine.kinds.kdtree import vertex_normals
+from collider_server.engine.meshes import Mesh
 
 A = 0.1
 VERTICES = np.array([[0, 0, 0], [A, 0, 0], [0, A, 0], [0, 0, A]], np.float64)

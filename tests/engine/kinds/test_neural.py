@@ -9,8 +9,8 @@ import copy
 import numpy as np
 import pytest
 
-from collider_server.collider import ColliderInfo
-from collider_server.kinds.neural import PRESETS, Architecture, NeuralCollider, build_network
+from collider_server.engine.collider import ColliderInfo
+from collider_server.engine.kinds.neural import PRESETS, Architecture, NeuralCollider, build_network
 
 LO, HI = np.array([-0.12, -0.1, -0.08]), np.array([0.12, 0.1, 0.08])
 
@@ -127,7 +127,7 @@ def test_parameters_are_frozen_for_queries(network_collider):
 
 def test_presets_are_the_documented_ones():
     """docs/neural.md's preset table: shapes and parameter counts; ``grid`` is the default."""
-    from collider_server.kinds.neural import DEFAULT_PRESET, GridArchitecture
+    from collider_server.engine.kinds.neural import DEFAULT_PRESET, GridArchitecture
 
     assert DEFAULT_PRESET == "grid"
     assert PRESETS["paper-bunny"] == Architecture(128, 3, 256, 3.0)
@@ -196,7 +196,7 @@ def test_fourier_network_is_the_documented_function(network_collider):
 
 
 def test_architecture_dict_round_trip():
-    from collider_server.kinds.neural import architecture_dict, architecture_from_dict
+    from collider_server.engine.kinds.neural import architecture_dict, architecture_from_dict
 
     for arch in PRESETS.values():
         stored = architecture_dict(arch)

@@ -12,10 +12,15 @@ import numpy as np
 import pytest
 import torch
 
-from collider_server.collider import ColliderInfo
-from collider_server.kinds import grid_kernels
-from collider_server.kinds.neural import (PRESETS, GridArchitecture, NeuralCollider, architecture_from_dict,
-                                          build_network)
+from collider_server.engine.collider import ColliderInfo
+from collider_server.engine.kinds import grid_kernels
+from collider_server.engine.kinds.neural import (
+    PRESETS,
+    GridArchitecture,
+    NeuralCollider,
+    architecture_from_dict,
+    build_network,
+)
 
 LO, HI = np.array([-0.12, -0.1, -0.08]), np.array([0.12, 0.1, 0.08])
 CENTRE, RADIUS = 0.5 * (LO + HI), 0.12
@@ -159,7 +164,7 @@ def test_smoothstep_makes_the_gradient_continuous_across_cell_faces():
 
 
 def test_model_file_stores_the_table_in_float16(tmp_path):
-    from collider_server.modelfile import load_collider, save_collider
+    from collider_server.engine.modelfile import load_collider, save_collider
 
     network = random_network(seed=8)
     arch = GridArchitecture(**SMALL)
@@ -190,8 +195,8 @@ def test_architecture_from_dict_reads_old_and_new_files():
 def test_shipped_grid_models_analytic_gradient_matches_autograd(name):
     """On each shipped grid model: the fused kernels, the torch analytic gradient and autograd
     through the torch forward agree (points in the model's domain)."""
-    from collider_server.modelfile import load_collider
-    from collider_server.repository import ModelRepository
+    from collider_server.engine.modelfile import load_collider
+    from collider_server.engine.repository import ModelRepository
 
     path = ModelRepository().path(name)
     if not path.is_file():

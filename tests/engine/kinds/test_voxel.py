@@ -8,9 +8,10 @@ import re
 import numpy as np
 import pytest
 
-from collider_server.collider import ColliderInfo
-from collider_server.kinds.voxel import VoxelCollider, bake_grid, padded_box
-from collider_server.meshes import ExactSDF
+from collider_server.engine.collider import ColliderInfo
+from collider_server.engine.kinds.voxel import VoxelCollider
+from collider_server.engine.meshes import ExactSDF
+from collider_server.making.bake import bake_grid, padded_box
 
 LO, HI = np.array([-0.1, -0.2, 0.0]), np.array([0.3, 0.1, 0.25])
 SHAPE = (9, 7, 12)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from fastapi import APIRouter, Depends, Request
 
-from ...modelfile import ModelFileError
+from ...engine.modelfile import ModelFileError
 from ..auth import require_admin
 from ..openapi import problems
 from ..problems import Problem

@@ -55,7 +55,7 @@ def default_models_dir() -> Path:
     local = Path("models")
     if local.is_dir():
         return local
-    checkout = Path(__file__).resolve().parents[2] / "models"
+    checkout = Path(__file__).resolve().parents[3] / "models"
     if checkout.is_dir():
         return checkout
     return installed_models_dir() or checkout

@@ -29,7 +29,15 @@ from typing import ClassVar, Iterable
 
 import numpy as np
 
-from collider_contract import FIELDS, GRADIENT_FIELDS, MAX_COORDINATE_M, Pose, QueryResult, as_pose, check_fields
+from collider_contract import (
+    FIELDS,
+    GRADIENT_FIELDS,
+    MAX_COORDINATE_M,
+    Pose,
+    QueryResult,
+    as_pose,
+    check_fields,
+)
 
 DEFAULT_EPS_METERS = 1e-3
 MAX_POINTS_PER_CALL = 200_000_000

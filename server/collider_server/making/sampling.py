@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .meshes import Mesh
+from ..engine.meshes import Mesh
 
 
 def surface_points(mesh: Mesh, n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .meshes import Mesh
+from ..engine.meshes import Mesh
 
 #: Rotation taking a Y-up mesh to Z-up (x stays, y becomes z, z becomes -y).
 Y_UP_TO_Z_UP = np.array([[1, 0, 0, 0], [0, 0, -1, 0], [0, 1, 0, 0], [0, 0, 0, 1]], dtype=np.float64)

@@ -1,16 +1,47 @@
 """Make a collider from a mesh: ``voxel`` (baked grid), ``mesh`` (exact) or ``kdtree``.
-(``neural`` colliders are trained, see :mod:`collider_server.training`.)"""
+(``neural`` colliders are trained, see :mod:`collider_server.making.training`.)"""
 
 from __future__ import annotations
 
 import numpy as np
 
-from .collider import Collider, ColliderInfo
-from .kinds import KDTreeCollider, MeshCollider, VoxelCollider
-from .kinds.voxel import bake_grid, padded_box
-from .meshes import ExactSDF, Mesh
+from ..engine.collider import Collider, ColliderInfo
+from ..engine.kinds import KDTreeCollider, MeshCollider, VoxelCollider
+from ..engine.kinds.voxel import MAX_RESOLUTION, MIN_RESOLUTION
+from ..engine.meshes import ExactSDF, Mesh
+from .progress import progress
 
 BAKED_KINDS = ("voxel", "mesh", "kdtree")
+
+
+def padded_box(mesh: Mesh, padding: float) -> tuple[np.ndarray, np.ndarray]:
+    """The mesh's bounding box grown by ``padding`` times its largest side on every face."""
+    lo, hi = mesh.bounds
+    margin = padding * float((hi - lo).max())
+    return lo - margin, hi + margin
+
+
+def bake_grid(sdf: ExactSDF, lo, hi, resolution: int, chunk_points: int = 262_144,
+              show_progress: bool = True) -> np.ndarray:
+    """Exact signed distances at the grid corners: (R, R, R) float32, indexed [x, y, z]."""
+    if not MIN_RESOLUTION <= resolution <= MAX_RESOLUTION:
+        raise ValueError(f"resolution must be in {MIN_RESOLUTION}..{MAX_RESOLUTION}, got {resolution}")
+    axes = [np.linspace(lo[i], hi[i], resolution) for i in range(3)]
+    total = resolution**3
+    grid = np.empty(total, dtype=np.float32)
+    # Walk the grid in x-slabs so no (R^3, 3) coordinate array is ever built.
+    slab = max(1, chunk_points // (resolution * resolution))
+    yz = np.stack(np.meshgrid(axes[1], axes[2], indexing="ij"), axis=-1).reshape(-1, 2)
+    with progress(total=total, desc=f"bake {resolution}^3", unit="pt", enabled=show_progress) as bar:
+        for i0 in range(0, resolution, slab):
+            xs = axes[0][i0 : i0 + slab]
+            points = np.empty((len(xs) * len(yz), 3))
+            points[:, 0] = np.repeat(xs, len(yz))
+            points[:, 1:] = np.tile(yz, (len(xs), 1))
+            start = i0 * resolution * resolution
+            grid[start : start + len(points)] = sdf.signed_distance(points)
+            bar.update(len(points))
+    return grid.reshape(resolution, resolution, resolution)
 
 
 def mesh_source(mesh: Mesh, transform: np.ndarray | None = None) -> dict:

@@ -109,9 +109,8 @@ def load_collider(path: str | Path, device: str | None = None) -> Collider:
     """
     from safetensors.numpy import load_file
 
-    from .kinds import KINDS
-
     from .devices import resolve_device
+    from .kinds import KINDS
 
     path = Path(path)
     # A bad device is the caller's mistake, not the file's: say so before reading the file.

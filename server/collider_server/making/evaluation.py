@@ -2,7 +2,7 @@
 
 Point sets (seeded): uniform in the +-1 mm and +-10 mm bands around the surface (surface samples
 moved along the face normal) and uniform in the collider's domain box. Truth: the exact SDF
-(:class:`~collider_server.meshes.ExactSDF`, float64). All figures are reported in millimetres and
+(:class:`~collider_server.engine.meshes.ExactSDF`, float64). All figures are reported in millimetres and
 degrees whatever the collider's units (converted with ``meters_per_unit``).
 
 Per set: distance error mean / p99 / max; sign errors among points with |d| > 0.2 mm (percent);
@@ -18,8 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .collider import Collider
-from .meshes import ExactSDF, Mesh
+from ..engine.collider import Collider
+from ..engine.meshes import ExactSDF, Mesh
 from .progress import progress
 from .sampling import box_points, surface_band_points, surface_points
 

@@ -26,15 +26,20 @@ from pathlib import Path
 
 import numpy as np
 
-from .bake import mesh_source
-from .collider import ColliderInfo
-from .kinds.neural import (DEFAULT_PRESET, PRESETS, Architecture, GridArchitecture, NeuralCollider,
-                           architecture_dict, build_network)
-from .kinds.voxel import padded_box
-from .meshes import ExactSDF, Mesh
+from ..engine.collider import ColliderInfo
+from ..engine.kinds.neural import (
+    DEFAULT_PRESET,
+    PRESETS,
+    Architecture,
+    GridArchitecture,
+    NeuralCollider,
+    architecture_dict,
+    build_network,
+)
+from ..engine.meshes import ExactSDF, Mesh
+from .bake import mesh_source, padded_box
 from .progress import progress
 from .sampling import box_points, surface_band_points, surface_points
-
 
 #: Adam's learning rate, initial and final (cosine decay), per kind of network: feature tables
 #: learn best at the large rate instant-NGP uses; the paper's MLP at 1e-3.
@@ -303,7 +308,7 @@ def set_training_threads(arch, threads: int) -> None:
     measured with 2 against 1 torch threads under load), so torch gets one."""
     import torch
 
-    from .kinds import grid_kernels
+    from ..engine.kinds import grid_kernels
 
     if isinstance(arch, GridArchitecture) and grid_kernels.available():
         torch.set_num_threads(1)
@@ -419,7 +424,7 @@ def train_neural(mesh: Mesh, name: str, config: TrainConfig, *, units: str = "m"
     """Train a neural collider for ``mesh`` (its units and frame); returns the best checkpoint."""
     import torch
 
-    from .devices import resolve_device
+    from ..engine.devices import resolve_device
 
     config.check()
     device = resolve_device(device)
