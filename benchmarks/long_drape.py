@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from collider_client import Client
-from collider_client.sim.command import SCENES_DIR
+from collider_client.sim.scene import SCENES_DIR
 from collider_client.sim.scene import load_scene, pose_function
 from collider_client.sim.simulator import Simulator
 

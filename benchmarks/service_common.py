@@ -25,7 +25,7 @@ MESHES = REPO.parent / "shared" / "data" / "meshes"
 sys.path.insert(0, str(REPO / "client"))
 
 from collider_contract import wire  # noqa: E402
-from collider_server.service.launch import free_port  # noqa: E402,F401  (one home for it)
+from collider_cli.launch import free_port  # noqa: E402,F401  (one home for it)
 
 
 class HTTPError(Exception):
@@ -86,7 +86,7 @@ def decode_response(data: bytes) -> dict:
 def serve(models: Path, *flags: str, env: dict | None = None):
     """``collider serve`` on a free loopback port until the block ends; yields its port.
     ``flags`` may hold ``--device``; the server's default is ``auto`` (CUDA when present)."""
-    from collider_server.service.launch import serve_process
+    from collider_cli.launch import serve_process
 
     with serve_process(models, "--log-level", "warning", *flags, env=env) as server:
         SERVER_PIDS[server.port] = server.process.pid

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from collider_client import FIELDS, Client
-from collider_client.sim.command import SCENES_DIR
+from collider_client.sim.scene import SCENES_DIR
 from collider_client.sim.scene import load_scene
 from collider_client.sim.simulator import Simulator
 
@@ -65,7 +65,7 @@ def run_variant(variant: str, client, steps: int, cloth: int | None,
 
 def start_server(models: Path):
     """A ready ``collider serve`` over ``models``: ``(process, url)``."""
-    from collider_server.service.launch import ServerProcess
+    from collider_cli.launch import ServerProcess
 
     server = ServerProcess(models, "--log-level", "warning").wait_ready(120)
     return server.process, server.url

@@ -24,15 +24,18 @@ JOBS="${JOBS:-2}"
 # name | files to mutate (under server/ or client/, space-separated globs) | tests that cover them
 SIM=client/collider_client/sim
 MODULES=(
-  "collider|server/collider_server/collider.py|tests/engine/test_collider.py tests/engine/test_only_colliding.py tests/engine/test_modelfile.py tests/hard_cases/test_engine_hard_cases.py tests/client/test_backends.py"
-  "pose|server/collider_server/pose.py|tests/engine/test_pose.py tests/engine/test_collider.py tests/hard_cases/test_engine_hard_cases.py"
-  "kinds|server/collider_server/kinds/*|tests/engine/kinds tests/engine/test_modelfile.py tests/engine/test_analytic.py tests/engine/test_only_colliding.py tests/hard_cases/test_engine_hard_cases.py"
-  "batching|server/collider_server/batching.py|tests/server/test_batching.py"
+  "contract|client/collider_contract/*|tests/contract tests/engine/test_pose.py tests/engine/test_collider.py tests/engine/test_only_colliding.py tests/client/test_backends.py tests/client/test_errors.py tests/server/test_queries.py tests/hard_cases/test_engine_hard_cases.py"
+  "collider|server/collider_server/engine/collider.py|tests/engine/test_collider.py tests/engine/test_only_colliding.py tests/engine/test_modelfile.py tests/hard_cases/test_engine_hard_cases.py tests/client/test_backends.py"
+  "kinds|server/collider_server/engine/kinds/*|tests/engine/kinds tests/engine/test_modelfile.py tests/engine/test_analytic.py tests/engine/test_only_colliding.py tests/hard_cases/test_engine_hard_cases.py"
+  "batching|server/collider_server/service/batching.py|tests/server/test_batching.py"
   "response|client/collider_client/response.py|tests/client/test_response.py tests/client/test_newton_adapter.py tests/hard_cases/test_simulator_hard_cases.py"
-  "sim|$SIM/cloth.py $SIM/exact.py $SIM/output.py $SIM/run.py $SIM/scene.py $SIM/simulator.py $SIM/command.py|tests/hard_cases/test_simulator_hard_cases.py tests/client/test_scene.py tests/client/test_simulator.py"
-  # The live view (viser): its parts have unit tests; the page itself is checked in a browser.
-  "sim-view|$SIM/view.py|tests/view/test_view_parts.py"
+  "sim|$SIM/cloth.py $SIM/output.py $SIM/run.py $SIM/scene.py $SIM/simulator.py|tests/hard_cases/test_simulator_hard_cases.py tests/client/test_scene.py tests/client/test_simulator.py"
+  # The browser views (viser): their state and handlers are tested in process; the page itself
+  # is also checked in a real browser (tests/view/test_browser.py, which mutmut cannot see).
+  "views|server/collider_cli/views/*|tests/view/test_view_parts.py"
 )
+#: The packages, each under server/ or client/, that a scratch copy imports from src/.
+PACKAGES=(client/collider_contract client/collider_client server/collider_server server/collider_cli)
 
 write_config() {  # the mutmut section of NAME's setup.cfg: files to mutate, tests to run
   local target=$1 tests=$2
@@ -62,9 +65,9 @@ make_scratch_copy() {
   git -C "$ROOT" ls-files -z | (cd "$ROOT" && xargs -0 cp --parents -t "$dir")
   ln -s "$(cd "$ROOT/.." && pwd)/shared" "$dir/shared"
   # mutmut imports the mutated code from mutants/src and names modules by their path under it:
-  # put both packages there (collider_server imports collider_client).
+  # put every package there (they import each other).
   mkdir "$dir/src"
-  mv "$dir/server/collider_server" "$dir/client/collider_client" "$dir/src/"
+  for package in "${PACKAGES[@]}"; do mv "$dir/$package" "$dir/src/"; done
   # mutmut runs the tests once in its own process, then forks a worker per mutant; a child
   # forked after torch has started its OpenMP pool deadlocks in it, and numba's OpenMP layer
   # kills such a child (SIGTERM). Keep torch on one thread and numba on its workqueue layer.
@@ -110,9 +113,12 @@ run_module() {
     # Today's code and tests into the scratch copy: mutmut keeps the verdicts of functions that
     # did not change and makes new mutants of those that did. The test files stay those of the
     # first run (a new selection resets every verdict): a new file in the list needs a fresh run.
-    rm -rf "$dir/tests" "$dir/src/collider_server" "$dir/src/collider_client"
+    rm -rf "$dir/tests"
     cp -r "$ROOT/tests" "$dir/tests"
-    cp -r "$ROOT/server/collider_server" "$ROOT/client/collider_client" "$dir/src/"
+    for package in "${PACKAGES[@]}"; do
+      rm -rf "$dir/src/${package#*/}"
+      cp -r "$ROOT/$package" "$dir/src/"
+    done
   else
     make_scratch_copy "$dir"
     write_config "$target" "$tests" > "$dir/setup.cfg"

@@ -17,13 +17,20 @@ from pathlib import Path
 from typing import Iterable, Sequence
 
 import httpx
-import numpy as np
 
 from collider_contract import ModelInfo, QueryResult, check_fields, wire
 
 from ._base import (
-    USE_CLIENT_DEFAULT, Attempts, RetryPolicy, UseClientDefault, as_points, as_scene,
-    decode_models, decode_query, query_body, scene_body,
+    USE_CLIENT_DEFAULT,
+    Attempts,
+    RetryPolicy,
+    UseClientDefault,
+    as_points,
+    as_scene,
+    decode_models,
+    decode_query,
+    query_body,
+    scene_body,
 )
 from ._exceptions import ConnectError, TimeoutError, TransportError
 

@@ -71,6 +71,7 @@ class EmbeddedBackend:
 
     def scene_query(self, colliders: list[SceneCollider], points: np.ndarray, fields: list[str],
                     eps: float | None, only_colliding: bool = False) -> QueryResult:
+        from collider_contract import as_pose
         from collider_server.engine.collider import (
             assemble_scene_result,
             check_eps,
@@ -78,7 +79,6 @@ class EmbeddedBackend:
             check_points,
             gradient_threshold,
         )
-        from collider_contract import as_pose
 
         try:
             fields_t = check_fields(fields)

@@ -12,7 +12,6 @@ import numpy as np
 from .wire import FIELDS
 
 
-
 @dataclass
 class QueryResult:
     """The fields asked for (the others are ``None``), world frame, world units (metres).

@@ -13,10 +13,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from collider_server.bench.budget import Budget, NothingMeetsBudget, angle_deg, length_mm, rank, size_bytes
-from collider_server.bench.plan import PlanConfig, plan_candidates
-from collider_server.bench.report import pareto_front
-from collider_server.bench.timing import TimingPolicy, time_calls
+from collider_cli.bench.budget import Budget, NothingMeetsBudget, angle_deg, length_mm, rank, size_bytes
+from collider_cli.bench.plan import PlanConfig, plan_candidates
+from collider_cli.bench.report import pareto_front
+from collider_cli.bench.timing import TimingPolicy, time_calls
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 
@@ -114,13 +114,13 @@ def test_plan_stops_voxels_at_the_memory_budget_and_lists_every_neural_preset(mo
 
 def collider(*args):
     """The ``collider`` command in a subprocess (what a user runs)."""
-    return subprocess.run([sys.executable, "-m", "collider_server.cli", *map(str, args)],
+    return subprocess.run([sys.executable, "-m", "collider_cli", *map(str, args)],
                           capture_output=True, text=True, timeout=300)
 
 
 def collider_here(capsys, *args):
     """The same entry point in this process (no interpreter start-up): (exit code, stdout, stderr)."""
-    from collider_server.cli import main
+    from collider_cli import main
 
     code = main([str(a) for a in args])
     captured = capsys.readouterr()

@@ -49,7 +49,7 @@ def server_url(models_dir):
     except ImportError as exc:
         pytest.skip(f"collider_server.service is missing ({exc}); the remote backend cannot be "
                     "tested against a real server")
-    from collider_server.service.launch import ServerProcess
+    from collider_cli.launch import ServerProcess
 
     server = ServerProcess(models_dir, "--device", "cpu", "--log-level", "warning",
                            env={"PYTHONUNBUFFERED": "1"})

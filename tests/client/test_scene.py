@@ -9,8 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from collider_client.sim.command import SCENES_DIR, resolve_scene, shipped_scenes
-from collider_client.sim.scene import SceneError, load_scene
+from collider_client.sim.scene import SCENES_DIR, SceneError, load_scene, resolve_scene, shipped_scenes
 
 BASE = """
 [scene]
@@ -94,7 +93,7 @@ def test_not_toml(tmp_path):
 
 def test_cli_rejects_bad_scene_in_one_line(tmp_path):
     path = write(tmp_path, BASE.replace("dt_s = 1e-4", "dt_s = 0"))
-    out = subprocess.run([sys.executable, "-m", "collider_server.cli", "simulate", str(path),
+    out = subprocess.run([sys.executable, "-m", "collider_cli", "simulate", str(path),
                           "--output", str(tmp_path / "out")], capture_output=True, text=True)
     assert out.returncode == 2
     assert "Traceback" not in out.stderr
@@ -104,7 +103,7 @@ def test_cli_rejects_bad_scene_in_one_line(tmp_path):
 
 def test_cli_rejects_a_missing_model_before_the_run(tmp_path, models_dir):
     path = write(tmp_path, BASE + "[effects.collisions]\n[[colliders]]\nmodel = 'teapot'\n")
-    out = subprocess.run([sys.executable, "-m", "collider_server.cli", "simulate", str(path),
+    out = subprocess.run([sys.executable, "-m", "collider_cli", "simulate", str(path),
                           "--models", str(models_dir), "--output", str(tmp_path / "out")],
                          capture_output=True, text=True)
     assert out.returncode == 2, out.stderr
@@ -115,7 +114,7 @@ def test_cli_rejects_a_missing_model_before_the_run(tmp_path, models_dir):
 
 def test_cli_runs_a_shipped_scene_without_colliders(tmp_path):
     # No colliders: runs with no model repository and no server at all.
-    out = subprocess.run([sys.executable, "-m", "collider_server.cli", "simulate", "flag_in_wind",
+    out = subprocess.run([sys.executable, "-m", "collider_cli", "simulate", "flag_in_wind",
                           "--steps", "250", "--quiet", "--models", str(tmp_path / "absent"),
                           "--output", str(tmp_path / "out")], capture_output=True, text=True,
                          timeout=120)
@@ -133,7 +132,7 @@ def test_cli_unreachable_server_is_one_line(tmp_path):
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
     path = write(tmp_path, BASE + "[effects.collisions]\n[[colliders]]\nmodel = 'sphere'\n")
-    out = subprocess.run([sys.executable, "-m", "collider_server.cli", "simulate", str(path),
+    out = subprocess.run([sys.executable, "-m", "collider_cli", "simulate", str(path),
                           "--server", f"http://127.0.0.1:{port}", "--output", str(tmp_path)],
                          capture_output=True, text=True, timeout=120)
     assert out.returncode == 2

@@ -98,11 +98,13 @@ def test_drop_on_sphere_stays_outside(tmp_path, models_dir):
     # The same check through the exact mesh SDF that `--check-mesh` uses.
     import trimesh
 
-    from collider_client.sim.exact import exact_penetration
+    from collider_client.sim.scene import pose_function
+    from collider_server.engine.meshes import ExactSDF, Mesh
+    from collider_server.making.evaluation import penetration
 
-    mesh_path = tmp_path / "sphere.obj"
-    trimesh.creation.icosphere(subdivisions=5, radius=SPHERE_RADIUS_M).export(mesh_path)
-    check = exact_penetration(scene, frames, {"sphere": mesh_path})
+    sphere = trimesh.creation.icosphere(subdivisions=5, radius=SPHERE_RADIUS_M)
+    exact = ExactSDF(Mesh(np.asarray(sphere.vertices), np.asarray(sphere.faces)))
+    check = penetration(frames, [("sphere", exact, pose_function(scene.colliders[0]))])
     assert check["max_depth_m"] < 1e-3 and check["frames"] == 13
     assert check["min_distance_m"] < 2.5e-3  # it rests on the sphere, about eps away
     # Outputs: OBJ (quads), PC2 (every frame), PNG, report.
@@ -177,7 +179,7 @@ def test_remote_and_embedded_runs_agree(tmp_path, models_dir, server_url):
     for backend in ("embedded", "remote"):
         args = ["--server", server_url] if backend == "remote" else ["--models", str(models_dir)]
         result = subprocess.run(
-            [sys.executable, "-m", "collider_server.cli", "simulate",
+            [sys.executable, "-m", "collider_cli", "simulate",
              str(scene_file(tmp_path)), "--steps", "300", "--quiet", "--no-preview",
              "--output", str(tmp_path / backend), *args],
             capture_output=True, text=True, timeout=300)
@@ -194,8 +196,8 @@ def test_check_mesh_places_the_mesh_as_the_model_was_made(tmp_path, monkeypatch)
     pytest.importorskip("collider_server", reason="the engine (server extras) is not installed")
     import trimesh
 
+    from collider_cli import main
     from collider_client.sim import run as run_module
-    from collider_server.cli import main
 
     seen, real_run_scene = [], run_module.run_scene
 
@@ -427,7 +429,7 @@ def test_physical_memory_is_this_machines():
 def simulate_parser():
     import argparse
 
-    from collider_client.sim.command import register
+    from collider_cli.commands.simulate import register
 
     parser = argparse.ArgumentParser(prog="collider")
     register(parser.add_subparsers(dest="command"))
@@ -448,7 +450,8 @@ def free_port() -> int:
 
 
 def test_simulate_options_defaults_and_help(capsys, monkeypatch):
-    from collider_client.sim.command import run_simulate, shipped_scenes
+    from collider_cli.commands.simulate import run_simulate
+    from collider_client.sim.scene import shipped_scenes
 
     parser = simulate_parser()
     defaults = dict(command="simulate", scene="drop", server=None, token=None, models=None,
@@ -488,7 +491,7 @@ def test_simulate_options_defaults_and_help(capsys, monkeypatch):
 
 
 def test_resolve_scene_names_the_shipped_scenes_when_none_matches(tmp_path):
-    from collider_client.sim.command import SCENES_DIR, resolve_scene, shipped_scenes
+    from collider_client.sim.scene import SCENES_DIR, resolve_scene, shipped_scenes
 
     assert resolve_scene("flag_in_wind") == SCENES_DIR / "flag_in_wind.toml"
     with pytest.raises(FileNotFoundError) as info:
@@ -603,7 +606,7 @@ def test_simulate_view_shows_the_run_and_stays_up(tmp_path, models_dir, monkeypa
     (here: the wait for Ctrl-C records what it was given and stops the view at once)."""
     pytest.importorskip("viser")
     from collider_client.sim import run as run_module
-    from collider_client.sim import view as view_module
+    from collider_cli.views import page as view_module
 
     waited, seen = [], []
     monkeypatch.setattr(view_module, "wait_until_interrupted",
@@ -635,8 +638,8 @@ def test_start_live_view_paused_and_the_view_closed_when_the_run_fails(tmp_path,
     import argparse
 
     pytest.importorskip("viser")
-    from collider_client.sim import view as view_module
-    from collider_client.sim.command import start_live_view
+    from collider_cli.commands.simulate import start_live_view
+    from collider_cli.views import page as view_module
 
     fall = tmp_path / "fall.toml"
     fall.write_text(FALL)
@@ -753,54 +756,54 @@ def _spec(model, position=(0.0, 0.0, 0.0), velocity=None):
     return ColliderSpec(model, np.asarray(position, float), np.zeros(3), motion)
 
 
-def test_exact_penetration_measures_each_placed_collider_at_each_frame(tmp_path):
-    """Box of 0.2 m (faces at +-0.1 m in its frame), exact. Colliders, in order: ``ghost`` (no
-    mesh given: skipped), ``box`` at x = 1 m rising at 1 m/s along z, ``box`` again at x = 5 m
-    (nothing near it). Depths in metres, world frame."""
-    pytest.importorskip("collider_server", reason="the engine (server extras) is not installed")
+def _box_exact(size_m: float):
     import trimesh
 
-    from collider_client.sim.exact import exact_penetration
-    from collider_client.sim.scene import Scene
+    from collider_server.engine.meshes import ExactSDF, Mesh
 
-    mesh = tmp_path / "box.obj"
-    trimesh.creation.box(extents=(0.2, 0.2, 0.2)).export(mesh)
-    scene = Scene(tmp_path / "s.toml", "s", 1.0, 1e-3, 1, [], None,
-                  [_spec("ghost"), _spec("box", (1.0, 0.0, 0.0), velocity=(0.0, 0.0, 1.0)),
-                   _spec("box", (5.0, 0.0, 0.0))], {})
+    box = trimesh.creation.box(extents=(size_m,) * 3)
+    return ExactSDF(Mesh(np.asarray(box.vertices), np.asarray(box.faces)))
+
+
+def test_exact_penetration_measures_each_placed_collider_at_each_frame():
+    """Box of 0.2 m (faces at +-0.1 m in its frame), exact. Colliders, in order: ``box`` at
+    x = 1 m rising at 1 m/s along z, ``box`` again at x = 5 m (nothing near it). Depths in
+    metres, world frame."""
+    pytest.importorskip("collider_server", reason="the engine (server extras) is not installed")
+    from collider_client.sim.scene import pose_function
+    from collider_server.making.evaluation import penetration
+
+    box = _box_exact(0.2)
+    colliders = [("box", box, pose_function(_spec("box", (1.0, 0.0, 0.0), velocity=(0.0, 0.0, 1.0)))),
+                 ("box", box, pose_function(_spec("box", (5.0, 0.0, 0.0))))]
     frames = [
         (0.0, np.array([[1.0, 0.0, 0.05], [3.0, 0.0, 0.0]], np.float32)),  # 0.05 m deep at t = 0
         (0.5, np.array([[1.0, 0.0, 0.5], [3.0, 0.0, 0.0]], np.float32)),   # the box's centre then
     ]
-    check = exact_penetration(scene, frames, {"box": mesh})
+    check = penetration(frames, colliders)
     assert check["by_model"] == {"box": pytest.approx(0.1, abs=1e-6)}
     assert check["max_depth_m"] == pytest.approx(0.1, abs=1e-6)
     assert check["min_distance_m"] == pytest.approx(-0.1, abs=1e-6)
     assert check["frames"] == 2
     # Only outside: no depth, and the closest distance is how near the cloth came (0.02 m).
     outside = [(0.0, np.array([[1.0, 0.0, 0.12]])), (0.5, np.array([[1.0, 0.0, 0.65]]))]
-    check = exact_penetration(scene, outside, {"box": mesh})
+    check = penetration(outside, colliders)
     assert check["max_depth_m"] == 0.0 and check["by_model"] == {"box": 0.0}
     assert check["min_distance_m"] == pytest.approx(0.02, abs=1e-6)
-    # The mesh file placed in the collider frame by its source transform: a 2 m box scaled by 0.1.
-    big = tmp_path / "big.obj"
-    trimesh.creation.box(extents=(2.0, 2.0, 2.0)).export(big)
-    check = exact_penetration(scene, frames, {"box": big}, {"box": np.diag([0.1, 0.1, 0.1, 1.0])})
-    assert check["max_depth_m"] == pytest.approx(0.1, abs=1e-6)
+    # A scaled pose (a 2 m box under scale 0.1 is the 0.2 m box): depths in world metres.
+    scaled = np.diag([0.1, 0.1, 0.1, 1.0])
+    scaled[:3, 3] = (1.0, 0.0, 0.0)
+    check = penetration([(0.0, np.array([[1.0, 0.0, 0.05]]))],
+                        [("box", _box_exact(2.0), lambda t: scaled)])
+    assert check["max_depth_m"] == pytest.approx(0.05, abs=1e-6)
 
 
-def test_exact_penetration_without_meshes_measures_nothing_and_refuses_unknown_models(tmp_path):
+def test_exact_penetration_without_meshes_measures_nothing():
     pytest.importorskip("collider_server", reason="the engine (server extras) is not installed")
-    from collider_client.sim.exact import exact_penetration
-    from collider_client.sim.scene import Scene
+    from collider_server.making.evaluation import penetration
 
-    scene = Scene(tmp_path / "s.toml", "s", 1.0, 1e-3, 1, [], None, [_spec("box")], {})
-    frames = [(0.0, np.zeros((1, 3)))]
-    assert exact_penetration(scene, frames, {}) == {
+    assert penetration([(0.0, np.zeros((1, 3)))], []) == {
         "max_depth_m": 0.0, "min_distance_m": float("inf"), "frames": 1, "by_model": {}}
-    with pytest.raises(ValueError, match=r"--check-mesh names model\(s\) \['ghost'\] that the "
-                                         "scene does not use"):
-        exact_penetration(scene, frames, {"ghost": tmp_path / "ghost.obj"})
 
 
 def test_preview_draws_a_moving_collider_at_each_frames_pose(tmp_path, models_dir, monkeypatch):

@@ -23,8 +23,8 @@ NGINX_TEMPLATE = REPO / "docker" / "nginx" / "collider.conf.template"
 SPHERE_RADIUS_M = 0.1
 
 
-# One home for starting servers: collider_server.service.launch.
-from collider_server.service.launch import free_port, wait_ready  # noqa: E402
+# One home for starting servers: collider_cli.launch.
+from collider_cli.launch import free_port, wait_ready  # noqa: E402
 
 
 def render_template(text: str, values: dict[str, str]) -> str:
@@ -46,7 +46,7 @@ class Replica:
         self.address = f"127.0.0.1:{self.port}"
         self.url = f"http://{self.address}"
         self.process = subprocess.Popen(
-            [sys.executable, "-m", "collider_server.cli", "serve", "--models", str(models),
+            [sys.executable, "-m", "collider_cli", "serve", "--models", str(models),
              "--port", str(self.port), "--device", "cpu", "--compute-threads", "1",
              "--log-level", "warning", *flags],
             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)

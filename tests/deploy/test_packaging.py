@@ -102,7 +102,7 @@ def test_a_wheel_install_serves_the_shipped_models(tmp_path):
 
 
 def test_a_command_whose_extra_is_missing_names_the_extra(monkeypatch, capsys, tmp_path):
-    from collider_server import cli
+    import collider_cli as cli
 
     mesh = tmp_path / "box.obj"
     mesh.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 3 2\nf 1 2 4\nf 1 4 3\nf 2 3 4\n")

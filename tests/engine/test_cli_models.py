@@ -10,7 +10,7 @@ import sys
 import numpy as np
 import pytest
 
-from collider_server.cli import main
+from collider_cli import main
 
 
 @pytest.fixture(scope="module")
@@ -150,11 +150,11 @@ def test_bad_input_gives_one_clear_line_and_exit_2(capsys, tmp_path, sphere_obj,
 
 
 def test_the_installed_entry_point_runs_without_traceback(tmp_path):
-    """Through a real process: ``python -m collider_server.cli`` (what ``collider`` runs)."""
-    ok = subprocess.run([sys.executable, "-m", "collider_server.cli", "info", "--models", str(tmp_path)],
+    """Through a real process: ``python -m collider_cli`` (what ``collider`` runs)."""
+    ok = subprocess.run([sys.executable, "-m", "collider_cli", "info", "--models", str(tmp_path)],
                         capture_output=True, text=True, timeout=120)
     assert ok.returncode == 0 and "0 model(s)" in ok.stdout
-    bad = subprocess.run([sys.executable, "-m", "collider_server.cli", "query", "ghost", "0", "0", "0",
+    bad = subprocess.run([sys.executable, "-m", "collider_cli", "query", "ghost", "0", "0", "0",
                           "--models", str(tmp_path)], capture_output=True, text=True, timeout=120)
     assert bad.returncode == 2 and "Traceback" not in bad.stderr
     assert bad.stderr.strip() == f"collider query: error: no model named 'ghost' in {tmp_path} (models: none)"

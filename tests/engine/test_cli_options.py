@@ -9,8 +9,8 @@ import argparse
 import numpy as np
 import pytest
 
-from collider_server.cli import build_parser, main
-from collider_server.commands.options import finite_float
+from collider_cli import build_parser, main
+from collider_cli.commands.options import finite_float
 from collider_server.engine.meshes import Mesh
 from collider_server.making.placement import MeshPlacement
 

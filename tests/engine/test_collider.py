@@ -10,9 +10,9 @@ import re
 import numpy as np
 import pytest
 
+from collider_contract import FIELDS
 from collider_contract.pose import MAX_COORDINATE_M, PoseError
 from collider_server.engine.collider import (
-    FIELDS,
     MAX_POINTS_PER_CALL,
     Collider,
     ColliderInfo,

@@ -7,8 +7,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from collider_contract import FIELDS
 from collider_contract.pose import as_pose
-from collider_server.engine.collider import FIELDS, Collider, assemble_result, assemble_scene_result
+from collider_server.engine.collider import Collider, assemble_result, assemble_scene_result
 
 from .test_collider import KINDS, fresh_collider, mixed_points  # noqa: F401  (fixture)
 

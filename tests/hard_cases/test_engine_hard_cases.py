@@ -13,8 +13,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from collider_contract import MAX_COORDINATE_M
 from collider_contract.pose import PoseError, as_pose
-from collider_server.engine.collider import MAX_COORDINATE_M, Collider
+from collider_server.engine.collider import Collider
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 

@@ -438,8 +438,7 @@ def test_drape_on_a_voxel_bunny_stays_finite_bounded_and_outside(tmp_path, load_
     """The paper's drape, coarsened (40 x 40 vertices 6 mm apart, 0.25 s): no NaN, the energy
     never rises above its start, no vertex deeper than 0.1 mm inside the exact mesh at any frame.
     The full 5 s run is ``benchmarks/long_drape.py`` (README, hard cases)."""
-    from collider_client.sim.command import SCENES_DIR
-    from collider_client.sim.scene import pose_function
+    from collider_client.sim.scene import SCENES_DIR, pose_function
     from collider_server.engine.meshes import ExactSDF
     from collider_server.engine.modelfile import save_collider
     from collider_server.making.bake import bake_collider
@@ -476,7 +475,7 @@ def cli(*args, timeout=300):
     import subprocess
     import sys
 
-    return subprocess.run([sys.executable, "-m", "collider_server.cli", "simulate", *map(str, args)],
+    return subprocess.run([sys.executable, "-m", "collider_cli", "simulate", *map(str, args)],
                           capture_output=True, text=True, timeout=timeout)
 
 

@@ -14,8 +14,8 @@ SMALL_RADIUS = 0.05  # metres; the "small" model
 ADMIN_TOKEN = "admin-secret"
 
 
-# One home for starting servers (tests, benchmarks, collider bench): collider_server.service.launch.
-from collider_server.service.launch import ServerThread, free_port, wait_ready  # noqa: E402,F401
+# One home for starting servers (tests, benchmarks, collider bench): collider_cli.launch.
+from collider_cli.launch import ServerThread, free_port, wait_ready  # noqa: E402,F401
 
 
 def bake_sphere(path: Path, radius: float, resolution: int = 32) -> Path:

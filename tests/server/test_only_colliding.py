@@ -10,8 +10,7 @@ import httpx
 import numpy as np
 import pytest
 
-from collider_contract import wire
-from collider_server.engine.collider import FIELDS
+from collider_contract import FIELDS, wire
 
 from .test_queries import decode, post, rotation_pose
 

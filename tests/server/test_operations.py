@@ -268,7 +268,7 @@ def test_a_reload_while_a_body_arrives_does_not_fail_that_request(tmp_path, mode
 
 def serve_subprocess(repo, *args, env=None):
     """A ready ``collider serve`` over ``repo`` (output captured); ``(process, url)``."""
-    from collider_server.service.launch import ServerProcess
+    from collider_cli.launch import ServerProcess
 
     server = ServerProcess(repo, "--device", "cpu", *args, env=env, capture=True)
     try:
@@ -337,12 +337,12 @@ def test_settings_from_config_file_env_and_flags(tmp_path, monkeypatch):
 
 def test_serve_cli_user_errors_are_one_line(tmp_path):
     result = subprocess.run(
-        [sys.executable, "-m", "collider_server.cli", "serve", "--models", str(tmp_path / "none")],
+        [sys.executable, "-m", "collider_cli", "serve", "--models", str(tmp_path / "none")],
         capture_output=True, text=True, timeout=60)
     assert result.returncode == 2 and "is not a folder" in result.stderr
     assert "Traceback" not in result.stderr and len(result.stderr.strip().splitlines()) == 1
     result = subprocess.run(
-        [sys.executable, "-m", "collider_server.cli", "serve", "--max-wait-ms", "-1"],
+        [sys.executable, "-m", "collider_cli", "serve", "--max-wait-ms", "-1"],
         capture_output=True, text=True, timeout=60)
     assert result.returncode == 2 and "max_wait_ms" in result.stderr
 

@@ -11,8 +11,7 @@ import msgpack
 import numpy as np
 import pytest
 
-from collider_contract import wire
-from collider_server.engine.collider import FIELDS
+from collider_contract import FIELDS, wire
 
 from .conftest import ServerThread
 

@@ -162,7 +162,7 @@ def test_evaluation_of_the_exact_kind_is_exact(sphere_mesh):
 
 
 def run_cli(*args, cwd=None):
-    return subprocess.run([sys.executable, "-m", "collider_server.cli", *args], capture_output=True,
+    return subprocess.run([sys.executable, "-m", "collider_cli", *args], capture_output=True,
                           text=True, cwd=cwd, timeout=300)
 
 

@@ -22,7 +22,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from tests.conftest import REPO_ROOT, shared_mesh_path
 
 from .chromium import Browser, find_browser
@@ -48,7 +47,7 @@ class Command:
         env = dict(os.environ, PYTHONUNBUFFERED="1", OMP_NUM_THREADS="1",
                    PYTHONPATH=os.pathsep.join([str(REPO_ROOT / "server"), str(REPO_ROOT / "client"),
                                                os.environ.get("PYTHONPATH", "")]))
-        self.process = subprocess.Popen([sys.executable, "-m", "collider_server.cli", *args],
+        self.process = subprocess.Popen([sys.executable, "-m", "collider_cli", *args],
                                         cwd=cwd, env=env, stdout=subprocess.PIPE,
                                         stderr=subprocess.PIPE, text=True)
         self.lines: queue.Queue[str | None] = queue.Queue()

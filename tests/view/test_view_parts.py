@@ -22,10 +22,11 @@ def sphere():
 
 
 def test_level_surface_lies_at_the_level(sphere):
-    from collider_server.view import distance_grid, level_surface
+    from collider_cli.views.collider import collider_grid
+    from collider_server.making.surface import level_surface
 
     shape, collider = sphere
-    grid = distance_grid(collider, 40, show_progress=False)
+    grid = collider_grid(collider, 40, show_progress=False)
     for level in (0.0, 0.005):  # the surface, and an eps offset surface 5 mm out
         verts, faces = level_surface(grid, level)
         radius = np.linalg.norm(verts, axis=1)
@@ -36,8 +37,8 @@ def test_level_surface_lies_at_the_level(sphere):
 
 
 def test_error_colours_and_surface_error(sphere):
+    from collider_cli.views.collider import error_colors, surface_error_mm
     from collider_server.engine.meshes import ExactSDF
-    from collider_server.view import error_colors, surface_error_mm
 
     shape, collider = sphere
     colours = error_colors(np.array([-2.0, 0.0, 0.5, 1.0, 3.0]), clip_mm=1.0)
@@ -52,7 +53,7 @@ def test_error_colours_and_surface_error(sphere):
 
 
 def test_probe_and_click_ray(sphere):
-    from collider_server.view import probe_text, sphere_trace
+    from collider_cli.views.collider import probe_text, sphere_trace
 
     _, collider = sphere
     # A ray from outside along -x hits the sphere at x = +r.
@@ -75,7 +76,7 @@ class _Handle(SimpleNamespace):
 
 
 def _controls(total: int, paused: bool):
-    from collider_client.sim.view import LiveControls
+    from collider_cli.views.cloth import LiveControls
 
     shown = []
     view = SimpleNamespace(show=lambda v, t, c: shown.append(t))
@@ -111,7 +112,7 @@ def test_live_controls_pause_step_and_play():
 
 
 def test_view_command_errors(capsys):
-    from collider_server.cli import main
+    from collider_cli import main
 
     assert main(["view"]) == 2
     assert "give a model NAME or --replay" in capsys.readouterr().err
@@ -122,8 +123,8 @@ def test_view_command_errors(capsys):
 
 
 def test_view_address_warning(capsys):
-    from collider_client._net import is_loopback
-    from collider_client.sim.view import start_server
+    from collider_cli.net import is_loopback
+    from collider_cli.views.page import start_server
 
     assert is_loopback("127.0.0.1") and is_loopback("::1") and is_loopback("localhost")
     assert not is_loopback("0.0.0.0") and not is_loopback("192.168.1.2")

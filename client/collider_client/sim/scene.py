@@ -9,6 +9,7 @@ Every error names the file and the key.
 from __future__ import annotations
 
 import math
+
 try:
     import tomllib
 except ModuleNotFoundError:  # Python 3.10
@@ -18,6 +19,28 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+#: The scenes shipped with the package (``collider simulate NAME`` finds them).
+SCENES_DIR = Path(__file__).resolve().parents[1] / "scenes"
+
+
+def shipped_scenes() -> list[str]:
+    """Names of the scenes shipped with the package (``collider simulate NAME`` finds them)."""
+    return sorted(p.stem for p in SCENES_DIR.glob("*.toml"))
+
+
+def resolve_scene(name_or_path: str) -> Path:
+    """The scene file ``name_or_path``, or the shipped scene of that name; FileNotFoundError
+    listing the shipped scenes otherwise."""
+    path = Path(name_or_path)
+    if path.is_file():
+        return path
+    shipped = SCENES_DIR / f"{name_or_path}.toml"
+    if shipped.is_file():
+        return shipped
+    raise FileNotFoundError(f"no scene file {name_or_path!r}; shipped scenes: "
+                            f"{', '.join(shipped_scenes())}")
+
 
 EFFECTS = ("gravity", "wind", "damping", "stretch", "shear", "bend", "pins", "collisions",
            "friction")

@@ -30,7 +30,6 @@ from typing import ClassVar, Iterable
 import numpy as np
 
 from collider_contract import (
-    FIELDS,
     GRADIENT_FIELDS,
     MAX_COORDINATE_M,
     Pose,

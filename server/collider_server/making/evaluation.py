@@ -22,6 +22,7 @@ from ..engine.collider import Collider
 from ..engine.meshes import ExactSDF, Mesh
 from .progress import progress
 from .sampling import box_points, surface_band_points, surface_points
+from .surface import distance_grid, level_surface
 
 SIGN_THRESHOLD_M = 0.2e-3
 BANDS_M = {"band_1mm": 1e-3, "band_10mm": 1e-2}
@@ -65,17 +66,12 @@ def reconstruction_chamfer_mm(collider: Collider, mesh: Mesh, resolution: int = 
                               samples: int = 50_000, seed: int = 0) -> float:
     """Chamfer-L1 (mean of both directions, not squared, mm) between the marching-cubes zero
     level set of ``collider`` on a ``resolution``^3 grid over its domain and ``mesh``."""
-    from skimage.measure import marching_cubes
-
-    lo, hi = collider.domain_min, collider.domain_max
-    axes = [np.linspace(lo[i], hi[i], resolution) for i in range(3)]
-    grid = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
-    values = collider.query(grid, ["distance"]).distance.reshape((resolution,) * 3)
-    if values.min() >= 0 or values.max() <= 0:
+    grid = distance_grid(lambda points: collider.query(points, ["distance"]).distance,
+                         collider.domain_min, collider.domain_max, resolution)
+    surface = level_surface(grid)
+    if surface is None:
         return float("inf")
-    spacing = (hi - lo) / (resolution - 1)
-    verts, faces, _, _ = marching_cubes(values, level=0.0, spacing=tuple(spacing))
-    recon = Mesh(verts + lo, faces.astype(np.int64), "reconstruction")
+    recon = Mesh(*surface, "reconstruction")
     to_mm = 1000.0 * collider.info.meters_per_unit
     recon_points, _ = surface_points(recon, samples, seed)
     mesh_points, _ = surface_points(mesh, samples, seed + 1)
@@ -119,6 +115,33 @@ def evaluate_collider(collider: Collider, mesh: Mesh, points: int = 100_000, see
     report["device"] = collider.device
     report["evaluated"] = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
     return report
+
+
+def penetration(frames, colliders) -> dict:
+    """How deep simulated points went into exact meshes: for ``frames``, a sequence of ``(t
+    seconds, (n, 3) points, world frame, metres)``, and ``colliders``, a list of ``(name,
+    ExactSDF in the collider frame, pose_at: t -> (4, 4) collider -> world)``, each point taken
+    into each collider's frame at its frame's time.
+
+    Returns ``{"max_depth_m": ..., "min_distance_m": ..., "frames": ..., "by_model": {name:
+    depth_m}}``: the deepest penetration (>= 0, metres) over all, and per collider name;
+    ``min_distance_m`` is the smallest signed distance of any point (negative: inside), which
+    shows how close the points came (about eps when a cloth rests on the collider)."""
+    from collider_contract import as_pose
+
+    by_model: dict[str, float] = {}
+    closest = float("inf")
+    for name, sdf, pose_at in colliders:
+        worst = 0.0
+        for t, points in frames:
+            pose = as_pose(pose_at(t))
+            distance = sdf.signed_distance(pose.to_local(points)) * pose.scale  # world units
+            if len(distance):
+                worst = max(worst, float(-distance.min()))
+                closest = min(closest, float(distance.min()))
+        by_model[name] = max(by_model.get(name, 0.0), worst)
+    return {"max_depth_m": max(by_model.values(), default=0.0), "min_distance_m": closest,
+            "frames": len(frames), "by_model": by_model}
 
 
 def format_report(name: str, kind: str, report: dict) -> str:

@@ -4,7 +4,7 @@ One definition for every command that reads a mesh (``bake``, ``train``, ``eval`
 ``view``, ``simulate --check-mesh``): an optional Y-up to Z-up rotation (the paper's frame), then a
 uniform scale (``scale``, or ``fit_size``: the scale that makes the largest side that long), then
 the unit the scaled coordinates are in. The argparse side is
-:mod:`collider_server.commands.options`.
+:mod:`collider_cli.commands.options`.
 """
 
 from __future__ import annotations

@@ -13,9 +13,10 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from collider_contract import MAX_COORDINATE_M
 from fastapi import APIRouter, Depends, Request
 from starlette.responses import FileResponse, HTMLResponse, JSONResponse
+
+from collider_contract import MAX_COORDINATE_M
 
 from .auth import require_token
 from .problems import PROBLEM_JSON, TITLES

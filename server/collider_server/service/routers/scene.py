@@ -6,8 +6,14 @@ from fastapi import APIRouter, Depends, Request
 
 from ..answers import absolute_deadline, answer_scene, unless_disconnected
 from ..auth import require_token
-from ..bodies import encode_response, parse_body, parse_scene, read_body, request_media_type, \
-    response_media_type
+from ..bodies import (
+    encode_response,
+    parse_body,
+    parse_scene,
+    read_body,
+    request_media_type,
+    response_media_type,
+)
 from ..openapi import query_responses
 from ..state import get_state, serving_model
 

@@ -4,7 +4,7 @@ A budget is a most-allowed mean distance error (and optionally mean normal angle
 memory); errors are the means in the +-1 mm band around the surface (where collisions are
 decided), as ``collider eval`` reports them. Among the measured colliders that meet every limit
 the picker takes the one with the smallest reference time (see
-:mod:`collider_server.bench.report`): it is on the measured Pareto front by construction, and no
+:mod:`collider_cli.bench.report`): it is on the measured Pareto front by construction, and no
 other measured collider meeting the budget is faster.
 """
 

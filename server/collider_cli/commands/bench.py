@@ -70,7 +70,7 @@ def register(subparsers) -> None:
 
 def placed_mesh(args):
     """(mesh in the collider frame, 4x4 transform applied, units, metres per unit)."""
-    from ..making.mesh_files import load_mesh
+    from collider_server.making.mesh_files import load_mesh
 
     placement = placement_from_args(args)
     mesh, transform = placement.apply(load_mesh(args.mesh))
@@ -172,8 +172,9 @@ def budget_from_args(args):
 def run_budget_bake(args, budget) -> int:
     """``collider bake MESH --max-error ...``: measure (or read) the front, build the fastest
     collider that meets the budget, check it with a fresh evaluation (another seed), save it."""
+    from collider_server.engine.repository import check_name
+
     from ..bench import NothingMeetsBudget, rank
-    from ..engine.repository import check_name
 
     check_name(args.name)
     mesh, transform, units, meters_per_unit = placed_mesh(args)
@@ -214,7 +215,7 @@ def print_ranking(report: dict, ranked: list[dict], budget, device: str) -> None
 
 
 def _bake_device(device: str | None) -> str:
-    from ..engine.devices import resolve_device
+    from collider_server.engine.devices import resolve_device
 
     resolved = resolve_device(device)
     return "cuda" if resolved.startswith("cuda") else "cpu"
@@ -254,11 +255,12 @@ def _build_and_check(args, row, report, budget, mesh, transform, units, meters_p
     the budget. Prints what it measured either way."""
     import tempfile
 
+    from collider_server.engine.modelfile import save_collider
+    from collider_server.engine.repository import ModelRepository
+    from collider_server.making.evaluation import evaluate_collider, format_report
+
     from ..bench.plan import Candidate, build_candidate
     from ..bench.report import reference_seconds_per_point
-    from ..engine.modelfile import save_collider
-    from ..engine.repository import ModelRepository
-    from ..making.evaluation import evaluate_collider, format_report
 
     repo = ModelRepository(args.models)
     candidate = Candidate(row["name"], row["label"], row["kind"], row["settings"], build=row["build"])

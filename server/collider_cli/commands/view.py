@@ -1,5 +1,5 @@
 """``collider view NAME`` (a collider in the browser) and ``collider view --replay out/SCENE``
-(a finished cloth run). Needs the ``[view]`` extra (viser); see :mod:`collider_server.view`."""
+(a finished cloth run). Needs the ``[view]`` extra (viser); see :mod:`collider_cli.views.collider`."""
 
 from __future__ import annotations
 
@@ -48,7 +48,7 @@ def register(subparsers) -> None:
 
 
 def run_view(args: argparse.Namespace) -> int:
-    from collider_client.sim.view import require_viser
+    from ..views.page import require_viser
 
     if (args.model is None) == (args.replay is None):
         raise ValueError("give a model NAME or --replay OUT/SCENE (one of them)")
@@ -61,11 +61,11 @@ def run_view(args: argparse.Namespace) -> int:
 
 
 def run_collider_view(args: argparse.Namespace) -> int:
-    from collider_client.sim.view import url_of, wait_until_interrupted
+    from collider_server.engine.repository import ModelRepository
+    from collider_server.making.mesh_files import load_mesh
 
-    from ..engine.repository import ModelRepository
-    from ..making.mesh_files import load_mesh
-    from ..view import serve_collider_view
+    from ..views.collider import serve_collider_view
+    from ..views.page import url_of, wait_until_interrupted
 
     collider = ModelRepository(args.models).load(args.model, args.device)
     mesh = None
@@ -93,9 +93,9 @@ def run_collider_view(args: argparse.Namespace) -> int:
 
 def run_replay(args: argparse.Namespace) -> int:
     from collider_client import Client
-    from collider_client.sim.command import SCENES_DIR, resolve_scene
-    from collider_client.sim.scene import load_scene
-    from collider_client.sim.view import replay
+    from collider_client.sim.scene import SCENES_DIR, load_scene, resolve_scene
+
+    from ..views.cloth import replay
 
     prefix = args.replay
     if prefix.suffix in (".obj", ".pc2"):

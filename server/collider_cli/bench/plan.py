@@ -26,8 +26,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ..engine.collider import Collider
-from ..engine.meshes import Mesh
+from collider_server.engine.collider import Collider
+from collider_server.engine.meshes import Mesh
 
 KINDS = ("kdtree", "mesh", "voxel", "neural")
 VOXEL_BYTES_PER_SAMPLE = 4  # float32 grid
@@ -64,7 +64,7 @@ class PlanConfig:
         if not (np.isfinite(self.train_minutes) and self.train_minutes >= 0):
             raise ValueError(f"--train-minutes must be a finite number >= 0, got {self.train_minutes}")
         if self.presets is not None:
-            from ..engine.kinds.neural import PRESETS
+            from collider_server.engine.kinds.neural import PRESETS
 
             unknown = sorted(set(self.presets) - set(PRESETS))
             if unknown or not self.presets:
@@ -147,9 +147,9 @@ def neural_candidates(mesh: Mesh, transform: np.ndarray, config: PlanConfig,
                       models_root: Path | None) -> tuple[list[Candidate], list[dict]]:
     """Trained neural models of this mesh per preset (and outside the presets), and, for
     presets without one, a training candidate (``train_minutes`` > 0) or a skip note."""
-    from ..engine.kinds.neural import PRESETS
-    from ..engine.modelfile import read_info
-    from ..engine.repository import ModelRepository
+    from collider_server.engine.kinds.neural import PRESETS
+    from collider_server.engine.modelfile import read_info
+    from collider_server.engine.repository import ModelRepository
 
     repo = ModelRepository(models_root)
     trained: dict[str, list] = {}
@@ -201,7 +201,7 @@ def neural_candidates(mesh: Mesh, transform: np.ndarray, config: PlanConfig,
 
 def preset_of(architecture: dict) -> str:
     """The preset name whose architecture equals ``architecture``, else "custom"."""
-    from ..engine.kinds.neural import PRESETS
+    from collider_server.engine.kinds.neural import PRESETS
 
     for name, arch in PRESETS.items():
         if asdict(arch) == architecture:
@@ -218,7 +218,7 @@ def build_candidate(candidate: Candidate, mesh: Mesh, transform: np.ndarray, *, 
     """Build (or load from the cache) ``candidate``'s collider on the CPU, save it as
     ``out_dir/NAME.safetensors`` (the served repository), set ``candidate.path`` and
     ``candidate.build_seconds``; returns the collider."""
-    from ..engine.modelfile import load_collider, save_collider
+    from collider_server.engine.modelfile import load_collider, save_collider
 
     out_dir.mkdir(parents=True, exist_ok=True)
     target = out_dir / f"{candidate.name}.safetensors"
@@ -229,7 +229,7 @@ def build_candidate(candidate: Candidate, mesh: Mesh, transform: np.ndarray, *, 
         collider = _cached(candidate, mesh, transform, units, meters_per_unit, cache, show_progress)
         save_collider(collider, target)
     else:  # mesh and kdtree: cheap to build, timed every run
-        from ..making.bake import bake_collider
+        from collider_server.making.bake import bake_collider
 
         started = time.perf_counter()
         collider = bake_collider(mesh, candidate.kind, candidate.name, padding=candidate.settings["padding"],
@@ -245,7 +245,7 @@ def build_candidate(candidate: Candidate, mesh: Mesh, transform: np.ndarray, *, 
 def _cached(candidate: Candidate, mesh: Mesh, transform, units, meters_per_unit, cache: Path,
             show_progress: bool) -> Collider:
     """A voxel grid or a bench-trained network from ``cache``, made (and timed) when absent."""
-    from ..engine.modelfile import load_collider, save_collider
+    from collider_server.engine.modelfile import load_collider, save_collider
 
     key = placement_key(mesh, transform, candidate.settings.get("padding", 0.1), units, meters_per_unit)
     detail = json.dumps(candidate.settings, sort_keys=True)
@@ -256,14 +256,14 @@ def _cached(candidate: Candidate, mesh: Mesh, transform, units, meters_per_unit,
         return collider
     started = time.perf_counter()
     if candidate.kind == "voxel":
-        from ..making.bake import bake_collider
+        from collider_server.making.bake import bake_collider
 
         collider = bake_collider(mesh, "voxel", candidate.name, resolution=candidate.settings["resolution"],
                                  padding=candidate.settings["padding"], units=units,
                                  meters_per_unit=meters_per_unit, device="cpu",
                                  show_progress=show_progress)
     else:
-        from ..making.training import TrainConfig, train_neural
+        from collider_server.making.training import TrainConfig, train_neural
 
         minutes = candidate.settings["train_minutes"]
         config = TrainConfig(preset=candidate.settings["preset"], max_minutes=minutes,

@@ -2,7 +2,7 @@
 
 - :func:`finite_float`: the argparse type that refuses ``nan`` and ``inf``; :func:`require_finite`
   puts it on every float option of every command (``collider`` applies it once, in
-  :func:`collider_server.cli.build_parser`, so options added later are covered too).
+  :func:`collider_cli.main.build_parser`, so options added later are covered too).
 - :func:`add_placement_arguments` / :func:`placement_from_args`: the mesh placement options
   (``--scale``, ``--fit-size``, ``--z-up``, ``--units``, ``--meters-per-unit``) of every command
   that reads a mesh, applied with :class:`collider_server.making.placement.MeshPlacement`.
@@ -13,7 +13,7 @@ from __future__ import annotations
 import argparse
 import math
 
-from ..making.placement import MeshPlacement
+from collider_server.making.placement import MeshPlacement
 
 
 def finite_float(text: str) -> float:

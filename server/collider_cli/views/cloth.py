@@ -11,7 +11,6 @@ by its pose at the shown time).
 
 from __future__ import annotations
 
-import sys
 import threading
 import time
 from dataclasses import dataclass
@@ -19,64 +18,15 @@ from pathlib import Path
 
 import numpy as np
 
-from .._net import is_loopback
-from .cloth import quad_faces
-from .scene import Scene, pose_function
+from collider_client.sim.cloth import quad_faces
+from collider_client.sim.scene import Scene, pose_function
+from collider_server.making.surface import distance_grid, level_surface
+
+from .page import box_edges, look_at_box, start_server, url_of, wait_until_interrupted
 
 CLOTH_COLOR = (70, 130, 200)
 COLLIDER_COLOR = (200, 200, 190)
 COLLIDING_COLOR = (230, 30, 30)
-DEFAULT_PORT = 8080
-
-
-def require_viser():
-    """The viser module, or a ValueError saying how to install it (the CLI prints it as one line)."""
-    try:
-        import viser
-    except ImportError:
-        raise ValueError("the browser view needs viser: pip install 'neural-collider[view]' "
-                         "(or pip install viser scikit-image)") from None
-    return viser
-
-
-def start_server(host: str = "127.0.0.1", port: int = DEFAULT_PORT, label: str = "neural-collider"):
-    """A started ``viser.ViserServer`` on ``host:port``; warns on stderr when ``host`` is not a
-    loopback address (the view has no authentication: anyone who reaches the port sees it)."""
-    viser = require_viser()
-    if not is_loopback(host):
-        print(f"warning: the view listens on {host}: anyone who can reach port {port} can see "
-              "and drive it (no authentication)", file=sys.stderr)
-    server = viser.ViserServer(host=host, port=port, label=label, verbose=False)
-    server.scene.set_up_direction("+z")
-    return server
-
-
-def url_of(server) -> str:
-    host = server.get_host()
-    return f"http://{'127.0.0.1' if host in ('0.0.0.0', '::') else host}:{server.get_port()}/"
-
-
-def wait_until_interrupted(server, message: str) -> None:
-    """Print ``message`` and serve until Ctrl-C (SIGINT) or SIGTERM, then stop the server
-    cleanly. Both handlers are installed here: a job started in the background by a
-    non-interactive shell (a CI script, ``cmd &``) inherits SIGINT ignored, and Python then
-    never turns Ctrl-C into KeyboardInterrupt."""
-    import signal
-
-    def stop(signum, frame):
-        raise KeyboardInterrupt
-
-    if threading.current_thread() is threading.main_thread():
-        signal.signal(signal.SIGINT, stop)
-        signal.signal(signal.SIGTERM, stop)
-    print(message, flush=True)
-    try:
-        threading.Event().wait()
-    except KeyboardInterrupt:
-        pass
-    finally:
-        server.stop()
-    print("view stopped", file=sys.stderr)
 
 
 def triangles(width: int, height: int) -> np.ndarray:
@@ -85,48 +35,22 @@ def triangles(width: int, height: int) -> np.ndarray:
     return np.concatenate([q[:, [0, 1, 2]], q[:, [0, 2, 3]]]).astype(np.uint32)
 
 
-def look_at_box(server, lo: np.ndarray, hi: np.ndarray, up: str = "+z") -> None:
-    """Point the initial camera at the box ``lo``..``hi`` from a three-quarter view above it,
-    ``up`` being the scene's up axis (``"+y"``, ``"+z"``, ...)."""
-    axis = "xyz".index(up[1])
-    up_vec = np.zeros(3)
-    up_vec[axis] = 1.0 if up[0] == "+" else -1.0
-    side, front = np.roll(np.eye(3), -axis - 1, axis=0)[:2]  # the two other axes
-    centre = 0.5 * (lo + hi)
-    size = float(np.max(hi - lo)) or 1.0
-    server.initial_camera.look_at = centre
-    server.initial_camera.up = up_vec
-    server.initial_camera.position = centre + size * (0.75 * side - 1.0 * front + 0.6 * up_vec)
-
-
-def box_edges(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
-    """(12, 2, 3) the edges of the axis-aligned box ``lo``..``hi``."""
-    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1])
-                        for z in (lo[2], hi[2])])
-    pairs = [(a, b) for a in range(8) for b in range(a + 1, 8)
-             if bin(a ^ b).count("1") == 1]  # corners differing in one coordinate
-    return np.stack([corners[[a, b]] for a, b in pairs])
-
-
 def collider_surface_via_client(client, info, resolution: int = 48):
     """(vertices (v, 3) float32, faces (f, 3) uint32) of a collider's zero level set in its own
     frame and units, from ``distance`` queries on a grid over its domain through ``client``;
     None when scikit-image is missing or the grid has no sign change."""
     try:
-        from skimage.measure import marching_cubes
+        import skimage  # noqa: F401  (the [view] extra brings it; without it: no surface)
     except ImportError:
         return None
-    lo, hi = np.asarray(info.domain_min, float), np.asarray(info.domain_max, float)
-    axes = [np.linspace(lo[i], hi[i], resolution) for i in range(3)]
-    grid = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
     # The identity pose, so that the answer stays in the collider frame.
-    values = np.asarray(client.query(info.name, grid, fields=["distance"], pose=np.eye(4)).distance)
-    values = values.reshape((resolution,) * 3)
-    if values.min() >= 0 or values.max() <= 0:
+    grid = distance_grid(lambda points: np.asarray(client.query(
+        info.name, points, fields=["distance"], pose=np.eye(4)).distance),
+        info.domain_min, info.domain_max, resolution, chunk_points=resolution ** 3)
+    surface = level_surface(grid)
+    if surface is None:
         return None
-    spacing = tuple((hi - lo) / (resolution - 1))
-    verts, faces, _, _ = marching_cubes(values, level=0.0, spacing=spacing)
-    return (verts + lo).astype(np.float32), faces.astype(np.uint32)
+    return surface[0].astype(np.float32), surface[1].astype(np.uint32)
 
 
 def _pose_parts(pose: np.ndarray):
@@ -334,7 +258,7 @@ def _pc2_frames(path: Path) -> np.ndarray:
     """(frames, n, 3) float32 of a PC2 file, memory-mapped (a long run's cache can be GBs)."""
     import struct
 
-    from .output import PC2_MAGIC
+    from collider_client.sim.output import PC2_MAGIC
 
     with open(path, "rb") as fh:
         header = fh.read(32)

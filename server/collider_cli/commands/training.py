@@ -8,13 +8,12 @@ from pathlib import Path
 
 import numpy as np
 
-from ..making.placement import Y_UP_TO_Z_UP, MeshPlacement  # noqa: F401  (Y_UP_TO_Z_UP: older imports)
 from .options import add_placement_arguments, placement_from_args
 
 
 def register(subparsers) -> None:
-    from ..engine.kinds.neural import PRESETS
-    from ..making.training import TrainConfig
+    from collider_server.engine.kinds.neural import PRESETS
+    from collider_server.making.training import TrainConfig
 
     defaults = TrainConfig()
     train = subparsers.add_parser("train", help="train a neural collider from a mesh")
@@ -61,17 +60,11 @@ def register(subparsers) -> None:
     evaluate.set_defaults(func=run_eval)
 
 
-def source_transform(mesh, scale: float, fit_size: float | None, z_up: bool) -> np.ndarray:
-    """The 4x4 similarity applied to the mesh file's coordinates before training (kept for
-    callers of the old name; see :class:`collider_server.making.placement.MeshPlacement`)."""
-    return MeshPlacement(scale=scale, fit_size=fit_size, z_up=z_up).transform(mesh)
-
-
 def run_train(args) -> int:
-    from ..engine.modelfile import save_collider
-    from ..engine.repository import ModelRepository, check_name, check_writable_folder
-    from ..making.mesh_files import load_mesh
-    from ..making.training import TrainConfig, train_neural
+    from collider_server.engine.modelfile import save_collider
+    from collider_server.engine.repository import ModelRepository, check_name, check_writable_folder
+    from collider_server.making.mesh_files import load_mesh
+    from collider_server.making.training import TrainConfig, train_neural
 
     check_name(args.name)
     config = TrainConfig(
@@ -102,10 +95,10 @@ def run_train(args) -> int:
 
 
 def run_eval(args) -> int:
-    from ..engine.modelfile import save_collider
-    from ..engine.repository import ModelRepository
-    from ..making.evaluation import evaluate_collider, format_report
-    from ..making.mesh_files import load_mesh
+    from collider_server.engine.modelfile import save_collider
+    from collider_server.engine.repository import ModelRepository
+    from collider_server.making.evaluation import evaluate_collider, format_report
+    from collider_server.making.mesh_files import load_mesh
 
     repo = ModelRepository(args.models)
     path = repo.resolve(args.model)

@@ -18,8 +18,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ..engine.meshes import ExactSDF, Mesh
-from ..making.progress import progress
+from collider_server.engine.meshes import ExactSDF, Mesh
+from collider_server.making.progress import progress
+
 from .plan import Candidate, PlanConfig, build_candidate, plan_candidates
 from .timing import MODES, TimingPolicy, time_cells
 
@@ -136,7 +137,7 @@ def point_sets(mesh: Mesh, config: BenchConfig, meters_per_unit: float) -> dict[
     around the surface moved along the face normal by U(-band, band), collider frame. The
     timing set is the +-10 mm band set itself (where a cloth simulator queries): the accuracy in
     that band is measured on its first ``accuracy_points`` points."""
-    from ..making.sampling import surface_band_points
+    from collider_server.making.sampling import surface_band_points
 
     n = config.accuracy_points
     ten = surface_band_points(mesh, max(max(config.sizes), n), 1e-2 / meters_per_unit, config.seed + 1)
@@ -146,7 +147,7 @@ def point_sets(mesh: Mesh, config: BenchConfig, meters_per_unit: float) -> dict[
 
 def candidate_row(candidate: Candidate, collider, sdf: ExactSDF, sets: dict) -> dict:
     """Everything but the timings of one candidate: accuracy per band, build cost, memory."""
-    from ..making.evaluation import error_figures
+    from collider_server.making.evaluation import error_figures
 
     accuracy = {band: error_figures(collider, sdf, sets[band]) for band in ("band_1mm", "band_10mm")}
     return {**candidate.to_dict(), "file_bytes": int(candidate.path.stat().st_size),
@@ -161,7 +162,7 @@ def time_embedded(candidate: Candidate, collider, device: str, points: np.ndarra
                   on_cell) -> list:
     """The engine in this process: ``Collider.query`` on ``device``."""
     if device != "cpu":
-        from ..engine.modelfile import load_collider
+        from collider_server.engine.modelfile import load_collider
 
         collider = load_collider(candidate.path, device)
 
@@ -182,8 +183,7 @@ def time_served(candidates: list[Candidate], models: Path, device: str, points: 
     import torch
 
     from collider_client import Client
-
-    from ..service.launch import serve_process
+    from ..launch import serve_process
 
     biggest = max(config.sizes)
     flags = ["--device", device, "--compute-threads", str(torch.get_num_threads()), "--log-level", "warning",

@@ -5,23 +5,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-SCENES_DIR = Path(__file__).resolve().parents[1] / "scenes"
-
-
-def shipped_scenes() -> list[str]:
-    """Names of the scenes shipped with the package (``collider simulate NAME`` finds them)."""
-    return sorted(p.stem for p in SCENES_DIR.glob("*.toml"))
-
-
-def resolve_scene(name_or_path: str) -> Path:
-    path = Path(name_or_path)
-    if path.is_file():
-        return path
-    shipped = SCENES_DIR / f"{name_or_path}.toml"
-    if shipped.is_file():
-        return shipped
-    raise FileNotFoundError(f"no scene file {name_or_path!r}; shipped scenes: "
-                            f"{', '.join(shipped_scenes())}")
+from collider_client.sim.scene import resolve_scene, shipped_scenes
 
 
 def register(subparsers) -> None:
@@ -58,15 +42,15 @@ def register(subparsers) -> None:
 
 
 def run_simulate(args: argparse.Namespace) -> int:
-    from .. import Client
-    from .run import run_scene
-    from .scene import load_scene
+    from collider_client import Client, ColliderError
+    from collider_client.sim.run import run_scene
+    from collider_client.sim.scene import load_scene
 
     scene = load_scene(resolve_scene(args.scene))
     if args.steps is not None and args.steps < 1:
         raise ValueError(f"--steps must be >= 1, got {args.steps}")
     if args.view:  # a missing extra is said before any work, not after the run
-        from .view import require_viser
+        from ..views.page import require_viser
 
         require_viser()
     checks = {}
@@ -92,35 +76,9 @@ def run_simulate(args: argparse.Namespace) -> int:
 
             threads = args.threads or max(1, (os.cpu_count() or 2) - 1)
             client = Client(models=args.models, device=args.device, threads=threads)
-    from .._exceptions import ColliderError
-
-    # Each checked mesh file is placed as its model was made (the model's source.transform:
-    # --scale / --fit-size / --z-up), so that it lies in the collider frame like the model.
-    transforms = {}
-    if checks and client is not None:
-        import numpy as np
-
-        try:
-            infos = {m.name: m for m in client.list_models()}
-        except ColliderError as exc:
-            client.close()
-            raise ValueError(str(exc)) from None
-        transforms = {model: np.asarray(infos[model].source.get("transform", np.eye(4)), dtype=np.float64)
-                      for model in checks if model in infos}
+    placed = placed_meshes(client, checks) if checks else {}
     # The exact meshes also show the colliders in the PNG (a few thousand surface vertices).
-    shown = {}
-    if checks:
-        import numpy as np
-
-        from collider_server.making.mesh_files import load_mesh
-
-        for model, mesh_path in checks.items():
-            vertices = load_mesh(mesh_path).vertices
-            if model in transforms:
-                vertices = vertices @ transforms[model][:3, :3].T + transforms[model][:3, 3]
-            pick = np.random.default_rng(0).choice(len(vertices), min(4000, len(vertices)),
-                                                   replace=False)
-            shown[model] = np.asarray(vertices[pick], dtype=np.float64)
+    shown = {model: surface_sample(mesh.vertices) for model, mesh in placed.items()}
     server = None
     try:
         on_step = None
@@ -139,31 +97,68 @@ def run_simulate(args: argparse.Namespace) -> int:
     finally:
         if client is not None:
             client.close()
-    if checks:
-        from .exact import exact_penetration
-
-        report.exact_check = exact_penetration(scene, frames, checks, transforms)
+    if placed:
         import json
-        stem = scene.path.stem
-        (args.output / f"{stem}.report.json").write_text(json.dumps(report.to_dict(), indent=2,
-                                                                    default=float))
+
+        from collider_client.sim.scene import pose_function
+        from collider_server.engine.meshes import ExactSDF
+        from collider_server.making.evaluation import penetration
+
+        exact = {model: ExactSDF(mesh) for model, mesh in placed.items()}
+        report.exact_check = penetration(frames, [(spec.model, exact[spec.model], pose_function(spec))
+                                                  for spec in scene.colliders if spec.model in exact])
+        (args.output / f"{scene.path.stem}.report.json").write_text(
+            json.dumps(report.to_dict(), indent=2, default=float))
     print(report.text())
     stem = scene.path.stem
     written = ".pc2, .report.json" if args.no_preview else ".pc2, .png, .report.json"
     print(f"wrote {args.output / (stem + '.obj')}, {written}")
     if server is not None:
-        from .view import url_of, wait_until_interrupted
+        from ..views.page import url_of, wait_until_interrupted
 
         wait_until_interrupted(server, f"run finished; the view stays at {url_of(server)} "
                                        "(Ctrl-C to stop)")
     return 0
 
 
+def placed_meshes(client, checks: dict[str, Path]) -> dict:
+    """Each ``--check-mesh`` file (model name -> path), placed as its model was made (the
+    model's ``source.transform``: --scale / --fit-size / --z-up), so that it lies in the collider
+    frame like the model: model name -> :class:`~collider_server.engine.meshes.Mesh`."""
+    import numpy as np
+
+    from collider_client import ColliderError
+    from collider_server.making.mesh_files import load_mesh
+
+    try:
+        infos = {m.name: m for m in client.list_models()}
+    except ColliderError as exc:  # a server that is down: one line
+        client.close()
+        raise ValueError(str(exc)) from None
+    placed = {}
+    for model, path in checks.items():
+        mesh = load_mesh(path)
+        transform = np.asarray(infos[model].source.get("transform", np.eye(4)), dtype=np.float64) \
+            if model in infos else np.eye(4)
+        placed[model] = mesh if np.allclose(transform, np.eye(4)) else mesh.transformed(transform)
+    return placed
+
+
+def surface_sample(vertices, count: int = 4000):
+    """(m, 3) float64: up to ``count`` of ``vertices``, a fixed random pick (seed 0)."""
+    import numpy as np
+
+    pick = np.random.default_rng(0).choice(len(vertices), min(count, len(vertices)), replace=False)
+    return np.asarray(vertices[pick], dtype=np.float64)
+
+
 def start_live_view(args: argparse.Namespace, scene, client):
     """Start the browser view of the run (``--view``); returns the viser server and the
     per-step callback for :func:`run_scene`."""
-    from .cloth import grid_positions
-    from .view import ClothView, LiveControls, start_server, url_of
+    from collider_client.sim.cloth import grid_positions
+
+    from ..views.cloth import ClothView, LiveControls
+    from ..views.page import start_server, url_of
 
     # The models first: a server that is down fails here, before the view opens.
     infos = {m.name: m for m in client.list_models()} if client is not None else None

@@ -11,20 +11,21 @@ Everything is shown in the **collider frame and units** (identity pose):
 - a probe: type a point or click the surface, see ``distance``, ``normal`` (an arrow),
   ``contact`` and ``collides``.
 
-The grid and the colours are plain functions (:func:`distance_grid`, :func:`level_surface`,
+The grid and the colours are plain functions (:func:`collider_grid`, :func:`level_surface`,
 :func:`error_colors`), testable without a browser; :func:`serve_collider_view` builds the scene.
 """
 
 from __future__ import annotations
 
 import threading
-from dataclasses import dataclass
 
 import numpy as np
 
-from .engine.collider import Collider
-from .engine.meshes import ExactSDF, Mesh
-from .making.progress import progress
+from collider_server.engine.collider import Collider
+from collider_server.engine.meshes import ExactSDF, Mesh
+from collider_server.making.surface import Grid, distance_grid, level_surface
+
+from .page import box_edges, look_at_box, start_server
 
 BOX_COLOR = (60, 60, 60)
 WIRE_COLOR = (40, 40, 40)
@@ -32,49 +33,13 @@ PLAIN_COLOR = (170, 190, 210)
 PROBE_COLOR = (250, 140, 0)
 
 
-@dataclass
-class Grid:
-    """``distance`` of a collider sampled on a regular grid over its domain, collider frame.
-
-    values : (r, r, r) float32, collider units, indexed [x, y, z]
-    lo, hi : (3,) float64 domain corners
-    """
-
-    values: np.ndarray
-    lo: np.ndarray
-    hi: np.ndarray
-
-    @property
-    def spacing(self) -> tuple[float, float, float]:
-        return tuple((self.hi - self.lo) / (np.array(self.values.shape) - 1))
-
-
-def distance_grid(collider: Collider, resolution: int, show_progress: bool = True,
-                  chunk_points: int = 65_536) -> Grid:
-    """Sample ``collider``'s distance on ``resolution``^3 points spanning its domain box."""
+def collider_grid(collider: Collider, resolution: int, show_progress: bool = True) -> Grid:
+    """``collider``'s distance on ``resolution``^3 points spanning its domain box."""
     if not 8 <= resolution <= 512:
         raise ValueError(f"--resolution must be between 8 and 512, got {resolution}")
-    lo, hi = collider.domain_min.astype(np.float64), collider.domain_max.astype(np.float64)
-    axes = [np.linspace(lo[i], hi[i], resolution) for i in range(3)]
-    points = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
-    values = np.empty(len(points), dtype=np.float32)
-    with progress(len(points), f"{collider.info.name} grid", "pt", show_progress) as bar:
-        for start in range(0, len(points), chunk_points):
-            chunk = points[start:start + chunk_points]
-            values[start:start + len(chunk)] = collider.query(chunk, ["distance"]).distance
-            bar.update(len(chunk))
-    return Grid(values.reshape((resolution,) * 3), lo, hi)
-
-
-def level_surface(grid: Grid, level: float) -> tuple[np.ndarray, np.ndarray] | None:
-    """(vertices (v, 3) float64 collider frame, faces (f, 3) int64) of ``distance == level``
-    (collider units), or None when the grid does not cross that level."""
-    from skimage.measure import marching_cubes
-
-    if not grid.values.min() < level < grid.values.max():
-        return None
-    verts, faces, _, _ = marching_cubes(grid.values, level=level, spacing=grid.spacing)
-    return verts + grid.lo, faces.astype(np.int64)
+    return distance_grid(lambda points: collider.query(points, ["distance"]).distance,
+                         collider.domain_min, collider.domain_max, resolution,
+                         desc=f"{collider.info.name} grid", show_progress=show_progress)
 
 
 def surface_error_mm(sdf: ExactSDF, vertices: np.ndarray, level: float,
@@ -104,8 +69,6 @@ def colour_bar_html(clip_mm: float) -> str:
 
 def box_segments(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     """(12, 2, 3) float32 edges of the box ``lo``..``hi``."""
-    from collider_client.sim.view import box_edges
-
     return box_edges(lo, hi).astype(np.float32)
 
 
@@ -155,9 +118,7 @@ def serve_collider_view(collider: Collider, mesh: Mesh | None, *, host: str, por
                         show_progress: bool = True):
     """Build the view of ``collider`` (``mesh`` placed in its frame, or None) and return the
     started viser server; the caller serves until Ctrl-C."""
-    from collider_client.sim.view import look_at_box, start_server
-
-    grid = distance_grid(collider, resolution, show_progress)
+    grid = collider_grid(collider, resolution, show_progress)
     sdf = ExactSDF(mesh) if mesh is not None else None
     info = collider.info
     mm = 1e3 * info.meters_per_unit

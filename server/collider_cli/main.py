@@ -12,12 +12,12 @@ import importlib
 import sys
 
 COMMAND_MODULES = [
-    "collider_server.commands.models",
-    "collider_server.commands.training",
-    "collider_client.sim.command",
-    "collider_server.commands.serve",
-    "collider_server.commands.view",
-    "collider_server.commands.bench",
+    "collider_cli.commands.models",
+    "collider_cli.commands.training",
+    "collider_cli.commands.simulate",
+    "collider_cli.commands.serve",
+    "collider_cli.commands.view",
+    "collider_cli.commands.bench",
 ]
 
 USER_ERRORS = (ValueError, FileNotFoundError, IsADirectoryError, PermissionError, KeyError)
@@ -63,6 +63,3 @@ def main(argv: list[str] | None = None) -> int:
         print(f"collider {args.command}: interrupted", file=sys.stderr)
         return 130
 
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -74,7 +74,7 @@ class ServerProcess:
         self.url = f"http://{LOOPBACK}:{self.port}"
         base = {k: v for k, v in os.environ.items() if k not in TOKEN_VARIABLES}
         self.process = subprocess.Popen(
-            [sys.executable, "-m", "collider_server.cli", "serve", "--host", LOOPBACK,
+            [sys.executable, "-m", "collider_cli", "serve", "--host", LOOPBACK,
              "--port", str(self.port), "--models", str(models), *flags],
             env={**base, **(env or {})},
             stdout=subprocess.PIPE if capture else None,
@@ -122,7 +122,7 @@ class ServerThread:
         import torch
         import uvicorn
 
-        from . import ServiceSettings, create_app
+        from collider_server.service import ServiceSettings, create_app
 
         self.port = free_port()
         self.url = f"http://{LOOPBACK}:{self.port}"

@@ -8,7 +8,7 @@ this machine.
 - :mod:`.budget`: an error budget in, the fastest collider that meets it out.
 
 The engine knows nothing of this package; it only calls the engine (and the client SDK for the
-served half, started with :mod:`collider_server.service.launch`).
+served half, started with :mod:`collider_cli.launch`).
 """
 
 from .budget import Budget, NothingMeetsBudget, rank

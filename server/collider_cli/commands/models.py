@@ -2,15 +2,14 @@
 
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 from pathlib import Path
 
 import numpy as np
 
-from ..engine.collider import FIELDS
-from ..making.placement import UNIT_METERS, meters_per_unit  # noqa: F401  (re-exported: older imports)
+from collider_contract import FIELDS
+
 from .bench import add_budget_arguments, budget_from_args
 from .options import add_placement_arguments, placement_from_args
 
@@ -53,14 +52,14 @@ def register(subparsers) -> None:
 
 
 def run_bake(args) -> int:
-    from ..engine.modelfile import save_collider
-    from ..engine.repository import ModelRepository, check_name
-    from ..making.bake import bake_collider
-    from ..making.mesh_files import load_mesh
+    from collider_server.engine.modelfile import save_collider
+    from collider_server.engine.repository import ModelRepository, check_name
+    from collider_server.making.bake import bake_collider
+    from collider_server.making.mesh_files import load_mesh
 
     check_name(args.name)
     budget = budget_from_args(args)
-    if budget is not None:  # an error budget: bake picks the kind (collider_server.bench)
+    if budget is not None:  # an error budget: bake picks the kind (collider_cli.bench)
         from .bench import run_budget_bake
 
         return run_budget_bake(args, budget)
@@ -102,7 +101,7 @@ def load_pose(path: Path | None):
 
 
 def run_query(args) -> int:
-    from ..engine.repository import ModelRepository
+    from collider_server.engine.repository import ModelRepository
 
     fields = [f.strip() for f in args.fields.split(",") if f.strip()]
     points = load_points(args)
@@ -142,8 +141,8 @@ def finite_json(value, where: str = ""):
 
 
 def run_info(args) -> int:
-    from ..engine.modelfile import read_info
-    from ..engine.repository import ModelRepository
+    from collider_server.engine.modelfile import read_info
+    from collider_server.engine.repository import ModelRepository
 
     repo = ModelRepository(args.models)
     if args.model is None:

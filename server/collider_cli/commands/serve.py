@@ -7,7 +7,7 @@ import logging
 import sys
 from pathlib import Path
 
-from collider_client._net import is_loopback
+from ..net import is_loopback
 
 
 def register(subparsers) -> None:
@@ -64,7 +64,7 @@ SETTING_FLAGS = ("host", "port", "models", "device", "max_batch_points", "max_wa
 def run_serve(args) -> int:
     import uvicorn
 
-    from ..service import create_app, load_settings
+    from collider_server.service import create_app, load_settings
 
     settings = load_settings(args.config, **{k: getattr(args, k) for k in SETTING_FLAGS})
     if settings.models is not None and not settings.models.is_dir():

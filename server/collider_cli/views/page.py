@@ -1,0 +1,86 @@
+"""What every browser view shares: the viser server, its URL, serving until Ctrl-C, the
+initial camera and box outlines (viser is the ``[view]`` extra, imported only when a view runs)."""
+
+from __future__ import annotations
+
+import sys
+import threading
+
+import numpy as np
+
+from ..net import is_loopback
+
+DEFAULT_PORT = 8080
+
+
+def require_viser():
+    """The viser module, or a ValueError saying how to install it (the CLI prints it as one line)."""
+    try:
+        import viser
+    except ImportError:
+        raise ValueError("the browser view needs viser: pip install 'neural-collider[view]' "
+                         "(or pip install viser scikit-image)") from None
+    return viser
+
+
+def start_server(host: str = "127.0.0.1", port: int = DEFAULT_PORT, label: str = "neural-collider"):
+    """A started ``viser.ViserServer`` on ``host:port``; warns on stderr when ``host`` is not a
+    loopback address (the view has no authentication: anyone who reaches the port sees it)."""
+    viser = require_viser()
+    if not is_loopback(host):
+        print(f"warning: the view listens on {host}: anyone who can reach port {port} can see "
+              "and drive it (no authentication)", file=sys.stderr)
+    server = viser.ViserServer(host=host, port=port, label=label, verbose=False)
+    server.scene.set_up_direction("+z")
+    return server
+
+
+def url_of(server) -> str:
+    host = server.get_host()
+    return f"http://{'127.0.0.1' if host in ('0.0.0.0', '::') else host}:{server.get_port()}/"
+
+
+def wait_until_interrupted(server, message: str) -> None:
+    """Print ``message`` and serve until Ctrl-C (SIGINT) or SIGTERM, then stop the server
+    cleanly. Both handlers are installed here: a job started in the background by a
+    non-interactive shell (a CI script, ``cmd &``) inherits SIGINT ignored, and Python then
+    never turns Ctrl-C into KeyboardInterrupt."""
+    import signal
+
+    def stop(signum, frame):
+        raise KeyboardInterrupt
+
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGINT, stop)
+        signal.signal(signal.SIGTERM, stop)
+    print(message, flush=True)
+    try:
+        threading.Event().wait()
+    except KeyboardInterrupt:
+        pass
+    finally:
+        server.stop()
+    print("view stopped", file=sys.stderr)
+
+
+def look_at_box(server, lo: np.ndarray, hi: np.ndarray, up: str = "+z") -> None:
+    """Point the initial camera at the box ``lo``..``hi`` from a three-quarter view above it,
+    ``up`` being the scene's up axis (``"+y"``, ``"+z"``, ...)."""
+    axis = "xyz".index(up[1])
+    up_vec = np.zeros(3)
+    up_vec[axis] = 1.0 if up[0] == "+" else -1.0
+    side, front = np.roll(np.eye(3), -axis - 1, axis=0)[:2]  # the two other axes
+    centre = 0.5 * (lo + hi)
+    size = float(np.max(hi - lo)) or 1.0
+    server.initial_camera.look_at = centre
+    server.initial_camera.up = up_vec
+    server.initial_camera.position = centre + size * (0.75 * side - 1.0 * front + 0.6 * up_vec)
+
+
+def box_edges(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """(12, 2, 3) the edges of the axis-aligned box ``lo``..``hi``."""
+    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1])
+                        for z in (lo[2], hi[2])])
+    pairs = [(a, b) for a in range(8) for b in range(a + 1, 8)
+             if bin(a ^ b).count("1") == 1]  # corners differing in one coordinate
+    return np.stack([corners[[a, b]] for a, b in pairs])

@@ -1,1 +1,0 @@
-"""Subcommands of the ``collider`` CLI, one module per group (see :mod:`collider_server.cli`)."""
