@@ -25,8 +25,8 @@ from pathlib import Path
 import numpy as np
 
 from collider_client import Client
-from collider_client.sim.scene import SCENES_DIR
-from collider_client.sim.scene import load_scene, pose_function
+from collider_client.sim.motion import pose_function
+from collider_client.sim.scene import SCENES_DIR, load_scene
 from collider_client.sim.simulator import Simulator
 
 REPO = Path(__file__).resolve().parents[1]

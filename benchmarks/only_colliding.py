@@ -23,8 +23,7 @@ import numpy as np
 
 from collider_client import Client
 from collider_client.response import world_box
-from collider_client.sim.scene import SCENES_DIR
-from collider_client.sim.scene import load_scene
+from collider_client.sim.scene import SCENES_DIR, load_scene
 from collider_client.sim.simulator import Simulator
 
 #: name -> (fields the hook asks for, only_colliding). "distance only" steps like "only

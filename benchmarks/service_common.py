@@ -24,8 +24,8 @@ REPO = Path(__file__).resolve().parents[1]
 MESHES = REPO.parent / "shared" / "data" / "meshes"
 sys.path.insert(0, str(REPO / "client"))
 
-from collider_contract import wire  # noqa: E402
 from collider_cli.launch import free_port  # noqa: E402,F401  (one home for it)
+from collider_contract import wire  # noqa: E402
 
 
 class HTTPError(Exception):

@@ -18,8 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from collider_client import FIELDS, Client
-from collider_client.sim.scene import SCENES_DIR
-from collider_client.sim.scene import load_scene
+from collider_client.sim.scene import SCENES_DIR, load_scene
 from collider_client.sim.simulator import Simulator
 
 VARIANTS = {

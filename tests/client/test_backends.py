@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 import collider_client as cc
-from collider_client.sim.scene import euler_matrix
+from collider_client.sim.motion import euler_matrix
 
 ALL_FIELDS = ["distance", "normal", "contact", "collides"]
 

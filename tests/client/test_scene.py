@@ -9,7 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from collider_client.sim.scene import SCENES_DIR, SceneError, load_scene, resolve_scene, shipped_scenes
+from collider_client.sim.scene import SCENES_DIR, load_scene, resolve_scene, shipped_scenes
+from collider_client.sim.tables import SceneError
 
 BASE = """
 [scene]
@@ -142,7 +143,7 @@ def test_cli_unreachable_server_is_one_line(tmp_path):
 def test_collider_poses_from_motion():
     import numpy as np
 
-    from collider_client.sim.scene import ColliderSpec, Motion, euler_matrix, pose_function
+    from collider_client.sim.motion import ColliderSpec, Motion, euler_matrix, pose_function
 
     # +90 deg about x turns a Y-up model Z-up: x stays, y -> z, z -> -y.
     np.testing.assert_allclose(euler_matrix(np.array([90.0, 0, 0])),
@@ -563,7 +564,7 @@ def extrinsic_xyz(rotation_deg):
 @pytest.mark.parametrize("rotation_deg", [(30, 0, 0), (0, 45, 0), (0, 0, 60), (30, -45, 120),
                                           (90, 90, 0), (-170, 20, 75)])
 def test_euler_matrix_turns_about_world_x_then_y_then_z(rotation_deg):
-    from collider_client.sim.scene import euler_matrix
+    from collider_client.sim.motion import euler_matrix
 
     np.testing.assert_allclose(euler_matrix(np.array(rotation_deg, float)),
                                extrinsic_xyz(rotation_deg), atol=1e-12)
@@ -573,7 +574,7 @@ def test_euler_matrix_turns_about_world_x_then_y_then_z(rotation_deg):
     (0, 0, np.pi / 2), (0.5, 0, 0), (0, -0.5, 0), (0.3, -1.2, 0.5), (2.0, 2.0, 2.0), (0, 5.0, 0),
     (-1e-3, 2e-3, 3e-3), (0.1, 0.2, -0.3)])
 def test_axis_angle_matrix_turns_by_the_norm_about_the_direction(rotation_vector_rad):
-    from collider_client.sim.scene import axis_angle_matrix
+    from collider_client.sim.motion import axis_angle_matrix
 
     r = np.array(rotation_vector_rad, float)  # not unit: the angle is its norm
     matrix = axis_angle_matrix(r)
@@ -582,7 +583,7 @@ def test_axis_angle_matrix_turns_by_the_norm_about_the_direction(rotation_vector
 
 
 def test_axis_angle_matrix_of_tiny_and_zero_vectors():
-    from collider_client.sim.scene import axis_angle_matrix
+    from collider_client.sim.motion import axis_angle_matrix
 
     assert np.array_equal(axis_angle_matrix(np.zeros(3)), np.eye(3))
     # 1e-15 rad about z still turns, to first order I + [r]x
@@ -591,7 +592,7 @@ def test_axis_angle_matrix_of_tiny_and_zero_vectors():
 
 
 def test_collider_pose_of_each_motion_kind_against_independent_rotations():
-    from collider_client.sim.scene import ColliderSpec, Motion, pose_function
+    from collider_client.sim.motion import ColliderSpec, Motion, pose_function
 
     position = np.array([0.1, -0.2, 0.3])  # metres, world frame
     rotation_deg = np.array([90.0, 0.0, 30.0])

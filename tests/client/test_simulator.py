@@ -98,7 +98,7 @@ def test_drop_on_sphere_stays_outside(tmp_path, models_dir):
     # The same check through the exact mesh SDF that `--check-mesh` uses.
     import trimesh
 
-    from collider_client.sim.scene import pose_function
+    from collider_client.sim.motion import pose_function
     from collider_server.engine.meshes import ExactSDF, Mesh
     from collider_server.making.evaluation import penetration
 
@@ -605,8 +605,8 @@ def test_simulate_view_shows_the_run_and_stays_up(tmp_path, models_dir, monkeypa
     """--view: the view on the given port follows the run to its last step, then stays up
     (here: the wait for Ctrl-C records what it was given and stops the view at once)."""
     pytest.importorskip("viser")
-    from collider_client.sim import run as run_module
     from collider_cli.views import page as view_module
+    from collider_client.sim import run as run_module
 
     waited, seen = [], []
     monkeypatch.setattr(view_module, "wait_until_interrupted",
@@ -750,7 +750,7 @@ def test_run_report_dict_carries_the_timings_and_the_per_step_times():
 
 
 def _spec(model, position=(0.0, 0.0, 0.0), velocity=None):
-    from collider_client.sim.scene import ColliderSpec, Motion
+    from collider_client.sim.motion import ColliderSpec, Motion
 
     motion = Motion() if velocity is None else Motion("velocity", np.asarray(velocity, float))
     return ColliderSpec(model, np.asarray(position, float), np.zeros(3), motion)
@@ -770,7 +770,7 @@ def test_exact_penetration_measures_each_placed_collider_at_each_frame():
     x = 1 m rising at 1 m/s along z, ``box`` again at x = 5 m (nothing near it). Depths in
     metres, world frame."""
     pytest.importorskip("collider_server", reason="the engine (server extras) is not installed")
-    from collider_client.sim.scene import pose_function
+    from collider_client.sim.motion import pose_function
     from collider_server.making.evaluation import penetration
 
     box = _box_exact(0.2)

@@ -18,8 +18,9 @@ import pytest
 import collider_client as cc
 from collider_client.response import ColliderPlacement, CollisionHook
 from collider_client.sim.cloth import FAMILIES
-from collider_client.sim.scene import SceneError, load_scene
+from collider_client.sim.scene import load_scene
 from collider_client.sim.simulator import SimulationError, Simulator
+from collider_client.sim.tables import SceneError
 
 G = 9.81
 EPS = 1e-3
@@ -438,7 +439,8 @@ def test_drape_on_a_voxel_bunny_stays_finite_bounded_and_outside(tmp_path, load_
     """The paper's drape, coarsened (40 x 40 vertices 6 mm apart, 0.25 s): no NaN, the energy
     never rises above its start, no vertex deeper than 0.1 mm inside the exact mesh at any frame.
     The full 5 s run is ``benchmarks/long_drape.py`` (README, hard cases)."""
-    from collider_client.sim.scene import SCENES_DIR, pose_function
+    from collider_client.sim.motion import pose_function
+    from collider_client.sim.scene import SCENES_DIR
     from collider_server.engine.meshes import ExactSDF
     from collider_server.engine.modelfile import save_collider
     from collider_server.making.bake import bake_collider

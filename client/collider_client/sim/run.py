@@ -11,8 +11,9 @@ from pathlib import Path
 import numpy as np
 
 from .cloth import quad_faces
+from .motion import pose_function
 from .output import PC2Frames, PC2Writer, write_obj, write_preview
-from .scene import Scene, pose_function
+from .scene import Scene
 from .simulator import RunReport, Simulator
 
 

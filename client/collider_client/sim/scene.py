@@ -3,7 +3,8 @@
 Units are in the key names (``_m``, ``_s``, ``_kg_m2``, ``_deg``). Frames: the world frame has
 gravity along -z by default; a collider's ``position_m``/``rotation_deg`` place its frame in the
 world (collider -> world). Only the tables under ``[effects]`` that a file declares are simulated.
-Every error names the file and the key.
+Every error names the file and the key (:mod:`.tables`); colliders' placement and motion are
+:mod:`.motion`'s.
 """
 
 from __future__ import annotations
@@ -14,11 +15,14 @@ try:
     import tomllib
 except ModuleNotFoundError:  # Python 3.10
     import tomli as tomllib
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from .motion import ColliderSpec, Motion
+from .tables import SceneError, Table
 
 #: The scenes shipped with the package (``collider simulate NAME`` finds them).
 SCENES_DIR = Path(__file__).resolve().parents[1] / "scenes"
@@ -44,31 +48,6 @@ def resolve_scene(name_or_path: str) -> Path:
 
 EFFECTS = ("gravity", "wind", "damping", "stretch", "shear", "bend", "pins", "collisions",
            "friction")
-
-
-class SceneError(ValueError):
-    """A scene file that cannot be simulated; the message names the file and the key."""
-
-
-@dataclass
-class Motion:
-    """How a collider moves. kind: "static", "velocity" (constant linear and angular velocity,
-    world frame, about the collider's origin) or "keyframes" (piecewise linear)."""
-
-    kind: str = "static"
-    velocity_m_s: np.ndarray = field(default_factory=lambda: np.zeros(3))
-    angular_velocity_deg_s: np.ndarray = field(default_factory=lambda: np.zeros(3))
-    times_s: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    positions_m: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
-    rotations_deg: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
-
-
-@dataclass
-class ColliderSpec:
-    model: str
-    position_m: np.ndarray
-    rotation_deg: np.ndarray  # extrinsic x, then y, then z (degrees), collider -> world
-    motion: Motion
 
 
 @dataclass
@@ -103,84 +82,6 @@ class Scene:
         return effect in self.effects
 
 
-# -- readers that name the key -------------------------------------------------------------------
-
-class _Table:
-    """A TOML table that remembers where it is, so each error names file and key."""
-
-    def __init__(self, data: dict, where: str, path: Path):
-        if not isinstance(data, dict):
-            raise SceneError(f"{path}: [{where}] must be a table, got {type(data).__name__}")
-        self.data, self.where, self.path, self.used = data, where, path, set()
-
-    def key(self, name: str) -> str:
-        return f"{self.where}.{name}" if self.where else name
-
-    def fail(self, name: str, message: str):
-        raise SceneError(f"{self.path}: {self.key(name)}: {message}")
-
-    def get(self, name: str, default=None, required: bool = False):
-        self.used.add(name)
-        if name not in self.data:
-            if required:
-                self.fail(name, "missing (required)")
-            return default
-        return self.data[name]
-
-    def number(self, name, default=None, required=False, minimum=None, positive=False,
-               integer=False, maximum=None):
-        value = self.get(name, default, required)
-        if value is None:
-            return None
-        if isinstance(value, bool) or not isinstance(value, (int, float)) or (
-                integer and not isinstance(value, int)):
-            self.fail(name, f"must be {'an integer' if integer else 'a number'}, "
-                            f"got {type(value).__name__} {value!r}")
-        if not math.isfinite(value):
-            self.fail(name, f"must be finite, got {value}")
-        if positive and not value > 0:
-            self.fail(name, f"must be > 0, got {value}")
-        if minimum is not None and value < minimum:
-            self.fail(name, f"must be >= {minimum}, got {value}")
-        if maximum is not None and value > maximum:
-            self.fail(name, f"must be <= {maximum}, got {value}")
-        return value
-
-    def vector(self, name, default=None, required=False, length=3) -> np.ndarray | None:
-        value = self.get(name, default, required)
-        if value is None:
-            return None
-        if (not isinstance(value, list) or len(value) != length or any(
-                isinstance(v, bool) or not isinstance(v, (int, float)) for v in value)):
-            self.fail(name, f"must be a list of {length} numbers, got {value!r}")
-        array = np.asarray(value, dtype=np.float64)
-        if not np.isfinite(array).all():
-            self.fail(name, f"must be finite, got {value!r}")
-        return array
-
-    def string(self, name, default=None, required=False, choices=None):
-        value = self.get(name, default, required)
-        if value is None:
-            return None
-        if not isinstance(value, str):
-            self.fail(name, f"must be a string, got {type(value).__name__} {value!r}")
-        if choices is not None and value not in choices:
-            self.fail(name, f"must be one of {list(choices)}, got {value!r}")
-        return value
-
-    def table(self, name, required=False) -> "_Table | None":
-        value = self.get(name, None, required)
-        if value is None:
-            return None
-        return _Table(value, self.key(name), self.path)
-
-    def done(self):
-        unknown = sorted(set(self.data) - self.used)
-        if unknown:
-            raise SceneError(f"{self.path}: unknown key(s) {[self.key(u) for u in unknown]}"
-                             f"; known here: {sorted(self.used)}")
-
-
 # -- the scene -----------------------------------------------------------------------------------
 
 def load_scene(path: str | Path) -> Scene:
@@ -193,7 +94,7 @@ def load_scene(path: str | Path) -> Scene:
         data = tomllib.loads(path.read_text())
     except tomllib.TOMLDecodeError as exc:
         raise SceneError(f"{path}: not valid TOML: {exc}") from None
-    root = _Table(data, "", path)
+    root = Table(data, "", path)
 
     run = root.table("scene", required=True)
     name = run.string("name", default=path.stem)
@@ -224,7 +125,7 @@ def load_scene(path: str | Path) -> Scene:
     if not isinstance(entries, list):
         root.fail("colliders", "must be an array of tables ([[colliders]])")
     for i, entry in enumerate(entries):
-        t = _Table(entry, f"colliders[{i}]", path)
+        t = Table(entry, f"colliders[{i}]", path)
         model = t.string("model", required=True)
         position = t.vector("position_m", default=[0.0, 0.0, 0.0])
         rotation = t.vector("rotation_deg", default=[0.0, 0.0, 0.0])
@@ -247,7 +148,7 @@ def load_scene(path: str | Path) -> Scene:
     return scene
 
 
-def _motion(t: _Table | None) -> Motion:
+def _motion(t: Table | None) -> Motion:
     """A collider's [colliders.motion] table (it names its own keys in errors)."""
     if t is None:
         return Motion()
@@ -384,50 +285,3 @@ def _check_stability(scene: Scene) -> None:
                 f"use dt_s < {dt_max:.3g}, softer springs or a denser cloth")
 
 
-def euler_matrix(rotation_deg: np.ndarray) -> np.ndarray:
-    """(3, 3) rotation: about x, then y, then z (extrinsic), angles in degrees."""
-    ax, ay, az = np.radians(rotation_deg)
-    rx = np.array([[1, 0, 0], [0, np.cos(ax), -np.sin(ax)], [0, np.sin(ax), np.cos(ax)]])
-    ry = np.array([[np.cos(ay), 0, np.sin(ay)], [0, 1, 0], [-np.sin(ay), 0, np.cos(ay)]])
-    rz = np.array([[np.cos(az), -np.sin(az), 0], [np.sin(az), np.cos(az), 0], [0, 0, 1]])
-    return rz @ ry @ rx
-
-
-def axis_angle_matrix(rotation_vector_rad: np.ndarray) -> np.ndarray:
-    """(3, 3) rotation by ``|r|`` radians about ``r / |r|`` (Rodrigues)."""
-    angle = float(np.linalg.norm(rotation_vector_rad))
-    if angle < 1e-15:
-        return np.eye(3)
-    k = np.asarray(rotation_vector_rad) / angle
-    kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
-    return np.eye(3) + math.sin(angle) * kx + (1 - math.cos(angle)) * kx @ kx
-
-
-def pose_function(spec: ColliderSpec):
-    """``t -> (4, 4)`` collider -> world pose for a collider spec, or None when it never moves
-    from the identity (static with no placement)."""
-    base = np.eye(4)
-    base[:3, :3] = euler_matrix(spec.rotation_deg)
-    base[:3, 3] = spec.position_m
-    motion = spec.motion
-    if motion.kind == "static":
-        return lambda t: base
-
-    if motion.kind == "velocity":
-        def at(t: float) -> np.ndarray:
-            m = np.eye(4)
-            m[:3, :3] = axis_angle_matrix(np.radians(motion.angular_velocity_deg_s) * t) @ base[:3, :3]
-            m[:3, 3] = base[:3, 3] + motion.velocity_m_s * t
-            return m
-        return at
-
-    def keyed(t: float) -> np.ndarray:
-        # Keyframes are offsets added to the base placement, linear in time, held at the ends.
-        times = motion.times_s
-        position = np.array([np.interp(t, times, motion.positions_m[:, i]) for i in range(3)])
-        rotation = np.array([np.interp(t, times, motion.rotations_deg[:, i]) for i in range(3)])
-        m = np.eye(4)
-        m[:3, :3] = euler_matrix(rotation) @ base[:3, :3]
-        m[:3, 3] = base[:3, 3] + position
-        return m
-    return keyed

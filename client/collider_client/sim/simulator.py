@@ -22,7 +22,8 @@ import numpy as np
 
 from ..response import ColliderPlacement, CollisionHook
 from .cloth import SpringFamily, grid_positions
-from .scene import Scene, pose_function
+from .motion import pose_function
+from .scene import Scene
 
 
 @dataclass

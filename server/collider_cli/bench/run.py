@@ -183,6 +183,7 @@ def time_served(candidates: list[Candidate], models: Path, device: str, points: 
     import torch
 
     from collider_client import Client
+
     from ..launch import serve_process
 
     biggest = max(config.sizes)

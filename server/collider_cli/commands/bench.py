@@ -9,7 +9,13 @@ from pathlib import Path
 
 import numpy as np
 
-from .options import add_placement_arguments, placement_from_args
+from .options import (
+    add_device_argument,
+    add_models_argument,
+    add_placement_arguments,
+    add_quiet_argument,
+    placement_from_args,
+)
 
 SUFFIXES = {"k": 1_000, "M": 1_000_000}
 
@@ -56,15 +62,14 @@ def register(subparsers) -> None:
     bench.add_argument("--cell-seconds", type=float, default=None,
                        help="a cell stops repeating once its calls took this long (default 10)")
     bench.add_argument("--no-served", action="store_true", help="skip the served (HTTP) half")
-    bench.add_argument("--device", default=None, help="cpu or cuda (default: cpu, and cuda when present)")
+    add_device_argument(bench, "cpu or cuda (default: cpu, and cuda when present)")
     bench.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's)")
     bench.add_argument("--seed", type=int, default=0)
-    bench.add_argument("--models", type=Path, default=None,
-                       help="model repository searched for trained neural models (default models/)")
+    add_models_argument(bench, "searched for trained neural models of MESH")
     bench.add_argument("--output", type=Path, default=None, help="folder of the results (default out/bench-MESH)")
     bench.add_argument("--cache", type=Path, default=Path("out/bench-cache"),
                        help="baked grids and bench-trained networks are kept here")
-    bench.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_quiet_argument(bench)
     bench.set_defaults(func=run_bench_command)
 
 

@@ -11,7 +11,13 @@ import numpy as np
 from collider_contract import FIELDS
 
 from .bench import add_budget_arguments, budget_from_args
-from .options import add_placement_arguments, placement_from_args
+from .options import (
+    add_device_argument,
+    add_models_argument,
+    add_placement_arguments,
+    add_quiet_argument,
+    placement_from_args,
+)
 
 
 def register(subparsers) -> None:
@@ -22,9 +28,9 @@ def register(subparsers) -> None:
     bake.add_argument("--resolution", type=int, default=256, help="voxel samples per axis (8..1024)")
     bake.add_argument("--padding", type=float, default=0.1, help="domain padding, fraction of the largest side")
     add_placement_arguments(bake)
-    bake.add_argument("--models", type=Path, default=None, help="model repository (default: models/)")
-    bake.add_argument("--device", default=None, help="cpu, cuda or auto")
-    bake.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_models_argument(bake, "where the model is written")
+    add_device_argument(bake)
+    add_quiet_argument(bake)
     add_budget_arguments(bake)
     bake.set_defaults(func=run_bake)
 
@@ -40,13 +46,13 @@ def register(subparsers) -> None:
                        help="normal and contact only for colliding points (others: normal 0, "
                             "contact = the point)")
     query.add_argument("--output", type=Path, default=None, help="write the fields to this .npz")
-    query.add_argument("--models", type=Path, default=None)
-    query.add_argument("--device", default=None)
+    add_models_argument(query)
+    add_device_argument(query)
     query.set_defaults(func=run_query)
 
     info = subparsers.add_parser("info", help="what a model is: kind, size, domain, accuracy")
     info.add_argument("model", nargs="?", help="model name or path; omit to list the repository")
-    info.add_argument("--models", type=Path, default=None)
+    add_models_argument(info)
     info.add_argument("--json", action="store_true", help="print the metadata as JSON")
     info.set_defaults(func=run_info)
 

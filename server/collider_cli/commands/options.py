@@ -3,6 +3,8 @@
 - :func:`finite_float`: the argparse type that refuses ``nan`` and ``inf``; :func:`require_finite`
   puts it on every float option of every command (``collider`` applies it once, in
   :func:`collider_cli.main.build_parser`, so options added later are covered too).
+- :func:`add_models_argument`, :func:`add_device_argument`, :func:`add_quiet_argument`: the
+  options that name the model repository, the torch device and the progress bar, declared once;
 - :func:`add_placement_arguments` / :func:`placement_from_args`: the mesh placement options
   (``--scale``, ``--fit-size``, ``--z-up``, ``--units``, ``--meters-per-unit``) of every command
   that reads a mesh, applied with :class:`collider_server.making.placement.MeshPlacement`.
@@ -12,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import math
+from pathlib import Path
 
 from collider_server.making.placement import MeshPlacement
 
@@ -35,6 +38,27 @@ def require_finite(parser: argparse.ArgumentParser) -> None:
         if isinstance(action, argparse._SubParsersAction):
             for sub in action.choices.values():
                 require_finite(sub)
+
+
+MODELS_HELP = ("model repository folder (default: $COLLIDER_MODELS, else ./models, else the shipped "
+               "models)")
+DEVICE_HELP = "torch device: cpu, cuda, cuda:N or auto (default auto: CUDA when present, else cpu)"
+
+
+def add_models_argument(parser, purpose: str = "") -> None:
+    """``--models DIR``, the model repository (None: :func:`~collider_server.engine.repository.
+    default_models_dir`); ``purpose`` says what the command reads it for."""
+    parser.add_argument("--models", type=Path, default=None, metavar="DIR",
+                        help=f"{purpose}: {MODELS_HELP}" if purpose else MODELS_HELP)
+
+
+def add_device_argument(parser, help: str = DEVICE_HELP) -> None:  # noqa: A002
+    """``--device``: where the engine runs (None: CUDA when present, else the CPU)."""
+    parser.add_argument("--device", default=None, help=help)
+
+
+def add_quiet_argument(parser) -> None:
+    parser.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
 def add_placement_arguments(parser: argparse.ArgumentParser, *, units: bool = True,

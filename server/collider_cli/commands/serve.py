@@ -8,6 +8,7 @@ import sys
 from pathlib import Path
 
 from ..net import is_loopback
+from .options import add_device_argument, add_models_argument
 
 
 def register(subparsers) -> None:
@@ -18,8 +19,8 @@ def register(subparsers) -> None:
                     "COLLIDER_ADMIN_TOKEN, COLLIDER_MAX_WAIT_MS, ...), these flags.")
     serve.add_argument("--host", default=None, help="address to listen on (default 127.0.0.1)")
     serve.add_argument("--port", type=int, default=None, help="port (default 8000; 0 = any free)")
-    serve.add_argument("--models", type=Path, default=None, help="model repository (default models/)")
-    serve.add_argument("--device", default=None, help="cpu, cuda, cuda:N or auto (default)")
+    add_models_argument(serve, "every model in it is served")
+    add_device_argument(serve)
     serve.add_argument("--config", type=Path, default=None, help="settings file, .toml or .json")
     knobs = serve.add_argument_group("coalescing and limits")
     knobs.add_argument("--max-batch-points", type=int, default=None,

@@ -7,6 +7,8 @@ from pathlib import Path
 
 from collider_client.sim.scene import resolve_scene, shipped_scenes
 
+from .options import DEVICE_HELP, add_device_argument, add_models_argument, add_quiet_argument
+
 
 def register(subparsers) -> None:
     p = subparsers.add_parser(
@@ -19,14 +21,14 @@ def register(subparsers) -> None:
     p.add_argument("--server", default=None,
                    help="URL of a running `collider serve` (default: the engine in process)")
     p.add_argument("--token", default=None, help="bearer token for --server")
-    p.add_argument("--models", type=Path, default=None, help="model repository (embedded; default models/)")
-    p.add_argument("--device", default=None, help="embedded engine device: cpu, cuda, auto")
+    add_models_argument(p, "embedded engine")
+    add_device_argument(p, "embedded engine: " + DEVICE_HELP)
     p.add_argument("--threads", type=int, default=None,
                    help="embedded engine CPU threads (default: cores - 1, at least 1, as the server)")
     p.add_argument("--output", type=Path, default=Path("out"), help="output folder (default out/)")
     p.add_argument("--steps", type=int, default=None, help="simulate only this many steps")
     p.add_argument("--no-preview", action="store_true", help="skip the PNG")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_quiet_argument(p)
     p.add_argument("--check-mesh", action="append", default=[], metavar="MODEL=MESH",
                    help="also measure penetration of every output frame against the exact SDF of "
                         "MESH (collider frame) for collider MODEL; repeatable")
@@ -100,7 +102,7 @@ def run_simulate(args: argparse.Namespace) -> int:
     if placed:
         import json
 
-        from collider_client.sim.scene import pose_function
+        from collider_client.sim.motion import pose_function
         from collider_server.engine.meshes import ExactSDF
         from collider_server.making.evaluation import penetration
 

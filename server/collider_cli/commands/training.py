@@ -8,7 +8,13 @@ from pathlib import Path
 
 import numpy as np
 
-from .options import add_placement_arguments, placement_from_args
+from .options import (
+    add_device_argument,
+    add_models_argument,
+    add_placement_arguments,
+    add_quiet_argument,
+    placement_from_args,
+)
 
 
 def register(subparsers) -> None:
@@ -35,11 +41,11 @@ def register(subparsers) -> None:
     train.add_argument("--seed", type=int, default=defaults.seed)
     train.add_argument("--threads", type=int, default=None, help="CPU threads for torch")
     add_placement_arguments(train)
-    train.add_argument("--models", type=Path, default=None, help="model repository (default: models/)")
+    add_models_argument(train, "where the model is written")
     train.add_argument("--checkpoint", type=Path, default=None,
                        help="resumable checkpoint file (default: runs/NAME.ckpt.safetensors)")
-    train.add_argument("--device", default=None, help="cpu, cuda or auto")
-    train.add_argument("--quiet", action="store_true")
+    add_device_argument(train)
+    add_quiet_argument(train)
     train.set_defaults(func=run_train)
 
     evaluate = subparsers.add_parser("eval", help="measure a collider against the exact mesh SDF")
@@ -53,9 +59,9 @@ def register(subparsers) -> None:
                           help="write the figures into the model even when --mesh or the placement "
                                "is not the model's source (otherwise refused, exit 2)")
     evaluate.add_argument("--report", type=Path, default=None, help="also write the figures as JSON here")
-    evaluate.add_argument("--models", type=Path, default=None)
-    evaluate.add_argument("--device", default=None)
-    evaluate.add_argument("--quiet", action="store_true")
+    add_models_argument(evaluate)
+    add_device_argument(evaluate)
+    add_quiet_argument(evaluate)
     add_placement_arguments(evaluate, units=False, as_stored=True)
     evaluate.set_defaults(func=run_eval)
 

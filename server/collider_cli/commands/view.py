@@ -9,7 +9,13 @@ from pathlib import Path
 
 import numpy as np
 
-from .options import add_placement_arguments, placement_from_args
+from .options import (
+    add_device_argument,
+    add_models_argument,
+    add_placement_arguments,
+    add_quiet_argument,
+    placement_from_args,
+)
 
 
 def register(subparsers) -> None:
@@ -40,9 +46,9 @@ def register(subparsers) -> None:
     view.add_argument("--host", default="127.0.0.1",
                       help="address to listen on (default 127.0.0.1; another warns: no authentication)")
     view.add_argument("--port", type=int, default=8080, help="port (default 8080)")
-    view.add_argument("--models", type=Path, default=None, help="model repository (default models/)")
-    view.add_argument("--device", default=None, help="cpu, cuda or auto")
-    view.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_models_argument(view)
+    add_device_argument(view)
+    add_quiet_argument(view)
     add_placement_arguments(view, units=False, as_stored=True)
     view.set_defaults(func=run_view)
 

@@ -19,7 +19,8 @@ from pathlib import Path
 import numpy as np
 
 from collider_client.sim.cloth import quad_faces
-from collider_client.sim.scene import Scene, pose_function
+from collider_client.sim.motion import pose_function
+from collider_client.sim.scene import Scene
 from collider_server.making.surface import distance_grid, level_surface
 
 from .page import box_edges, look_at_box, start_server, url_of, wait_until_interrupted

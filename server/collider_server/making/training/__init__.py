@@ -1,0 +1,28 @@
+"""Train a ``neural`` collider from a mesh (the paper's recipe, with a few additions).
+
+Data: exact signed distances (float64, libigl closest point + fast winding number sign) at
+``samples`` points: ``near_fraction`` near the surface (surface samples plus uniform noise within
+``margin``; a share ``tight_fraction`` of those within ``tight_margin``, the band where collisions
+are decided) and the rest uniform in the padded domain box. The set is computed once and cached
+(cheaper than fresh samples each epoch and it converged as well in our runs).
+
+Loss: L1 on the distance (the paper's choice), plus, when ``normal_weight > 0``, ``1 - cos`` between
+the network's gradient and the exact gradient (direction to the closest point) on the near
+samples: distance accuracy and normal accuracy are separate goals, and the normal term is what
+makes the ReLU network's gradient smooth. Adam with a cosine learning-rate decay; the checkpoint
+with the best validation error in the +-1 mm band is kept; runs resume from their checkpoint
+(safetensors, no pickle); deterministic under ``seed`` on one device.
+
+The package, one step a module: :mod:`.config` (what a run is asked), :mod:`.data` (the samples
+and validation sets), :mod:`.schedule` (steps or the clock, optimiser, threads),
+:mod:`.checkpoints` (resumable runs) and :mod:`.loop` (:func:`train_neural`).
+"""
+
+from .checkpoints import read_checkpoint_state, save_tensors_atomically
+from .config import LEARNING_RATES, NORMAL_WEIGHTS, VALIDATIONS_PER_BUDGET, TrainConfig
+from .loop import TrainResult, train_neural
+from .schedule import RunClock, cosine_learning_rate
+
+__all__ = ["LEARNING_RATES", "NORMAL_WEIGHTS", "VALIDATIONS_PER_BUDGET", "RunClock", "TrainConfig",
+           "TrainResult", "cosine_learning_rate", "read_checkpoint_state", "save_tensors_atomically",
+           "train_neural"]

@@ -1,0 +1,177 @@
+"""The training loop: :func:`train_neural`."""
+
+from __future__ import annotations
+
+import math
+import sys
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ...engine.collider import ColliderInfo
+from ...engine.kinds.neural import NeuralCollider, architecture_dict, build_network
+from ...engine.meshes import ExactSDF, Mesh
+from ..bake import mesh_source, padded_box
+from .checkpoints import (
+    check_resumable,
+    load_checkpoint,
+    read_checkpoint_state,
+    run_identity,
+    save_checkpoint,
+    save_tensors_atomically,
+)
+from .config import TrainConfig
+from .data import make_training_data, validation_sets
+from .schedule import RunClock, cosine_learning_rate, make_optimizer, set_training_threads
+
+
+@dataclass
+class TrainResult:
+    collider: NeuralCollider
+    best_validation_mm: float
+    steps: int
+    seconds: float
+    history: list = field(default_factory=list)
+
+
+def train_neural(mesh: Mesh, name: str, config: TrainConfig, *, units: str = "m",
+                 meters_per_unit: float = 1.0, transform: np.ndarray | None = None,
+                 device: str | None = None, checkpoint: Path | None = None,
+                 show_progress: bool = True) -> TrainResult:
+    """Train a neural collider for ``mesh`` (its units and frame); returns the best checkpoint."""
+    import torch
+
+    from ...engine.devices import resolve_device
+
+    config.check()
+    device = resolve_device(device)
+    torch.manual_seed(config.seed)
+    arch = config.resolved_architecture()
+    if config.threads is not None:
+        set_training_threads(arch, config.threads)
+    lo, hi = padded_box(mesh, config.padding)
+    centre = 0.5 * (lo + hi)
+    radius = 0.5 * float((hi - lo).max())
+    network = build_network(arch, centre, radius).to(device)
+    first_lr, last_lr = config.resolved_learning_rates()
+    normal_weight = config.resolved_normal_weight()
+    optimizer = make_optimizer(network, first_lr)
+
+    sdf = ExactSDF(mesh)
+    data = make_training_data(mesh, sdf, config, meters_per_unit, show_progress)
+    validation = validation_sets(mesh, sdf, config.validation_points, config.seed + 100, meters_per_unit)
+    points = torch.from_numpy(data.points).to(device)
+    target = torch.from_numpy(data.distance).to(device)
+    target_gradient = torch.from_numpy(data.gradient).to(device)
+    near = torch.from_numpy(data.near).to(device)
+    val = {k: (torch.from_numpy(p).to(device), torch.from_numpy(d).to(device)) for k, (p, d) in validation.items()}
+
+    identity = run_identity(mesh, config, meters_per_unit)
+    state = {"step": 0, "seconds": 0.0, "best_mm": math.inf, "history": [], "run": identity}
+    best_weights = None
+    if checkpoint is not None and checkpoint.is_file():
+        check_resumable(checkpoint, read_checkpoint_state(checkpoint).get("run"), identity)
+        state = load_checkpoint(checkpoint, network, optimizer)
+        print(f"resuming {checkpoint} at step {state['step']} (same mesh, settings and architecture)",
+              file=sys.stderr)
+        best_path = checkpoint.with_name(checkpoint.name + ".best")
+        if best_path.is_file():
+            from safetensors.torch import load_file
+            best_weights = load_file(str(best_path))
+
+    generator = torch.Generator(device="cpu").manual_seed(config.seed + state["step"])
+    to_mm = 1000.0 * meters_per_unit
+    started = time.monotonic() - state["seconds"]
+    clock = RunClock(config, time.monotonic())
+    analytic = hasattr(network, "value_and_gradient")
+
+    def evaluate() -> dict:
+        network.eval()
+        with torch.no_grad():
+            errors = {k: float((network(p) - d).abs().mean()) * to_mm for k, (p, d) in val.items()}
+        network.train()
+        return errors
+
+    with clock.progress_bar(f"train {name}", state["step"], show_progress) as bar:
+        last_loss = float("nan")
+        while state["step"] < config.steps:
+            step = state["step"]
+            now = time.monotonic()
+            lr = cosine_learning_rate(clock.fraction(step, now), first_lr, last_lr)
+            for group in optimizer.param_groups:
+                group["lr"] = lr
+            index = torch.randint(0, len(points), (config.batch_size,), generator=generator).to(device)
+            x = points[index]
+            mask = near[index]
+            # The normal term lives on the near samples only; a batch without any (possible with
+            # a small near_fraction) would make its mean, and the logged loss, NaN.
+            want_normals = normal_weight > 0 and bool(mask.any())
+            if want_normals and analytic:
+                # The analytic gradient is made of differentiable ops: one backward pass.
+                prediction, grad = network.value_and_gradient(x)
+            elif want_normals:
+                x.requires_grad_(True)
+                prediction = network(x)
+                (grad,) = torch.autograd.grad(prediction.sum(), x, create_graph=True)
+            else:
+                prediction = network(x)
+            loss = (prediction - target[index]).abs().mean() / radius
+            if want_normals:
+                cosine = torch.nn.functional.cosine_similarity(grad[mask], target_gradient[index][mask], dim=1)
+                loss = loss + normal_weight * (1 - cosine).mean()
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            optimizer.step()
+            last_loss = float(loss.detach())
+            state["step"] = step + 1
+            now = time.monotonic()
+            clock.advance(bar, now)
+            done = state["step"] >= config.steps
+            out_of_time = clock.out_of_time(now)
+            if clock.validation_due(state["step"], now) or done or out_of_time:
+                errors = evaluate()
+                state["history"].append({"step": state["step"], "loss": last_loss, **errors,
+                                         "seconds": time.monotonic() - started})
+                if errors["1mm"] < state["best_mm"]:
+                    state["best_mm"] = errors["1mm"]
+                    best_weights = {k: v.detach().cpu().clone() for k, v in network.state_dict().items()}
+                    if checkpoint is not None:
+                        save_tensors_atomically({k: v.contiguous() for k, v in best_weights.items()},
+                                                checkpoint.with_name(checkpoint.name + ".best"))
+                bar.set_postfix_str(f"step {state['step']} loss {last_loss:.2e} val±1mm {errors['1mm']:.4f}mm "
+                                    f"val±10mm {errors['10mm']:.4f}mm best {state['best_mm']:.4f}mm lr {lr:.1e}")
+                state["seconds"] = time.monotonic() - started
+                if checkpoint is not None:
+                    save_checkpoint(checkpoint, network, optimizer, state)
+                clock.validated(time.monotonic())
+            if out_of_time:
+                break
+
+    if best_weights is not None:
+        network.load_state_dict(best_weights)
+    seconds = time.monotonic() - started
+    info = ColliderInfo(
+        name=name, kind="neural", domain_min=lo.tolist(), domain_max=hi.tolist(), units=units,
+        meters_per_unit=meters_per_unit, source=mesh_source(mesh, transform),
+        settings={
+            "architecture": architecture_dict(arch),
+            "parameters": arch.parameter_count(),
+            "training": {**asdict(config), "steps_done": state["step"], "seconds": round(seconds, 1),
+                         "device": device, "device_name": _device_name(device),
+                         "best_validation_1mm_mm": state["best_mm"]},
+        },
+    )
+    collider = NeuralCollider(info, network.cpu(), device="cpu")
+    return TrainResult(collider, state["best_mm"], state["step"], seconds, state["history"])
+
+
+def _device_name(device: str) -> str:
+    import platform
+
+    import torch
+
+    if device.startswith("cuda"):
+        return torch.cuda.get_device_name(torch.device(device))
+    return f"{platform.processor() or platform.machine()} CPU, {torch.get_num_threads()} threads"

@@ -1,0 +1,113 @@
+"""The schedule of a training run: steps or the clock, whichever ends first (the learning rate,
+the progress bar and the validations follow it), the optimiser and the CPU threads."""
+
+from __future__ import annotations
+
+import math
+
+from ...engine.kinds.neural import GridArchitecture
+from ..progress import progress
+from .config import VALIDATIONS_PER_BUDGET, TrainConfig
+
+
+def set_training_threads(arch, threads: int) -> None:
+    """``threads`` CPU threads for the run. A grid network spends them in the fused encoding
+    kernels; its MLP is too small for torch's OpenMP to gain anything, and on a shared machine
+    OpenMP threads that wait for a preempted sibling made a step 14x slower (586 against 42 ms
+    measured with 2 against 1 torch threads under load), so torch gets one."""
+    import torch
+
+    from ...engine.kinds import grid_kernels
+
+    if isinstance(arch, GridArchitecture) and grid_kernels.available():
+        torch.set_num_threads(1)
+        grid_kernels.set_threads(threads)
+    else:
+        torch.set_num_threads(threads)
+
+
+def make_optimizer(network, learning_rate: float):
+    """Adam; a grid network's feature table in its own group (instant-NGP's settings: the
+    table's rows see sparse, noisy gradients, so a small eps and a short second-moment memory)."""
+    import torch
+
+    table = [p for n, p in network.named_parameters() if n == "table"]
+    others = [p for n, p in network.named_parameters() if n != "table"]
+    if not table:
+        return torch.optim.Adam(others, lr=learning_rate)
+    return torch.optim.Adam([{"params": table}, {"params": others}], lr=learning_rate,
+                            betas=(0.9, 0.99), eps=1e-15)
+
+
+def cosine_learning_rate(fraction: float, first: float, last: float) -> float:
+    """Cosine decay from ``first`` (fraction 0) to ``last`` (fraction 1)."""
+    fraction = min(max(fraction, 0.0), 1.0)
+    return last + 0.5 * (first - last) * (1 + math.cos(math.pi * fraction))
+
+
+class RunClock:
+    """Where a run is, by steps or, with ``max_minutes``, by the clock (whichever ends first):
+    the learning-rate schedule, the progress bar (seconds of the budget, not a step count that a
+    time-bounded run never reaches) and the validation times follow it. Times are
+    ``time.monotonic()`` values passed in, so the logic is testable without waiting."""
+
+    def __init__(self, config: TrainConfig, start: float):
+        self.steps = config.steps
+        self.validate_every = config.validate_every
+        self.budget_s = None if config.max_minutes is None else 60.0 * config.max_minutes
+        self.start = start
+        self.last_validation = start
+        self.shown = 0
+
+    def fraction(self, step: int, now: float) -> float:
+        """Share of the run done: steps, or the budget's time when that is further."""
+        done = step / self.steps
+        if self.budget_s is not None:
+            done = max(done, (now - self.start) / self.budget_s)
+        return min(done, 1.0)
+
+    def out_of_time(self, now: float) -> bool:
+        return self.budget_s is not None and now - self.start >= self.budget_s
+
+    def validation_due(self, step: int, now: float) -> bool:
+        """Every ``validate_every`` steps; with a budget, every 1/VALIDATIONS_PER_BUDGET of it
+        instead (a slow machine still picks its best weights among as many candidates)."""
+        if self.budget_s is None:
+            return step % self.validate_every == 0
+        return now - self.last_validation >= self.budget_s / VALIDATIONS_PER_BUDGET
+
+    def validated(self, now: float) -> None:
+        self.last_validation = now
+
+    def progress_bar(self, desc: str, step: int, enabled: bool):
+        """A bar in steps, or in seconds of the budget when the run has one."""
+        if self.budget_s is None:
+            bar = progress(self.steps, desc, "step", enabled)
+            self.shown = step
+            return _started(bar, step)
+        return progress(int(round(self.budget_s)), desc, "s", enabled)
+
+    def advance(self, bar, now: float) -> None:
+        """Move ``bar`` to the run's position (one step, or the seconds elapsed)."""
+        if self.budget_s is None:
+            bar.update(1)
+            return
+        elapsed = int(min(now - self.start, self.budget_s))
+        if elapsed > self.shown:
+            bar.update(elapsed - self.shown)
+            self.shown = elapsed
+
+
+class _started:
+    """``progress(...)`` entered already advanced by ``step`` (a resumed run)."""
+
+    def __init__(self, bar, step: int):
+        self._bar, self._step = bar, step
+
+    def __enter__(self):
+        handle = self._bar.__enter__()
+        handle.update(self._step)
+        return handle
+
+    def __exit__(self, *exc):
+        return self._bar.__exit__(*exc)
