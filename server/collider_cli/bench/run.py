@@ -137,12 +137,13 @@ def point_sets(mesh: Mesh, config: BenchConfig, meters_per_unit: float) -> dict[
     around the surface moved along the face normal by U(-band, band), collider frame. The
     timing set is the +-10 mm band set itself (where a cloth simulator queries): the accuracy in
     that band is measured on its first ``accuracy_points`` points."""
-    from collider_server.making.sampling import surface_band_points
+    from collider_server.making.sampling import band_sets
 
     n = config.accuracy_points
-    ten = surface_band_points(mesh, max(max(config.sizes), n), 1e-2 / meters_per_unit, config.seed + 1)
-    return {"band_1mm": surface_band_points(mesh, n, 1e-3 / meters_per_unit, config.seed),
-            "band_10mm": ten[:n], "timing": ten.astype(np.float32)}
+    sets = band_sets(mesh, n, config.seed, meters_per_unit,
+                     sizes={"band_10mm": max(max(config.sizes), n)})
+    ten = sets["band_10mm"]
+    return {"band_1mm": sets["band_1mm"], "band_10mm": ten[:n], "timing": ten.astype(np.float32)}
 
 
 def candidate_row(candidate: Candidate, collider, sdf: ExactSDF, sets: dict) -> dict:

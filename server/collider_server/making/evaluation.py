@@ -21,17 +21,15 @@ import numpy as np
 from ..engine.collider import Collider
 from ..engine.meshes import ExactSDF, Mesh
 from .progress import progress
-from .sampling import box_points, surface_band_points, surface_points
+from .sampling import band_sets, box_points, surface_points
 from .surface import distance_grid, level_surface
 
 SIGN_THRESHOLD_M = 0.2e-3
-BANDS_M = {"band_1mm": 1e-3, "band_10mm": 1e-2}
 
 
 def point_sets(collider: Collider, mesh: Mesh, points: int, seed: int) -> dict[str, np.ndarray]:
-    unit = collider.info.meters_per_unit
-    sets = {name: surface_band_points(mesh, points, band / unit, seed + i)
-            for i, (name, band) in enumerate(BANDS_M.items())}
+    """The sets of the module docstring, ``points`` each: the bands, and ``box``."""
+    sets = band_sets(mesh, points, seed, collider.info.meters_per_unit)
     sets["box"] = box_points(collider.domain_min, collider.domain_max, points, seed + 7)
     return sets
 

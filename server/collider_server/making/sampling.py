@@ -33,6 +33,21 @@ def surface_band_points(mesh: Mesh, n: int, band: float, seed: int) -> np.ndarra
     return points + offset[:, None] * normals
 
 
+#: The bands around the surface where colliders are trained and measured, by half-width in metres:
+#: +-1 mm, where collisions are decided, and +-10 mm, where a cloth simulator queries.
+BANDS_M = {"band_1mm": 1e-3, "band_10mm": 1e-2}
+
+
+def band_sets(mesh: Mesh, n: int, seed: int, meters_per_unit: float,
+              sizes: dict[str, int] | None = None) -> dict[str, np.ndarray]:
+    """Points in each band of :data:`BANDS_M` (the same names): ``n`` (or ``sizes[name]``) points
+    of :func:`surface_band_points`, band ``i`` drawn from ``seed + i``; (n, 3) float64, the
+    mesh's units and frame (``meters_per_unit`` converts the bands)."""
+    sizes = sizes or {}
+    return {name: surface_band_points(mesh, sizes.get(name, n), band / meters_per_unit, seed + i)
+            for i, (name, band) in enumerate(BANDS_M.items())}
+
+
 def box_points(lo, hi, n: int, seed: int) -> np.ndarray:
     """``n`` points uniform in the box ``[lo, hi]``: (n, 3)."""
     rng = np.random.default_rng(seed)

@@ -71,6 +71,21 @@ if numba is not None:
             return i + side * (j + side * k)
         return ((i * P0) ^ (j * P1) ^ (k * P2)) & (rows - 1)
 
+    @_jit
+    def _corner(corner, cx, cy, cz, wx, wy, wz, dx, dy, dz, r, rows, dense):
+        """Corner ``corner`` (0..7, bits x, y, z) of the cell at (cx, cy, cz) of a level of
+        resolution ``r``: its row in the level, its trilinear (or smoothstep) weight, and the
+        weight's derivatives along u (from the per-axis weights ``w*`` and derivatives ``d*``)."""
+        bx, by, bz = corner & 1, (corner >> 1) & 1, (corner >> 2) & 1
+        ax = wx if bx else 1.0 - wx
+        ay = wy if by else 1.0 - wy
+        az = wz if bz else 1.0 - wz
+        row = _row(cx + bx, cy + by, cz + bz, r, rows, dense)
+        gx = (dx if bx else -dx) * ay * az
+        gy = ax * (dy if by else -dy) * az
+        gz = ax * ay * (dz if bz else -dz)
+        return row, ax * ay * az, gx, gy, gz
+
     @_pjit
     def encode(u, table, resolution, offset, rows, dense, smooth, want_jacobian, features, jacobian):
         """Fill ``features`` (n, L, F) and, when ``want_jacobian``, ``jacobian`` (n, L, F, 3)
@@ -91,16 +106,9 @@ if numba is not None:
                         jacobian[p, level, f, 1] = 0.0
                         jacobian[p, level, f, 2] = 0.0
                 for corner in range(8):
-                    bx, by, bz = corner & 1, (corner >> 1) & 1, (corner >> 2) & 1
-                    ax = wx if bx else 1.0 - wx
-                    ay = wy if by else 1.0 - wy
-                    az = wz if bz else 1.0 - wz
-                    row = offset[level] + _row(cx + bx, cy + by, cz + bz, r, rows[level], dense[level])
-                    weight = ax * ay * az
-                    if want_jacobian:
-                        gx = (dx if bx else -dx) * ay * az
-                        gy = ax * (dy if by else -dy) * az
-                        gz = ax * ay * (dz if bz else -dz)
+                    row, weight, gx, gy, gz = _corner(corner, cx, cy, cz, wx, wy, wz, dx, dy, dz, r,
+                                                      rows[level], dense[level])
+                    row += offset[level]
                     for f in range(width):
                         v = table[row, f]
                         features[p, level, f] += weight * v
@@ -124,18 +132,14 @@ if numba is not None:
                 cy, wy, dy = _axis(u[p, 1], r, smooth)
                 cz, wz, dz = _axis(u[p, 2], r, smooth)
                 for corner in range(8):
-                    bx, by, bz = corner & 1, (corner >> 1) & 1, (corner >> 2) & 1
-                    ax = wx if bx else 1.0 - wx
-                    ay = wy if by else 1.0 - wy
-                    az = wz if bz else 1.0 - wz
-                    row = offset[level] + _row(cx + bx, cy + by, cz + bz, r, rows[level], dense[level])
-                    weight = ax * ay * az
+                    row, weight, gx, gy, gz = _corner(corner, cx, cy, cz, wx, wy, wz, dx, dy, dz, r,
+                                                      rows[level], dense[level])
+                    row += offset[level]
                     for f in range(width):
                         g = weight * grad_features[p, level, f]
                         if has_jacobian:
-                            g += ((dx if bx else -dx) * ay * az * grad_jacobian[p, level, f, 0]
-                                  + ax * (dy if by else -dy) * az * grad_jacobian[p, level, f, 1]
-                                  + ax * ay * (dz if bz else -dz) * grad_jacobian[p, level, f, 2])
+                            g += (gx * grad_jacobian[p, level, f, 0] + gy * grad_jacobian[p, level, f, 1]
+                                  + gz * grad_jacobian[p, level, f, 2])
                         grad_table[row, f] += g
 
     @numba.njit(cache=True, fastmath=True, nogil=True, parallel=True)
@@ -176,16 +180,10 @@ if numba is not None:
                         jac[base + f, 1] = 0.0
                         jac[base + f, 2] = 0.0
                     for corner in range(8):
-                        bx, by, bz = corner & 1, (corner >> 1) & 1, (corner >> 2) & 1
-                        ax = wx if bx else 1.0 - wx
-                        ay = wy if by else 1.0 - wy
-                        az = wz if bz else 1.0 - wz
-                        row = offset[level] + _row(cx + bx, cy + by, cz + bz, r, rows[level], dense[level])
-                        weight = ax * ay * az
+                        row, weight, gx, gy, gz = _corner(corner, cx, cy, cz, wx, wy, wz, dx, dy, dz,
+                                                          r, rows[level], dense[level])
+                        row += offset[level]
                         if want_gradient:
-                            gx = (dx if bx else -dx) * ay * az
-                            gy = ax * (dy if by else -dy) * az
-                            gz = ax * ay * (dz if bz else -dz)
                             for f in range(width):
                                 v = table[row, f]
                                 feature[base + f] += weight * v

@@ -10,7 +10,7 @@ import numpy as np
 from ...engine.meshes import ExactSDF, Mesh
 from ..bake import padded_box
 from ..progress import progress
-from ..sampling import box_points, surface_band_points, surface_points
+from ..sampling import band_sets, box_points, surface_points
 from .config import TrainConfig
 
 
@@ -65,8 +65,6 @@ def make_training_data(mesh: Mesh, sdf: ExactSDF, config: TrainConfig, meters_pe
 
 def validation_sets(mesh: Mesh, sdf: ExactSDF, n: int, seed: int, meters_per_unit: float) -> dict:
     """Points in the +-1 mm and +-10 mm bands with their exact distances (float32)."""
-    sets = {}
-    for label, band_m in (("1mm", 1e-3), ("10mm", 1e-2)):
-        p = surface_band_points(mesh, n, band_m / meters_per_unit, seed=seed + (1 if label == "1mm" else 2))
-        sets[label] = (p.astype(np.float32), sdf.signed_distance(p).astype(np.float32))
-    return sets
+    sets = band_sets(mesh, n, seed + 1, meters_per_unit)
+    return {name[len("band_"):]: (p.astype(np.float32), sdf.signed_distance(p).astype(np.float32))
+            for name, p in sets.items()}
