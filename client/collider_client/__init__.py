@@ -9,9 +9,9 @@ Points and results are world frame, metres. See :mod:`collider_client.response` 
 collision response a simulator applies after its step.
 """
 
-from collider_contract import FIELDS, ModelInfo, QueryResult
+from collider_contract import FIELDS, ModelInfo, QueryResult, SceneCollider
 
-from ._base import USE_CLIENT_DEFAULT, RetryPolicy, SceneCollider, UseClientDefault
+from ._base import USE_CLIENT_DEFAULT, RetryPolicy, UseClientDefault
 from ._client import AsyncClient, Client
 from ._exceptions import (
     BadRequestError,

@@ -1,7 +1,10 @@
-"""The I/O-free half of the clients: request building, response decoding, the retry policy.
+"""The I/O-free half of the clients: the per-call defaults, the typed refusals, response
+decoding and the retry policy.
 
 :class:`~collider_client.Client` and :class:`~collider_client.AsyncClient` share all of this and
-differ only in how the bytes travel.
+differ only in how the bytes travel. Queries are validated and their bodies written by the
+contract (:class:`collider_contract.ModelQuery`, :class:`~collider_contract.SceneQuery`), the same
+rules the service and the embedded backend apply.
 """
 
 from __future__ import annotations
@@ -9,11 +12,9 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from email.utils import parsedate_to_datetime
-from typing import Any, Sequence
+from typing import Any, Iterable
 
-import numpy as np
-
-from collider_contract import ModelInfo, QueryResult, wire
+from collider_contract import ModelInfo, QueryError, QueryResult, wire
 
 from ._exceptions import ProtocolError, ServerError, error_for_status
 
@@ -37,14 +38,6 @@ class UseClientDefault:
 
 
 USE_CLIENT_DEFAULT = UseClientDefault()
-
-
-@dataclass(frozen=True)
-class SceneCollider:
-    """One collider of a scene query: a model name and its pose (4x4, collider -> world, or None)."""
-
-    model: str
-    pose: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -145,63 +138,6 @@ def parse_retry_after(value: str | None) -> float | None:
     return max(0.0, seconds) if math.isfinite(seconds) else None
 
 
-def as_points(points) -> np.ndarray:
-    """Points as float32/float64 numpy (ints become float64); shape is checked by the backend."""
-    array = np.asarray(points)
-    if array.dtype not in (np.float32, np.float64):
-        array = array.astype(np.float64)
-    return array
-
-
-def as_scene(colliders: Sequence) -> list[SceneCollider]:
-    """Scene colliders from :class:`SceneCollider`, ``(model, pose)`` pairs, dicts or names."""
-    out = []
-    for i, item in enumerate(colliders):
-        if isinstance(item, SceneCollider):
-            out.append(item)
-        elif isinstance(item, str):
-            out.append(SceneCollider(item))
-        elif isinstance(item, dict):
-            if "model" not in item:
-                raise ValueError(f"colliders[{i}]: a dict needs a 'model' key, got {sorted(item)}")
-            out.append(SceneCollider(item["model"], item.get("pose")))
-        elif isinstance(item, (tuple, list)) and len(item) == 2:
-            out.append(SceneCollider(item[0], item[1]))
-        else:
-            raise ValueError(f"colliders[{i}]: expected a model name, (model, pose) or "
-                             f"{{'model': ..., 'pose': ...}}, got {type(item).__name__}")
-    if not out:
-        raise ValueError("a scene query needs at least one collider")
-    return out
-
-
-def query_body(points: np.ndarray, fields: list[str], pose, eps: float | None,
-               deadline_ms: float | None, only_colliding: bool = False) -> dict[str, Any]:
-    body: dict[str, Any] = {"points": points, "fields": fields}
-    if only_colliding:  # sent only when set: a body without it is what older servers know
-        body["only_colliding"] = True
-    if pose is not None:
-        body["pose"] = np.asarray(pose, dtype=np.float64)
-    if eps is not None:
-        body["eps"] = float(eps)
-    if deadline_ms is not None:
-        body["deadline_ms"] = float(deadline_ms)
-    return body
-
-
-def scene_body(points: np.ndarray, colliders: list[SceneCollider], fields: list[str],
-               eps: float | None, deadline_ms: float | None,
-               only_colliding: bool = False) -> dict[str, Any]:
-    body = query_body(points, fields, None, eps, deadline_ms, only_colliding)
-    # A pose nested in a list travels as nested lists: wire.dumps only encodes top-level arrays.
-    body["colliders"] = [
-        {"model": c.model} if c.pose is None
-        else {"model": c.model, "pose": np.asarray(c.pose, dtype=np.float64).tolist()}
-        for c in colliders
-    ]
-    return body
-
-
 def raise_for_problem(status: int, content: bytes, content_type: str,
                       retry_after: str | None) -> None:
     """Raise the typed error for an error response (``application/problem+json`` or other)."""
@@ -220,30 +156,18 @@ def raise_for_problem(status: int, content: bytes, content_type: str,
                            retry_after_s=parse_retry_after(retry_after))
 
 
-def decode_query(body: dict[str, Any], fields: list[str], scene: bool) -> QueryResult:
+def refusal(error: QueryError) -> ServerError:
+    """The typed exception of a query the contract refused: the one the service's problem
+    document for it raises (same class, status, title, type and message)."""
+    return error_for_status(error.status, error.detail, title=error.title, type=error.code)
+
+
+def decode_query(body: dict[str, Any], fields: Iterable[str], scene: bool) -> QueryResult:
     """A :class:`QueryResult` from a decoded response body; ProtocolError if a field is missing."""
-    result = QueryResult(model=body.get("model") if not scene else None)
     try:
-        for name in fields:
-            if name not in body:
-                raise ProtocolError(f"response lacks the field {name!r} that was asked for")
-            setattr(result, name, wire.decode_array(body[name], name))
-        if scene:
-            if "collider" not in body:
-                raise ProtocolError("scene response lacks 'collider'")
-            result.collider = wire.decode_array(body["collider"], "collider")
+        return QueryResult.from_body(body, fields, scene)
     except wire.WireError as exc:
         raise ProtocolError(str(exc)) from None
-    # JSON answers come as nested lists; give them the dtypes the wire format promises.
-    if result.collides is not None and result.collides.dtype != np.bool_:
-        result.collides = result.collides.astype(bool)
-    for name in ("distance", "normal"):
-        value = getattr(result, name)
-        if value is not None and value.dtype != np.float32:
-            setattr(result, name, value.astype(np.float32))
-    if result.collider is not None and result.collider.dtype != np.int32:
-        result.collider = result.collider.astype(np.int32)
-    return result
 
 
 def decode_models(body: dict[str, Any]) -> list[ModelInfo]:

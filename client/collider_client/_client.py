@@ -18,20 +18,10 @@ from typing import Iterable, Sequence
 
 import httpx
 
-from collider_contract import ModelInfo, QueryResult, check_fields, wire
+from collider_contract import ModelInfo, ModelQuery, QueryError, QueryResult, SceneQuery, check_fields, wire
 
-from ._base import (
-    USE_CLIENT_DEFAULT,
-    Attempts,
-    RetryPolicy,
-    UseClientDefault,
-    as_points,
-    as_scene,
-    decode_models,
-    decode_query,
-    query_body,
-    scene_body,
-)
+from ._base import (USE_CLIENT_DEFAULT, Attempts, RetryPolicy, UseClientDefault, decode_models,
+                    decode_query, refusal)
 from ._exceptions import ConnectError, TimeoutError, TransportError
 
 DEFAULT_TIMEOUT_S = 30.0
@@ -65,10 +55,31 @@ class _Settings:
             headers["Authorization"] = f"Bearer {self.token}"
         return headers
 
-    def resolve(self, fields, eps):
-        fields = self.fields if isinstance(fields, UseClientDefault) else check_fields(fields)
-        eps = self.eps if isinstance(eps, UseClientDefault) else eps
-        return fields, eps
+    def _defaults(self, fields, eps):
+        return (self.fields if isinstance(fields, UseClientDefault) else fields,
+                self.eps if isinstance(eps, UseClientDefault) else eps)
+
+    def model_query(self, points, fields, pose, eps, only_colliding) -> ModelQuery:
+        """The call's query, validated by the contract (refused with the typed error the service
+        would answer for it: the same by construction, whichever the backend)."""
+        fields, eps = self._defaults(fields, eps)
+        try:
+            return ModelQuery.build(points, fields, pose, eps, only_colliding)
+        except QueryError as exc:
+            raise refusal(exc) from None
+
+    def scene_query(self, colliders, points, fields, eps, only_colliding) -> SceneQuery:
+        fields, eps = self._defaults(fields, eps)
+        try:
+            return SceneQuery.build(points, colliders, fields, eps, only_colliding)
+        except QueryError as exc:
+            raise refusal(exc) from None
+
+
+def _with_deadline(body: dict, deadline_ms: float | None) -> dict:
+    if deadline_ms is not None:
+        body["deadline_ms"] = float(deadline_ms)
+    return body
 
 
 def _answer(attempts: Attempts, response: httpx.Response) -> tuple[dict | None, float]:
@@ -138,13 +149,11 @@ class Client:
             ``distance < eps`` (cheaper); the others get ``normal`` [0, 0, 0] and ``contact``
             equal to the point (``collides`` tells them apart)
         """
-        fields, eps = self._settings.resolve(fields, eps)
-        points = as_points(points)
+        query = self._settings.model_query(points, fields, pose, eps, only_colliding)
         if self._embedded is not None:
-            return self._embedded.query(model, points, fields, pose, eps, only_colliding)
-        body = self._post(f"/v1/models/{model}/query",
-                          query_body(points, fields, pose, eps, deadline_ms, only_colliding))
-        return decode_query(body, fields, scene=False)
+            return self._embedded.query(model, query)
+        body = self._post(f"/v1/models/{model}/query", _with_deadline(query.to_body(), deadline_ms))
+        return decode_query(body, query.fields, scene=False)
 
     def scene_query(self, colliders: Sequence, points,
                     fields: Iterable[str] | UseClientDefault = USE_CLIENT_DEFAULT,
@@ -157,14 +166,11 @@ class Client:
             :class:`SceneCollider`; poses are 4x4 collider -> world
         only_colliding : as in :meth:`query`
         """
-        fields, eps = self._settings.resolve(fields, eps)
-        scene = as_scene(colliders)
-        points = as_points(points)
+        query = self._settings.scene_query(colliders, points, fields, eps, only_colliding)
         if self._embedded is not None:
-            return self._embedded.scene_query(scene, points, fields, eps, only_colliding)
-        body = self._post("/v1/scene/query",
-                          scene_body(points, scene, fields, eps, deadline_ms, only_colliding))
-        return decode_query(body, fields, scene=True)
+            return self._embedded.scene_query(query)
+        body = self._post("/v1/scene/query", _with_deadline(query.to_body(), deadline_ms))
+        return decode_query(body, query.fields, scene=True)
 
     def list_models(self) -> list[ModelInfo]:
         """Every model the server (or the embedded repository) can answer for."""
@@ -246,14 +252,12 @@ class AsyncClient:
                     eps: float | None | UseClientDefault = USE_CLIENT_DEFAULT,
                     deadline_ms: float | None = None, only_colliding: bool = False) -> QueryResult:
         """See :meth:`Client.query`."""
-        fields, eps = self._settings.resolve(fields, eps)
-        points = as_points(points)
+        query = self._settings.model_query(points, fields, pose, eps, only_colliding)
         if self._embedded is not None:
-            return await asyncio.to_thread(self._embedded.query, model, points, fields, pose, eps,
-                                           only_colliding)
+            return await asyncio.to_thread(self._embedded.query, model, query)
         body = await self._post(f"/v1/models/{model}/query",
-                                query_body(points, fields, pose, eps, deadline_ms, only_colliding))
-        return decode_query(body, fields, scene=False)
+                                _with_deadline(query.to_body(), deadline_ms))
+        return decode_query(body, query.fields, scene=False)
 
     async def scene_query(self, colliders: Sequence, points,
                           fields: Iterable[str] | UseClientDefault = USE_CLIENT_DEFAULT,
@@ -261,15 +265,11 @@ class AsyncClient:
                           deadline_ms: float | None = None,
                           only_colliding: bool = False) -> QueryResult:
         """See :meth:`Client.scene_query`."""
-        fields, eps = self._settings.resolve(fields, eps)
-        scene = as_scene(colliders)
-        points = as_points(points)
+        query = self._settings.scene_query(colliders, points, fields, eps, only_colliding)
         if self._embedded is not None:
-            return await asyncio.to_thread(self._embedded.scene_query, scene, points, fields, eps,
-                                           only_colliding)
-        body = await self._post("/v1/scene/query",
-                                scene_body(points, scene, fields, eps, deadline_ms, only_colliding))
-        return decode_query(body, fields, scene=True)
+            return await asyncio.to_thread(self._embedded.scene_query, query)
+        body = await self._post("/v1/scene/query", _with_deadline(query.to_body(), deadline_ms))
+        return decode_query(body, query.fields, scene=True)
 
     async def list_models(self) -> list[ModelInfo]:
         """See :meth:`Client.list_models`."""

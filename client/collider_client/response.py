@@ -20,7 +20,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from collider_contract import ModelInfo
+from collider_contract import ModelInfo, transform_points
 
 __all__ = [
     "project_to_contacts",
@@ -97,19 +97,16 @@ def collider_velocity(pose_before: np.ndarray, pose_after: np.ndarray, points: n
     # Carry each point back with the collider: where was that material point one step ago?
     relative = np.asarray(pose_before, dtype=np.float64) @ np.linalg.inv(
         np.asarray(pose_after, dtype=np.float64))
-    before = points @ relative[:3, :3].T + relative[:3, 3]
+    before = transform_points(relative, points)
     return (points - before) / dt
 
 
 def world_box(info: ModelInfo, pose: np.ndarray | None, margin: float) -> tuple[np.ndarray, np.ndarray]:
     """World-frame axis-aligned box (lo, hi) holding the model's domain box moved by ``pose``
     and grown by ``margin`` metres on every side. Outside it no point can collide."""
-    lo, hi = np.asarray(info.domain_min, float), np.asarray(info.domain_max, float)
-    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1])
-                        for z in (lo[2], hi[2])])
+    corners = info.domain_corners()
     if pose is not None:
-        pose = np.asarray(pose, dtype=np.float64)
-        corners = corners @ pose[:3, :3].T + pose[:3, 3]
+        corners = transform_points(pose, corners)
     return corners.min(axis=0) - margin, corners.max(axis=0) + margin
 
 
@@ -228,12 +225,8 @@ class CollisionHook:
             if placement.static:
                 moves.append(0.0)
                 continue
-            info = self.infos[placement.model]
-            corners = np.array([[x, y, z] for x in (info.domain_min[0], info.domain_max[0])
-                                for y in (info.domain_min[1], info.domain_max[1])
-                                for z in (info.domain_min[2], info.domain_max[2])], dtype=np.float64)
-            previous = placement.pose(t - dt)
-            moved = corners @ (pose[:3, :3] - previous[:3, :3]).T + (pose[:3, 3] - previous[:3, 3])
+            corners = self.infos[placement.model].domain_corners()
+            moved = transform_points(pose, corners) - transform_points(placement.pose(t - dt), corners)
             moves.append(float(np.linalg.norm(moved, axis=1).max()))
         return moves
 

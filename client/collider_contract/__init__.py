@@ -1,25 +1,33 @@
-"""The query contract: what a collider query is, wherever it is answered (numpy + msgpack only).
+"""The query contract: what a collider query is and how it is answered, wherever it is asked
+(numpy + msgpack only, no torch).
 
-One home for the rules that the HTTP service (``collider_server.service``) and the SDK's
-embedded backend (``collider_client``) share, so that their answers and refusals are the same by
-construction: the wire codec (:mod:`.wire`), the result and model types (:mod:`.results`) and
-poses with the coordinate range (:mod:`.pose`).
+One home for the rules that the engine, the HTTP service (``collider_server``) and the SDK's
+embedded and remote backends (``collider_client``) share, so that their answers and refusals are
+the same by construction:
+
+- :mod:`.wire`: how bodies and arrays travel (msgpack, JSON);
+- :mod:`.pose`: poses (collider frame -> world frame) and the coordinate range;
+- :mod:`.queries`: a query's fields, points, pose, eps and mode, validated, and its wire body;
+- :mod:`.answers`: the eps policy, the assembly of the fields, the scene rule, and the functions
+  that answer a model query or a scene query given a way to evaluate a collider;
+- :mod:`.results`: what an answer and a model description are;
+- :mod:`.errors`: :class:`QueryError`, every refusal's status, problem code and message.
 """
 
-from .pose import MAX_COORDINATE_M, MAX_SCALE, Pose, PoseError, as_pose
+from .answers import (DEFAULT_EPS_METERS, Evaluate, Evaluation, answer_model_query,
+                      answer_scene_query, check_finite, default_eps, finish, finish_scene,
+                      nearest_collider, prepare, resolve_eps)
+from .errors import TITLES, QueryError, unknown_model
+from .pose import IDENTITY, MAX_COORDINATE_M, MAX_SCALE, Pose, PoseError, as_pose, transform_points
+from .queries import (FIELDS, GRADIENT_FIELDS, ModelQuery, SceneCollider, SceneQuery, check_eps,
+                      check_fields, check_points)
 from .results import ModelInfo, QueryResult
-from .wire import FIELDS, GRADIENT_FIELDS, WireError, check_fields
+from .wire import WireError
 
 __all__ = [
-    "FIELDS",
-    "GRADIENT_FIELDS",
-    "MAX_COORDINATE_M",
-    "MAX_SCALE",
-    "ModelInfo",
-    "Pose",
-    "PoseError",
-    "QueryResult",
-    "WireError",
-    "as_pose",
-    "check_fields",
+    "DEFAULT_EPS_METERS", "FIELDS", "GRADIENT_FIELDS", "IDENTITY", "MAX_COORDINATE_M", "MAX_SCALE",
+    "TITLES", "Evaluate", "Evaluation", "ModelInfo", "ModelQuery", "Pose", "PoseError", "QueryError",
+    "QueryResult", "SceneCollider", "SceneQuery", "WireError", "answer_model_query",
+    "answer_scene_query", "as_pose", "check_finite", "check_eps", "check_fields", "check_points", "default_eps",
+    "finish", "finish_scene", "nearest_collider", "prepare", "resolve_eps", "transform_points", "unknown_model",
 ]

@@ -12,7 +12,7 @@ All transforms run in float64 so that a collider far from the origin loses no pr
 from __future__ import annotations
 
 import functools
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -41,11 +41,14 @@ class Pose:
     rotation : (3, 3) float64, orthonormal, det +1
     translation : (3,) float64, world units
     scale : float, > 0, collider units to world units (1 for a rigid pose)
+    source : (4, 4) float64, the matrix as the caller gave it (None for :data:`IDENTITY`): what
+        travels on the wire, so that a server validating it gets this very pose, bit for bit
     """
 
     rotation: np.ndarray
     translation: np.ndarray
     scale: float = 1.0
+    source: np.ndarray | None = field(default=None, compare=False, repr=False)
 
     @functools.cached_property  # (a frozen dataclass still has a __dict__ to cache in)
     def is_identity(self) -> bool:
@@ -72,6 +75,12 @@ class Pose:
             local /= self.scale
         return local
 
+    def to_world(self, points: np.ndarray) -> np.ndarray:
+        """Collider-frame points (n, 3) to world-frame points (n, 3) float64: ``T p``."""
+        if self.is_identity:
+            return np.array(points, dtype=np.float64)
+        return rotate_rows(np.asarray(points, dtype=np.float64) * self.scale, self.rotation) + self.translation
+
     def to_world_directions(self, vectors: np.ndarray) -> np.ndarray:
         """Collider-frame directions (n, 3) rotated into the world frame (no translation)."""
         if self.is_identity:
@@ -90,6 +99,20 @@ def rotate_rows(vectors: np.ndarray, matrix: np.ndarray) -> np.ndarray:
 
 
 IDENTITY = Pose(np.eye(3), np.zeros(3), 1.0)
+
+
+def box_corners(lo, hi) -> np.ndarray:
+    """(8, 3) float64: the corners of the axis-aligned box ``lo``..``hi``; corner ``k`` takes
+    ``hi`` on axis x if bit 2 of k is set, y if bit 1, z if bit 0."""
+    lo, hi = np.asarray(lo, dtype=np.float64), np.asarray(hi, dtype=np.float64)
+    return np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+
+
+def transform_points(matrix, points) -> np.ndarray:
+    """``points`` (n, 3) moved by a 4x4 ``matrix`` (any affine map, unvalidated: a mesh placement,
+    a pose not yet checked): ``R p + t`` per row, float64."""
+    m = np.asarray(matrix, dtype=np.float64)
+    return np.asarray(points, dtype=np.float64) @ m[:3, :3].T + m[:3, 3]
 
 
 def as_pose(pose: "Pose | np.ndarray | list | None") -> Pose:
@@ -138,4 +161,4 @@ def as_pose(pose: "Pose | np.ndarray | list | None") -> Pose:
     # Re-orthonormalise so tiny float noise in the caller's matrix does not bend normals.
     u, _, vt = np.linalg.svd(rotation)
     rotation = u @ vt
-    return Pose(rotation, m[:3, 3].copy(), scale)
+    return Pose(rotation, m[:3, 3].copy(), scale, source=m.copy())

@@ -9,7 +9,9 @@ from typing import Any
 
 import numpy as np
 
-from .wire import FIELDS
+from . import wire
+from .pose import box_corners
+from .queries import FIELDS
 
 
 @dataclass
@@ -37,6 +39,33 @@ class QueryResult:
         """The present fields (``distance``, ``normal``, ``contact``, ``collides``) by name."""
         return {name: getattr(self, name) for name in FIELDS if getattr(self, name) is not None}
 
+    def to_body(self) -> dict[str, Any]:
+        """The response body: the fields, and ``model`` or ``collider`` (numpy arrays as values;
+        :func:`~.wire.dumps` encodes them)."""
+        body: dict[str, Any] = dict(self.fields())
+        if self.collider is not None:
+            body["collider"] = self.collider
+        if self.model is not None:
+            body["model"] = self.model
+        return body
+
+    @classmethod
+    def from_body(cls, body: dict[str, Any], fields, scene: bool) -> "QueryResult":
+        """The result in a decoded response body that answered ``fields`` (a scene query's
+        when ``scene``); :class:`~.wire.WireError` when a field is missing or malformed.
+        msgpack arrays stay read-only views on the body; JSON lists get the promised dtypes."""
+        result = cls(model=None if scene else body.get("model"))
+        for name in (*fields, *(("collider",) if scene else ())):
+            if name not in body:
+                raise wire.WireError(f"the response lacks {name!r}, which was asked for")
+            setattr(result, name, wire.decode_array(body[name], name))
+        for name, dtype in (("distance", np.float32), ("normal", np.float32),
+                            ("collides", np.bool_), ("collider", np.int32)):
+            value = getattr(result, name)
+            if value is not None and value.dtype != dtype:
+                setattr(result, name, value.astype(dtype))
+        return result
+
 
 @dataclass
 class ModelInfo:
@@ -61,6 +90,17 @@ class ModelInfo:
     device: str = "cpu"
     #: keys a newer server sent that this client does not know (kept, not dropped)
     extra: dict = field(default_factory=dict)
+
+    def domain_corners(self) -> np.ndarray:
+        """(8, 3) float64: the corners of the domain box, collider frame and units."""
+        return box_corners(self.domain_min, self.domain_max)
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready, the keys :meth:`from_dict` reads (``extra`` merged back in)."""
+        data = {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.name != "extra"}
+        data["domain_min"] = np.asarray(self.domain_min, dtype=np.float64).tolist()
+        data["domain_max"] = np.asarray(self.domain_max, dtype=np.float64).tolist()
+        return {**self.extra, **data}
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> "ModelInfo":

@@ -1,4 +1,4 @@
-"""The wire format shared by the client and the server (numpy + msgpack only, no torch).
+"""The wire format: how bodies and arrays travel (numpy + msgpack only, no torch).
 
 Bodies are msgpack maps (``application/msgpack``) or JSON objects (``application/json``).
 
@@ -7,26 +7,29 @@ the raw C-order bytes, little-endian, of the numpy dtype string ``dtype`` (one o
 ``|b1``, ``<i4``, ``<i8``), and ``len(data) == prod(shape) * itemsize``. It decodes with no copy
 (``numpy.frombuffer``). In JSON an array is a nested list of numbers (or booleans).
 
-Query request (``POST /v1/models/{name}/query``):
+Query request (``POST /v1/models/{name}/query``), read and written by :mod:`.queries`:
     points : array (n, 3) float32 or float64, world frame, the collider's units (metres)
     fields : list of "distance", "normal", "contact", "collides" (default ["distance"])
-    pose : optional array (4, 4), collider frame -> world frame
-    eps : optional number, collision offset in world units (default 1 mm)
-    deadline_ms : optional number, the time the caller will wait
-    only_colliding : optional boolean (default false): compute ``normal`` and ``contact`` only for
-        the points with ``distance < eps``; for the others ``normal`` is [0, 0, 0] and ``contact``
-        is the point itself (``collides`` tells them apart). The scene query
-        (``POST /v1/scene/query``: ``colliders`` instead of ``pose``) takes it too.
+    pose : array (4, 4), collider frame -> world frame (default the identity)
+    eps : number in [0, 1e6], collision offset in world units (default 1 mm)
+    deadline_ms : number > 0, the time the caller will wait
+    only_colliding : boolean (default false): compute ``normal`` and ``contact`` only for the
+        points with ``distance < eps``; for the others ``normal`` is [0, 0, 0] and ``contact`` is
+        the point itself (``collides`` tells them apart)
+Every key but ``points`` may be left out for its default; none may be null. The scene query
+(``POST /v1/scene/query``) takes ``colliders`` (a list of ``{"model": name, "pose": 4x4}``, pose
+optional) instead of ``pose``.
 
-Query response: one entry per field asked for, in the request's encoding:
-    distance (n,) float32, normal (n, 3) float32, contact (n, 3) dtype of points, collides (n,) bool.
+Query response (:mod:`.results`): one entry per field asked for, in the request's encoding:
+    distance (n,) float32, normal (n, 3) float32, contact (n, 3) dtype of points, collides (n,) bool;
+    plus ``"model"`` (a model query) or ``"collider"`` (n,) int32 (a scene query).
 """
 
 from __future__ import annotations
 
 import json
 import math
-from typing import Any, Iterable
+from typing import Any
 
 import msgpack
 import numpy as np
@@ -35,11 +38,6 @@ MSGPACK_TYPES = ("application/msgpack", "application/x-msgpack", "application/vn
 MSGPACK = MSGPACK_TYPES[0]
 JSON = "application/json"
 ARRAY_DTYPES = ("<f4", "<f8", "|b1", "<i4", "<i8")
-#: The fields a query can ask for, in canonical order (client and server share this list).
-FIELDS = ("distance", "normal", "contact", "collides")
-#: Fields that need the SDF gradient; asking only for the others skips gradient work.
-GRADIENT_FIELDS = frozenset({"normal", "contact"})
-
 
 #: Messages for parser errors that carry none.
 _REASONS = {"FormatError": "a byte that starts no msgpack value (e.g. 0xc1)",
@@ -49,19 +47,6 @@ _REASONS = {"FormatError": "a byte that starts no msgpack value (e.g. 0xc1)",
 
 class WireError(ValueError):
     """A body or array that does not follow the wire format; the message names the field."""
-
-
-def check_fields(fields: Iterable[str] | str) -> tuple[str, ...]:
-    """A field selection as a tuple in canonical order; ValueError names unknown fields."""
-    if isinstance(fields, str):
-        fields = [fields]
-    fields = list(fields)
-    unknown = [f for f in fields if f not in FIELDS]
-    if unknown:
-        raise ValueError(f"unknown field(s) {unknown}; valid fields are {list(FIELDS)}")
-    if not fields:
-        raise ValueError(f"no fields asked for; choose from {list(FIELDS)}")
-    return tuple(f for f in FIELDS if f in fields)
 
 
 def encode_array(array: np.ndarray) -> dict:

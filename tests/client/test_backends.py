@@ -180,7 +180,7 @@ def test_same_errors(backend, request, points):
         client.query("sphere", np.zeros((4, 2)))
     with pytest.raises(cc.InvalidValueError):
         client.query("sphere", points, pose=np.diag([1.0, 2.0, 1.0, 1.0]))
-    with pytest.raises(ValueError, match="unknown field"):
+    with pytest.raises(cc.InvalidValueError, match="unknown field"):
         client.query("sphere", points, fields=["distnace"])
 
 

@@ -11,13 +11,10 @@ import numpy as np
 import pytest
 
 from collider_contract import FIELDS
-from collider_contract.pose import MAX_COORDINATE_M, PoseError
-from collider_server.engine.collider import (
-    MAX_POINTS_PER_CALL,
-    Collider,
-    ColliderInfo,
-    nearest_collider,
-)
+from collider_contract.pose import MAX_COORDINATE_M
+from collider_contract import QueryError, nearest_collider
+from collider_contract.queries import MAX_POINTS as MAX_POINTS_PER_CALL
+from collider_server.engine.collider import Collider, ColliderInfo
 
 KINDS = ["neural", "voxel", "mesh", "kdtree"]
 ALL_FIELDS = list(FIELDS)
@@ -104,7 +101,7 @@ def test_distance_and_collides_do_no_gradient_work(fresh_collider, kind):
 def test_eps_is_per_call(shape_collider, kind):
     collider = shape_collider("sphere", kind)
     points = mixed_points(200, seed=1)
-    results = {eps: collider.query(points, ALL_FIELDS, eps=eps) for eps in (0.0, 1e-3, 5e-3, -1e-3)}
+    results = {eps: collider.query(points, ALL_FIELDS, eps=eps) for eps in (0.0, 1e-3, 5e-3)}
     base = results[0.0]
     for eps, result in results.items():
         np.testing.assert_array_equal(result.distance, base.distance)
@@ -213,12 +210,12 @@ def test_float32_float64_and_list_points(shape_collider, kind):
     [
         (np.array([[0.0, 0.0, np.nan]]), r"NaN or Inf \(first at row 0"),
         (np.array([[0.0, 0.0, 0.0], [np.inf, 0.0, 0.0]]), r"NaN or Inf \(first at row 1"),
-        (np.zeros((4, 2)), r"shape \(n, 3\), got \(4, 2\)"),
-        (np.zeros(3), r"shape \(n, 3\), got \(3,\)"),
-        (np.zeros((2, 3, 3)), r"shape \(n, 3\), got \(2, 3, 3\)"),
-        (np.array([["a", "b", "c"]]), "points must be numbers"),
-        (np.array([[1 + 2j, 0, 0]]), "points must be numbers"),
-        (np.array([[True, False, True]]), "points must be numbers"),
+        (np.zeros((4, 2)), r"shape \(n, 3\), got \[4, 2\]"),
+        (np.zeros(3), r"shape \(n, 3\), got \[3\]"),
+        (np.zeros((2, 3, 3)), r"shape \(n, 3\), got \[2, 3, 3\]"),
+        (np.array([["a", "b", "c"]]), "points must be float32 or float64, got "),
+        (np.array([[1 + 2j, 0, 0]]), "points must be float32 or float64, got "),
+        (np.array([[True, False, True]]), "points must be float32 or float64, got "),
     ],
 )
 def test_bad_points_are_rejected_with_a_clear_message(shape_collider, points, message):
@@ -252,22 +249,28 @@ def test_bad_fields_are_rejected(shape_collider, fields, message):
         shape_collider("sphere", "voxel").query(np.zeros((1, 3)), fields)
 
 
-@pytest.mark.parametrize("eps, message", [(float("nan"), "eps must be finite"),
-                                          (float("inf"), "eps must be finite"),
-                                          ("big", "eps must be a number"),
-                                          (MAX_COORDINATE_M * 1.5, r"eps=1\.5e\+06 is outside the "
-                                           r"coordinate range \+-1e\+06 \(world units\)$"),
-                                          (-MAX_COORDINATE_M * 1.5, r"eps=-1\.5e\+06 is outside")])
-def test_bad_eps_is_rejected(shape_collider, eps, message):
-    with pytest.raises(ValueError, match=message):
+@pytest.mark.parametrize("eps, message, code", [
+    (float("nan"), "^eps must be a finite number, got nan$", "bad-eps"),
+    (float("inf"), "^eps must be a finite number, got inf$", "bad-eps"),
+    ("big", "^eps must be a finite number, got 'big'$", "bad-eps"),
+    (True, "^eps must be a finite number, got True$", "bad-eps"),
+    (MAX_COORDINATE_M + 1, r"^eps=1000001\.0 is outside \[0, 1e\+06\] \(world units\)$", "eps-out-of-range"),
+    (-1e-3, r"^eps=-0\.001 is outside \[0, 1e\+06\] \(world units\)$", "eps-out-of-range"),
+    (-MAX_COORDINATE_M * 1.5, r"^eps=-1500000\.0 is outside", "eps-out-of-range")])
+def test_bad_eps_is_rejected(shape_collider, eps, message, code):
+    """One eps policy (the contract's): a finite number of world units in [0, 1e6], the value
+    refused named as given (not rounded), the service's 422 problem code."""
+    with pytest.raises(QueryError, match=message) as refused:
         shape_collider("sphere", "voxel").query(np.zeros((1, 3)), "contact", eps=eps)
+    assert refused.value.status == 422 and refused.value.code == code
 
 
 def test_eps_up_to_the_coordinate_range_is_accepted(shape_collider):
     collider = shape_collider("sphere", "voxel")
     points = np.array([[0.0, 0.0, 0.5], [0.0, 0.0, 0.0]])  # 0.4 m outside, 0.1 m inside
     assert collider.query(points, "collides", eps=MAX_COORDINATE_M).collides.all()
-    assert not collider.query(points, "collides", eps=-MAX_COORDINATE_M).collides.any()
+    collides = collider.query(points, "collides", eps=0.0).collides
+    assert collides.tolist() == [False, True]  # eps 0: only the point inside
 
 
 def _pose(block=np.eye(3), translation=(0.0, 0.0, 0.0), bottom=(0.0, 0.0, 0.0, 1.0)):
@@ -293,9 +296,9 @@ def _pose(block=np.eye(3), translation=(0.0, 0.0, 0.0), bottom=(0.0, 0.0, 0.0, 1
     ],
 )
 def test_bad_poses_are_rejected(shape_collider, pose, message):
-    with pytest.raises(PoseError, match=message) as caught:
+    with pytest.raises(QueryError, match=message) as caught:
         shape_collider("sphere", "voxel").query(np.zeros((1, 3)), "distance", pose=pose)
-    assert isinstance(caught.value, ValueError)
+    assert isinstance(caught.value, ValueError) and caught.value.code == "bad-pose"
 
 
 @pytest.mark.parametrize("kind", KINDS)

@@ -9,7 +9,8 @@ import pytest
 
 from collider_contract import FIELDS
 from collider_contract.pose import as_pose
-from collider_server.engine.collider import Collider, assemble_result, assemble_scene_result
+from collider_contract import ModelQuery, SceneQuery, finish, finish_scene
+from collider_server.engine.collider import Collider
 
 from .test_collider import KINDS, fresh_collider, mixed_points  # noqa: F401  (fixture)
 
@@ -97,7 +98,7 @@ def test_points_exactly_at_eps_follow_collides(fresh_collider, kind):
     collider = fresh_collider(kind)
     points = near_surface(2000, band=0.004)
     distance = collider.query(points, "distance").distance.astype(np.float64)
-    for eps in np.sort(distance)[::97]:  # eps equal to (float32) distances of the points
+    for eps in np.sort(distance[distance >= 0])[::47]:  # eps equal to (float32) distances
         result = collider.query(points, FIELDS, eps=float(eps), only_colliding=True)
         assert np.allclose(np.linalg.norm(result.normal[result.collides], axis=1), 1.0, atol=1e-5)
         assert not result.normal[~result.collides].any()
@@ -161,7 +162,7 @@ def test_query_local_takes_a_threshold_per_point(fresh_collider):
 
 
 def test_assembly_answers_free_points_whatever_normal_it_is_given(fresh_collider):
-    """``assemble_result`` and ``assemble_scene_result`` with ``only_colliding``: a point with
+    """``finish`` and ``finish_scene`` with ``only_colliding``: a point with
     ``distance >= eps`` gets normal [0, 0, 0] and contact = the point even when the normal handed
     in is a full one (a point a hair above eps gets one from the gradient pass); a colliding point
     gets the full answer. Scene: the sphere at the origin and the same sphere 1 km away along x
@@ -172,12 +173,13 @@ def test_assembly_answers_free_points_whatever_normal_it_is_given(fresh_collider
                                                [0, 0, 0, 1]]))]
     eps = [2e-3, 3e-3]
     answers = [collider.query_local(pose.to_local(points), True) for pose in poses]  # all normals
-    full = assemble_result(points, poses[0], eps[0], FIELDS, *answers[0], False)
+    full = finish(ModelQuery(points, FIELDS, poses[0], eps[0]), eps[0], *answers[0])
     hit = full.collides
     assert 0 < hit.sum() < len(points)
-    single = assemble_result(points, poses[0], eps[0], FIELDS, *answers[0], True)
-    scene, nearest = assemble_scene_result(points, poses, eps, FIELDS, answers, True)
-    assert not nearest.any()
+    single = finish(ModelQuery(points, FIELDS, poses[0], eps[0], True), eps[0], *answers[0])
+    scene = finish_scene(SceneQuery(points, (("a", poses[0]), ("b", poses[1])), FIELDS, None, True),
+                         eps, answers)
+    assert not scene.collider.any()
     for only in (single, scene):
         np.testing.assert_array_equal(only.collides, hit)
         np.testing.assert_array_equal(only.distance, full.distance)

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from collider_contract import MAX_COORDINATE_M
+from collider_contract import MAX_COORDINATE_M, QueryError, default_eps
 from collider_contract.pose import PoseError, as_pose
 from collider_server.engine.collider import Collider
 
@@ -163,8 +163,9 @@ def test_the_coordinate_range_is_enforced_with_a_clear_error(sphere_collider):
         with pytest.raises(ValueError, match=r"coordinate range .*row 3"):
             sphere_collider.query(points, ALL)
     for translation in (1e300, 2 * MAX_COORDINATE_M):
-        with pytest.raises(PoseError, match="translation .*coordinate range"):
+        with pytest.raises(QueryError, match="translation .*coordinate range") as refused:
             sphere_collider.query(np.zeros((1, 3)), ALL, pose=pose_matrix(translation=(0, translation, 0)))
+        assert refused.value.code == "bad-pose"
     with pytest.raises(PoseError, match="scale"):
         as_pose(pose_matrix(scale=1e300))
     with pytest.raises(ValueError, match="eps"):
@@ -189,8 +190,9 @@ def test_non_finite_input_is_refused_naming_the_row(sphere_collider, bad):
         sphere_collider.query(points, ALL)
     pose = np.eye(4)
     pose[1, 3] = bad
-    with pytest.raises(PoseError, match="row 1, column 3"):
+    with pytest.raises(QueryError, match="row 1, column 3") as refused:
         sphere_collider.query(points[:1], ALL, pose=pose)
+    assert refused.value.code == "bad-pose"
 
 
 def test_denormals_and_negative_zero_do_not_contaminate_a_batch(sphere_collider):
@@ -240,7 +242,7 @@ def test_rotated_scaled_pose_scales_distance_and_the_default_eps(sphere_collider
     np.testing.assert_allclose(posed.normal, plain.normal @ rot.T, atol=1e-5)
     # The default eps is 1 mm in collider units times the pose's scale, in collides and contact.
     eps = 1e-3 * scale
-    assert sphere_collider.info.default_world_eps(as_pose(pose)) == pytest.approx(eps)
+    assert default_eps(sphere_collider.info.meters_per_unit, as_pose(pose)) == pytest.approx(eps)
     np.testing.assert_array_equal(posed.collides, posed.distance.astype(np.float64) < eps)
     expected = world + (eps - scale * plain.distance.astype(np.float64))[:, None] * posed.normal
     np.testing.assert_allclose(posed.contact, expected, atol=1e-6)

@@ -105,10 +105,9 @@ def test_finite_input_never_gets_a_non_finite_answer(server, case):
 def test_a_far_request_in_a_batch_fails_alone(repo, engine):
     """Coalesced with good requests, a request without a finite answer gets its 422; the others
     in the same batch get their answers (assembled in the compute thread, batch-wide)."""
-    from collider_contract.pose import as_pose
+    from collider_contract import ModelQuery, QueryError, as_pose
     from collider_server.service.answers import QueryJob, answer_batch
     from collider_server.service.batching import BatchPart
-    from collider_server.service.problems import Problem
 
     collider = engine["sphere"]
     fields = ("distance", "normal", "contact", "collides")
@@ -116,17 +115,18 @@ def test_a_far_request_in_a_batch_fails_alone(repo, engine):
     far = np.array([[0.0, 0.0, 0.0], [0.0, 1e300, 0.0]])
     shifted = np.eye(4)
     shifted[:3, 3] = [0.05, 0.0, 0.0]
-    jobs = [QueryJob(good[0], as_pose(None), 0.001, fields),
-            QueryJob(far, as_pose(None), 0.001, fields),
-            QueryJob(good[1], as_pose(None), 0.001, fields),
-            QueryJob(good[0], as_pose(shifted), 0.002, ("distance", "contact"))]
-    answers = answer_batch(collider, "sphere", [BatchPart(j, 0, len(j.points)) for j in jobs])
-    assert isinstance(answers[1], Problem) and answers[1].status == 422
+    jobs = [QueryJob(ModelQuery(good[0], fields, as_pose(None), 0.001)),
+            QueryJob(ModelQuery(far, fields, as_pose(None), 0.001)),
+            QueryJob(ModelQuery(good[1], fields, as_pose(None), 0.001)),
+            QueryJob(ModelQuery(good[0], ("distance", "contact"), as_pose(shifted), 0.002))]
+    answers = answer_batch(collider, "sphere", [BatchPart(j, 0, len(j.query.points)) for j in jobs])
+    assert isinstance(answers[1], QueryError) and answers[1].status == 422
     assert "row 1" in answers[1].detail
     for job, answer in zip([jobs[0], jobs[2], jobs[3]], [answers[0], answers[2], answers[3]]):
-        want = collider.query(job.points, job.fields, job.pose, job.eps)
-        assert set(answer) == set(job.fields)
-        for name in job.fields:
+        q = job.query
+        want = collider.query(q.points, q.fields, q.pose, q.eps)
+        assert set(answer) == set(q.fields)
+        for name in q.fields:
             np.testing.assert_array_equal(answer[name], getattr(want, name))
             assert answer[name].dtype == getattr(want, name).dtype
 

@@ -64,13 +64,12 @@ def test_scene_query_with_only_colliding(server, engine):
 @pytest.mark.parametrize("value", ["yes", 1, None, [True]])
 def test_only_colliding_must_be_a_boolean(server, value):
     body = {"points": np.zeros((2, 3)), "only_colliding": value}
-    if value is None:  # JSON null: absent, the default
-        assert post(f"{server.url}/v1/models/sphere/query", body, wire.JSON).status_code == 200
-        return
     for media in (wire.MSGPACK, wire.JSON):
         response = post(f"{server.url}/v1/models/sphere/query", body, media)
-        assert response.status_code == 422
-        assert "only_colliding must be true or false" in response.json()["detail"]
+        assert response.status_code == 422 and response.json()["type"] == "bad-only-colliding"
+        assert response.json()["detail"] == (
+            "only_colliding must not be null (leave it out for its default)" if value is None
+            else f"only_colliding must be true or false, got {value!r}")
 
 
 def test_openapi_documents_only_colliding(server):
@@ -124,7 +123,7 @@ def test_a_batch_joins_collide_only_jobs_with_others(repo):
     """One compute call for a batch holding a collide-only job, a job wanting every normal and
     one wanting none: each gets its own answer, the collide-only one's gradient work only for its
     colliding points."""
-    from collider_contract.pose import as_pose
+    from collider_contract import ModelQuery, as_pose
     from collider_server.engine.repository import ModelRepository
     from collider_server.service.answers import QueryJob, answer_batch
     from collider_server.service.batching import BatchPart
@@ -140,20 +139,21 @@ def test_a_batch_joins_collide_only_jobs_with_others(repo):
     collider.query_local = recording
     pose = as_pose(rotation_pose(0.5, 2, [0.01, 0, 0]))
     only, full, plain = (shell_points(n, s) for n, s in ((200, 8), (150, 9), (100, 10)))
-    jobs = [QueryJob(only, pose, 0.002, tuple(ALL_FIELDS), only_colliding=True),
-            QueryJob(full, pose, 0.002, tuple(ALL_FIELDS)),
-            QueryJob(plain, pose, 0.002, ("distance",))]
-    answers = answer_batch(collider, "sphere", [BatchPart(j, 0, len(j.points)) for j in jobs])
+    jobs = [QueryJob(ModelQuery(only, tuple(ALL_FIELDS), pose, 0.002, only_colliding=True)),
+            QueryJob(ModelQuery(full, tuple(ALL_FIELDS), pose, 0.002)),
+            QueryJob(ModelQuery(plain, ("distance",), pose, 0.002))]
+    answers = answer_batch(collider, "sphere", [BatchPart(j, 0, len(j.query.points)) for j in jobs])
     assert [c[:2] for c in calls] == [(450, True)]
     threshold = 0.002 + 1e-9 * 0.002
     np.testing.assert_allclose(calls[0][2], np.concatenate([np.full(200, threshold), np.full(150, np.inf),
                                                             np.full(100, -np.inf)]))
     engine = ModelRepository(repo).load("sphere", "cpu")
     for job, answer in zip(jobs, answers):
-        want = engine.query(job.points, job.fields, pose=pose, eps=0.002).fields()
-        assert set(answer) == set(job.fields)
-        if job.only_colliding:
-            assert_documented_answer(answer, want, job.points)
+        q = job.query
+        want = engine.query(q.points, q.fields, pose=pose, eps=0.002).fields()
+        assert set(answer) == set(q.fields)
+        if q.only_colliding:
+            assert_documented_answer(answer, want, q.points)
         else:
-            for name in job.fields:
+            for name in q.fields:
                 np.testing.assert_array_equal(answer[name], want[name])

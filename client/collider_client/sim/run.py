@@ -10,6 +10,8 @@ from pathlib import Path
 
 import numpy as np
 
+from collider_contract import transform_points
+
 from .cloth import quad_faces
 from .motion import pose_function
 from .output import PC2Frames, PC2Writer, write_obj, write_preview
@@ -150,7 +152,7 @@ def run_scene(scene: Scene, client, out_dir: Path, *, show_progress: bool = True
             if pts is not None:
                 for i in chosen:
                     pose = pose_function(spec)(frames[i][0])
-                    shown[i].append(pts @ pose[:3, :3].T + pose[:3, 3])
+                    shown[i].append(transform_points(pose, pts))
         write_preview(out_dir / f"{stem}.png", {i: frames[i][1] for i in chosen}, c.width,
                       c.height, {i: frames[i][0] for i in chosen}, f"{scene.name}", shown)
     (out_dir / f"{stem}.report.json").write_text(json.dumps(report.to_dict(), indent=2,

@@ -19,11 +19,12 @@ from pathlib import Path
 import numpy as np
 
 from collider_client.sim.cloth import quad_faces
+from collider_contract import transform_points
 from collider_client.sim.motion import pose_function
 from collider_client.sim.scene import Scene
 from collider_server.making.surface import distance_grid, level_surface
 
-from .page import box_edges, look_at_box, start_server, url_of, wait_until_interrupted
+from .page import look_at_box, start_server, url_of, wait_until_interrupted
 
 CLOTH_COLOR = (70, 130, 200)
 COLLIDER_COLOR = (200, 200, 190)
@@ -109,8 +110,7 @@ class ClothView:
         for spec, info in ((s, (infos or {}).get(s.model)) for s in scene.colliders):
             if info is not None:  # frame the colliders too, at their start pose
                 pose = pose_function(spec)(0.0)
-                box = box_edges(np.asarray(info.domain_min), np.asarray(info.domain_max))
-                pts = box.reshape(-1, 3) @ pose[:3, :3].T + pose[:3, 3]
+                pts = transform_points(pose, info.domain_corners())
                 lo, hi = np.minimum(lo, pts.min(axis=0)), np.maximum(hi, pts.max(axis=0))
         look_at_box(server, lo, hi)
 

@@ -8,6 +8,8 @@ import threading
 
 import numpy as np
 
+from collider_contract.pose import box_corners
+
 from ..net import is_loopback
 
 DEFAULT_PORT = 8080
@@ -79,8 +81,7 @@ def look_at_box(server, lo: np.ndarray, hi: np.ndarray, up: str = "+z") -> None:
 
 def box_edges(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     """(12, 2, 3) the edges of the axis-aligned box ``lo``..``hi``."""
-    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1])
-                        for z in (lo[2], hi[2])])
+    corners = box_corners(lo, hi)
     pairs = [(a, b) for a in range(8) for b in range(a + 1, 8)
              if bin(a ^ b).count("1") == 1]  # corners differing in one coordinate
     return np.stack([corners[[a, b]] for a, b in pairs])

@@ -1,23 +1,17 @@
 """The one query interface every collider kind implements.
 
-A collider answers, for world-frame points, the fields a caller names:
-
-- ``distance`` : (n,) float32, world units, signed, negative inside;
-- ``normal``   : (n, 3) float32, unit outward normal (normalised SDF gradient), world frame;
-- ``contact``  : (n, 3), the point moved to the offset surface ``p + (eps - d) * normal``,
-  world frame, in the dtype of the query points (float32 or float64);
-- ``collides`` : (n,) bool, ``d < eps``.
+A collider answers, for world-frame points, the fields a caller names (``distance``, ``normal``,
+``contact``, ``collides``: :mod:`collider_contract.answers` defines them, the eps policy and the
+collide-only mode). :meth:`Collider.query` validates with the contract's :class:`ModelQuery` and
+answers with its :func:`answer_model_query`, the same code the HTTP service and the SDK's embedded
+backend run.
 
 Subclasses only evaluate the SDF (and its gradient when asked) on collider-frame points inside
-their domain; this module does validation, pose handling, chunking, the out-of-domain rule and the
-assembly of the fields. Only the fields asked for are computed: no gradient work is done for
-``distance`` or ``collides`` alone.
-
-Collide-only mode (``only_colliding=True``): ``normal`` and ``contact`` are computed only for the
-points that collide (``distance < eps``); the gradient is evaluated in a second pass over just
-those points, after a distance-only pass over all of them. For the other points ``normal`` is
-``[0, 0, 0]`` and ``contact`` is the point itself; ``collides`` tells the two apart. A cloth
-simulator that only moves colliding points needs nothing more.
+their domain; this module adds chunking (bounded memory), the out-of-domain rule and the normal
+fallback where the gradient vanishes (:meth:`Collider.query_local`, the step a batching server
+coalesces). Only the fields asked for are computed: no gradient work is done for ``distance`` or
+``collides`` alone; in collide-only mode the gradient is evaluated in a second pass over just the
+points that collide, after a distance-only pass over all of them.
 """
 
 from __future__ import annotations
@@ -29,17 +23,7 @@ from typing import ClassVar, Iterable
 
 import numpy as np
 
-from collider_contract import (
-    GRADIENT_FIELDS,
-    MAX_COORDINATE_M,
-    Pose,
-    QueryResult,
-    as_pose,
-    check_fields,
-)
-
-DEFAULT_EPS_METERS = 1e-3
-MAX_POINTS_PER_CALL = 200_000_000
+from collider_contract import DEFAULT_EPS_METERS, ModelQuery, Pose, QueryResult, answer_model_query
 
 
 @dataclass
@@ -81,56 +65,9 @@ class ColliderInfo:
 
     @property
     def default_eps(self) -> float:
-        """1 mm expressed in the collider's units."""
+        """1 mm expressed in the collider's units (the contract's default eps under an
+        unscaled pose)."""
         return DEFAULT_EPS_METERS / self.meters_per_unit
-
-    def default_world_eps(self, pose: Pose) -> float:
-        """The eps of a query that gives none: :attr:`default_eps` in world units under
-        ``pose`` (collider units times the pose's scale)."""
-        return self.default_eps * pose.scale
-
-
-def check_points(points) -> np.ndarray:
-    """Validate query points: an (n, 3) array of finite float32/float64 numbers."""
-    try:
-        array = np.asarray(points)
-    except (TypeError, ValueError) as exc:  # ragged nested lists, objects numpy cannot convert
-        raise ValueError(f"points must be an (n, 3) array of numbers: {exc}") from None
-    if array.dtype.kind not in "fiu":
-        raise ValueError(f"points must be numbers, got dtype {array.dtype}")
-    if array.ndim == 1 and array.size == 0:
-        array = array.reshape(0, 3)
-    if array.ndim != 2 or array.shape[1] != 3:
-        raise ValueError(f"points must have shape (n, 3), got {array.shape}")
-    if len(array) > MAX_POINTS_PER_CALL:
-        raise ValueError(f"too many points in one call: {len(array)} > {MAX_POINTS_PER_CALL}")
-    if array.dtype not in (np.float32, np.float64):
-        array = array.astype(np.float64)
-    finite = np.isfinite(array).all(axis=1)
-    if not finite.all():
-        bad = int(np.flatnonzero(~finite)[0])
-        raise ValueError(f"points contain NaN or Inf (first at row {bad}: {array[bad].tolist()})")
-    inside = (np.abs(array) <= MAX_COORDINATE_M).all(axis=1)
-    if not inside.all():
-        bad = int(np.flatnonzero(~inside)[0])
-        raise ValueError(f"points outside the coordinate range +-{MAX_COORDINATE_M:g} (world units; "
-                         f"first at row {bad}: {array[bad].tolist()})")
-    return array
-
-
-def check_eps(eps: float) -> float:
-    """Validate a collision offset: a finite number, world units (any sign: a negative eps asks
-    for contact inside the surface; the HTTP service narrows it to ``[0, domain diagonal]``)."""
-    try:
-        value = float(eps)
-    except (TypeError, ValueError):
-        raise ValueError(f"eps must be a number, got {eps!r}") from None
-    if not np.isfinite(value):
-        raise ValueError(f"eps must be finite, got {value}")
-    if abs(value) > MAX_COORDINATE_M:
-        raise ValueError(f"eps={value:g} is outside the coordinate range +-{MAX_COORDINATE_M:g} "
-                         "(world units)")
-    return value
 
 
 def unit_vectors(vectors: np.ndarray, fallback: np.ndarray) -> np.ndarray:
@@ -199,34 +136,25 @@ class Collider(abc.ABC):
 
     # -- the query ----------------------------------------------------------------------------
 
-    def query(
-        self,
-        points,
-        fields: Iterable[str] | str = ("distance",),
-        pose: "Pose | np.ndarray | None" = None,
-        eps: float | None = None,
-        only_colliding: bool = False,
-    ) -> QueryResult:
+    def query(self, points, fields: Iterable[str] | str = ("distance",),
+              pose: "Pose | np.ndarray | None" = None, eps: float | None = None,
+              only_colliding: bool = False) -> QueryResult:
         """Answer ``fields`` for world-frame ``points``.
 
         points : (n, 3) float32 or float64, world units and frame (n may be 0)
         fields : any of ``distance``, ``normal``, ``contact``, ``collides``
         pose : (4, 4) collider frame -> world frame (rigid, optionally uniform scale);
             ``None`` is the identity
-        eps : collision offset, world units; ``None``: 1 mm in the collider's units times the
-            pose's scale (:meth:`ColliderInfo.default_world_eps`)
+        eps : collision offset, world units, in [0, 1e6]; ``None``: 1 mm in the collider's units
+            times the pose's scale (:func:`collider_contract.default_eps`)
         only_colliding : compute ``normal`` and ``contact`` only where ``distance < eps``; the
             other points get ``normal`` [0, 0, 0] and ``contact`` equal to the point
         Returns a :class:`QueryResult` holding exactly the fields asked for, world frame.
+        Raises :class:`collider_contract.QueryError` (a ValueError) naming what is wrong.
         """
-        fields = check_fields(fields)
-        points = check_points(points)
-        pose = as_pose(pose)
-        eps = self.info.default_world_eps(pose) if eps is None else check_eps(eps)
-        want_gradient = not GRADIENT_FIELDS.isdisjoint(fields)
-        below = gradient_threshold(eps, pose) if only_colliding and want_gradient else None
-        distance, normal = self.query_local(pose.to_local(points), want_gradient, below)
-        return assemble_result(points, pose, eps, fields, distance, normal, only_colliding)
+        query = ModelQuery.build(points, fields, pose, eps, only_colliding)
+        return answer_model_query(query, self.info.meters_per_unit, self.query_local,
+                                  f"collider {self.info.name!r}")
 
     def query_local(self, local: np.ndarray, want_gradient: bool, gradient_below=None):
         """Distance and unit normal at collider-frame points, in chunks (bounded memory).
@@ -234,11 +162,13 @@ class Collider(abc.ABC):
         local : (n, 3) float64, collider frame and units
         gradient_below : None (a normal for every point when ``want_gradient``), or a number or
             an (n,) float64 array, collider units: a normal only where ``distance`` is below it
-            (:func:`gradient_threshold`); the other rows of ``normal`` are zero. An array lets a
-            batch join requests with different eps and poses (+inf: every point; -inf: none).
+            (the contract's ``gradient_threshold``); the other rows of ``normal`` are zero. An
+            array lets a batch join requests with different eps and poses (+inf: every point;
+            -inf: none).
         Returns ``(distance (n,) float64, normal (n, 3) float64 unit or None)``, collider frame.
-        This is the step a batching server coalesces across requests; :func:`assemble_result`
-        then turns it into one request's fields.
+        This is the contract's :data:`~collider_contract.Evaluate`, the step a batching server
+        coalesces across requests; :func:`collider_contract.finish` then turns it into one
+        request's fields.
         """
         n = len(local)
         distance = np.empty(n)  # float64, as is normal
@@ -299,85 +229,3 @@ class Collider(abc.ABC):
 
     def __repr__(self) -> str:
         return f"<{type(self).__name__} {self.info.name!r} on {self.device}>"
-
-
-def gradient_threshold(eps: float, pose: Pose) -> float:
-    """The collider-unit distance below which a collide-only query needs the gradient: ``eps``
-    (world units) over the pose's scale, raised by a relative 1e-9 so that no point with
-    ``distance * scale < eps`` is missed by rounding (one a hair above gets a normal it does not
-    use; :func:`assemble_result` zeroes it)."""
-    local = eps / pose.scale
-    return local + 1e-9 * max(abs(local), 1e-30)
-
-
-def assemble_result(points: np.ndarray, pose: Pose, eps: float, fields: tuple[str, ...],
-                    distance: np.ndarray, normal: np.ndarray | None,
-                    only_colliding: bool) -> QueryResult:
-    """One request's fields from collider-frame ``distance`` and ``normal`` (see
-    :meth:`Collider.query_local`): distances scaled to world units, normals rotated into the
-    world frame, contacts ``p + (eps - d) * n`` computed in float64 in the world frame.
-    With ``only_colliding``, points with ``distance >= eps`` get ``normal`` [0, 0, 0] and
-    ``contact`` equal to the point (whatever ``normal`` holds for them)."""
-    distance = distance * pose.scale
-    collides = distance < eps
-    result = QueryResult()
-    if "distance" in fields:
-        result.distance = distance.astype(np.float32)
-    if normal is not None:
-        normal = pose.to_world_directions(normal)
-        if only_colliding:
-            normal = np.where(collides[:, None], normal, 0.0)
-    if "normal" in fields:
-        result.normal = normal.astype(np.float32)
-    if "contact" in fields:
-        # In float64 (normal is); a zero normal leaves the point where it is, the documented
-        # contact of a free point.
-        contact = points + (eps - distance)[:, None] * normal
-        result.contact = contact.astype(points.dtype)
-    if "collides" in fields:
-        result.collides = collides
-    return result
-
-
-def nearest_collider(world_distance: np.ndarray) -> np.ndarray:
-    """The scene rule, the one both backends use: per point, the index of the collider with the
-    smallest world-frame signed distance, compared in float64; a tie goes to the first collider
-    in the list (the lowest index).
-
-    world_distance : (k, n) float64, world units, one row per collider of the scene
-    Returns (n,) int32 indices into the scene's colliders.
-    """
-    world_distance = np.asarray(world_distance)  # (float64 or not: the same order)
-    if world_distance.ndim != 2 or len(world_distance) == 0:
-        raise ValueError(f"world_distance must be (k, n) with k >= 1, got {world_distance.shape}")
-    return np.argmin(world_distance, axis=0).astype(np.int32)
-
-
-def assemble_scene_result(points: np.ndarray, poses: list[Pose], eps: list[float],
-                          fields: tuple[str, ...], answers: list,
-                          only_colliding: bool) -> tuple[QueryResult, np.ndarray]:
-    """A scene query's fields: per point, those of the nearest collider (:func:`nearest_collider`).
-
-    points : (n, 3) world frame; poses, eps : per collider (eps in world units)
-    answers : per collider, ``(distance, normal or None)`` in its frame from
-        :meth:`Collider.query_local`
-    Returns ``(result, nearest)``: world-frame fields (as :func:`assemble_result` gives for one
-    collider) and the (n,) int32 index of the collider each point's fields come from.
-    only_colliding : as in :func:`assemble_result` (a point collides when it does with its
-        nearest collider, whose answer then holds its normal)
-    """
-    n = len(points)
-    # (Both backends refuse an empty scene before this; np.stack would too.)
-    nearest = nearest_collider(np.stack([d * pose.scale for (d, _), pose in zip(answers, poses)]))
-    dtypes = {"distance": np.float32, "normal": np.float32, "contact": points.dtype,
-              "collides": np.bool_}
-    out = {f: np.empty((n, 3) if f in ("normal", "contact") else n, dtypes[f]) for f in fields}
-    for i, ((distance, normal), pose) in enumerate(zip(answers, poses)):
-        rows = np.flatnonzero(nearest == i)
-        if not len(rows):
-            continue
-        part = assemble_result(points[rows], pose, eps[i], fields, distance[rows],
-                               None if normal is None else normal[rows], only_colliding)
-        for name, values in part.fields().items():
-            out[name][rows] = values
-    return QueryResult(**out), nearest

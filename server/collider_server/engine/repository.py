@@ -6,6 +6,9 @@ import os
 import re
 from pathlib import Path
 
+import numpy as np
+from collider_contract import ModelInfo
+
 from .collider import Collider, ColliderInfo
 from .modelfile import SUFFIX, load_collider, read_info
 
@@ -76,6 +79,17 @@ def check_writable_folder(folder: Path, what: str) -> Path:
     except OSError as exc:
         raise PermissionError(f"{what} {folder} is not writable ({exc.strerror or exc})") from None
     return folder
+
+
+def model_info(name: str, info: ColliderInfo, size_bytes: int, device: str) -> ModelInfo:
+    """What the service's ``GET /v1/models`` and the SDK's ``list_models`` say of a model:
+    ``name`` (the file's, whatever name it was made under), its collider info, the file's size
+    in bytes and the device it runs on."""
+    return ModelInfo(name=name, kind=info.kind, units=info.units, meters_per_unit=info.meters_per_unit,
+                     domain_min=np.asarray(info.domain_min, dtype=np.float64),
+                     domain_max=np.asarray(info.domain_max, dtype=np.float64), bytes=size_bytes,
+                     approximate=info.approximate, accuracy=info.accuracy, source=info.source,
+                     settings=info.settings, device=device)
 
 
 class ModelRepository:

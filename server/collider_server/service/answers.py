@@ -1,85 +1,58 @@
-"""From validated queries to fields: each request becomes a :class:`QueryJob` on its model's
-batcher, and :func:`answer_batch` answers a whole batch of jobs in the compute thread (points
-moved to the collider frame, one compute call, answers assembled in the world frame, vectorised
-across the requests that share a pose, eps and fields). The event loop only validates, queues and
-encodes; the routers only translate HTTP.
+"""From validated queries to answers, with the contract's steps (:mod:`collider_contract.answers`).
+
+Each request becomes a :class:`QueryJob` on its model's batcher. :func:`answer_batch` answers a
+whole batch of jobs in the compute thread: ``prepare`` (points to the collider frame, the eps and
+gradient needs), one evaluation of the collider for the whole batch, ``finish`` (the fields in
+the world frame), vectorised across the requests that share a pose, eps, fields and mode. A scene
+query's colliders are jobs on their own models' batchers; the nearest collider's fields are kept
+per point (``finish_scene``) on the event loop, which otherwise only reads, validates, queues and
+encodes. The routers only translate HTTP.
 """
 
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import time
 from dataclasses import dataclass
 from typing import Sequence
 
 import numpy as np
+from collider_contract import (ModelQuery, QueryError, QueryResult, SceneQuery, check_finite, finish,
+                               finish_scene, prepare, resolve_eps)
 
-from collider_contract import MAX_COORDINATE_M, Pose
-
-from ..engine.collider import (
-    GRADIENT_FIELDS,
-    Collider,
-    QueryResult,
-    assemble_result,
-    assemble_scene_result,
-    gradient_threshold,
-)
+from ..engine.collider import Collider
 from .batching import BatcherClosed, BatchPart, DeadlineExceeded, QueueFull
-from .bodies import QuerySpec, SceneSpec
 from .problems import Problem
 from .registry import LoadedModel
-
-#: Largest float32 magnitude: answers beyond it would be sent as Infinity.
-FLOAT32_MAX = float(np.finfo(np.float32).max)
 
 
 @dataclass(eq=False)
 class QueryJob:
     """One request's work for a model's batcher.
 
-    points : (n, 3) float32/float64, world frame, validated (finite)
-    pose : collider frame -> world frame
-    eps : collision offset, world units (already resolved)
-    fields : the fields to answer, canonical order
-    local_only : answer ``distance`` and ``normal`` in the collider frame, float64, unassembled
-        (the scene query picks the nearest collider per point before assembling)
-    only_colliding : ``normal`` and ``contact`` only where ``distance < eps`` (collide-only)
+    query : the validated query (points world frame, pose, eps, fields, mode)
+    local_only : answer ``(distance, normal)`` in the collider frame, float64, unassembled (a
+        scene query picks the nearest collider per point before assembling)
     """
 
-    points: np.ndarray
-    pose: Pose
-    eps: float
-    fields: tuple[str, ...]
+    query: ModelQuery
     local_only: bool = False
-    only_colliding: bool = False
-
-    @property
-    def want_gradient(self) -> bool:
-        return not GRADIENT_FIELDS.isdisjoint(self.fields)
-
-    def gradient_below(self) -> float:
-        """Collider-unit distance below which this job's points need a normal (+inf: all)."""
-        if not self.want_gradient:
-            return -np.inf
-        return gradient_threshold(self.eps, self.pose) if self.only_colliding else np.inf
 
     def group_key(self) -> tuple:
-        """Jobs with equal keys are assembled together in one vectorised step."""
-        pose = self.pose
-        return (pose.rotation.tobytes(), pose.translation.tobytes(), pose.scale, self.eps,
-                self.fields, self.points.dtype.str, self.local_only, self.only_colliding)
+        """Jobs with equal keys are answered together as one query over their joined points."""
+        q = self.query
+        return (q.pose.rotation.tobytes(), q.pose.translation.tobytes(), q.pose.scale, q.eps,
+                q.fields, q.points.dtype.str, q.only_colliding, self.local_only)
 
 
 def answer_batch(collider: Collider, name: str,
                  parts: Sequence[BatchPart]) -> list[dict[str, np.ndarray] | Exception]:
-    """The answers of a batch of :class:`QueryJob` parts (runs in the compute thread).
-
-    Parts are grouped by :meth:`QueryJob.group_key`; each group's points are moved to the
-    collider frame in one step, the whole batch is computed in one ``query_local`` call, and each
-    group is assembled in one step (:func:`assemble_result`), then cut into the parts' rows.
-    A part whose answer is not finite (points astronomically far from the collider) gets a 422
-    problem; the others are answered."""
-    # Points astronomically far away overflow on the way (checked below): no warnings for that.
+    """The answers of a batch of :class:`QueryJob` parts (runs in the compute thread): per part
+    its fields by name (or ``distance``/``normal`` for a local-only job), or the
+    :class:`~collider_contract.QueryError` of a part whose answer is not finite (the others are
+    answered)."""
+    # Points astronomically far away overflow on the way (checked by check_finite): no warnings.
     with np.errstate(over="ignore", invalid="ignore"):
         return _answer_batch(collider, name, parts)
 
@@ -88,75 +61,60 @@ def _answer_batch(collider: Collider, name: str, parts: Sequence[BatchPart]) -> 
     groups: dict[tuple, list[int]] = {}
     for i, part in enumerate(parts):
         groups.setdefault(part.payload.group_key(), []).append(i)
-    # Each group's world points, contiguous; the batch's collider-frame points in group order.
-    world, locals_ = [], []
+    # Each group as one query over its members' rows; one evaluation for the whole batch.
+    queries, evaluations = [], []
     for members in groups.values():
         job = parts[members[0]].payload
-        points = _rows(parts, members, lambda p: p.payload.points)
-        world.append(points)
-        locals_.append(job.pose.to_local(points))
-    local = locals_[0] if len(locals_) == 1 else np.concatenate(locals_)
-    want_gradient = any(p.payload.want_gradient for p in parts)
+        query = dataclasses.replace(job.query, points=_rows(parts, members))
+        queries.append(query)
+        evaluations.append(prepare(query, collider.info.meters_per_unit))
+    local = np.concatenate([e.local for e in evaluations]) if len(evaluations) > 1 else evaluations[0].local
+    want_gradient = any(e.want_gradient for e in evaluations)
     below = None
-    if want_gradient and any(p.payload.only_colliding for p in parts):
+    if want_gradient and any(e.gradient_below is not None for e in evaluations):
         # Collide-only jobs: a normal only for their colliding points; the batch's other jobs
         # keep theirs (+inf: every point, -inf: none), one threshold per point in group order.
-        below = np.concatenate([np.full(len(points), parts[members[0]].payload.gradient_below())
-                                for members, points in zip(groups.values(), world)])
+        below = np.concatenate([np.full(len(e.local), _threshold(e)) for e in evaluations])
     distance, normal = collider.query_local(local, want_gradient, below)
     answers: list = [None] * len(parts)
     offset = 0
-    for members, points in zip(groups.values(), world):
-        job = parts[members[0]].payload
-        rows = slice(offset, offset + len(points))
-        offset += len(points)
+    for members, query, evaluation in zip(groups.values(), queries, evaluations):
+        rows = slice(offset, offset + len(query.points))
+        offset += len(query.points)
         d, n = distance[rows], (None if normal is None else normal[rows])
-        if job.local_only:
+        if parts[members[0]].payload.local_only:
             group = {"distance": d, **({} if n is None else {"normal": n})}
-            bad = None
         else:
-            result = assemble_result(points, job.pose, job.eps, job.fields, d, n, job.only_colliding)
-            group = result.fields()
-            bad = _not_finite(group)
+            group = finish(query, evaluation.eps, d, n).fields()
         start = 0
         for i in members:
             part = parts[i]
             cut = slice(start, start + part.rows)
             start += part.rows
-            if bad is not None and bad[cut].any():
-                answers[i] = _out_of_range(name, part, int(np.flatnonzero(bad[cut])[0]))
-            else:
-                answers[i] = {k: v[cut] for k, v in group.items()}
+            answers[i] = {k: v[cut] for k, v in group.items()}
+            if not part.payload.local_only:
+                try:
+                    check_finite(QueryResult(**answers[i]), part.payload.query.points[part.start:part.stop],
+                                 f"model {name!r}", first_row=part.start)
+                except QueryError as exc:
+                    answers[i] = exc
     return answers
 
 
-def _rows(parts: Sequence[BatchPart], members: list[int], array) -> np.ndarray:
-    """The members' rows of ``array(part)`` stacked (a view when there is one member)."""
+def _threshold(evaluation) -> float:
+    """An evaluation's gradient threshold as a number: +inf (a normal everywhere) or -inf (none)
+    when it has no collide-only threshold."""
+    if evaluation.gradient_below is not None:
+        return evaluation.gradient_below
+    return np.inf if evaluation.want_gradient else -np.inf
+
+
+def _rows(parts: Sequence[BatchPart], members: list[int]) -> np.ndarray:
+    """The members' query points, their parts' rows stacked (a view when there is one member)."""
     if len(members) == 1:
         part = parts[members[0]]
-        return array(part)[part.start:part.stop]
-    return np.concatenate([array(parts[i])[parts[i].start:parts[i].stop] for i in members])
-
-
-def _not_finite(fields: dict[str, np.ndarray]) -> np.ndarray | None:
-    """Rows with an answer that is not a finite number, or None when all are finite. A float32
-    field overflows beyond ~3.4e38; the service never sends NaN or Infinity. (Within the
-    engine's coordinate range nothing overflows: one cheap check per field, rows only if not.)"""
-    floats = [v for v in fields.values() if v.dtype.kind == "f"]
-    if all(np.isfinite(v).all() for v in floats):
-        return None
-    bad = np.zeros(len(floats[0]), dtype=bool)
-    for values in floats:
-        bad |= ~(np.isfinite(values) if values.ndim == 1 else np.isfinite(values).all(axis=1))
-    return bad
-
-
-def _out_of_range(name: str, part: BatchPart, row: int) -> Problem:
-    job: QueryJob = part.payload
-    index = part.start + row
-    return Problem(422, "out-of-range",
-                   f"points row {index} ({job.points[index].tolist()}) has no finite answer: it "
-                   f"lies too far from model {name!r} (world frame, with the pose given)")
+        return part.payload.query.points[part.start:part.stop]
+    return np.concatenate([parts[i].payload.query.points[parts[i].start:parts[i].stop] for i in members])
 
 
 def absolute_deadline(deadline_ms: float | None, default_ms: float | None) -> float | None:
@@ -165,23 +123,11 @@ def absolute_deadline(deadline_ms: float | None, default_ms: float | None) -> fl
     return None if ms is None else time.monotonic() + ms / 1000.0
 
 
-def resolve_eps(model: LoadedModel, pose: Pose, eps: float | None) -> float:
-    """The request's eps in world units: its own, in ``[0, MAX_COORDINATE_M]``, or 1 mm (the
-    collider's default, scaled by the pose). (The bound is the engine's coordinate range, not
-    the model's size: a schema can state it, and a large eps is odd but well defined.)"""
-    if eps is None:
-        return model.collider.info.default_world_eps(pose)
-    if not 0 <= eps <= MAX_COORDINATE_M:
-        raise Problem(422, "eps-out-of-range",
-                      f"eps={eps} is outside [0, {MAX_COORDINATE_M:g}] (world units)")
-    return eps
-
-
 async def submit(model: LoadedModel, job: QueryJob, deadline: float | None) -> dict:
     """``job``'s answer through the model's batcher, with the batcher's errors as problems
     (429, 503, 504)."""
     try:
-        return await model.batcher.submit_rows(job, len(job.points), deadline)
+        return await model.batcher.submit_rows(job, len(job.query.points), deadline)
     except QueueFull as exc:
         raise Problem(429, "queue-full", f"model {model.name!r}: {exc}",
                       {"Retry-After": str(exc.retry_after_s)}) from None
@@ -192,37 +138,24 @@ async def submit(model: LoadedModel, job: QueryJob, deadline: float | None) -> d
                       {"Retry-After": "1"}) from None
 
 
-async def answer_query(model: LoadedModel, spec: QuerySpec,
+async def answer_query(model: LoadedModel, query: ModelQuery,
                        deadline: float | None) -> dict[str, np.ndarray]:
     """The fields of one model query by name (world frame, see :class:`QueryResult`);
     ``deadline`` is a ``time.monotonic`` time or None."""
-    eps = resolve_eps(model, spec.pose, spec.eps)
-    job = QueryJob(spec.points, spec.pose, eps, spec.fields, only_colliding=spec.only_colliding)
-    return await submit(model, job, deadline)
+    return await submit(model, QueryJob(query), deadline)
 
 
-async def answer_scene(models: list[LoadedModel], spec: SceneSpec,
-                       deadline: float | None) -> tuple[QueryResult, np.ndarray]:
-    """Per point, the fields of the collider with the smallest world-frame signed distance, and
-    that collider's index ``(n,) int32`` into ``spec.colliders`` (the engine's scene rule,
-    :func:`~collider_server.engine.collider.nearest_collider`, shared with the embedded backend)."""
-    poses = [pose for _, pose in spec.colliders]
-    eps = [resolve_eps(m, pose, spec.eps) for m, pose in zip(models, poses)]
+async def answer_scene(models: list[LoadedModel], query: SceneQuery,
+                       deadline: float | None) -> QueryResult:
+    """Per point, the fields of the collider with the smallest world-frame signed distance and
+    ``collider``, its index into ``query.colliders`` (the contract's scene rule)."""
     answers = await asyncio.gather(*(
-        submit(m, QueryJob(spec.points, pose, e, spec.fields, local_only=True,
-                           only_colliding=spec.only_colliding), deadline)
-        for m, pose, e in zip(models, poses, eps)))
+        submit(model, QueryJob(query.of_collider(i), local_only=True), deadline)
+        for i, model in enumerate(models)))
+    eps = [resolve_eps(query.eps, model.collider.info.meters_per_unit, pose)
+           for model, (_, pose) in zip(models, query.colliders)]
     with np.errstate(over="ignore", invalid="ignore"):
-        result, nearest = assemble_scene_result(
-            spec.points, poses, eps, spec.fields,
-            [(a["distance"], a.get("normal")) for a in answers], spec.only_colliding)
-    bad = _not_finite(result.fields())
-    if bad is not None:
-        row = int(np.flatnonzero(bad)[0])
-        raise Problem(422, "out-of-range",
-                      f"points row {row} ({spec.points[row].tolist()}) has no finite answer: it "
-                      "lies too far from the colliders (world frame, with the poses given)")
-    return result, nearest
+        return finish_scene(query, eps, [(a["distance"], a.get("normal")) for a in answers])
 
 
 async def _cancel_on_disconnect(receive, task: asyncio.Task, gone: list) -> None:

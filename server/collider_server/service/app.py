@@ -13,6 +13,7 @@ from fastapi.openapi.utils import get_openapi
 from ..engine.devices import resolve_device
 from ..engine.repository import ModelRepository
 from .batching import DeviceWorkers
+from .answers import answer_batch
 from .fastpath import QueryFastPath, check_equivalent
 from .metrics import RequestObserver, ServiceMetrics
 from .openapi import add_security, query_body, scene_body
@@ -66,7 +67,8 @@ def create_app(settings: ServiceSettings | None = None) -> FastAPI:
         # Set from the compute thread itself: with OpenMP the count can be a per-thread setting.
         workers = DeviceWorkers(functools.partial(set_compute_threads, threads))
         registry = ModelRegistry(ModelRepository(settings.models), resolve_device(settings.device),
-                                 settings.batch_settings(), workers, metrics, settings.warmup)
+                                 settings.batch_settings(), workers, metrics, answer_batch,
+                                 settings.warmup)
         state = ServiceState(settings, metrics, workers, registry)
         app.state.collider = state
         loading = asyncio.create_task(registry.load_all())

@@ -46,9 +46,6 @@ import numpy as np
 #: (distance (n,) float64 collider units, normal (n, 3) float64 unit collider frame or None)``
 ComputeFn = Callable[[np.ndarray, bool], "tuple[np.ndarray, np.ndarray | None]"]
 
-#: One request's answer: named arrays whose first dimension is the request's row count.
-Answer = "dict[str, np.ndarray]"
-
 
 class BatchPart(NamedTuple):
     """Rows ``[start, stop)`` of one request (its ``payload``, as submitted) in a batch. (A named

@@ -17,6 +17,7 @@ from __future__ import annotations
 import re
 from types import SimpleNamespace
 
+from collider_contract import QueryError
 from starlette.requests import Request
 
 from .auth import require_token
@@ -60,4 +61,6 @@ class QueryFastPath:
             response = await models.query(match.group(1), request)
         except Problem as exc:
             response = exc.response()
+        except QueryError as exc:
+            response = Problem.of(exc).response()
         await response(scope, receive, send)

@@ -10,16 +10,15 @@ and a msgpack array map's ``data`` must hold exactly ``prod(shape) * itemsize`` 
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 from fastapi import APIRouter, Depends, Request
 from starlette.responses import FileResponse, HTMLResponse, JSONResponse
 
-from collider_contract import MAX_COORDINATE_M
+from collider_contract import MAX_COORDINATE_M, TITLES
 
 from .auth import require_token
-from .problems import PROBLEM_JSON, TITLES
+from .problems import PROBLEM_JSON
 
 MSGPACK_AND_JSON = ("application/msgpack", "application/json")
 
@@ -214,8 +213,3 @@ async def docs_asset(name: str):
     if name not in _ASSETS:
         raise Problem(404, "not-found", f"no docs asset {name!r}")
     return FileResponse(_assets_dir() / name)
-
-
-def schema_json(app) -> str:
-    """The app's OpenAPI document as text (for tools)."""
-    return json.dumps(app.openapi(), indent=2)

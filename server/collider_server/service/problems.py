@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import logging
 
+from collider_contract import TITLES, QueryError
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from starlette.exceptions import HTTPException as StarletteHTTPException
@@ -13,25 +14,6 @@ from starlette.responses import Response
 
 PROBLEM_JSON = "application/problem+json"
 log = logging.getLogger("collider_server.service")
-
-TITLES = {
-    400: "Malformed request body",
-    401: "Unauthorized",
-    403: "Forbidden",
-    404: "Not found",
-    405: "Method not allowed",
-    408: "Request timeout",
-    409: "Conflict",
-    413: "Request too large",
-    415: "Unsupported media type",
-    422: "Invalid request",
-    429: "Too many requests",
-    499: "Client closed request",
-    500: "Internal server error",
-    503: "Service unavailable",
-    504: "Deadline exceeded",
-}
-
 
 class Problem(Exception):
     """An error answer: ``status`` code, ``type`` short code (e.g. ``"bad-points"``), ``detail``
@@ -43,6 +25,11 @@ class Problem(Exception):
         self.type = type
         self.detail = detail
         self.headers = headers or {}
+
+    @classmethod
+    def of(cls, error: QueryError) -> "Problem":
+        """The problem document of a query the contract refused (same status, code, detail)."""
+        return cls(error.status, error.code, error.detail)
 
     def response(self) -> Response:
         body = {"type": self.type, "title": TITLES.get(self.status, "Error"),
@@ -68,6 +55,10 @@ def install_handlers(app: FastAPI) -> None:
     @app.exception_handler(Problem)
     async def _problem(request: Request, exc: Problem):
         return exc.response()
+
+    @app.exception_handler(QueryError)
+    async def _refused(request: Request, exc: QueryError):
+        return Problem.of(exc).response()
 
     @app.exception_handler(StarletteHTTPException)
     async def _http(request: Request, exc: StarletteHTTPException):

@@ -6,12 +6,14 @@ import asyncio
 import functools
 import logging
 from dataclasses import dataclass
+from typing import Callable, Sequence
 
 import numpy as np
+from collider_contract import ModelInfo
 
 from ..engine.collider import Collider
-from ..engine.repository import ModelRepository, check_name
-from .batching import BatchSettings, DeviceWorkers, RowBatcher
+from ..engine.repository import ModelRepository, check_name, model_info
+from .batching import BatchPart, BatchSettings, DeviceWorkers, RowBatcher
 from .metrics import ServiceMetrics
 
 log = logging.getLogger("collider_server.service")
@@ -25,23 +27,12 @@ class LoadedModel:
     name: str
     collider: Collider
     batcher: RowBatcher
-    info: dict
-
-    @property
-    def domain_diagonal(self) -> float:
-        """Length of the domain box diagonal, collider units."""
-        return float(np.linalg.norm(self.collider.domain_max - self.collider.domain_min))
+    info: ModelInfo
 
 
-def public_info(name: str, collider: Collider, size_bytes: int) -> dict:
-    info = collider.info
-    return {
-        "name": name, "kind": info.kind, "units": info.units,
-        "meters_per_unit": info.meters_per_unit,
-        "domain_min": list(info.domain_min), "domain_max": list(info.domain_max),
-        "bytes": size_bytes, "approximate": info.approximate, "accuracy": info.accuracy,
-        "source": info.source, "settings": info.settings, "device": collider.device,
-    }
+#: ``answer_batch(collider, name, parts) -> answers``: what a model's batcher runs per batch
+#: (the service's :func:`~.answers.answer_batch`, given to the registry by the app).
+AnswerBatch = Callable[[Collider, str, Sequence[BatchPart]], list]
 
 
 def warm_up(collider: Collider) -> None:
@@ -55,8 +46,10 @@ class ModelRegistry:
     are plain dict reads on the event loop."""
 
     def __init__(self, repository: ModelRepository, device: str, batch: BatchSettings,
-                 workers: DeviceWorkers, metrics: ServiceMetrics, warmup: bool = True):
+                 workers: DeviceWorkers, metrics: ServiceMetrics, answer_batch: AnswerBatch,
+                 warmup: bool = True):
         self.repository = repository
+        self.answer_batch = answer_batch
         self.device = device
         self.batch = batch
         self.workers = workers
@@ -92,13 +85,12 @@ class ModelRegistry:
         collider, size_bytes = await asyncio.to_thread(self._load_and_warm, path)
         # Nothing may fail between creating the batcher (its loop task starts at once) and
         # registering it, or the task would be left running with no one to close it.
-        from .answers import answer_batch  # (answers imports this module)
-
-        batcher = RowBatcher(functools.partial(answer_batch, collider, name), self.batch,
+        info = model_info(name, collider.info, size_bytes, collider.device)
+        batcher = RowBatcher(functools.partial(self.answer_batch, collider, name), self.batch,
                              self.workers.executor(collider.device),
                              on_batch=self.metrics.batch_observer(name))
         self.metrics.watch_queue(name, batcher)
-        model = LoadedModel(name, collider, batcher, public_info(name, collider, size_bytes))
+        model = LoadedModel(name, collider, batcher, info)
         old = self.models.get(name)
         self.models[name] = model
         self.errors.pop(name, None)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from collider_contract import unknown_model
 from fastapi import Request
 
 from .batching import DeviceWorkers
@@ -39,5 +40,4 @@ def serving_model(state: ServiceState, name: str) -> LoadedModel:
     if not state.registry.ready:
         raise Problem(503, "not-ready", "models are still loading; retry shortly",
                       {"Retry-After": "1"})
-    known = ", ".join(sorted(state.registry.models)) or "none"
-    raise Problem(404, "unknown-model", f"no model named {name!r} is loaded (models: {known})")
+    raise unknown_model(name, state.registry.models)

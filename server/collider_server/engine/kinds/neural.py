@@ -1,5 +1,9 @@
-"""The paper's collider: an MLP with a trainable Fourier-feature layer that maps a point to its
-signed distance; the normal is the exact autograd gradient of the network.
+"""The ``neural`` kind: a network that maps a point to its signed distance, and its normal, the
+exact gradient of the network: by autograd for the paper's network (this module), analytic for
+the default multiresolution grid network (:mod:`.neural_grid`, fused on a CPU by
+:mod:`.grid_kernels`).
+
+The paper's network, an MLP with a trainable Fourier-feature layer:
 
 Network: ``u = (x - centre) / radius`` (collider frame to normalised coordinates), features
 ``[cos(u B), sin(u B)]`` with ``B`` a trainable 3 x K matrix, then L ReLU layers of width H and a
@@ -48,8 +52,9 @@ class Architecture:
         return 3 * self.fourier_features + (k2 * h + h) + (self.hidden_layers - 1) * (h * h + h) + h + 1
 
 
-#: Every preset ``collider train --preset`` offers. The paper's architectures (NOTES.md: bunny
-#: 3 hidden x 256, dragon 8 hidden x 256, K = 128) stay unchanged for reproduction; the grid
+#: Every preset ``collider train --preset`` offers. The paper's architectures (its experiments: a
+#: Fourier-feature layer, then fully connected layers of 256 units, 4 for the bunny, 8 for the
+#: dragon; here 3 and 8 hidden, K = 128 features) stay unchanged for reproduction; the grid
 #: presets (:mod:`.neural_grid`) are ours, chosen by measurement (docs/neural.md).
 PRESETS: dict[str, Architecture | GridArchitecture] = {
     "paper-bunny": Architecture(128, 3, 256, 3.0),

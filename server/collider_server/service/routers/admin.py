@@ -25,7 +25,7 @@ async def load_model(name: str, request: Request):
         raise Problem(422, "bad-model-file", str(exc)) from None
     except ValueError as exc:
         raise Problem(422, "bad-model-name", str(exc)) from None
-    return {"loaded": name, "info": model.info}
+    return {"loaded": name, "info": model.info.to_dict()}
 
 
 @router.delete("/models/{name}", summary="unload a model (queued requests are still answered)",

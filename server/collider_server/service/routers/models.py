@@ -23,13 +23,13 @@ router = APIRouter(prefix="/v1/models", tags=["models"], dependencies=[Depends(r
 @router.get("", summary="the models being served", responses=problems(401))
 async def list_models(request: Request):
     registry = get_state(request).registry
-    return {"models": [registry.models[name].info for name in sorted(registry.models)]}
+    return {"models": [registry.models[name].info.to_dict() for name in sorted(registry.models)]}
 
 
 @router.get("/{name}", summary="one model: kind, units, domain box, size, recorded accuracy",
             responses=problems(401, 404, 503))
 async def model_info(name: str, request: Request):
-    return serving_model(get_state(request), name).info
+    return serving_model(get_state(request), name).info.to_dict()
 
 
 @router.post("/{name}/query", summary="distance / normal / contact / collides of points",
@@ -42,10 +42,10 @@ async def query(name: str, request: Request):
     media = request_media_type(request)
     serving_model(state, name)  # 404 / 503 before reading what may be a large body
     body = parse_body(await read_body(request, settings.max_body_bytes, settings.body_timeout_s), media)
-    spec = parse_query(body, request, settings.max_request_points)
+    query, deadline_ms = parse_query(body, request, settings.max_request_points)
     # Look the model up again now: a reload while the body was arriving swapped in a new batcher
     # and closed the old one (queueing on it would answer 503). From here to the queue no await.
     model = serving_model(state, name)
-    deadline = absolute_deadline(spec.deadline_ms, settings.default_deadline_ms)
-    result = await unless_disconnected(request.receive, answer_query(model, spec, deadline))
+    deadline = absolute_deadline(deadline_ms, settings.default_deadline_ms)
+    result = await unless_disconnected(request.receive, answer_query(model, query, deadline))
     return encode_response({**result, "model": name}, response_media_type(request, media))

@@ -1,0 +1,363 @@
+"""What a query is: its points, fields, pose, ``eps`` and mode, validated once for every backend.
+
+:class:`ModelQuery` asks one collider; :class:`SceneQuery` asks several, each with its own pose.
+``build`` validates values from the Python API (the engine's ``Collider.query``, both SDK backends);
+``from_body`` reads a decoded wire body (the HTTP service) and then applies the same checks, so
+that the same input gets the same answer or the same :class:`~.errors.QueryError` (same status,
+problem code and message) wherever it is asked. ``to_body`` is what the SDK sends.
+
+Points are world frame, in the collider's world units (metres for the shipped models); a pose
+maps the collider frame to the world frame; ``eps`` is in world units, ``None`` meaning the
+collider's default (:func:`~.answers.default_eps`).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any, Iterable, Sequence
+
+import numpy as np
+
+from . import wire
+from .errors import QueryError
+from .pose import IDENTITY, MAX_COORDINATE_M, Pose, PoseError, as_pose
+
+#: The fields a query can ask for, in canonical order.
+FIELDS = ("distance", "normal", "contact", "collides")
+#: Fields that need the SDF gradient; asking only for the others skips gradient work.
+GRADIENT_FIELDS = frozenset({"normal", "contact"})
+DEFAULT_FIELDS = ("distance",)
+#: Most points in one call, whatever the backend: bounds the memory of one answer. (The HTTP
+#: service has a smaller limit of its own, ``max_request_points``.)
+MAX_POINTS = 200_000_000
+#: Keys of a wire body besides a query's own: the service reads ``deadline_ms``.
+TRANSPORT_KEYS = frozenset({"deadline_ms"})
+
+
+def check_fields(fields: Iterable[str] | str) -> tuple[str, ...]:
+    """A field selection (one name or several) as a tuple in canonical order."""
+    if isinstance(fields, str):
+        fields = [fields]
+    fields = list(fields)
+    unknown = [f for f in fields if f not in FIELDS]
+    if unknown:
+        raise QueryError(f"unknown field(s) {unknown}; valid fields are {list(FIELDS)}",
+                         code="unknown-field")
+    if not fields:
+        raise QueryError(f"no fields asked for; choose from {list(FIELDS)}", code="unknown-field")
+    return tuple(f for f in FIELDS if f in fields)
+
+
+def check_points(points) -> np.ndarray:
+    """Query points as an (n, 3) float32 or float64 array (integers become float64), finite and
+    within the coordinate range, world units."""
+    try:
+        array = np.asarray(points)
+    except (TypeError, ValueError) as exc:  # ragged nested lists, objects numpy cannot convert
+        raise QueryError(f"points must be an (n, 3) array of numbers: {exc}", code="bad-points") from None
+    if array.dtype.kind not in "fiu":
+        raise QueryError(f"points must be float32 or float64, got {array.dtype}", code="bad-points")
+    if array.ndim == 1 and array.size == 0:
+        array = array.reshape(0, 3)
+    if array.ndim != 2 or array.shape[1] != 3:
+        raise QueryError(f"points must have shape (n, 3), got {list(array.shape)}", code="bad-points")
+    if len(array) > MAX_POINTS:
+        raise QueryError(f"too many points in one call: {len(array)} > {MAX_POINTS}",
+                         status=413, code="too-many-points")
+    if array.dtype not in (np.float32, np.float64):
+        array = array.astype(np.float64)
+    finite = np.isfinite(array).all(axis=1)
+    if not finite.all():
+        bad = int(np.flatnonzero(~finite)[0])
+        raise QueryError(f"points contain NaN or Inf (first at row {bad}: {array[bad].tolist()})",
+                         code="bad-points")
+    inside = (np.abs(array) <= MAX_COORDINATE_M).all(axis=1)
+    if not inside.all():
+        bad = int(np.flatnonzero(~inside)[0])
+        raise QueryError(f"points outside the coordinate range +-{MAX_COORDINATE_M:g} (world units; "
+                         f"first at row {bad}: {array[bad].tolist()})", code="bad-points")
+    return array
+
+
+def check_eps(eps) -> float | None:
+    """The collision offset: ``None`` (the collider's default), or a finite number of world units
+    in ``[0, MAX_COORDINATE_M]`` (the coordinate range: a large eps is odd but well defined; a
+    negative one would put contacts inside the surface)."""
+    if eps is None:
+        return None
+    value = check_number(eps, "eps")
+    if not 0 <= value <= MAX_COORDINATE_M:
+        raise QueryError(f"eps={value} is outside [0, {MAX_COORDINATE_M:g}] (world units)",
+                         code="eps-out-of-range")
+    return value
+
+
+def check_pose(pose, where: str = "pose") -> Pose:
+    """A pose (4x4 array-like, :class:`Pose` or ``None`` for the identity) validated; the refusal
+    names ``where`` it was given (``pose``, ``colliders[2].pose``)."""
+    try:
+        return as_pose(pose)
+    except PoseError as exc:
+        message = str(exc)  # its own messages start with "pose ..."
+        raise QueryError(message if message.startswith(where) else f"{where}: {message}",
+                         code="bad-pose") from None
+
+
+@dataclass(frozen=True)
+class SceneCollider:
+    """One collider of a scene query: a model name and its pose (4x4, collider -> world, or None
+    for the identity)."""
+
+    model: str
+    pose: Any = None
+
+
+def check_colliders(items: Sequence) -> tuple[tuple[str, Pose], ...]:
+    """A scene's colliders as ``(model, pose)`` pairs: from :class:`SceneCollider`,
+    ``(model, pose)`` pairs, ``{"model": name, "pose": 4x4}`` dicts or bare model names."""
+    if isinstance(items, (str, bytes, dict)) or not isinstance(items, Sequence) or not items:
+        raise QueryError("colliders must be a non-empty list of {\"model\": name, \"pose\": 4x4 "
+                         f"(optional)}}, got {items!r:.200}", code="bad-colliders")
+    out = []
+    for i, item in enumerate(items):
+        if isinstance(item, SceneCollider):
+            model, pose = item.model, item.pose
+        elif isinstance(item, str):
+            model, pose = item, None
+        elif isinstance(item, dict) and not set(item) - {"model", "pose"}:
+            model, pose = item.get("model"), item.get("pose")
+        elif isinstance(item, (tuple, list)) and len(item) == 2:
+            model, pose = item
+        else:
+            model = pose = None
+        if not isinstance(model, str):
+            raise _bad_collider(i, item)
+        out.append((model, check_pose(pose, f"colliders[{i}].pose")))
+    return tuple(out)
+
+
+def _bad_collider(index: int, item) -> QueryError:
+    got = f"a map with keys {sorted(map(str, item))}" if isinstance(item, dict) else f"{item!r:.60}"
+    return QueryError(f"colliders[{index}] must be {{\"model\": name, \"pose\": 4x4 (optional)}}, "
+                      f"got {got}", code="bad-colliders")
+
+
+@dataclass(frozen=True)
+class ModelQuery:
+    """A validated query of one collider.
+
+    points : (n, 3) float32 or float64, world frame (finite, within the coordinate range)
+    fields : the fields to answer, canonical order
+    pose : collider frame -> world frame
+    eps : collision offset, world units; None: the collider's default
+    only_colliding : ``normal`` and ``contact`` only where ``distance < eps``
+    """
+
+    points: np.ndarray
+    fields: tuple[str, ...] = DEFAULT_FIELDS
+    pose: Pose = IDENTITY
+    eps: float | None = None
+    only_colliding: bool = False
+
+    @classmethod
+    def build(cls, points, fields: Iterable[str] | str = DEFAULT_FIELDS, pose=None, eps=None,
+              only_colliding: bool = False) -> "ModelQuery":
+        """Validate the Python API's arguments (checked in this order: fields, points, pose,
+        eps); raises :class:`~.errors.QueryError`."""
+        return cls(fields=check_fields(fields), points=check_points(points), pose=check_pose(pose),
+                   eps=check_eps(eps), only_colliding=bool(only_colliding))
+
+    @property
+    def want_gradient(self) -> bool:
+        return not GRADIENT_FIELDS.isdisjoint(self.fields)
+
+    def to_body(self) -> dict[str, Any]:
+        """The wire body (numpy arrays as values; :func:`~.wire.dumps` encodes them). Defaults
+        are left out: a body without them is what every server version reads."""
+        body: dict[str, Any] = {"points": self.points, "fields": list(self.fields)}
+        if self.pose.source is not None:
+            body["pose"] = self.pose.source
+        if self.eps is not None:
+            body["eps"] = self.eps
+        if self.only_colliding:
+            body["only_colliding"] = True
+        return body
+
+    @classmethod
+    def from_body(cls, body: dict, max_points: int = MAX_POINTS) -> "ModelQuery":
+        """The query of a decoded wire body (:func:`~.wire.loads`); more than ``max_points``
+        points is a 413. Raises :class:`~.errors.QueryError`."""
+        _check_keys(body, {"points", "fields", "pose", "eps", "only_colliding"}, ("points",))
+        return cls(points=_wire_points(body["points"], max_points),
+                   fields=_wire_fields(body), pose=_wire_pose(body, "pose"),
+                   eps=check_eps(_optional(body, "eps")),
+                   only_colliding=_wire_flag(body, "only_colliding"))
+
+
+@dataclass(frozen=True)
+class SceneQuery:
+    """A validated query of several colliders: per point, the fields of the nearest one.
+
+    colliders : ``(model name, pose)`` per collider, in the caller's order (the answer's
+        ``collider`` field indexes it); the other fields as in :class:`ModelQuery`
+    """
+
+    points: np.ndarray
+    colliders: tuple[tuple[str, Pose], ...]
+    fields: tuple[str, ...] = DEFAULT_FIELDS
+    eps: float | None = None
+    only_colliding: bool = False
+
+    @classmethod
+    def build(cls, points, colliders: Sequence, fields: Iterable[str] | str = DEFAULT_FIELDS,
+              eps=None, only_colliding: bool = False) -> "SceneQuery":
+        """Validate the Python API's arguments (:func:`check_colliders` lists the forms of
+        ``colliders``); raises :class:`~.errors.QueryError`."""
+        return cls(fields=check_fields(fields), colliders=check_colliders(colliders),
+                   points=check_points(points), eps=check_eps(eps),
+                   only_colliding=bool(only_colliding))
+
+    @property
+    def want_gradient(self) -> bool:
+        return not GRADIENT_FIELDS.isdisjoint(self.fields)
+
+    def of_collider(self, index: int) -> ModelQuery:
+        """The query that collider ``index`` answers for its part: these points under its pose."""
+        return ModelQuery(self.points, self.fields, self.colliders[index][1], self.eps,
+                          self.only_colliding)
+
+    def to_body(self) -> dict[str, Any]:
+        body = ModelQuery(self.points, self.fields, IDENTITY, self.eps, self.only_colliding).to_body()
+        # A pose nested in a list travels as nested lists: wire.dumps encodes top-level arrays only.
+        body["colliders"] = [{"model": model} if pose.source is None
+                             else {"model": model, "pose": pose.source.tolist()}
+                             for model, pose in self.colliders]
+        return body
+
+    @classmethod
+    def from_body(cls, body: dict, max_points: int = MAX_POINTS,
+                  max_colliders: int | None = None) -> "SceneQuery":
+        """As :meth:`ModelQuery.from_body`; more than ``max_colliders`` colliders is a 413."""
+        _check_keys(body, {"points", "colliders", "fields", "eps", "only_colliding"},
+                    ("points", "colliders"))
+        items = body["colliders"]
+        if not isinstance(items, list):
+            check_colliders(items)  # refuses it, saying what colliders must be
+        if max_colliders is not None and len(items) > max_colliders:
+            raise QueryError(f"{len(items)} colliders exceed max_scene_colliders={max_colliders}",
+                             status=413, code="too-many-colliders")
+        if not items:
+            check_colliders(items)
+        colliders = []
+        for i, item in enumerate(items):  # on the wire a collider is a map, its pose a wire array
+            if not (isinstance(item, dict) and isinstance(item.get("model"), str)
+                    and not set(item) - {"model", "pose"}):
+                raise _bad_collider(i, item)
+            colliders.append((item["model"], _wire_pose(item, "pose", f"colliders[{i}].pose")))
+        return cls(points=_wire_points(body["points"], max_points), colliders=tuple(colliders),
+                   fields=_wire_fields(body), eps=check_eps(_optional(body, "eps")),
+                   only_colliding=_wire_flag(body, "only_colliding"))
+
+
+# -- reading wire bodies: the JSON / msgpack types first, then the checks above -----------------
+
+_ABSENT = object()
+
+
+def _check_keys(body: dict, allowed: set, required: tuple[str, ...]) -> None:
+    unknown = sorted(set(body) - allowed - TRANSPORT_KEYS)
+    if unknown:
+        raise QueryError(f"unknown key(s) {unknown}; valid keys are {sorted(allowed | TRANSPORT_KEYS)}",
+                         code="unknown-key")
+    for key in required:
+        if key not in body:
+            raise QueryError(f"the body has no {key!r}", code=f"missing-{key}")
+
+
+def _optional(body: dict, key: str):
+    """``body[key]``, or None when absent. A key given as null is refused: the documented types
+    have no null (leave the key out for its default)."""
+    value = body.get(key, _ABSENT)
+    if value is _ABSENT:
+        return None
+    if value is None:
+        raise QueryError(f"{key} must not be null (leave it out for its default)",
+                         code=f"bad-{key.replace('_', '-')}")
+    return value
+
+
+def check_number(value, name: str, *, positive: bool = False, code: str | None = None) -> float:
+    """``value`` as a finite float (bools are not numbers; > 0 when ``positive``), else a refusal
+    naming ``name`` with problem code ``code`` (default ``bad-<name>``)."""
+    code = code or f"bad-{name.replace('_', '-')}"
+    number = None
+    if isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, (bool, np.bool_)):
+        try:
+            number = float(value)
+        except OverflowError:  # a JSON integer with hundreds of digits
+            number = None
+    if number is None or not math.isfinite(number):
+        raise QueryError(f"{name} must be a finite number, got {value!r:.60}", code=code)
+    if positive and number <= 0:
+        raise QueryError(f"{name} must be > 0, got {value!r:.60}", code=code)
+    return number
+
+
+def read_deadline_ms(body: dict) -> float | None:
+    """A wire body's ``deadline_ms`` (milliseconds > 0: how long its caller waits), or None."""
+    value = _optional(body, "deadline_ms")
+    return None if value is None else check_number(value, "deadline_ms", positive=True)
+
+
+def _wire_points(value, max_points: int) -> np.ndarray:
+    """Points of a wire body: ``<f4`` or ``<f8`` arrays (JSON numbers read as float64), then
+    :func:`check_points`; more than ``max_points`` is a 413."""
+    try:
+        array = wire.decode_array(value, "points")
+    except wire.WireError as exc:
+        raise QueryError(str(exc), code="bad-points") from None
+    if array.dtype.kind == "b" or (array.size and array.dtype not in (np.float32, np.float64)):
+        raise QueryError(f"points must be float32 or float64, got {array.dtype}", code="bad-points")
+    if array.ndim == 1 and array.size == 0:
+        array = array.reshape(0, 3).astype(np.float64)
+    if array.ndim == 2 and array.shape[1] == 3 and len(array) > max_points:
+        raise QueryError(f"{len(array)} points exceed max_request_points={max_points}", status=413,
+                         code="too-many-points")
+    return check_points(array)
+
+
+def _wire_fields(body: dict) -> tuple[str, ...]:
+    value = _optional(body, "fields")
+    if value is None:
+        return DEFAULT_FIELDS
+    if not isinstance(value, list) or not all(isinstance(v, str) for v in value):
+        raise QueryError(f"fields must be a list of strings, got {value!r:.60}", code="bad-fields")
+    return check_fields(value)
+
+
+def _wire_pose(body: dict, key: str, where: str | None = None) -> Pose:
+    where = where or key
+    value = body.get(key, _ABSENT)
+    if value is _ABSENT:
+        return IDENTITY
+    if value is None:
+        raise QueryError(f"{where} must be a 4x4 matrix, got null (leave it out for the identity)",
+                         code="bad-pose")
+    try:
+        matrix = wire.decode_array(value, where)
+    except wire.WireError as exc:
+        raise QueryError(str(exc), code="bad-pose") from None
+    if matrix.dtype.kind == "b":
+        raise QueryError(f"{where}: must hold numbers, got {matrix.dtype}", code="bad-pose")
+    return check_pose(matrix, where)
+
+
+def _wire_flag(body: dict, key: str) -> bool:
+    value = _optional(body, key)
+    if value is None:
+        return False
+    if not isinstance(value, bool):
+        raise QueryError(f"{key} must be true or false, got {value!r:.60}",
+                         code=f"bad-{key.replace('_', '-')}")
+    return value

@@ -1,0 +1,216 @@
+"""Embedded and remote give the same outcome for every input: bit-identical answers, or the same
+error type with the same message. The inputs are those of the hard-case suite
+(tests/hard_cases/test_engine_hard_cases.py) and of the service's bad-input regression tests
+(tests/server/test_queries.py, test_hardening.py, test_only_colliding.py) that the SDK can express;
+both backends answer them through the query contract (collider_contract). Voxel sphere of radius
+0.1 m and box at the origin (tests/client/conftest.py); world frame, metres."""
+
+from __future__ import annotations
+
+import httpx
+import numpy as np
+import pytest
+
+import collider_client as cc
+from collider_contract import MAX_COORDINATE_M, wire
+
+ALL = ["distance", "normal", "contact", "collides"]
+rng = np.random.default_rng(11)
+NEAR = rng.uniform(-0.15, 0.15, size=(64, 3))
+
+
+def pose(translation=(0.0, 0.0, 0.0), scale=1.0, angle_deg=0.0, block=None, bottom=(0, 0, 0, 1)):
+    """A 4x4 collider -> world: rotation about z by ``angle_deg``, uniform ``scale``."""
+    a = np.radians(angle_deg)
+    m = np.eye(4)
+    m[:3, :3] = scale * np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]])
+    if block is not None:
+        m[:3, :3] = block
+    m[:3, 3] = translation
+    m[3] = bottom
+    return m
+
+
+def with_row(values, row, value, column=0, n=5):
+    points = np.full((n, 3), 0.05) if values is None else np.array(values, dtype=float)
+    points[row, column] = value
+    return points
+
+
+def nan_pose():
+    m = np.eye(4)
+    m[1, 3] = np.nan
+    return m
+
+
+#: name -> (method, positional args after the model or colliders, keyword args)
+CASES = {
+    # answers: the hard cases
+    "near-surface, every field": ("query", (NEAR,), {"fields": ALL}),
+    "float32 points": ("query", (NEAR.astype(np.float32),), {"fields": ALL}),
+    "integer points": ("query", ([[0, 0, 0], [1, 0, 0]],), {"fields": ALL}),
+    "medial axis (the centre)": ("query", ([[0.0, 0.0, 0.0]],), {"fields": ALL}),
+    "far, up to the coordinate range": ("query", ([[MAX_COORDINATE_M, -MAX_COORDINATE_M, 0.0],
+                                                   [5e5, 0.0, 0.0], [0.0, 0.0, -1e4]],), {"fields": ALL}),
+    "denormals and -0.0": ("query", ([[5e-324, -0.0, 0.0], [-0.0, -0.0, -0.0], [1e-310, 0.05, 0.0]],),
+                           {"fields": ALL}),
+    "empty (0, 3)": ("query", (np.zeros((0, 3)),), {"fields": ALL}),
+    "empty list": ("query", ([],), {"fields": ALL}),
+    "rotated, scaled pose": ("query", (NEAR,), {"fields": ALL, "pose": pose((0.3, -0.1, 2.0), 2.5, 30)}),
+    "pose far away (1e4 m)": ("query", (NEAR + 1e4,), {"fields": ALL, "pose": pose((1e4, 1e4, 1e4))}),
+    "largest translation": ("query", ([[MAX_COORDINATE_M * (1 - 1e-6), 0, 0]],),
+                            {"fields": ALL, "pose": pose((MAX_COORDINATE_M * (1 - 1e-6), 0, 0))}),
+    "eps 0": ("query", (NEAR,), {"fields": ALL, "eps": 0.0}),
+    "eps at the coordinate range": ("query", (NEAR,), {"fields": ALL, "eps": MAX_COORDINATE_M}),
+    "collide-only": ("query", (NEAR,), {"fields": ALL, "eps": 0.01, "only_colliding": True}),
+    "one field by name": ("query", (NEAR,), {"fields": "collides"}),
+    "scene, two colliders": ("scene", (NEAR,), {"colliders": ["sphere", ("box", pose((0.05, 0, 0)))],
+                                                "fields": ALL}),
+    "scene, a tie (the same collider twice)": ("scene", (NEAR,), {"colliders": ["sphere", "sphere"],
+                                                                 "fields": ALL}),
+    "scene, collide-only, scaled": ("scene", (NEAR,), {"colliders": [("sphere", pose(scale=0.5)),
+                                                                    {"model": "box"}],
+                                                       "fields": ALL, "only_colliding": True}),
+    # refusals: points
+    "points beyond the coordinate range": ("query", (with_row(None, 3, MAX_COORDINATE_M * 1.000001, 1),), {}),
+    "points at 1e39": ("query", ([[1e39, 0, 0]],), {}),
+    "points at 1e300": ("query", (with_row(None, 1, 1e300),), {"fields": ALL}),
+    "points at -1e300": ("query", (with_row(None, 3, -1e300, 1),), {}),
+    "NaN point": ("query", (with_row(None, 2, np.nan),), {"fields": ALL}),
+    "Inf point": ("query", (with_row(None, 2, np.inf),), {}),
+    "-Inf point": ("query", (with_row(None, 2, -np.inf),), {}),
+    "shape (4, 2)": ("query", (np.zeros((4, 2)),), {}),
+    "shape (3,)": ("query", (np.zeros(3),), {}),
+    "shape (2, 3, 3)": ("query", (np.zeros((2, 3, 3)),), {}),
+    "ragged": ("query", ([[0, 0, 0], [1, 2]],), {}),
+    "strings": ("query", ([["a", "b", "c"]],), {}),
+    "booleans": ("query", ([[True, False, True]],), {}),
+    "complex": ("query", (np.array([[1 + 2j, 0, 0]]),), {}),
+    # refusals: pose
+    "pose translation 2e6": ("query", (NEAR[:2],), {"pose": pose((0, 2 * MAX_COORDINATE_M, 0))}),
+    "pose translation 1e300": ("query", (NEAR[:2],), {"pose": pose((0, 1e300, 0))}),
+    "pose scale 1e300": ("query", (NEAR[:2],), {"pose": pose(scale=1e300)}),
+    "pose scale 1e-7": ("query", (NEAR[:2],), {"pose": pose(scale=1e-7)}),
+    "pose NaN": ("query", (NEAR[:2],), {"pose": nan_pose()}),
+    "pose shear": ("query", (NEAR[:2],), {"pose": pose(block=[[1, 0.5, 0], [0, 1, 0], [0, 0, 1]])}),
+    "pose non-uniform": ("query", (NEAR[:2],), {"pose": pose(block=np.diag([1.0, 2.0, 1.0]))}),
+    "pose reflection": ("query", (NEAR[:2],), {"pose": pose(block=np.diag([1.0, 1.0, -1.0]))}),
+    "pose scale 0": ("query", (NEAR[:2],), {"pose": pose(block=np.zeros((3, 3)))}),
+    "pose bottom row": ("query", (NEAR[:2],), {"pose": pose(bottom=(0, 0, 1, 1))}),
+    "pose 3x3": ("query", (NEAR[:2],), {"pose": np.eye(3)}),
+    "pose of words": ("query", (NEAR[:2],), {"pose": "identity"}),
+    # refusals: eps, fields
+    "eps negative": ("query", (NEAR[:2],), {"eps": -1e-3}),
+    "eps 2e6": ("query", (NEAR[:2],), {"eps": 2e6}),
+    "eps 1000001": ("query", (NEAR[:2],), {"eps": MAX_COORDINATE_M + 1}),
+    "eps 1e300": ("query", (NEAR[:2],), {"eps": 1e300}),
+    "eps NaN": ("query", (NEAR[:2],), {"eps": float("nan")}),
+    "eps Inf": ("query", (NEAR[:2],), {"eps": float("inf")}),
+    "eps of words": ("query", (NEAR[:2],), {"eps": "small"}),
+    "eps True": ("query", (NEAR[:2],), {"eps": True}),
+    "unknown field": ("query", (NEAR[:2],), {"fields": ["distance", "curvature"]}),
+    "no field": ("query", (NEAR[:2],), {"fields": []}),
+    # refusals: models, scenes
+    "unknown model": ("query", (NEAR[:2],), {"model": "teapot"}),
+    "scene without colliders": ("scene", (NEAR[:2],), {"colliders": []}),
+    "scene collider without a model": ("scene", (NEAR[:2],), {"colliders": [{"pose": np.eye(4)}]}),
+    "scene collider with an extra key": ("scene", (NEAR[:2],), {"colliders": [{"model": "sphere", "x": 1}]}),
+    "scene collider of a number": ("scene", (NEAR[:2],), {"colliders": [3]}),
+    "scene colliders as a name": ("scene", (NEAR[:2],), {"colliders": "sphere"}),
+    "scene with a bad pose second": ("scene", (NEAR[:2],), {"colliders": [
+        "sphere", ("box", pose(block=np.diag([1.0, 2.0, 1.0])))]}),
+    "scene with an unknown model": ("scene", (NEAR[:2],), {"colliders": ["sphere", "nope"]}),
+    "scene with NaN points": ("scene", (with_row(None, 4, np.nan),), {"colliders": ["sphere"]}),
+}
+
+
+@pytest.fixture(scope="module")
+def backends(models_dir, server_url):
+    with cc.Client(models=models_dir, device="cpu") as embedded, cc.Client(server_url, timeout_s=60) as remote:
+        yield embedded, remote
+
+
+def outcome(client: cc.Client, method: str, args, kwargs):
+    """What a call gives: ``("answer", {name: array}, model)`` or ``("error", class, problem
+    code, message)``."""
+    kwargs = dict(kwargs)
+    try:
+        if method == "query":
+            result = client.query(kwargs.pop("model", "sphere"), *args, **kwargs)
+        else:
+            result = client.scene_query(kwargs.pop("colliders"), *args, **kwargs)
+    except cc.ColliderError as exc:
+        return ("error", type(exc), getattr(exc, "type", None), str(exc))
+    arrays = dict(result.fields())
+    if result.collider is not None:
+        arrays["collider"] = result.collider
+    return ("answer", {name: np.array(value) for name, value in arrays.items()}, result.model)
+
+
+def raw_body(method: str, args, kwargs) -> bytes | None:
+    """The wire body of the same input, unvalidated (what a client in another language might
+    send), or None when the input has no wire form (strings, complex numbers, ragged lists)."""
+    kwargs = dict(kwargs)
+    try:
+        points = np.asarray(args[0])
+        if points.dtype.kind in "iu":
+            points = points.astype(np.float64)  # as the SDK sends them
+        body = {"points": points, **{k: v for k, v in kwargs.items() if k in ("eps", "only_colliding")}}
+        fields = kwargs.get("fields", ["distance"])
+        body["fields"] = [fields] if isinstance(fields, str) else list(fields)
+        if "pose" in kwargs:
+            body["pose"] = np.asarray(kwargs["pose"], dtype=np.float64)
+        if method == "scene":
+            colliders = kwargs["colliders"]
+            if isinstance(colliders, list):
+                colliders = [{"model": c} if isinstance(c, str)
+                             else {"model": c[0], "pose": np.asarray(c[1], float).tolist()}
+                             if isinstance(c, tuple)
+                             else {k: np.asarray(v).tolist() if k == "pose" else v for k, v in c.items()}
+                             if isinstance(c, dict) else c for c in colliders]
+            body["colliders"] = colliders
+        return wire.dumps(body, wire.MSGPACK)
+    except (TypeError, ValueError):
+        return None
+
+
+@pytest.mark.parametrize("case", list(CASES))
+def test_embedded_and_remote_give_the_same_outcome(backends, server_url, case):
+    method, args, kwargs = CASES[case]
+    embedded, remote = (outcome(client, method, args, kwargs) for client in backends)
+    assert embedded[0] == remote[0], (embedded, remote)
+    if embedded[0] == "error":
+        assert embedded[1:] == remote[1:]
+        assert issubclass(embedded[1], cc.ServerError)  # inside the documented error tree
+        # The service itself, sent the same input as a raw body: the same problem.
+        raw = raw_body(method, args, kwargs)
+        if raw is not None:
+            path = ("/v1/scene/query" if method == "scene"
+                    else f"/v1/models/{kwargs.get('model', 'sphere')}/query")
+            response = httpx.post(server_url + path, content=raw,
+                                  headers={"content-type": wire.MSGPACK})
+            problem = response.json()
+            error = embedded[1]
+            assert (response.status_code, problem["type"], f"{error.status} {problem['title']}: "
+                    f"{problem['detail']}") == (error.status, embedded[2], embedded[3])
+        return
+    assert embedded[2] == remote[2]  # the model name (None for a scene)
+    assert embedded[1].keys() == remote[1].keys()
+    for name, value in embedded[1].items():
+        other = remote[1][name]
+        assert value.dtype == other.dtype and value.shape == other.shape, name
+        np.testing.assert_array_equal(value, other, err_msg=name)  # bit-identical
+
+
+def test_the_cases_cover_answers_and_every_refusal(backends):
+    """The list above holds both kinds of outcome and every refusal the contract makes of
+    values the SDK can send (the problem codes of docs/service.md)."""
+    kinds, codes = set(), set()
+    for method, args, kwargs in CASES.values():
+        result = outcome(backends[0], method, args, kwargs)
+        kinds.add(result[0])
+        if result[0] == "error":
+            codes.add(result[2])
+    assert kinds == {"answer", "error"}
+    assert codes == {"bad-points", "bad-pose", "eps-out-of-range", "bad-eps", "unknown-field",
+                     "unknown-model", "bad-colliders"}
