@@ -59,19 +59,19 @@ class _Settings:
         return (self.fields if isinstance(fields, UseClientDefault) else fields,
                 self.eps if isinstance(eps, UseClientDefault) else eps)
 
-    def model_query(self, points, fields, pose, eps, only_colliding) -> ModelQuery:
+    def model_query(self, points, fields, pose, eps, only_colliding, time, pose_velocity) -> ModelQuery:
         """The call's query, validated by the contract (refused with the typed error the service
         would answer for it: the same by construction, whichever the backend)."""
         fields, eps = self._defaults(fields, eps)
         try:
-            return ModelQuery.build(points, fields, pose, eps, only_colliding)
+            return ModelQuery.build(points, fields, pose, eps, only_colliding, time, pose_velocity)
         except QueryError as exc:
             raise refusal(exc) from None
 
-    def scene_query(self, colliders, points, fields, eps, only_colliding) -> SceneQuery:
+    def scene_query(self, colliders, points, fields, eps, only_colliding, time) -> SceneQuery:
         fields, eps = self._defaults(fields, eps)
         try:
-            return SceneQuery.build(points, colliders, fields, eps, only_colliding)
+            return SceneQuery.build(points, colliders, fields, eps, only_colliding, time)
         except QueryError as exc:
             raise refusal(exc) from None
 
@@ -138,18 +138,24 @@ class Client:
 
     def query(self, model: str, points, fields: Iterable[str] | UseClientDefault = USE_CLIENT_DEFAULT,
               pose=None, eps: float | None | UseClientDefault = USE_CLIENT_DEFAULT,
-              deadline_ms: float | None = None, only_colliding: bool = False) -> QueryResult:
+              deadline_ms: float | None = None, only_colliding: bool = False,
+              time: float | None = None, pose_velocity=None) -> QueryResult:
         """The ``fields`` of one collider at ``points``.
 
         points : (n, 3) float32/float64, world frame, metres
         pose : (4, 4) collider frame -> world frame, None = identity
         eps : collision offset, world units; ``None`` = 1 mm; not given = the client's default
         deadline_ms : how long the server may take (remote only; it answers 504 after that)
-        only_colliding : compute ``normal`` and ``contact`` only for points with
-            ``distance < eps`` (cheaper); the others get ``normal`` [0, 0, 0] and ``contact``
-            equal to the point (``collides`` tells them apart)
+        only_colliding : compute ``normal``, ``contact`` and ``velocity`` only for points with
+            ``distance < eps`` (cheaper); the others get ``normal`` and ``velocity`` [0, 0, 0]
+            and ``contact`` equal to the point (``collides`` tells them apart)
+        time : seconds, when an animated collider is asked (required for one; a static one
+            ignores it)
+        pose_velocity : (4, 4) the pose's time derivative (d(s R)/dt in 1/s, translation rate
+            in m/s, bottom row 0), for the ``velocity`` field of a moving collider; None: still
         """
-        query = self._settings.model_query(points, fields, pose, eps, only_colliding)
+        query = self._settings.model_query(points, fields, pose, eps, only_colliding, time,
+                                           pose_velocity)
         if self._embedded is not None:
             return self._embedded.query(model, query)
         body = self._post(f"/v1/models/{model}/query", _with_deadline(query.to_body(), deadline_ms))
@@ -158,15 +164,17 @@ class Client:
     def scene_query(self, colliders: Sequence, points,
                     fields: Iterable[str] | UseClientDefault = USE_CLIENT_DEFAULT,
                     eps: float | None | UseClientDefault = USE_CLIENT_DEFAULT,
-                    deadline_ms: float | None = None, only_colliding: bool = False) -> QueryResult:
+                    deadline_ms: float | None = None, only_colliding: bool = False,
+                    time: float | None = None) -> QueryResult:
         """Per point, the ``fields`` of the nearest of several colliders (smallest signed
         distance) and ``collider``, its index in ``colliders``.
 
-        colliders : model names, ``(model, pose)`` pairs, ``{"model", "pose"}`` dicts or
-            :class:`SceneCollider`; poses are 4x4 collider -> world
+        colliders : model names, ``(model, pose)`` pairs, ``{"model", "pose", "time",
+            "pose_velocity"}`` dicts or :class:`SceneCollider`; poses are 4x4 collider -> world
+        time : seconds, the time of the colliders that give none of their own
         only_colliding : as in :meth:`query`
         """
-        query = self._settings.scene_query(colliders, points, fields, eps, only_colliding)
+        query = self._settings.scene_query(colliders, points, fields, eps, only_colliding, time)
         if self._embedded is not None:
             return self._embedded.scene_query(query)
         body = self._post("/v1/scene/query", _with_deadline(query.to_body(), deadline_ms))
@@ -250,9 +258,11 @@ class AsyncClient:
     async def query(self, model: str, points,
                     fields: Iterable[str] | UseClientDefault = USE_CLIENT_DEFAULT, pose=None,
                     eps: float | None | UseClientDefault = USE_CLIENT_DEFAULT,
-                    deadline_ms: float | None = None, only_colliding: bool = False) -> QueryResult:
+                    deadline_ms: float | None = None, only_colliding: bool = False,
+                    time: float | None = None, pose_velocity=None) -> QueryResult:
         """See :meth:`Client.query`."""
-        query = self._settings.model_query(points, fields, pose, eps, only_colliding)
+        query = self._settings.model_query(points, fields, pose, eps, only_colliding, time,
+                                           pose_velocity)
         if self._embedded is not None:
             return await asyncio.to_thread(self._embedded.query, model, query)
         body = await self._post(f"/v1/models/{model}/query",
@@ -262,10 +272,10 @@ class AsyncClient:
     async def scene_query(self, colliders: Sequence, points,
                           fields: Iterable[str] | UseClientDefault = USE_CLIENT_DEFAULT,
                           eps: float | None | UseClientDefault = USE_CLIENT_DEFAULT,
-                          deadline_ms: float | None = None,
-                          only_colliding: bool = False) -> QueryResult:
+                          deadline_ms: float | None = None, only_colliding: bool = False,
+                          time: float | None = None) -> QueryResult:
         """See :meth:`Client.scene_query`."""
-        query = self._settings.scene_query(colliders, points, fields, eps, only_colliding)
+        query = self._settings.scene_query(colliders, points, fields, eps, only_colliding, time)
         if self._embedded is not None:
             return await asyncio.to_thread(self._embedded.scene_query, query)
         body = await self._post("/v1/scene/query", _with_deadline(query.to_body(), deadline_ms))

@@ -66,17 +66,17 @@ class EmbeddedBackend:
         collider = self.collider(model)
         try:
             result = answer_model_query(query, collider.info.meters_per_unit, collider.query_local,
-                                        f"model {model!r}")
+                                        f"model {model!r}", collider.animated)
         except QueryError as exc:
             raise refusal(exc) from None
         result.model = model
         return result
 
     def scene_query(self, query: SceneQuery) -> QueryResult:
-        engines = [self.collider(model) for model, _ in query.colliders]
+        engines = [self.collider(placed.model) for placed in query.colliders]
         try:
             return answer_scene_query(query, [e.info.meters_per_unit for e in engines],
-                                      [e.query_local for e in engines])
+                                      [e.query_local for e in engines], [e.animated for e in engines])
         except QueryError as exc:
             raise refusal(exc) from None
 

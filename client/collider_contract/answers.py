@@ -5,8 +5,9 @@ embedded backend and the HTTP service, so that their answers are the same by con
 Answering a :class:`~.queries.ModelQuery` is three steps:
 
 1. :func:`prepare`: the points in the collider frame, whether the gradient is needed and below
-   which distance (collide-only mode), and the query's eps in world units (:func:`resolve_eps`);
-2. an *evaluation* of the collider at those points (:data:`Evaluate`: the engine's
+   which distance (collide-only mode), the query's eps in world units (:func:`resolve_eps`) and
+   its time;
+2. an *evaluation* of the collider at those points and that time (:data:`Evaluate`: the engine's
    ``Collider.query_local``), which a batching server may join with other requests';
 3. :func:`finish`: the fields in the world frame, given the resolved eps.
 
@@ -18,14 +19,22 @@ evaluates each collider, then :func:`finish_scene` keeps, per point, the nearest
 - ``normal``   : (n, 3) float32, unit outward normal (normalised SDF gradient), world frame;
 - ``contact``  : (n, 3), the point moved to the offset surface ``p + (eps - d) * normal``,
   world frame, in the dtype of the query points (float32 or float64);
-- ``collides`` : (n,) bool, ``d < eps``.
+- ``collides`` : (n,) bool, ``d < eps``;
+- ``velocity`` : (n, 3) float32, world units per second, world frame: the velocity of the
+  collider's surface where the point's contact is. It sums the motion of the collider's frame
+  (``pose_velocity`` applied at the contact, in the collider frame) and the surface's own motion
+  in its frame (an animated collider's: the exact kind's material velocity at the closest surface
+  point; an SDF kind's normal speed ``-df/dt`` along the normal, with no tangential part, which an
+  implicit surface does not define). Zero for a static collider under a still pose.
 
-Collide-only mode (``only_colliding``): ``normal`` and ``contact`` are computed only for the points
-that collide; for the others ``normal`` is ``[0, 0, 0]`` and ``contact`` is the point itself.
+Collide-only mode (``only_colliding``): ``normal``, ``contact`` and ``velocity`` are computed only
+for the points that collide; for the others ``normal`` and ``velocity`` are ``[0, 0, 0]`` and
+``contact`` is the point itself.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from typing import Callable, Sequence
 
@@ -39,13 +48,15 @@ from .results import QueryResult
 #: The default collision offset: 1 mm, whatever the collider's units.
 DEFAULT_EPS_METERS = 1e-3
 
-#: ``evaluate(local, want_gradient, gradient_below) -> (distance, normal)``: a collider's signed
-#: distance at collider-frame points ``local`` (m, 3) float64, collider units, and when
-#: ``want_gradient`` its unit normal (m, 3) float64 (else None), only where ``distance`` is below
-#: ``gradient_below`` (None: everywhere; a number or an (m,) array, collider units; the other
-#: rows zero). The engine's ``Collider.query_local``.
-Evaluate = Callable[[np.ndarray, bool, "float | np.ndarray | None"],
-                    "tuple[np.ndarray, np.ndarray | None]"]
+#: ``evaluate(local, want_gradient, gradient_below, time) -> (distance, normal, velocity)``: a
+#: collider's signed distance at collider-frame points ``local`` (m, 3) float64, collider units,
+#: at ``time`` seconds (None for a static collider), and when ``want_gradient`` its unit normal
+#: (m, 3) float64 and its surface's velocity in its own frame (m, 3) float64, collider units per
+#: second (None: still), both only where ``distance`` is below ``gradient_below`` (None:
+#: everywhere; a number or an (m,) array, collider units; the other rows zero). The engine's
+#: ``Collider.query_local``.
+Evaluate = Callable[[np.ndarray, bool, "float | np.ndarray | None", "float | None"],
+                    "tuple[np.ndarray, np.ndarray | None, np.ndarray | None]"]
 
 
 def default_eps(meters_per_unit: float, pose: Pose) -> float:
@@ -73,20 +84,23 @@ class Evaluation:
     """What answering a query asks of its collider.
 
     local : (n, 3) float64, the query's points in the collider frame and units
-    want_gradient : whether ``normal`` or ``contact`` was asked for
+    want_gradient : whether ``normal``, ``contact`` or ``velocity`` was asked for
     gradient_below : collider units: a normal is needed only below this distance (collide-only),
         or None (everywhere, when ``want_gradient``)
     eps : the query's eps, world units (resolved: :func:`resolve_eps`)
+    time : seconds, or None
     """
 
     local: np.ndarray
     want_gradient: bool
     gradient_below: float | None
     eps: float
+    time: float | None = None
 
-    def run(self, evaluate: Evaluate) -> tuple[np.ndarray, np.ndarray | None]:
-        """``evaluate`` at these points: (distance (n,), normal (n, 3) or None), collider frame."""
-        return evaluate(self.local, self.want_gradient, self.gradient_below)
+    def run(self, evaluate: Evaluate) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+        """``evaluate`` at these points and time: (distance (n,), normal (n, 3) or None, velocity
+        (n, 3) or None), collider frame."""
+        return evaluate(self.local, self.want_gradient, self.gradient_below, self.time)
 
 
 def prepare(query: ModelQuery, meters_per_unit: float) -> Evaluation:
@@ -94,17 +108,26 @@ def prepare(query: ModelQuery, meters_per_unit: float) -> Evaluation:
     eps = resolve_eps(query.eps, meters_per_unit, query.pose)
     below = (gradient_threshold(eps, query.pose)
              if query.only_colliding and query.want_gradient else None)
-    return Evaluation(query.pose.to_local(query.points), query.want_gradient, below, eps)
+    return Evaluation(query.pose.to_local(query.points), query.want_gradient, below, eps, query.time)
 
 
-def finish(query: ModelQuery, eps: float, distance: np.ndarray,
-           normal: np.ndarray | None) -> QueryResult:
-    """Step 3: the query's fields from the collider-frame ``distance`` and ``normal`` that its
-    evaluation gave, with ``eps`` its resolved eps (world units, :attr:`Evaluation.eps`):
-    distances scaled to world units, normals rotated into the world frame, contacts
-    ``p + (eps - d) * n`` computed in float64 in the world frame. In collide-only mode, points
-    with ``distance >= eps`` get ``normal`` [0, 0, 0] and ``contact`` equal to the point (whatever
-    ``normal`` holds for them)."""
+def require_time(query: ModelQuery, animated: bool, where: str) -> None:
+    """Refuse (422 ``missing-time``) a query without ``time`` of an animated collider ``where``
+    (a static collider answers with or without one)."""
+    if animated and query.time is None:
+        raise QueryError(f"{where} is animated: give the time (seconds) to ask it at",
+                         code="missing-time")
+
+
+def finish(query: ModelQuery, eps: float, distance: np.ndarray, normal: np.ndarray | None,
+           velocity: np.ndarray | None = None) -> QueryResult:
+    """Step 3: the query's fields from the collider-frame ``distance``, ``normal`` and
+    ``velocity`` that its evaluation gave, with ``eps`` its resolved eps (world units,
+    :attr:`Evaluation.eps`): distances scaled to world units, normals rotated into the world
+    frame, contacts ``p + (eps - d) * n`` and velocities (module docstring) computed in float64 in
+    the world frame. In collide-only mode, points with ``distance >= eps`` get ``normal`` and
+    ``velocity`` [0, 0, 0] and ``contact`` equal to the point (whatever the evaluation gave
+    them)."""
     pose, points = query.pose, query.points
     distance = distance * pose.scale
     collides = distance < eps
@@ -117,20 +140,33 @@ def finish(query: ModelQuery, eps: float, distance: np.ndarray,
             normal = np.where(collides[:, None], normal, 0.0)
     if "normal" in query.fields:
         result.normal = normal.astype(np.float32)
-    if "contact" in query.fields:
+    if "contact" in query.fields or "velocity" in query.fields:
         # In float64 (normal is); a zero normal leaves the point where it is, the documented
         # contact of a free point.
         contact = points + (eps - distance)[:, None] * normal
+    if "contact" in query.fields:
         result.contact = contact.astype(points.dtype)
     if "collides" in query.fields:
         result.collides = collides
+    if "velocity" in query.fields:
+        world = np.zeros((len(points), 3))
+        if velocity is not None:  # the surface's own motion, collider units/s -> world units/s
+            world += pose.to_world_directions(velocity) * pose.scale
+        if query.pose_velocity is not None:  # the frame's motion, at the contact
+            rate = query.pose_velocity
+            world += pose.to_local(contact) @ rate[:3, :3].T + rate[:3, 3]
+        if query.only_colliding:
+            world = np.where(collides[:, None], world, 0.0)
+        result.velocity = world.astype(np.float32)
     return result
 
 
 def answer_model_query(query: ModelQuery, meters_per_unit: float, evaluate: Evaluate,
-                       where: str = "the collider") -> QueryResult:
+                       where: str = "the collider", animated: bool = False) -> QueryResult:
     """The three steps: the fields of ``query`` from a collider (``evaluate``) of
-    ``meters_per_unit`` metres per unit; ``where`` names it in a refusal (:func:`check_finite`)."""
+    ``meters_per_unit`` metres per unit, ``animated`` or not; ``where`` names it in a refusal
+    (:func:`require_time`, :func:`check_finite`)."""
+    require_time(query, animated, where)
     evaluation = prepare(query, meters_per_unit)
     result = finish(query, evaluation.eps, *evaluation.run(evaluate))
     check_finite(result, query.points, where)
@@ -155,21 +191,23 @@ def finish_scene(query: SceneQuery, eps: Sequence[float], answers: Sequence) -> 
     """A scene query's fields: per point, those of the nearest collider (:func:`nearest_collider`),
     as :func:`finish` gives them for that collider, and ``collider``, its (n,) int32 index.
 
-    eps, answers : per collider, its resolved eps (world units) and the ``(distance, normal or
-        None)`` its evaluation gave, collider frame
+    eps, answers : per collider, its resolved eps (world units) and the ``(distance, normal,
+        velocity)`` its evaluation gave (normal and velocity may be None), collider frame
     """
     points, n = query.points, len(query.points)
-    poses = [pose for _, pose in query.colliders]
-    nearest = nearest_collider(np.stack([d * pose.scale for (d, _), pose in zip(answers, poses)]))
+    poses = [placed.pose for placed in query.colliders]
+    nearest = nearest_collider(np.stack([answer[0] * pose.scale for answer, pose in zip(answers, poses)]))
     dtypes = {"distance": np.float32, "normal": np.float32, "contact": points.dtype,
-              "collides": np.bool_}
-    out = {f: np.empty((n, 3) if f in ("normal", "contact") else n, dtypes[f]) for f in query.fields}
-    for i, (distance, normal) in enumerate(answers):
+              "collides": np.bool_, "velocity": np.float32}
+    out = {f: np.empty((n, 3) if f in ("normal", "contact", "velocity") else n, dtypes[f])
+           for f in query.fields}
+    for i, answer in enumerate(answers):
         rows = np.flatnonzero(nearest == i)
         if not len(rows):
             continue
-        part = finish(ModelQuery(points[rows], query.fields, poses[i], query.eps, query.only_colliding),
-                      eps[i], distance[rows], None if normal is None else normal[rows])
+        own = query.of_collider(i)
+        part = finish(dataclasses.replace(own, points=points[rows]), eps[i],
+                      *(None if a is None else a[rows] for a in answer))
         for name, values in part.fields().items():
             out[name][rows] = values
     result = QueryResult(**out, collider=nearest)
@@ -178,8 +216,11 @@ def finish_scene(query: SceneQuery, eps: Sequence[float], answers: Sequence) -> 
 
 
 def answer_scene_query(query: SceneQuery, meters_per_unit: Sequence[float],
-                       evaluate: Sequence[Evaluate]) -> QueryResult:
-    """The fields of a scene query, its colliders' units and evaluations given in its order."""
+                       evaluate: Sequence[Evaluate], animated: Sequence[bool] | None = None) -> QueryResult:
+    """The fields of a scene query, its colliders' units, evaluations and whether each is
+    animated given in its order."""
+    for i, is_animated in enumerate(animated or ()):
+        require_time(query.of_collider(i), is_animated, f"model {query.colliders[i].model!r}")
     evaluations = [prepare(query.of_collider(i), mpu) for i, mpu in enumerate(meters_per_unit)]
     return finish_scene(query, [e.eps for e in evaluations],
                         [e.run(f) for e, f in zip(evaluations, evaluate)])

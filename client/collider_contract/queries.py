@@ -8,14 +8,16 @@ problem code and message) wherever it is asked. ``to_body`` is what the SDK send
 
 Points are world frame, in the collider's world units (metres for the shipped models); a pose
 maps the collider frame to the world frame; ``eps`` is in world units, ``None`` meaning the
-collider's default (:func:`~.answers.default_eps`).
+collider's default (:func:`~.answers.default_eps`). ``time`` (seconds) says when an animated
+collider is asked (a static one ignores it); ``pose_velocity`` (the pose's time derivative, 4x4,
+1/s and world units/s) says how a moving collider's frame moves, for the ``velocity`` field.
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any, Iterable, Sequence
+from typing import Any, Iterable, NamedTuple, Sequence
 
 import numpy as np
 
@@ -24,15 +26,18 @@ from .errors import QueryError
 from .pose import IDENTITY, MAX_COORDINATE_M, Pose, PoseError, as_pose
 
 #: The fields a query can ask for, in canonical order.
-FIELDS = ("distance", "normal", "contact", "collides")
+FIELDS = ("distance", "normal", "contact", "collides", "velocity")
 #: Fields that need the SDF gradient; asking only for the others skips gradient work.
-GRADIENT_FIELDS = frozenset({"normal", "contact"})
+GRADIENT_FIELDS = frozenset({"normal", "contact", "velocity"})
 DEFAULT_FIELDS = ("distance",)
 #: Most points in one call, whatever the backend: bounds the memory of one answer. (The HTTP
 #: service has a smaller limit of its own, ``max_request_points``.)
 MAX_POINTS = 200_000_000
 #: Keys of a wire body besides a query's own: the service reads ``deadline_ms``.
 TRANSPORT_KEYS = frozenset({"deadline_ms"})
+#: The largest ``|time|``, seconds (about 32 years): far beyond any animation, and where float64
+#: still resolves a nanosecond.
+MAX_TIME_S = 1e9
 
 
 def check_fields(fields: Iterable[str] | str) -> tuple[str, ...]:
@@ -104,36 +109,87 @@ def check_pose(pose, where: str = "pose") -> Pose:
                          code="bad-pose") from None
 
 
+def check_time(time, where: str = "time") -> float | None:
+    """When an animated collider is asked: ``None`` (a static collider's query), or a finite
+    number of seconds within +-:data:`MAX_TIME_S`."""
+    if time is None:
+        return None
+    value = check_number(time, where, code="bad-time")
+    if abs(value) > MAX_TIME_S:
+        raise QueryError(f"{where}={value} is outside +-{MAX_TIME_S:g} s", code="bad-time")
+    return value
+
+
+def check_pose_velocity(value, where: str = "pose_velocity") -> np.ndarray | None:
+    """The time derivative of a pose (4x4: d(s R)/dt in 1/s, dt/dt in world units/s, bottom row
+    zero), or None (a pose that does not move). Its entries are bounded by the coordinate
+    range."""
+    if value is None:
+        return None
+    try:
+        m = np.array(value, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise QueryError(f"{where} must be a 4x4 matrix of numbers: {exc}", code="bad-pose-velocity") from None
+    if m.shape != (4, 4):
+        raise QueryError(f"{where} must be a 4x4 matrix, got shape {m.shape}", code="bad-pose-velocity")
+    if not (np.isfinite(m).all() and (np.abs(m) <= MAX_COORDINATE_M).all()):
+        raise QueryError(f"{where} must hold finite numbers within +-{MAX_COORDINATE_M:g}",
+                         code="bad-pose-velocity")
+    if m[3].any():
+        raise QueryError(f"{where} bottom row must be [0, 0, 0, 0] (a pose's bottom row does not "
+                         f"change), got {m[3].tolist()}", code="bad-pose-velocity")
+    return m
+
+
 @dataclass(frozen=True)
 class SceneCollider:
-    """One collider of a scene query: a model name and its pose (4x4, collider -> world, or None
-    for the identity)."""
+    """One collider of a scene query: a model name, its pose (4x4, collider -> world, or None for
+    the identity) and, optionally, the time it is asked at (seconds; None: the scene query's
+    own) and its pose's velocity (4x4, see :func:`check_pose_velocity`)."""
 
     model: str
     pose: Any = None
+    time: float | None = None
+    pose_velocity: Any = None
 
 
-def check_colliders(items: Sequence) -> tuple[tuple[str, Pose], ...]:
-    """A scene's colliders as ``(model, pose)`` pairs: from :class:`SceneCollider`,
-    ``(model, pose)`` pairs, ``{"model": name, "pose": 4x4}`` dicts or bare model names."""
+class Placed(NamedTuple):
+    """A validated scene collider: ``model`` name, ``pose``, ``time`` (seconds or None) and
+    ``pose_velocity`` ((4, 4) or None)."""
+
+    model: str
+    pose: Pose
+    time: float | None = None
+    pose_velocity: np.ndarray | None = None
+
+
+#: The keys of a scene collider given as a map (the wire's only form).
+COLLIDER_KEYS = frozenset({"model", "pose", "time", "pose_velocity"})
+
+
+def check_colliders(items: Sequence, time=None) -> tuple[Placed, ...]:
+    """A scene's colliders, validated: from :class:`SceneCollider`, ``(model, pose)`` pairs,
+    ``{"model": name, "pose": 4x4, "time": s, "pose_velocity": 4x4}`` maps (all but ``model``
+    optional) or bare model names; ``time`` is the time of those that give none."""
     if isinstance(items, (str, bytes, dict)) or not isinstance(items, Sequence) or not items:
         raise QueryError("colliders must be a non-empty list of {\"model\": name, \"pose\": 4x4 "
                          f"(optional)}}, got {items!r:.200}", code="bad-colliders")
     out = []
     for i, item in enumerate(items):
         if isinstance(item, SceneCollider):
-            model, pose = item.model, item.pose
+            item = {"model": item.model, "pose": item.pose, "time": item.time,
+                    "pose_velocity": item.pose_velocity}
         elif isinstance(item, str):
-            model, pose = item, None
-        elif isinstance(item, dict) and not set(item) - {"model", "pose"}:
-            model, pose = item.get("model"), item.get("pose")
+            item = {"model": item}
         elif isinstance(item, (tuple, list)) and len(item) == 2:
-            model, pose = item
-        else:
-            model = pose = None
-        if not isinstance(model, str):
+            item = {"model": item[0], "pose": item[1]}
+        if not (isinstance(item, dict) and isinstance(item.get("model"), str)
+                and not set(item) - COLLIDER_KEYS):
             raise _bad_collider(i, item)
-        out.append((model, check_pose(pose, f"colliders[{i}].pose")))
+        own_time = check_time(item.get("time"), f"colliders[{i}].time")
+        out.append(Placed(item["model"], check_pose(item.get("pose"), f"colliders[{i}].pose"),
+                          own_time if own_time is not None else time,
+                          check_pose_velocity(item.get("pose_velocity"), f"colliders[{i}].pose_velocity")))
     return tuple(out)
 
 
@@ -151,7 +207,9 @@ class ModelQuery:
     fields : the fields to answer, canonical order
     pose : collider frame -> world frame
     eps : collision offset, world units; None: the collider's default
-    only_colliding : ``normal`` and ``contact`` only where ``distance < eps``
+    only_colliding : ``normal``, ``contact`` and ``velocity`` only where ``distance < eps``
+    time : seconds, when an animated collider is asked (None: a static one)
+    pose_velocity : (4, 4) the pose's time derivative, or None (a frame that does not move)
     """
 
     points: np.ndarray
@@ -159,14 +217,17 @@ class ModelQuery:
     pose: Pose = IDENTITY
     eps: float | None = None
     only_colliding: bool = False
+    time: float | None = None
+    pose_velocity: np.ndarray | None = None
 
     @classmethod
     def build(cls, points, fields: Iterable[str] | str = DEFAULT_FIELDS, pose=None, eps=None,
-              only_colliding: bool = False) -> "ModelQuery":
+              only_colliding: bool = False, time=None, pose_velocity=None) -> "ModelQuery":
         """Validate the Python API's arguments (checked in this order: fields, points, pose,
-        eps); raises :class:`~.errors.QueryError`."""
+        eps, time, pose velocity); raises :class:`~.errors.QueryError`."""
         return cls(fields=check_fields(fields), points=check_points(points), pose=check_pose(pose),
-                   eps=check_eps(eps), only_colliding=bool(only_colliding))
+                   eps=check_eps(eps), only_colliding=bool(only_colliding), time=check_time(time),
+                   pose_velocity=check_pose_velocity(pose_velocity))
 
     @property
     def want_gradient(self) -> bool:
@@ -178,8 +239,9 @@ class ModelQuery:
         body: dict[str, Any] = {"points": self.points, "fields": list(self.fields)}
         if self.pose.source is not None:
             body["pose"] = self.pose.source
-        if self.eps is not None:
-            body["eps"] = self.eps
+        for key in ("eps", "time", "pose_velocity"):
+            if getattr(self, key) is not None:
+                body[key] = getattr(self, key)
         if self.only_colliding:
             body["only_colliding"] = True
         return body
@@ -188,33 +250,40 @@ class ModelQuery:
     def from_body(cls, body: dict, max_points: int = MAX_POINTS) -> "ModelQuery":
         """The query of a decoded wire body (:func:`~.wire.loads`); more than ``max_points``
         points is a 413. Raises :class:`~.errors.QueryError`."""
-        _check_keys(body, {"points", "fields", "pose", "eps", "only_colliding"}, ("points",))
+        _check_keys(body, {"points", "fields", "pose", "eps", "only_colliding", "time",
+                           "pose_velocity"}, ("points",))
         return cls(points=_wire_points(body["points"], max_points),
                    fields=_wire_fields(body), pose=_wire_pose(body, "pose"),
                    eps=check_eps(_optional(body, "eps")),
-                   only_colliding=_wire_flag(body, "only_colliding"))
+                   only_colliding=_wire_flag(body, "only_colliding"),
+                   time=check_time(_optional(body, "time")),
+                   pose_velocity=_wire_pose_velocity(body, "pose_velocity"))
 
 
 @dataclass(frozen=True)
 class SceneQuery:
     """A validated query of several colliders: per point, the fields of the nearest one.
 
-    colliders : ``(model name, pose)`` per collider, in the caller's order (the answer's
-        ``collider`` field indexes it); the other fields as in :class:`ModelQuery`
+    colliders : :class:`Placed` per collider (model, pose, time, pose velocity), in the
+        caller's order (the answer's ``collider`` field indexes it); the other fields as in
+        :class:`ModelQuery`
     """
 
     points: np.ndarray
-    colliders: tuple[tuple[str, Pose], ...]
+    colliders: tuple[Placed, ...]
     fields: tuple[str, ...] = DEFAULT_FIELDS
     eps: float | None = None
     only_colliding: bool = False
 
     @classmethod
     def build(cls, points, colliders: Sequence, fields: Iterable[str] | str = DEFAULT_FIELDS,
-              eps=None, only_colliding: bool = False) -> "SceneQuery":
+              eps=None, only_colliding: bool = False, time=None) -> "SceneQuery":
         """Validate the Python API's arguments (:func:`check_colliders` lists the forms of
-        ``colliders``); raises :class:`~.errors.QueryError`."""
-        return cls(fields=check_fields(fields), colliders=check_colliders(colliders),
+        ``colliders``; ``time``: theirs when they give none); raises
+        :class:`~.errors.QueryError`."""
+        fields = check_fields(fields)
+        time = check_time(time)
+        return cls(fields=fields, colliders=check_colliders(colliders, time),
                    points=check_points(points), eps=check_eps(eps),
                    only_colliding=bool(only_colliding))
 
@@ -223,23 +292,34 @@ class SceneQuery:
         return not GRADIENT_FIELDS.isdisjoint(self.fields)
 
     def of_collider(self, index: int) -> ModelQuery:
-        """The query that collider ``index`` answers for its part: these points under its pose."""
-        return ModelQuery(self.points, self.fields, self.colliders[index][1], self.eps,
-                          self.only_colliding)
+        """The query that collider ``index`` answers for its part: these points under its pose,
+        at its time."""
+        placed = self.colliders[index]
+        return ModelQuery(self.points, self.fields, placed.pose, self.eps, self.only_colliding,
+                          placed.time, placed.pose_velocity)
 
     def to_body(self) -> dict[str, Any]:
         body = ModelQuery(self.points, self.fields, IDENTITY, self.eps, self.only_colliding).to_body()
-        # A pose nested in a list travels as nested lists: wire.dumps encodes top-level arrays only.
-        body["colliders"] = [{"model": model} if pose.source is None
-                             else {"model": model, "pose": pose.source.tolist()}
-                             for model, pose in self.colliders]
+        # Nested in a list, arrays travel as nested lists: wire.dumps encodes top-level arrays only.
+        colliders = []
+        for placed in self.colliders:
+            item: dict[str, Any] = {"model": placed.model}
+            if placed.pose.source is not None:
+                item["pose"] = placed.pose.source.tolist()
+            if placed.time is not None:
+                item["time"] = placed.time
+            if placed.pose_velocity is not None:
+                item["pose_velocity"] = placed.pose_velocity.tolist()
+            colliders.append(item)
+        body["colliders"] = colliders
         return body
 
     @classmethod
     def from_body(cls, body: dict, max_points: int = MAX_POINTS,
                   max_colliders: int | None = None) -> "SceneQuery":
-        """As :meth:`ModelQuery.from_body`; more than ``max_colliders`` colliders is a 413."""
-        _check_keys(body, {"points", "colliders", "fields", "eps", "only_colliding"},
+        """As :meth:`ModelQuery.from_body`; more than ``max_colliders`` colliders is a 413. A
+        top-level ``time`` is the time of the colliders that give none."""
+        _check_keys(body, {"points", "colliders", "fields", "eps", "only_colliding", "time"},
                     ("points", "colliders"))
         items = body["colliders"]
         if not isinstance(items, list):
@@ -249,12 +329,18 @@ class SceneQuery:
                              status=413, code="too-many-colliders")
         if not items:
             check_colliders(items)
+        time = check_time(_optional(body, "time"))
         colliders = []
-        for i, item in enumerate(items):  # on the wire a collider is a map, its pose a wire array
+        for i, item in enumerate(items):  # on the wire a collider is a map, its arrays wire arrays
             if not (isinstance(item, dict) and isinstance(item.get("model"), str)
-                    and not set(item) - {"model", "pose"}):
+                    and not set(item) - COLLIDER_KEYS):
                 raise _bad_collider(i, item)
-            colliders.append((item["model"], _wire_pose(item, "pose", f"colliders[{i}].pose")))
+            own_time = check_time(_optional(item, "time", f"colliders[{i}].time"),
+                                  f"colliders[{i}].time")
+            colliders.append(Placed(
+                item["model"], _wire_pose(item, "pose", f"colliders[{i}].pose"),
+                own_time if own_time is not None else time,
+                _wire_pose_velocity(item, "pose_velocity", f"colliders[{i}].pose_velocity")))
         return cls(points=_wire_points(body["points"], max_points), colliders=tuple(colliders),
                    fields=_wire_fields(body), eps=check_eps(_optional(body, "eps")),
                    only_colliding=_wire_flag(body, "only_colliding"))
@@ -275,14 +361,14 @@ def _check_keys(body: dict, allowed: set, required: tuple[str, ...]) -> None:
             raise QueryError(f"the body has no {key!r}", code=f"missing-{key}")
 
 
-def _optional(body: dict, key: str):
+def _optional(body: dict, key: str, where: str | None = None):
     """``body[key]``, or None when absent. A key given as null is refused: the documented types
     have no null (leave the key out for its default)."""
     value = body.get(key, _ABSENT)
     if value is _ABSENT:
         return None
     if value is None:
-        raise QueryError(f"{key} must not be null (leave it out for its default)",
+        raise QueryError(f"{where or key} must not be null (leave it out for its default)",
                          code=f"bad-{key.replace('_', '-')}")
     return value
 
@@ -351,6 +437,20 @@ def _wire_pose(body: dict, key: str, where: str | None = None) -> Pose:
     if matrix.dtype.kind == "b":
         raise QueryError(f"{where}: must hold numbers, got {matrix.dtype}", code="bad-pose")
     return check_pose(matrix, where)
+
+
+def _wire_pose_velocity(body: dict, key: str, where: str | None = None) -> np.ndarray | None:
+    where = where or key
+    value = _optional(body, key, where)
+    if value is None:
+        return None
+    try:
+        matrix = wire.decode_array(value, where)
+    except wire.WireError as exc:
+        raise QueryError(str(exc), code="bad-pose-velocity") from None
+    if matrix.dtype.kind == "b":
+        raise QueryError(f"{where}: must hold numbers, got {matrix.dtype}", code="bad-pose-velocity")
+    return check_pose_velocity(matrix, where)
 
 
 def _wire_flag(body: dict, key: str) -> bool:

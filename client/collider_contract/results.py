@@ -22,6 +22,7 @@ class QueryResult:
     normal : (n, 3) float32, unit outward normal
     contact : (n, 3), ``p + (eps - distance) * normal``, dtype of the query points
     collides : (n,) bool, ``distance < eps``
+    velocity : (n, 3) float32, world units per second: the surface's velocity at the contact
     collider : (n,) int32, scene queries only: index of the nearest collider in the request's list
     model : the model name (single-model queries), ``None`` for scene queries
 
@@ -32,11 +33,13 @@ class QueryResult:
     normal: np.ndarray | None = None
     contact: np.ndarray | None = None
     collides: np.ndarray | None = None
+    velocity: np.ndarray | None = None
     collider: np.ndarray | None = None
     model: str | None = None
 
     def fields(self) -> dict[str, np.ndarray]:
-        """The present fields (``distance``, ``normal``, ``contact``, ``collides``) by name."""
+        """The present fields (``distance``, ``normal``, ``contact``, ``collides``,
+        ``velocity``) by name."""
         return {name: getattr(self, name) for name in FIELDS if getattr(self, name) is not None}
 
     def to_body(self) -> dict[str, Any]:
@@ -59,8 +62,8 @@ class QueryResult:
             if name not in body:
                 raise wire.WireError(f"the response lacks {name!r}, which was asked for")
             setattr(result, name, wire.decode_array(body[name], name))
-        for name, dtype in (("distance", np.float32), ("normal", np.float32),
-                            ("collides", np.bool_), ("collider", np.int32)):
+        for name, dtype in (("distance", np.float32), ("normal", np.float32), ("collides", np.bool_),
+                            ("velocity", np.float32), ("collider", np.int32)):
             value = getattr(result, name)
             if value is not None and value.dtype != dtype:
                 setattr(result, name, value.astype(dtype))
@@ -74,6 +77,8 @@ class ModelInfo:
     domain_min, domain_max : (3,) float64, collider frame and units: the box where the model is
         defined (outside it distances are a conservative extension)
     meters_per_unit : metres in one collider unit; bytes : size of the model file
+    animation : empty for a static model; an animated one's ``frames``, ``frame_rate_hz``,
+        ``duration_s`` and ``loop`` (its queries must give a time)
     """
 
     name: str
@@ -88,8 +93,14 @@ class ModelInfo:
     source: dict = field(default_factory=dict)
     settings: dict = field(default_factory=dict)
     device: str = "cpu"
+    animation: dict = field(default_factory=dict)
     #: keys a newer server sent that this client does not know (kept, not dropped)
     extra: dict = field(default_factory=dict)
+
+    @property
+    def animated(self) -> bool:
+        """Whether the model changes in time: its queries must give a time."""
+        return bool(self.animation)
 
     def domain_corners(self) -> np.ndarray:
         """(8, 3) float64: the corners of the domain box, collider frame and units."""

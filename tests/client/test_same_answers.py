@@ -37,6 +37,10 @@ def with_row(values, row, value, column=0, n=5):
     return points
 
 
+#: A pose velocity: spinning about z at 2 rad/s while moving at 0.5 m/s along x.
+RATE = np.array([[0.0, -2.0, 0.0, 0.5], [2.0, 0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 0.0]])
+
+
 def nan_pose():
     m = np.eye(4)
     m[1, 3] = np.nan
@@ -64,6 +68,15 @@ CASES = {
     "eps at the coordinate range": ("query", (NEAR,), {"fields": ALL, "eps": MAX_COORDINATE_M}),
     "collide-only": ("query", (NEAR,), {"fields": ALL, "eps": 0.01, "only_colliding": True}),
     "one field by name": ("query", (NEAR,), {"fields": "collides"}),
+    "velocity of a still collider": ("query", (NEAR,), {"fields": ["velocity", "contact"]}),
+    "velocity of a moving frame": ("query", (NEAR,), {"fields": ALL + ["velocity"], "pose": pose((0.1, 0, 0), 2.0, 30),
+                                                      "pose_velocity": RATE}),
+    "collide-only velocity": ("query", (NEAR,), {"fields": ["velocity"], "eps": 0.01,
+                                                 "only_colliding": True, "pose_velocity": RATE}),
+    "a time, for a static collider": ("query", (NEAR,), {"fields": ALL, "time": 12.5}),
+    "scene, times and pose velocities": ("scene", (NEAR,), {
+        "colliders": [cc.SceneCollider("sphere", pose((0.02, 0, 0)), 1.0, RATE), "box"],
+        "fields": ALL + ["velocity"], "time": 3.0}),
     "scene, two colliders": ("scene", (NEAR,), {"colliders": ["sphere", ("box", pose((0.05, 0, 0)))],
                                                 "fields": ALL}),
     "scene, a tie (the same collider twice)": ("scene", (NEAR,), {"colliders": ["sphere", "sphere"],
@@ -109,6 +122,13 @@ CASES = {
     "eps of words": ("query", (NEAR[:2],), {"eps": "small"}),
     "eps True": ("query", (NEAR[:2],), {"eps": True}),
     "unknown field": ("query", (NEAR[:2],), {"fields": ["distance", "curvature"]}),
+    "time NaN": ("query", (NEAR[:2],), {"time": float("nan")}),
+    "time 1e10": ("query", (NEAR[:2],), {"time": 1e10}),
+    "time of words": ("query", (NEAR[:2],), {"time": "now"}),
+    "pose velocity bottom row": ("query", (NEAR[:2],), {"pose_velocity": np.ones((4, 4))}),
+    "pose velocity 3x3": ("query", (NEAR[:2],), {"pose_velocity": np.eye(3)}),
+    "pose velocity Inf": ("query", (NEAR[:2],), {"pose_velocity": np.full((4, 4), np.inf)}),
+    "scene collider time NaN": ("scene", (NEAR[:2],), {"colliders": [{"model": "sphere", "time": float("nan")}]}),
     "no field": ("query", (NEAR[:2],), {"fields": []}),
     # refusals: models, scenes
     "unknown model": ("query", (NEAR[:2],), {"model": "teapot"}),
@@ -155,7 +175,10 @@ def raw_body(method: str, args, kwargs) -> bytes | None:
         points = np.asarray(args[0])
         if points.dtype.kind in "iu":
             points = points.astype(np.float64)  # as the SDK sends them
-        body = {"points": points, **{k: v for k, v in kwargs.items() if k in ("eps", "only_colliding")}}
+        body = {"points": points, **{k: v for k, v in kwargs.items()
+                                     if k in ("eps", "only_colliding", "time")}}
+        if "pose_velocity" in kwargs:
+            body["pose_velocity"] = np.asarray(kwargs["pose_velocity"], dtype=np.float64)
         fields = kwargs.get("fields", ["distance"])
         body["fields"] = [fields] if isinstance(fields, str) else list(fields)
         if "pose" in kwargs:
@@ -166,7 +189,8 @@ def raw_body(method: str, args, kwargs) -> bytes | None:
                 colliders = [{"model": c} if isinstance(c, str)
                              else {"model": c[0], "pose": np.asarray(c[1], float).tolist()}
                              if isinstance(c, tuple)
-                             else {k: np.asarray(v).tolist() if k == "pose" else v for k, v in c.items()}
+                             else {k: np.asarray(v).tolist() if k in ("pose", "pose_velocity") else v
+                                   for k, v in c.items()}
                              if isinstance(c, dict) else c for c in colliders]
             body["colliders"] = colliders
         return wire.dumps(body, wire.MSGPACK)
@@ -213,4 +237,25 @@ def test_the_cases_cover_answers_and_every_refusal(backends):
             codes.add(result[2])
     assert kinds == {"answer", "error"}
     assert codes == {"bad-points", "bad-pose", "eps-out-of-range", "bad-eps", "unknown-field",
-                     "unknown-model", "bad-colliders"}
+                     "unknown-model", "bad-colliders", "bad-time", "bad-pose-velocity"}
+
+
+@pytest.mark.parametrize("backend", [0, 1], ids=["embedded", "remote"])
+def test_the_velocity_of_a_moving_frame_is_its_rigid_motion_at_the_contact(backends, backend):
+    """A frame spinning about z at 2 rad/s and moving at 0.5 m/s along x (``RATE``, the pose's
+    time derivative): at a contact c the surface moves at ``RATE @ [c_local, 1]`` with c_local
+    the contact in the collider frame (here the identity pose: c itself). Still frame: zero."""
+    client = backends[backend]
+    result = client.query("sphere", NEAR, fields=["contact", "velocity", "collides"], pose_velocity=RATE)
+    c = result.contact.astype(np.float64)
+    expected = np.stack([0.5 - 2.0 * c[:, 1], 2.0 * c[:, 0], np.zeros(len(c))], axis=1)
+    np.testing.assert_allclose(result.velocity, expected, rtol=1e-6, atol=1e-7)
+    assert result.velocity.dtype == np.float32 and result.velocity.shape == (len(NEAR), 3)
+    still = client.query("sphere", NEAR, fields=["velocity"])
+    assert not still.velocity.any()
+    # Collide-only: the free points' velocity is zero.
+    only = client.query("sphere", NEAR, fields=["velocity", "collides"], pose_velocity=RATE,
+                        only_colliding=True)
+    assert only.collides.any() and not only.collides.all()
+    np.testing.assert_array_equal(only.velocity[~only.collides], 0.0)
+    np.testing.assert_allclose(only.velocity[only.collides], result.velocity[only.collides], atol=1e-7)

@@ -175,11 +175,12 @@ def test_no_evaluate_call_takes_more_than_chunk_points(fresh_collider, only_coll
 def test_query_local_gives_no_normal_unless_asked(shape_collider):
     collider = shape_collider("sphere", "voxel")
     local = mixed_points(20, seed=6)
-    distance, normal = collider.query_local(local, False)
+    distance, normal, velocity = collider.query_local(local, False)
     assert normal is None and distance.shape == (20,) and distance.dtype == np.float64
     with_normal = collider.query_local(local, True)
     np.testing.assert_array_equal(with_normal[0], distance)
     assert with_normal[1].shape == (20, 3) and with_normal[1].dtype == np.float64
+    assert velocity is None and with_normal[2] is None  # a static collider's surface is still
 
 
 def test_repr_names_the_kind_the_model_and_the_device(shape_collider):

@@ -9,7 +9,7 @@ import pytest
 
 from collider_contract import FIELDS
 from collider_contract.pose import as_pose
-from collider_contract import ModelQuery, SceneQuery, finish, finish_scene
+from collider_contract import ModelQuery, Placed, SceneQuery, finish, finish_scene
 from collider_server.engine.collider import Collider
 
 from .test_collider import KINDS, fresh_collider, mixed_points  # noqa: F401  (fixture)
@@ -111,7 +111,7 @@ def test_collides_is_strict_and_the_gradient_pass_is_exact_to_a_relative_1e9(fre
     ``eps`` 0.1 nm below ``d`` (more than a relative 1e-9 of it) costs no gradient."""
     collider = fresh_collider(kind)
     points = near_surface(40, seed=3, band=0.03)
-    distance, _ = collider.query_local(points.astype(np.float64), False)
+    distance, _, _ = collider.query_local(points.astype(np.float64), False)
     chosen = np.flatnonzero((distance > 0.002) & (distance < 0.05))[:4]
     assert len(chosen) == 4
     sizes = record_gradient_points(collider)
@@ -146,18 +146,18 @@ def test_query_local_takes_a_threshold_per_point(fresh_collider):
     -inf = none."""
     collider = fresh_collider("voxel")
     local = near_surface(300)
-    distance, normal = collider.query_local(local, True)
+    distance, normal, _ = collider.query_local(local, True)
     below = np.full(300, -np.inf)
     below[:100] = np.inf
     below[100:200] = 0.001
-    d2, n2 = collider.query_local(local, True, below)
+    d2, n2, _ = collider.query_local(local, True, below)
     np.testing.assert_array_equal(d2, distance)
     np.testing.assert_array_equal(n2[:100], normal[:100])
     middle = np.arange(100, 200)[distance[100:200] < 0.001]
     np.testing.assert_array_equal(n2[middle], normal[middle])
     assert not np.delete(n2, np.concatenate([np.arange(100), middle]), axis=0).any()
     # Strictly below: a threshold equal to each point's own distance gives no normal at all.
-    _, n3 = collider.query_local(local, True, distance)
+    _, n3, _ = collider.query_local(local, True, distance)
     assert not n3.any()
 
 
@@ -177,8 +177,8 @@ def test_assembly_answers_free_points_whatever_normal_it_is_given(fresh_collider
     hit = full.collides
     assert 0 < hit.sum() < len(points)
     single = finish(ModelQuery(points, FIELDS, poses[0], eps[0], True), eps[0], *answers[0])
-    scene = finish_scene(SceneQuery(points, (("a", poses[0]), ("b", poses[1])), FIELDS, None, True),
-                         eps, answers)
+    scene = finish_scene(SceneQuery(points, (Placed("a", poses[0]), Placed("b", poses[1])), FIELDS, None,
+                                    True), eps, answers)
     assert not scene.collider.any()
     for only in (single, scene):
         np.testing.assert_array_equal(only.collides, hit)

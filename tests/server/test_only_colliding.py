@@ -132,9 +132,9 @@ def test_a_batch_joins_collide_only_jobs_with_others(repo):
     calls = []
     query_local = collider.query_local
 
-    def recording(local, want_gradient, below=None):
+    def recording(local, want_gradient, below=None, time=None):
         calls.append((len(local), want_gradient, None if below is None else np.array(below)))
-        return query_local(local, want_gradient, below)
+        return query_local(local, want_gradient, below, time)
 
     collider.query_local = recording
     pose = as_pose(rotation_pose(0.5, 2, [0.01, 0, 0]))

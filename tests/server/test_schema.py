@@ -46,6 +46,17 @@ def rigid(matrix) -> list:
     return m.tolist()
 
 
+def rate(matrix) -> list:
+    """A generated 4x4 matrix as a pose velocity the server accepts: its bottom row zero (a pose's
+    bottom row does not change; JSON Schema cannot say so)."""
+    try:
+        m = np.array(matrix, dtype=np.float64)
+        m[3] = 0.0
+    except (TypeError, ValueError, IndexError):
+        return matrix  # an invalid body stays invalid
+    return m.tolist()
+
+
 def adapt(case) -> None:
     """Aim generated requests where they test something: models that exist, poses that are
     rigid in valid bodies, and deadlines long enough that a 504 would be a real failure."""
@@ -57,11 +68,15 @@ def adapt(case) -> None:
     positive = case.meta is not None and case.meta.generation.mode.is_positive
     if positive and "pose" in body:
         body["pose"] = rigid(body["pose"])
+    if positive and "pose_velocity" in body:
+        body["pose_velocity"] = rate(body["pose_velocity"])
     for collider in body.get("colliders", []) if isinstance(body.get("colliders"), list) else []:
         if positive and isinstance(collider, dict):
             collider["model"] = "small"
             if "pose" in collider:
                 collider["pose"] = rigid(collider["pose"])
+            if "pose_velocity" in collider:
+                collider["pose_velocity"] = rate(collider["pose_velocity"])
     deadline = body.get("deadline_ms")
     if isinstance(deadline, (int, float)) and not isinstance(deadline, bool) and 0 < deadline:
         body["deadline_ms"] = max(float(deadline), 60_000.0)

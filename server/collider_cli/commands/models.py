@@ -41,6 +41,8 @@ def register(subparsers) -> None:
     query.add_argument("--fields", default="distance,normal,contact,collides",
                        help=f"comma-separated subset of {','.join(FIELDS)}")
     query.add_argument("--eps", type=float, default=None, help="collision offset (default 1 mm)")
+    query.add_argument("--time", type=float, default=None,
+                       help="seconds: when an animated model is asked (required for one)")
     query.add_argument("--pose", type=Path, default=None, help=".npy or .json 4x4 pose, collider to world")
     query.add_argument("--only-colliding", action="store_true",
                        help="normal and contact only for colliding points (others: normal 0, "
@@ -113,7 +115,7 @@ def run_query(args) -> int:
     points = load_points(args)
     collider = ModelRepository(args.models).load(args.model, args.device)
     result = collider.query(points, fields, pose=load_pose(args.pose), eps=args.eps,
-                            only_colliding=args.only_colliding)
+                            only_colliding=args.only_colliding, time=args.time)
     values = result.fields()
     if args.output is not None:
         # np.savez appends ".npz" when it is missing; report the file it really writes.

@@ -39,6 +39,8 @@ class ColliderInfo:
     settings : kind-specific settings (architecture, resolution, training or baking options)
     accuracy : the latest evaluation against the exact SDF (filled by ``collider eval``)
     approximate : True when the kind is not exact by construction (kdtree)
+    animation : empty for a static collider; for an animated one ``frames``, ``frame_rate_hz``,
+        ``duration_s`` and ``loop`` (True: time wraps around; False: it is clamped to the ends)
     """
 
     name: str
@@ -51,6 +53,7 @@ class ColliderInfo:
     settings: dict = field(default_factory=dict)
     accuracy: dict = field(default_factory=dict)
     approximate: bool = False
+    animation: dict = field(default_factory=dict)
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
@@ -111,11 +114,20 @@ class Collider(abc.ABC):
 
     @abc.abstractmethod
     def evaluate(self, local: np.ndarray, want_gradient: bool):
-        """SDF at collider-frame points ``local`` (m, 3) float64, inside the domain box.
+        """SDF at collider-frame points ``local`` (m, 3) float64, inside the domain box (an
+        animated kind: at its first frame, see :meth:`evaluate_at`).
 
         Returns ``(distance (m,), gradient (m, 3) or None)`` in collider units; the gradient need
         not be unit length and is only computed when ``want_gradient``.
         """
+
+    def evaluate_at(self, local: np.ndarray, want_gradient: bool, time: float | None):
+        """:meth:`evaluate` at ``time`` seconds, with the surface's velocity: ``(distance,
+        gradient or None, velocity (m, 3) collider units per second, or None: still)``. A static
+        kind ignores ``time``; an animated one overrides this (``info.animation`` says how it
+        runs)."""
+        distance, gradient = self.evaluate(local, want_gradient)
+        return distance, gradient, None
 
     @abc.abstractmethod
     def tensors(self) -> dict[str, np.ndarray]:
@@ -130,6 +142,11 @@ class Collider(abc.ABC):
     def device(self) -> str:
         return "cpu"
 
+    @property
+    def animated(self) -> bool:
+        """Whether the collider changes in time: its queries must give a time."""
+        return bool(self.info.animation)
+
     def nbytes(self) -> int:
         """Memory of the collider's arrays in bytes."""
         return sum(int(a.nbytes) for a in self.tensors().values())
@@ -138,78 +155,91 @@ class Collider(abc.ABC):
 
     def query(self, points, fields: Iterable[str] | str = ("distance",),
               pose: "Pose | np.ndarray | None" = None, eps: float | None = None,
-              only_colliding: bool = False) -> QueryResult:
+              only_colliding: bool = False, time: float | None = None,
+              pose_velocity=None) -> QueryResult:
         """Answer ``fields`` for world-frame ``points``.
 
         points : (n, 3) float32 or float64, world units and frame (n may be 0)
-        fields : any of ``distance``, ``normal``, ``contact``, ``collides``
+        fields : any of ``distance``, ``normal``, ``contact``, ``collides``, ``velocity``
         pose : (4, 4) collider frame -> world frame (rigid, optionally uniform scale);
             ``None`` is the identity
         eps : collision offset, world units, in [0, 1e6]; ``None``: 1 mm in the collider's units
             times the pose's scale (:func:`collider_contract.default_eps`)
-        only_colliding : compute ``normal`` and ``contact`` only where ``distance < eps``; the
-            other points get ``normal`` [0, 0, 0] and ``contact`` equal to the point
+        only_colliding : compute ``normal``, ``contact`` and ``velocity`` only where
+            ``distance < eps``; the other points get ``normal`` and ``velocity`` [0, 0, 0] and
+            ``contact`` equal to the point
+        time : seconds (required for an animated collider; a static one ignores it)
+        pose_velocity : (4, 4) the pose's time derivative, for ``velocity`` (None: still)
         Returns a :class:`QueryResult` holding exactly the fields asked for, world frame.
         Raises :class:`collider_contract.QueryError` (a ValueError) naming what is wrong.
         """
-        query = ModelQuery.build(points, fields, pose, eps, only_colliding)
+        query = ModelQuery.build(points, fields, pose, eps, only_colliding, time, pose_velocity)
         return answer_model_query(query, self.info.meters_per_unit, self.query_local,
-                                  f"collider {self.info.name!r}")
+                                  f"model {self.info.name!r}", self.animated)
 
-    def query_local(self, local: np.ndarray, want_gradient: bool, gradient_below=None):
-        """Distance and unit normal at collider-frame points, in chunks (bounded memory).
+    def query_local(self, local: np.ndarray, want_gradient: bool, gradient_below=None,
+                    time: float | None = None):
+        """Distance, unit normal and surface velocity at collider-frame points, in chunks
+        (bounded memory).
 
         local : (n, 3) float64, collider frame and units
         gradient_below : None (a normal for every point when ``want_gradient``), or a number or
             an (n,) float64 array, collider units: a normal only where ``distance`` is below it
-            (the contract's ``gradient_threshold``); the other rows of ``normal`` are zero. An
-            array lets a batch join requests with different eps and poses (+inf: every point;
-            -inf: none).
-        Returns ``(distance (n,) float64, normal (n, 3) float64 unit or None)``, collider frame.
-        This is the contract's :data:`~collider_contract.Evaluate`, the step a batching server
-        coalesces across requests; :func:`collider_contract.finish` then turns it into one
-        request's fields.
+            (the contract's ``gradient_threshold``); the other rows of ``normal`` (and of
+            ``velocity``) are zero. An array lets a batch join requests with different eps and
+            poses (+inf: every point; -inf: none).
+        time : seconds (an animated collider; a static one ignores it)
+        Returns ``(distance (n,) float64, normal (n, 3) float64 unit or None, velocity (n, 3)
+        float64 collider units per second or None: still)``, collider frame. This is the
+        contract's :data:`~collider_contract.Evaluate`, the step a batching server coalesces
+        across requests; :func:`collider_contract.finish` then turns it into one request's fields.
         """
         n = len(local)
-        distance = np.empty(n)  # float64, as is normal
+        distance = np.empty(n)  # float64, as are normal and velocity
         normal = np.empty((n, 3)) if want_gradient else None
+        velocity = None
         if want_gradient and gradient_below is not None:
             gradient_below = np.broadcast_to(gradient_below, (n,))
         for start in range(0, n, self.chunk_points):
             stop = min(start + self.chunk_points, n)
             chunk = local[start:stop]
             if not want_gradient or gradient_below is None:
-                d, g = self._evaluate_anywhere(chunk, want_gradient)
+                rows = slice(None)
+                d, g, v = self._evaluate_anywhere(chunk, want_gradient, time)
                 distance[start:stop] = d
-                if want_gradient:
-                    normal[start:stop] = self._unit_normals(g, chunk)
-                continue
-            # Collide-only: distances of all, then the gradient pass over those below the bar.
-            d, _ = self._evaluate_anywhere(chunk, False)
-            distance[start:stop] = d
-            normal[start:stop] = 0.0
-            rows = np.flatnonzero(d < gradient_below[start:stop])
-            if len(rows):
-                _, g = self._evaluate_anywhere(chunk[rows], True)
-                normal[start + rows] = self._unit_normals(g, chunk[rows])
-        return distance, normal
+            else:
+                # Collide-only: distances of all, then the gradient pass over those below the bar.
+                d, _, _ = self._evaluate_anywhere(chunk, False, time)
+                distance[start:stop] = d
+                normal[start:stop] = 0.0
+                rows = np.flatnonzero(d < gradient_below[start:stop])
+                if not len(rows):
+                    continue
+                _, g, v = self._evaluate_anywhere(chunk[rows], True, time)
+            if want_gradient:
+                normal[start:stop][rows] = self._unit_normals(g, chunk[rows])
+                if v is not None:
+                    if velocity is None:
+                        velocity = np.zeros((n, 3))
+                    velocity[start:stop][rows] = v
+        return distance, normal, velocity
 
-    def _evaluate_anywhere(self, local: np.ndarray, want_gradient: bool):
-        """:meth:`evaluate` extended outside the domain box by a conservative rule.
+    def _evaluate_anywhere(self, local: np.ndarray, want_gradient: bool, time: float | None):
+        """:meth:`evaluate_at` extended outside the domain box by a conservative rule.
 
         With ``c`` the point clamped into the box and ``f(c)`` the model's value there:
         ``d(p) = |p - c| + max(f(c), 0)``, never below the distance to the box (a model knows
         nothing beyond its box; one whose values on the box are negative is cut off there). The
         normal is the direction to ``p`` from ``c - f(c) n(c)``, the surface point that ``c``'s
         own answer suggests: equal to ``n(c)`` on the box, so continuous with the inside, and
-        tending to the direction away from the object far from it."""
+        tending to the direction away from the object far from it. The velocity is ``c``'s."""
         if not self.clamps_to_domain:
-            return self.evaluate(local, want_gradient)
+            return self.evaluate_at(local, want_gradient, time)
         clamped = np.clip(local, self.domain_min, self.domain_max)
         outside = (clamped != local).any(axis=1)
         if not outside.any():
-            return self.evaluate(local, want_gradient)
-        d, g = self.evaluate(clamped, want_gradient)
+            return self.evaluate_at(local, want_gradient, time)
+        d, g, v = self.evaluate_at(clamped, want_gradient, time)
         away = local - clamped
         box_distance = np.linalg.norm(away, axis=1)
         d_box = d
@@ -218,7 +248,7 @@ class Collider(abc.ABC):
             away_unit = away / np.where(outside, box_distance, 1.0)[:, None]
             g_unit = unit_vectors(g, away_unit)
             g = np.where(outside[:, None], away + d_box[:, None] * g_unit, g)
-        return d, g
+        return d, g, v
 
     def _unit_normals(self, gradient: np.ndarray, local: np.ndarray) -> np.ndarray:
         # Where the gradient vanishes (the medial axis, e.g. a sphere's centre) fall back on the

@@ -19,7 +19,7 @@ from typing import Sequence
 
 import numpy as np
 from collider_contract import (ModelQuery, QueryError, QueryResult, SceneQuery, check_finite, finish,
-                               finish_scene, prepare, resolve_eps)
+                               finish_scene, prepare, require_time, resolve_eps)
 
 from ..engine.collider import Collider
 from .batching import BatcherClosed, BatchPart, DeadlineExceeded, QueueFull
@@ -43,7 +43,8 @@ class QueryJob:
         """Jobs with equal keys are answered together as one query over their joined points."""
         q = self.query
         return (q.pose.rotation.tobytes(), q.pose.translation.tobytes(), q.pose.scale, q.eps,
-                q.fields, q.points.dtype.str, q.only_colliding, self.local_only)
+                q.fields, q.points.dtype.str, q.only_colliding, q.time,
+                None if q.pose_velocity is None else q.pose_velocity.tobytes(), self.local_only)
 
 
 def answer_batch(collider: Collider, name: str,
@@ -68,24 +69,22 @@ def _answer_batch(collider: Collider, name: str, parts: Sequence[BatchPart]) -> 
         query = dataclasses.replace(job.query, points=_rows(parts, members))
         queries.append(query)
         evaluations.append(prepare(query, collider.info.meters_per_unit))
-    local = np.concatenate([e.local for e in evaluations]) if len(evaluations) > 1 else evaluations[0].local
-    want_gradient = any(e.want_gradient for e in evaluations)
-    below = None
-    if want_gradient and any(e.gradient_below is not None for e in evaluations):
-        # Collide-only jobs: a normal only for their colliding points; the batch's other jobs
-        # keep theirs (+inf: every point, -inf: none), one threshold per point in group order.
-        below = np.concatenate([np.full(len(e.local), _threshold(e)) for e in evaluations])
-    distance, normal = collider.query_local(local, want_gradient, below)
+    # One evaluation per time asked (a static collider ignores time: one for the whole batch).
+    by_time: dict = {}
+    for g, evaluation in enumerate(evaluations):
+        by_time.setdefault(evaluation.time if collider.animated else None, []).append(g)
+    outputs: list = [None] * len(evaluations)
+    for at, members_of_time in by_time.items():
+        for g, output in zip(members_of_time, _evaluate_together(
+                collider, [evaluations[g] for g in members_of_time], at)):
+            outputs[g] = output
     answers: list = [None] * len(parts)
-    offset = 0
-    for members, query, evaluation in zip(groups.values(), queries, evaluations):
-        rows = slice(offset, offset + len(query.points))
-        offset += len(query.points)
-        d, n = distance[rows], (None if normal is None else normal[rows])
+    for members, query, evaluation, output in zip(groups.values(), queries, evaluations, outputs):
         if parts[members[0]].payload.local_only:
-            group = {"distance": d, **({} if n is None else {"normal": n})}
+            group = {name: value for name, value in zip(("distance", "normal", "velocity"), output)
+                     if value is not None}
         else:
-            group = finish(query, evaluation.eps, d, n).fields()
+            group = finish(query, evaluation.eps, *output).fields()
         start = 0
         for i in members:
             part = parts[i]
@@ -99,6 +98,25 @@ def _answer_batch(collider: Collider, name: str, parts: Sequence[BatchPart]) -> 
                 except QueryError as exc:
                     answers[i] = exc
     return answers
+
+
+def _evaluate_together(collider: Collider, evaluations: list, time) -> list[tuple]:
+    """``evaluations``' points in one ``query_local`` call at ``time``, cut back into one
+    ``(distance, normal, velocity)`` per evaluation."""
+    local = np.concatenate([e.local for e in evaluations]) if len(evaluations) > 1 else evaluations[0].local
+    want_gradient = any(e.want_gradient for e in evaluations)
+    below = None
+    if want_gradient and any(e.gradient_below is not None for e in evaluations):
+        # Collide-only jobs: a normal only for their colliding points; the batch's other jobs
+        # keep theirs (+inf: every point, -inf: none), one threshold per point in group order.
+        below = np.concatenate([np.full(len(e.local), _threshold(e)) for e in evaluations])
+    outputs = collider.query_local(local, want_gradient, below, time)
+    cut, offset = [], 0
+    for evaluation in evaluations:
+        rows = slice(offset, offset + len(evaluation.local))
+        offset += len(evaluation.local)
+        cut.append(tuple(None if value is None else value[rows] for value in outputs))
+    return cut
 
 
 def _threshold(evaluation) -> float:
@@ -142,6 +160,7 @@ async def answer_query(model: LoadedModel, query: ModelQuery,
                        deadline: float | None) -> dict[str, np.ndarray]:
     """The fields of one model query by name (world frame, see :class:`QueryResult`);
     ``deadline`` is a ``time.monotonic`` time or None."""
+    require_time(query, model.info.animated, f"model {model.name!r}")
     return await submit(model, QueryJob(query), deadline)
 
 
@@ -149,13 +168,16 @@ async def answer_scene(models: list[LoadedModel], query: SceneQuery,
                        deadline: float | None) -> QueryResult:
     """Per point, the fields of the collider with the smallest world-frame signed distance and
     ``collider``, its index into ``query.colliders`` (the contract's scene rule)."""
+    for i, model in enumerate(models):
+        require_time(query.of_collider(i), model.info.animated, f"model {model.name!r}")
     answers = await asyncio.gather(*(
         submit(model, QueryJob(query.of_collider(i), local_only=True), deadline)
         for i, model in enumerate(models)))
-    eps = [resolve_eps(query.eps, model.collider.info.meters_per_unit, pose)
-           for model, (_, pose) in zip(models, query.colliders)]
+    eps = [resolve_eps(query.eps, model.collider.info.meters_per_unit, placed.pose)
+           for model, placed in zip(models, query.colliders)]
     with np.errstate(over="ignore", invalid="ignore"):
-        return finish_scene(query, eps, [(a["distance"], a.get("normal")) for a in answers])
+        return finish_scene(query, eps, [(a["distance"], a.get("normal"), a.get("velocity"))
+                                         for a in answers])
 
 
 async def _cancel_on_disconnect(receive, task: asyncio.Task, gone: list) -> None:

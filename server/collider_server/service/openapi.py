@@ -15,7 +15,8 @@ from pathlib import Path
 from fastapi import APIRouter, Depends, Request
 from starlette.responses import FileResponse, HTMLResponse, JSONResponse
 
-from collider_contract import MAX_COORDINATE_M, TITLES
+from collider_contract import FIELDS, MAX_COORDINATE_M, TITLES
+from collider_contract.queries import MAX_TIME_S
 
 from .auth import require_token
 from .problems import PROBLEM_JSON
@@ -59,11 +60,28 @@ def _pose(msgpack: bool) -> dict:
     return {"title": title, **lists}
 
 
+_TIME = {"type": "number", "minimum": -MAX_TIME_S, "maximum": MAX_TIME_S,
+         "description": "seconds: when an animated collider is asked (required for one; a static "
+                        "collider ignores it); a missing time for an animated model is 422 "
+                        "missing-time"}
+
+
+def _pose_velocity(msgpack: bool) -> dict:
+    lists = {"type": "array", "minItems": 4, "maxItems": 4,
+             "items": {"type": "array", "items": _COORDINATE, "minItems": 4, "maxItems": 4}}
+    title = ("pose_velocity: (4, 4) the pose's time derivative, d(s R)/dt in 1/s and the "
+             "translation's rate in world units/s, bottom row 0 0 0 0; the frame's motion in the "
+             "velocity field (default: still)")
+    if msgpack:
+        return {"title": title, "oneOf": [lists, _array_map(["<f4", "<f8"], [4, 4], "(4, 4)")]}
+    return {"title": title, **lists}
+
+
 def _common(max_points: int, msgpack: bool) -> dict:
     return {
         "points": _points(max_points, msgpack),
         "fields": {"type": "array", "minItems": 1, "default": ["distance"],
-                   "items": {"enum": ["distance", "normal", "contact", "collides"]}},
+                   "items": {"enum": list(FIELDS)}},
         "eps": {"type": "number", "minimum": 0, "maximum": MAX_COORDINATE_M,
                 "description": "collision offset, world units; default 1 mm in the collider's "
                                "units times the pose's scale"},
@@ -71,7 +89,7 @@ def _common(max_points: int, msgpack: bool) -> dict:
                         "description": "504 if no answer within this many ms (also the "
                                        "X-Deadline-Ms header; the smaller wins)"},
         "only_colliding": {"type": "boolean", "default": False,
-                           "description": "compute normal and contact only for points with "
+                           "description": "compute normal, contact and velocity only for points with "
                                           "distance < eps (the gradient work of the others is "
                                           "skipped); the others get normal [0, 0, 0] and contact "
                                           "= the point itself; collides tells them apart"},
@@ -81,17 +99,22 @@ def _common(max_points: int, msgpack: bool) -> dict:
 def query_body(max_points: int) -> dict:
     return _body({media: {"type": "object", "required": ["points"], "additionalProperties": False,
                           "properties": {**_common(max_points, media != "application/json"),
-                                         "pose": _pose(media != "application/json")}}
+                                         "pose": _pose(media != "application/json"),
+                                         "pose_velocity": _pose_velocity(media != "application/json"),
+                                         "time": _TIME}}
                   for media in MSGPACK_AND_JSON})
 
 
 def scene_body(max_points: int, max_colliders: int) -> dict:
     def schema(msgpack: bool) -> dict:
         collider = {"type": "object", "required": ["model"], "additionalProperties": False,
-                    "properties": {"model": {"type": "string"}, "pose": _pose(msgpack)}}
+                    "properties": {"model": {"type": "string"}, "pose": _pose(msgpack),
+                                   "pose_velocity": _pose_velocity(msgpack), "time": _TIME}}
         return {"type": "object", "required": ["points", "colliders"],
                 "additionalProperties": False,
                 "properties": {**_common(max_points, msgpack),
+                               "time": {**_TIME, "description": "seconds: the time of the "
+                                        "colliders that give none of their own"},
                                "colliders": {"type": "array", "items": collider, "minItems": 1,
                                              "maxItems": max_colliders}}}
 
@@ -119,7 +142,7 @@ _ROWS = {"type": "array", "items": {"type": "array", "items": {"type": "number"}
                                     "minItems": 3, "maxItems": 3}}
 _ANSWER = {"type": "object", "properties": {
     "distance": _FLOATS, "normal": _ROWS, "contact": _ROWS,
-    "collides": {"type": "array", "items": {"type": "boolean"}}}}
+    "collides": {"type": "array", "items": {"type": "boolean"}}, "velocity": _ROWS}}
 
 #: Statuses every body-reading query route can answer.
 QUERY_ERRORS = (400, 401, 404, 408, 413, 415, 422, 429, 503, 504)
@@ -128,7 +151,8 @@ QUERY_ERRORS = (400, 401, 404, 408, 413, 415, 422, 429, 503, 504)
 def query_responses(extra: dict | None = None, description: str = "") -> dict:
     ok = {"description": description or (
         "one entry per field asked for, plus \"model\": distance (n,) float32, normal (n, 3) "
-        "float32, contact (n, 3) dtype of points, collides (n,) bool; world frame"),
+        "float32, contact (n, 3) dtype of points, collides (n,) bool, velocity (n, 3) float32 "
+        "world units/s; world frame"),
         "content": {"application/msgpack": {}, "application/json": {"schema": {
             **_ANSWER, "properties": {**_ANSWER["properties"], **(extra or {})}}}}}
     return {200: ok, **problems(*QUERY_ERRORS)}

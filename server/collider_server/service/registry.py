@@ -38,7 +38,7 @@ AnswerBatch = Callable[[Collider, str, Sequence[BatchPart]], list]
 def warm_up(collider: Collider) -> None:
     """One small query with gradient, so the first real request pays no lazy initialisation."""
     centre = 0.5 * (collider.domain_min + collider.domain_max)
-    collider.query_local(np.tile(centre, (64, 1)), True)
+    collider.query_local(np.tile(centre, (64, 1)), True, None, 0.0 if collider.animated else None)
 
 
 class ModelRegistry:

@@ -30,7 +30,7 @@ async def scene_query(request: Request):
     body = parse_body(await read_body(request, settings.max_body_bytes, settings.body_timeout_s), media)
     query, deadline_ms = parse_scene(body, request, settings.max_request_points,
                                      settings.max_scene_colliders)
-    models = [serving_model(state, name) for name, _ in query.colliders]
+    models = [serving_model(state, placed.model) for placed in query.colliders]
     deadline = absolute_deadline(deadline_ms, settings.default_deadline_ms)
     result = await unless_disconnected(request.receive, answer_scene(models, query, deadline))
     return encode_response(result.to_body(), response_media_type(request, media))
