@@ -41,7 +41,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 from .errors import QueryError
-from .pose import Pose
+from .pose import Pose, rotate_rows
 from .queries import ModelQuery, SceneQuery
 from .results import QueryResult
 
@@ -154,7 +154,7 @@ def finish(query: ModelQuery, eps: float, distance: np.ndarray, normal: np.ndarr
             world += pose.to_world_directions(velocity) * pose.scale
         if query.pose_velocity is not None:  # the frame's motion, at the contact
             rate = query.pose_velocity
-            world += pose.to_local(contact) @ rate[:3, :3].T + rate[:3, 3]
+            world += rotate_rows(pose.to_local(contact), rate[:3, :3]) + rate[:3, 3]  # (batch-invariant)
         if query.only_colliding:
             world = np.where(collides[:, None], world, 0.0)
         result.velocity = world.astype(np.float32)
