@@ -11,7 +11,7 @@ from __future__ import annotations
 
 #: Titles of problem documents by HTTP status, as the service sends them.
 TITLES = {
-    400: "Malformed request body",
+    400: "Malformed request",
     401: "Unauthorized",
     403: "Forbidden",
     404: "Not found",

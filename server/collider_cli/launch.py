@@ -122,14 +122,14 @@ class ServerThread:
         import torch
         import uvicorn
 
-        from collider_server.service import ServiceSettings, create_app
+        from collider_server.service import ServiceSettings, create_app, uvicorn_config
 
         self.port = free_port()
         self.url = f"http://{LOOPBACK}:{self.port}"
         settings.setdefault("compute_threads", torch.get_num_threads())
         self.settings = ServiceSettings(host=LOOPBACK, port=self.port, **settings)
         self.app = create_app(self.settings)
-        config = uvicorn.Config(self.app, host=LOOPBACK, port=self.port, log_level="warning")
+        config = uvicorn_config(self.app, LOOPBACK, self.port, log_level="warning")
         self.server = uvicorn.Server(config)
         self.thread = threading.Thread(target=self.server.run, daemon=True)
 

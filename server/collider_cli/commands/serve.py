@@ -45,6 +45,13 @@ def register(subparsers) -> None:
     knobs.add_argument("--body-timeout-s", type=float, default=None,
                        help="longest wait for the next part of a request body; then 408 "
                             "(default 30)")
+    knobs.add_argument("--header-timeout-s", type=float, default=None,
+                       help="longest wait for a request's headers after a connection opens or "
+                            "its previous response ends; then 408 and the connection is closed "
+                            "(default 10)")
+    knobs.add_argument("--max-connections", type=int, default=None,
+                       help="most open connections; a new one beyond it is answered 503 and "
+                            "closed (default 4096; the open-files limit is raised to fit)")
     knobs.add_argument("--graceful-shutdown-s", type=float, default=None,
                        help="on SIGTERM, longest wait for open requests (default 30)")
     serve.add_argument("--cors-origin", action="append", default=None, dest="cors_origins",
@@ -59,13 +66,16 @@ def register(subparsers) -> None:
 SETTING_FLAGS = ("host", "port", "models", "device", "max_batch_points", "max_wait_ms",
                  "max_queue_points", "coalesce", "max_request_points", "max_body_bytes",
                  "max_scene_colliders", "default_deadline_ms", "compute_threads", "cors_origins", "warmup",
-                 "log_level", "body_timeout_s", "graceful_shutdown_s")
+                 "log_level", "body_timeout_s", "header_timeout_s", "max_connections",
+                 "graceful_shutdown_s")
+#: Descriptors the process needs besides its connections (model files, logs, torch's threads).
+OTHER_FILES = 256
 
 
 def run_serve(args) -> int:
     import uvicorn
 
-    from collider_server.service import create_app, load_settings
+    from collider_server.service import create_app, load_settings, uvicorn_config
 
     settings = load_settings(args.config, **{k: getattr(args, k) for k in SETTING_FLAGS})
     if settings.models is not None and not settings.models.is_dir():
@@ -74,12 +84,31 @@ def run_serve(args) -> int:
         print(f"collider serve: warning: listening on {settings.host} without COLLIDER_TOKEN: "
               "anyone who can reach this port can query it", file=sys.stderr)
     logging.basicConfig(level=settings.log_level.upper(), format="%(levelname)s:     %(message)s")
+    fit_open_files(settings.max_connections + OTHER_FILES)
     app = create_app(settings)
-    config = uvicorn.Config(app, host=settings.host, port=settings.port,
-                            log_level=settings.log_level, access_log=False,
-                            timeout_graceful_shutdown=settings.graceful_shutdown_s)
+    config = uvicorn_config(app, settings.host, settings.port, log_level=settings.log_level,
+                            access_log=False, timeout_graceful_shutdown=settings.graceful_shutdown_s)
     # uvicorn handles SIGINT/SIGTERM: it stops accepting, answers the open requests (for at most
     # graceful_shutdown_s, so a pod's termination grace period can be set above it), then runs
-    # the app's shutdown (which drains the batchers) and returns.
+    # the app's shutdown (which drains the batchers) and returns; then it raises the signal again,
+    # so the process ends by it (status 143 in a shell after SIGTERM, 130 after Ctrl-C).
     uvicorn.Server(config).run()
     return 0
+
+
+def fit_open_files(needed: int) -> None:
+    """Raise this process's open-files limit (``ulimit -n``) to ``needed`` where the hard limit
+    allows, as nginx's ``worker_rlimit_nofile`` does; warn when it cannot."""
+    try:
+        import resource
+    except ImportError:  # not on POSIX: nothing to raise
+        return
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    if soft == resource.RLIM_INFINITY or soft >= needed:
+        return
+    target = needed if hard == resource.RLIM_INFINITY else min(needed, hard)
+    resource.setrlimit(resource.RLIMIT_NOFILE, (target, hard))
+    if target < needed:
+        print(f"collider serve: warning: max_connections needs about {needed} open files but "
+              f"this process may open {target} (ulimit -Hn); lower --max-connections or raise "
+              "the limit", file=sys.stderr)

@@ -14,6 +14,7 @@ from ..engine.devices import resolve_device
 from ..engine.repository import ModelRepository
 from .batching import DeviceWorkers
 from .answers import answer_batch
+from .connections import ConnectionGuard
 from .fastpath import QueryFastPath, check_equivalent
 from .metrics import RequestObserver, ServiceMetrics
 from .openapi import add_security, query_body, scene_body
@@ -87,6 +88,9 @@ def create_app(settings: ServiceSettings | None = None) -> FastAPI:
     app = FastAPI(title="neural-collider", version="1", description=DESCRIPTION, lifespan=lifespan,
                   docs_url=None, redoc_url=None, openapi_url=None)
     app.openapi = functools.partial(openapi_schema, app, settings)
+    # Read by the HTTP server's protocol (connections.uvicorn_config), before any request.
+    app.state.connections = ConnectionGuard(settings.max_connections, settings.header_timeout_s,
+                                            metrics)
     install_handlers(app)
     for router in (health.router, models.router, scene.router, admin.router, docs_router):
         app.include_router(router)

@@ -4,7 +4,9 @@ The two an autoscaler and an operator read first: ``collider_queue_points{model}
 waiting for a batch, read from the batcher when scraped) and ``collider_request_seconds{route}``
 (end-to-end latency of each answered request, from the app receiving it to its last byte sent).
 ``collider_requests_in_flight`` counts requests received and not yet answered: a body still
-arriving, a query waiting for its batch.
+arriving, a query waiting for its batch. ``collider_connections_open`` and
+``collider_connections_closed_total{reason}`` show the connection limits at work
+(:mod:`.connections`).
 """
 
 from __future__ import annotations
@@ -61,6 +63,13 @@ class ServiceMetrics:
         self.requests_in_flight = Gauge("collider_requests_in_flight",
                                         "HTTP requests received and not yet answered (a scrape "
                                         "counts itself)", registry=r)
+        self.connections_open = Gauge("collider_connections_open",
+                                      "HTTP connections open (the scrape's own included)",
+                                      registry=r)
+        self.connections_closed = Counter("collider_connections_closed",
+                                          "connections closed by a limit, by reason: "
+                                          "header-timeout, too-many-connections",
+                                          ["reason"], registry=r)
         self.request_seconds = Histogram("collider_request_seconds",
                                          "end-to-end latency of answered requests, seconds",
                                          ["route"], buckets=REQUEST_BUCKETS, registry=r)

@@ -31,10 +31,17 @@ class Problem(Exception):
         """The problem document of a query the contract refused (same status, code, detail)."""
         return cls(error.status, error.code, error.detail)
 
+    @property
+    def title(self) -> str:
+        return TITLES.get(self.status, "Error")
+
+    def document(self) -> bytes:
+        """The ``application/problem+json`` body."""
+        return json.dumps({"type": self.type, "title": self.title, "status": self.status,
+                           "detail": self.detail}).encode()
+
     def response(self) -> Response:
-        body = {"type": self.type, "title": TITLES.get(self.status, "Error"),
-                "status": self.status, "detail": self.detail}
-        return Response(json.dumps(body), status_code=self.status, headers=self.headers,
+        return Response(self.document(), status_code=self.status, headers=self.headers,
                         media_type=PROBLEM_JSON)
 
 

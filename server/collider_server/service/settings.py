@@ -55,6 +55,12 @@ class ServiceSettings(BaseSettings):
                                                       "auto, all cores but one (the event loop's)")
     body_timeout_s: float = Field(30.0, gt=0, description="longest wait for the next part of "
                                                           "a request body, s; then 408")
+    header_timeout_s: float = Field(10.0, gt=0, description="longest wait for a request's "
+                                                            "headers from a connection's opening "
+                                                            "or its previous response, s; then "
+                                                            "408 and the connection is closed")
+    max_connections: int = Field(4096, ge=1, description="most open connections; a new one "
+                                                         "beyond it gets 503 and is closed")
     graceful_shutdown_s: float = Field(30.0, gt=0, description="on SIGTERM, longest wait for "
                                                                "open requests, s; then they are "
                                                                "cancelled")
