@@ -68,18 +68,30 @@ class RetryPolicy:
         return min(delay, self.max_backoff_s)
 
 
+#: How a try failed before an answer came, as the transport loops classify it:
+#: ``REFUSED``: no connection was made, nothing was sent (safe to retry any request);
+#: ``CUT``: the connection closed or was reset before the whole answer came (a replica killed
+#: mid-answer, an idle keep-alive connection closed by a restart as the request went out): the
+#: server may have acted on it, so only an idempotent request is retried;
+#: ``OTHER``: anything else (a timeout, a TLS or proxy failure): raised at once.
+REFUSED, CUT, OTHER = "refused", "cut", "other"
+
+
 class Attempts:
     """The retry loop's decisions, shared by :class:`~collider_client.Client` and
     :class:`~collider_client.AsyncClient` (which only send and sleep): after each try, either
     the answer, or how long to wait before the next try, or the error to raise.
 
     A refused connection and a 429/503 answer are retried ``policy.max_retries`` times with
-    backoff (``Retry-After`` honoured); other transport failures and errors are raised at once.
+    backoff (``Retry-After`` honoured); so is a cut connection when the request is
+    ``idempotent`` (queries and listings are; admin calls are not); other transport failures and
+    errors are raised at once. All retries of one call share the same budget.
     """
 
-    def __init__(self, policy: RetryPolicy, url: str):
+    def __init__(self, policy: RetryPolicy, url: str, idempotent: bool):
         self.policy = policy
         self.url = url
+        self.idempotent = idempotent
         self.attempt = 0
 
     def _next_delay(self, retry_after_s: float | None) -> float | None:
@@ -89,9 +101,11 @@ class Attempts:
         self.attempt += 1
         return delay
 
-    def after_transport_error(self, exc: Exception, retryable: bool, error: Exception) -> float:
-        """The pause before the next try after a transport failure ``exc``; raises ``error``
-        when it is not ``retryable`` (only a refused connection is) or no try is left."""
+    def after_transport_error(self, failure: str, error: Exception) -> float:
+        """The pause before the next try after a transport ``failure`` (:data:`REFUSED`,
+        :data:`CUT` or :data:`OTHER`); raises ``error`` when it is not worth another try or no
+        try is left."""
+        retryable = failure == REFUSED or (failure == CUT and self.idempotent)
         delay = self._next_delay(None) if retryable else None
         if delay is None:
             raise error from None

@@ -2,7 +2,8 @@
 
 - remote: ``Client("http://127.0.0.1:8000")`` talks msgpack over HTTP to ``collider serve`` with a
   pooled connection (httpx), a timeout and retries with backoff on 429/503 (``Retry-After``
-  honoured) and on refused connections;
+  honoured), on refused connections, and, for queries (idempotent), on connections cut before
+  the whole answer came;
 - embedded: ``Client()`` or ``Client(models="models/")`` runs the engine in this process (needs the
   ``server`` extras).
 
@@ -20,8 +21,8 @@ import httpx
 
 from collider_contract import ModelInfo, ModelQuery, QueryError, QueryResult, SceneQuery, check_fields, wire
 
-from ._base import (USE_CLIENT_DEFAULT, Attempts, RetryPolicy, UseClientDefault, decode_models,
-                    decode_query, refusal)
+from ._base import (CUT, OTHER, REFUSED, USE_CLIENT_DEFAULT, Attempts, RetryPolicy,
+                    UseClientDefault, decode_models, decode_query, refusal)
 from ._exceptions import ConnectError, TimeoutError, TransportError
 
 DEFAULT_TIMEOUT_S = 30.0
@@ -89,6 +90,16 @@ def _answer(attempts: Attempts, response: httpx.Response) -> tuple[dict | None, 
                                  response.headers.get("retry-after"))
 
 
+def _failure(exc: httpx.TransportError) -> str:
+    """What kind of transport failure ``exc`` is, for :meth:`Attempts.after_transport_error`."""
+    if isinstance(exc, httpx.ConnectError):
+        return REFUSED
+    # The peer closed without (a whole) answer, or reset the connection while we read or wrote.
+    if isinstance(exc, (httpx.RemoteProtocolError, httpx.ReadError, httpx.WriteError)):
+        return CUT
+    return OTHER
+
+
 def _transport_error(exc: httpx.TransportError, url: str) -> TransportError:
     if isinstance(exc, httpx.TimeoutException):
         return TimeoutError(f"{url}: timed out ({type(exc).__name__})")
@@ -108,7 +119,7 @@ class Client:
     timeout_s : seconds per HTTP request (connect, read, write), None = no limit
     eps : default collision offset, world units (None = 1 mm)
     fields : default fields
-    retry : :class:`RetryPolicy` for 429/503 and refused connections
+    retry : :class:`RetryPolicy` for 429/503, refused connections and cut queries
     transport : an ``httpx.BaseTransport`` for special networks (remote only)
     """
 
@@ -158,7 +169,8 @@ class Client:
                                            pose_velocity)
         if self._embedded is not None:
             return self._embedded.query(model, query)
-        body = self._post(f"/v1/models/{model}/query", _with_deadline(query.to_body(), deadline_ms))
+        body = self._post(f"/v1/models/{model}/query", _with_deadline(query.to_body(), deadline_ms),
+                          idempotent=True)
         return decode_query(body, query.fields, scene=False)
 
     def scene_query(self, colliders: Sequence, points,
@@ -177,14 +189,15 @@ class Client:
         query = self._settings.scene_query(colliders, points, fields, eps, only_colliding, time)
         if self._embedded is not None:
             return self._embedded.scene_query(query)
-        body = self._post("/v1/scene/query", _with_deadline(query.to_body(), deadline_ms))
+        body = self._post("/v1/scene/query", _with_deadline(query.to_body(), deadline_ms),
+                          idempotent=True)
         return decode_query(body, query.fields, scene=True)
 
     def list_models(self) -> list[ModelInfo]:
         """Every model the server (or the embedded repository) can answer for."""
         if self._embedded is not None:
             return self._embedded.list_models()
-        return decode_models(self._send("GET", "/v1/models", None))
+        return decode_models(self._send("GET", "/v1/models", None, idempotent=True))
 
     def ready(self) -> bool:
         """True when the server answers ``/readyz`` with 200 (always True when embedded)."""
@@ -210,17 +223,17 @@ class Client:
 
     # -- transport --------------------------------------------------------------------------------
 
-    def _post(self, path: str, body: dict) -> dict:
-        return self._send("POST", path, wire.dumps(body, wire.MSGPACK))
+    def _post(self, path: str, body: dict, idempotent: bool) -> dict:
+        return self._send("POST", path, wire.dumps(body, wire.MSGPACK), idempotent)
 
-    def _send(self, method: str, path: str, content: bytes | None) -> dict:
-        attempts = Attempts(self._settings.retry, self._settings.server + path)
+    def _send(self, method: str, path: str, content: bytes | None, idempotent: bool) -> dict:
+        attempts = Attempts(self._settings.retry, self._settings.server + path, idempotent)
         while True:
             try:
                 response = self._http.request(method, path, content=content)
             except httpx.TransportError as exc:
-                delay = attempts.after_transport_error(
-                    exc, isinstance(exc, httpx.ConnectError), _transport_error(exc, attempts.url))
+                delay = attempts.after_transport_error(_failure(exc),
+                                                       _transport_error(exc, attempts.url))
             else:
                 body, delay = _answer(attempts, response)
                 if body is not None:
@@ -266,7 +279,8 @@ class AsyncClient:
         if self._embedded is not None:
             return await asyncio.to_thread(self._embedded.query, model, query)
         body = await self._post(f"/v1/models/{model}/query",
-                                _with_deadline(query.to_body(), deadline_ms))
+                                _with_deadline(query.to_body(), deadline_ms),
+                                idempotent=True)
         return decode_query(body, query.fields, scene=False)
 
     async def scene_query(self, colliders: Sequence, points,
@@ -278,14 +292,15 @@ class AsyncClient:
         query = self._settings.scene_query(colliders, points, fields, eps, only_colliding, time)
         if self._embedded is not None:
             return await asyncio.to_thread(self._embedded.scene_query, query)
-        body = await self._post("/v1/scene/query", _with_deadline(query.to_body(), deadline_ms))
+        body = await self._post("/v1/scene/query", _with_deadline(query.to_body(), deadline_ms),
+                                idempotent=True)
         return decode_query(body, query.fields, scene=True)
 
     async def list_models(self) -> list[ModelInfo]:
         """See :meth:`Client.list_models`."""
         if self._embedded is not None:
             return await asyncio.to_thread(self._embedded.list_models)
-        return decode_models(await self._send("GET", "/v1/models", None))
+        return decode_models(await self._send("GET", "/v1/models", None, idempotent=True))
 
     async def ready(self) -> bool:
         """See :meth:`Client.ready`."""
@@ -308,17 +323,18 @@ class AsyncClient:
     async def __aexit__(self, *exc) -> None:
         await self.aclose()
 
-    async def _post(self, path: str, body: dict) -> dict:
-        return await self._send("POST", path, wire.dumps(body, wire.MSGPACK))
+    async def _post(self, path: str, body: dict, idempotent: bool) -> dict:
+        return await self._send("POST", path, wire.dumps(body, wire.MSGPACK), idempotent)
 
-    async def _send(self, method: str, path: str, content: bytes | None) -> dict:
-        attempts = Attempts(self._settings.retry, self._settings.server + path)
+    async def _send(self, method: str, path: str, content: bytes | None,
+                    idempotent: bool) -> dict:
+        attempts = Attempts(self._settings.retry, self._settings.server + path, idempotent)
         while True:
             try:
                 response = await self._http.request(method, path, content=content)
             except httpx.TransportError as exc:
-                delay = attempts.after_transport_error(
-                    exc, isinstance(exc, httpx.ConnectError), _transport_error(exc, attempts.url))
+                delay = attempts.after_transport_error(_failure(exc),
+                                                       _transport_error(exc, attempts.url))
             else:
                 body, delay = _answer(attempts, response)
                 if body is not None:
