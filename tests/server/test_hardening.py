@@ -291,3 +291,78 @@ def test_the_app_refuses_a_router_dependency_the_fast_path_would_skip(monkeypatc
     monkeypatch.setattr(route, "dependencies", [*route.dependencies, Depends(audit)])
     with pytest.raises(RuntimeError, match="audit"):
         create_app(ServiceSettings())
+
+
+# -- the body limit itself, and what follows a refused body (issue 21, items 3 and 13) ----------
+
+
+@pytest.fixture(scope="module")
+def small_body_server(repo):
+    with ServerThread(models=repo, device="cpu", max_body_bytes=2048) as server:
+        yield server
+
+
+def padded_json(size: int) -> bytes:
+    """A valid JSON query of exactly ``size`` bytes (spaces before the closing brace)."""
+    body = b'{"points": [[0.1, 0, 0], [0, 0.2, 0]]'
+    return body + b" " * (size - len(body) - 1) + b"}"
+
+
+def raw_exchange(port: int, request: bytes) -> bytes:
+    """Send ``request`` on a fresh connection; everything answered until the server closes it
+    (or stops sending for 5 s)."""
+    with socket.create_connection(("127.0.0.1", port), timeout=5) as sock:
+        sock.sendall(request)
+        answer = b""
+        try:
+            while chunk := sock.recv(65536):
+                answer += chunk
+        except socket.timeout:
+            answer += b"<still open>"
+    return answer
+
+
+@pytest.mark.parametrize("chunked", [False, True], ids=["content-length", "chunked"])
+def test_a_body_of_exactly_max_body_bytes_is_accepted_and_one_more_byte_refused(
+        small_body_server, engine, chunked):
+    for size, status in ((2048, 200), (2049, 413)):
+        body = padded_json(size)
+        assert len(body) == size
+        if chunked:  # no declared length: the limit is met while reading
+            framing = b"Transfer-Encoding: chunked\r\n\r\n"
+            payload = b"".join(f"{len(part):x}\r\n".encode() + part + b"\r\n"
+                               for part in (body[:1000], body[1000:])) + b"0\r\n\r\n"
+        else:
+            framing = f"Content-Length: {size}\r\n\r\n".encode()
+            payload = body
+        answer = raw_exchange(small_body_server.port,
+                              f"POST {QUERY} HTTP/1.1\r\nHost: x\r\nContent-Type: {wire.JSON}\r\n"
+                              "Connection: close\r\n".encode() + framing + payload)
+        head, _, content = answer.partition(b"\r\n\r\n")
+        assert head.startswith(f"HTTP/1.1 {status}".encode()), (size, answer[:300])
+        if status == 200:
+            got = json.loads(content)["distance"]
+            want = engine["sphere"].query(np.array([[0.1, 0, 0], [0, 0.2, 0]])).distance
+            np.testing.assert_allclose(got, want, rtol=1e-6)
+        else:
+            assert strict_json(content)["type"] == "body-too-large"
+
+
+def test_a_declared_oversized_body_is_refused_and_its_connection_closed(small_body_server):
+    """The 413 comes before the body is read: the connection must close, or a client that sends
+    its next request instead of the refused body would have it read as that body."""
+    with socket.create_connection(("127.0.0.1", small_body_server.port), timeout=5) as sock:
+        sock.sendall(f"POST {QUERY} HTTP/1.1\r\nHost: x\r\nContent-Type: {wire.JSON}\r\n"
+                     "Content-Length: 4096\r\n\r\n".encode())
+        answer = b""
+        while b"}" not in answer:
+            answer += sock.recv(65536)
+        head, _, problem = answer.partition(b"\r\n\r\n")
+        assert head.startswith(b"HTTP/1.1 413") and b"connection: close" in head.lower(), answer
+        assert strict_json(problem)["type"] == "body-too-large"
+        try:
+            sock.sendall(b"GET /v1/models HTTP/1.1\r\nHost: x\r\n\r\n")
+            rest = sock.recv(65536)
+        except (ConnectionResetError, BrokenPipeError):
+            rest = b""
+        assert rest == b"", rest[:300]  # closed: nothing taken as a body, nothing answered

@@ -51,8 +51,10 @@ async def read_body(request: Request, max_bytes: int, timeout_s: float) -> bytes
     one (nginx's ``client_body_timeout``): a stalled upload must not hold its connection forever."""
     declared = request.headers.get("content-length")
     if declared is not None and declared.isdigit() and int(declared) > max_bytes:
+        # Closed after the answer: the unread body must not be taken for the next request.
         raise Problem(413, "body-too-large",
-                      f"body of {int(declared)} bytes exceeds max_body_bytes={max_bytes}")
+                      f"body of {int(declared)} bytes exceeds max_body_bytes={max_bytes}",
+                      {"Connection": "close"})
     chunks, size = [], 0
     receive = request.receive
     while True:
