@@ -53,6 +53,10 @@ class Browser:
         self.ws = connect(pages[0]["webSocketDebuggerUrl"], max_size=None, open_timeout=30)
         self._ids = itertools.count(1)
         self.errors: list[str] = []
+        #: Text typed into every ``window.prompt`` (``None``: dialogs are left open); the
+        #: messages of the dialogs answered.
+        self.prompt_answer: str | None = None
+        self.dialogs: list[str] = []
         for method in ("Runtime.enable", "Log.enable", "Page.enable"):
             self.call(method)
 
@@ -91,6 +95,11 @@ class Browser:
         elif method == "Runtime.consoleAPICalled" and params.get("type") == "error":
             self.errors.append("console.error: " + " ".join(
                 str(a.get("value", a.get("description", ""))) for a in params.get("args", [])))
+        elif method == "Page.javascriptDialogOpening" and self.prompt_answer is not None:
+            # Answered without waiting: the page's script is paused until the dialog closes.
+            self.dialogs.append(params.get("message", ""))
+            self.ws.send(json.dumps({"id": next(self._ids), "method": "Page.handleJavaScriptDialog",
+                                     "params": {"accept": True, "promptText": self.prompt_answer}}))
         elif method == "Log.entryAdded" and params.get("entry", {}).get("level") == "error":
             entry = params["entry"]
             self.errors.append(f"log: {entry.get('text')} {entry.get('url', '')}")
@@ -105,6 +114,13 @@ class Browser:
             self._record(message)
             if message.get("method") == "Page.loadEventFired":
                 return
+
+    def evaluate(self, expression: str):
+        """The value of a JavaScript ``expression`` in the page (JSON-serialisable)."""
+        result = self.call("Runtime.evaluate", expression=expression, returnByValue=True)
+        if "exceptionDetails" in result:
+            raise RuntimeError(f"{expression}: {result['exceptionDetails']}")
+        return result["result"].get("value")
 
     def screenshot(self):
         """The page as a PIL RGB image."""

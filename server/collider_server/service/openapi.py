@@ -6,6 +6,9 @@ The query routes read their bodies themselves (msgpack arrays are decoded withou
 FastAPI cannot infer their schemas; they are written here once. What JSON Schema cannot say is
 in the descriptions: a pose must be rigid (the fuzzer maps its generated matrices to rigid ones),
 and a msgpack array map's ``data`` must hold exactly ``prod(shape) * itemsize`` bytes.
+
+The document is OpenAPI 3.1 (JSON Schema 2020-12: ``prefixItems``, ``const``); the page is Swagger
+UI 5, which reads it (Swagger UI 4 cannot: "Unable to render this definition").
 """
 
 from __future__ import annotations
@@ -184,21 +187,34 @@ router = APIRouter(tags=["docs"], include_in_schema=False)
 
 _PAGE = """<!doctype html>
 <html lang="en"><head><meta charset="utf-8"><title>neural-collider API</title>
-<link rel="stylesheet" href="/docs/assets/swagger-ui.css"></head>
+<link rel="stylesheet" href="/docs/assets/swagger-ui.css">
+<link rel="icon" type="image/png" href="/docs/assets/favicon-32x32.png"></head>
 <body><div id="swagger-ui"></div>
 <script src="/docs/assets/swagger-ui-bundle.js"></script>
 <script>
-// The schema needs the service token when one is set: ask for it once, then send it with every
-// request the page makes (the token stays in this tab's memory).
+// The schema needs the service token when the server has one (the server says so below): ask
+// for it first, then send it with every request the page makes (it stays in this tab's memory).
+const NEEDS_TOKEN = __NEEDS_TOKEN__;
 let token = null;
 async function start() {
-  let response = await fetch("/openapi.json");
-  if (response.status === 401) {
-    token = window.prompt("Service token (COLLIDER_TOKEN):");
-    response = await fetch("/openapi.json", {headers: {Authorization: "Bearer " + token}});
+  let question = "Service token (COLLIDER_TOKEN):";
+  while (true) {
+    if (NEEDS_TOKEN) {
+      token = window.prompt(question);
+      if (token === null) {
+        document.getElementById("swagger-ui").textContent = "The API description needs the "
+          + "service token (COLLIDER_TOKEN); reload the page to enter it.";
+        return;
+      }
+    }
+    const headers = token ? {Authorization: "Bearer " + token} : {};
+    var response = await fetch("/openapi.json", {headers: headers});
+    if (response.status !== 401) break;
+    question = "That token was refused. Service token (COLLIDER_TOKEN):";
   }
   SwaggerUIBundle({
-    spec: await response.json(), dom_id: "#swagger-ui",
+    // validatorUrl null: no badge fetched from the public validator (nothing leaves the page).
+    spec: await response.json(), dom_id: "#swagger-ui", validatorUrl: null,
     requestInterceptor: (request) => {
       if (token) request.headers.Authorization = "Bearer " + token;
       return request;
@@ -208,7 +224,7 @@ async function start() {
 start();
 </script></body></html>
 """
-_ASSETS = ("swagger-ui.css", "swagger-ui-bundle.js")
+_ASSETS = ("swagger-ui.css", "swagger-ui-bundle.js", "favicon-32x32.png")
 
 
 def _assets_dir() -> Path:
@@ -223,11 +239,12 @@ async def openapi_schema(request: Request):
 
 
 @router.get("/docs")
-async def docs_page():
+async def docs_page(request: Request):
     """The page and its assets are the installed package's static files (they hold nothing
     secret, and a browser cannot send a bearer token for a page load); the schema it loads
-    needs the token."""
-    return HTMLResponse(_PAGE)
+    needs the token, which the page asks for when the server has one."""
+    needs_token = bool(request.app.state.collider.settings.token)
+    return HTMLResponse(_PAGE.replace("__NEEDS_TOKEN__", "true" if needs_token else "false"))
 
 
 @router.get("/docs/assets/{name}")
