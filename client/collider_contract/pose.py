@@ -141,8 +141,12 @@ def as_pose(pose: "Pose | np.ndarray | list | None") -> Pose:
     if not np.allclose(m[3], [0.0, 0.0, 0.0, 1.0], atol=1e-9):
         raise PoseError(f"pose bottom row must be [0, 0, 0, 1], got {m[3].tolist()}")
     block = m[:3, :3]
-    gram = block.T @ block
+    with np.errstate(over="ignore", invalid="ignore"):  # entries near 1e300: refused just below
+        gram = block.T @ block
     scale_sq = float(np.trace(gram) / 3.0)
+    if not np.isfinite(scale_sq):
+        raise PoseError(f"pose scale is outside [{1.0 / MAX_SCALE:g}, {MAX_SCALE:g}]: its 3x3 "
+                        f"block has an entry of {np.abs(block).max():g}")
     if scale_sq <= 1e-24:
         raise PoseError("pose rotation block is zero (scale 0)")
     if not np.allclose(gram / scale_sq, np.eye(3), atol=ORTHONORMAL_TOLERANCE):

@@ -90,7 +90,8 @@ def test_finite_input_never_gets_a_non_finite_answer(server, case):
         if path != QUERY:
             body = wire.loads(raw, media)
             pose = body.pop("pose", None)
-            body["colliders"] = [{"model": "sphere", "pose": pose}]
+            body["colliders"] = [{"model": "sphere"} if pose is None
+                                 else {"model": "sphere", "pose": pose}]
             raw_body = wire.dumps(body, media)
         else:
             raw_body = raw
@@ -366,3 +367,44 @@ def test_a_declared_oversized_body_is_refused_and_its_connection_closed(small_bo
         except (ConnectionResetError, BrokenPipeError):
             rest = b""
         assert rest == b"", rest[:300]  # closed: nothing taken as a body, nothing answered
+
+
+# -- null is not a value of any key; huge pose entries warn nothing (issue 21, item 5) ----------
+
+
+@pytest.mark.parametrize("key", ["fields", "pose", "eps", "deadline_ms", "only_colliding"])
+def test_a_null_value_is_422_naming_the_key(server, key):
+    points = [[0.1, 0, 0]]
+    for path, body in ((QUERY, {"points": points, key: None}),
+                       ("/v1/scene/query", {"points": points, "colliders": [{"model": "sphere"}],
+                                            key: None})):
+        if path != QUERY and key == "pose":  # a scene's poses are per collider
+            body = {"points": points, "colliders": [{"model": "sphere", "pose": None}]}
+        response = httpx.post(server.url + path, content=json.dumps(body),
+                              headers={"content-type": wire.JSON})
+        problem = strict_json(response.text)
+        assert response.status_code == 422, (path, key, problem)
+        want = "bad-colliders" if path != QUERY and key == "pose" else \
+            f"bad-{key.replace('_', '-')}"
+        assert problem["type"] == want, problem
+
+
+def test_a_pose_with_huge_entries_is_refused_without_a_numpy_warning(server, recwarn):
+    import warnings
+
+    from collider_contract import PoseError, as_pose
+
+    for value, message in ((1e300, "pose scale is outside .* entry of 1e\\+300"),
+                           (-1e200, "pose scale is outside .* entry of 1e\\+200"),
+                           (2e6, "not rigid")):
+        pose = np.eye(4)
+        pose[0, 1] = value
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")  # an overflow RuntimeWarning fails the test
+            with pytest.raises(PoseError, match=message):
+                as_pose(pose)
+        response = httpx.post(server.url + QUERY, headers={"content-type": wire.MSGPACK},
+                              content=wire.dumps({"points": np.zeros((1, 3)), "pose": pose}))
+        assert response.status_code == 422 and response.json()["type"] == "bad-pose"
+    scaled = np.diag([1e6, 1e6, 1e6, 1.0])  # the largest scale allowed is still accepted
+    assert as_pose(scaled).scale == 1e6
