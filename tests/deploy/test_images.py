@@ -89,10 +89,30 @@ def test_every_copied_path_exists_and_passes_the_dockerignore():
                 continue
             *sources, _ = args.split()
             for source in sources:
-                source = source.rstrip("/").replace("${MODELS_DIR}", "models")
+                # A build argument in a source could name a folder the .dockerignore drops.
+                assert "$" not in source, f"{stage}: COPY {source}: a variable source"
+                source = source.rstrip("/")
                 assert (REPO / source).exists(), f"{stage}: COPY {source}: no such path"
                 assert dockerignore_allows(source, patterns), f"{stage}: {source} is ignored"
     assert not dockerignore_allows(".venv", patterns) and not dockerignore_allows("tests", patterns)
+
+
+@pytest.mark.parametrize("stage", FINAL_STAGES)
+def test_each_image_holds_the_models_once(stage):
+    """The models are copied to /models in the final stage only: the build stage installs the
+    package without them (pyproject's data-files would put a second copy into the venv)."""
+    all_stages = stages()
+    final_copies = [args for kw, args in all_stages[stage] if kw == "COPY"]
+    assert final_copies.count("models/ /models/") == 1
+    build = next(args.split("=", 1)[1].split()[0] for kw, args in all_stages[stage]
+                 if kw == "COPY" and args.startswith("--from="))
+    for kw, args in all_stages[build]:
+        if kw == "COPY":
+            sources = args.split()[:-1]
+            assert all(s == "models/README.md" or not s.startswith("models") for s in sources), \
+                f"{build}: COPY {args} puts models into the venv"
+    assert any(kw == "COPY" and args == "models/README.md models/README.md"
+               for kw, args in all_stages[build]), "pyproject's data-files need models/README.md"
 
 
 def run_healthcheck(env: dict[str, str]) -> subprocess.CompletedProcess:
@@ -149,6 +169,8 @@ def test_compose_settings_are_service_settings_and_the_template_is_mounted():
         unknown = set(service["environment"]) - fields
         assert not unknown, f"not settings of collider serve: {unknown}"
     collider = compose["services"]["collider"]
+    # N replicas on one machine: each must not take all cores but one (the server's default).
+    assert collider["environment"]["COLLIDER_COMPUTE_THREADS"] == "${COLLIDER_COMPUTE_THREADS:-1}"
     models = [v for v in collider["volumes"] if v["target"] == "/models"]
     assert models and models[0]["read_only"] is True and collider["read_only"] is True
     nginx = compose["services"]["nginx"]

@@ -2,7 +2,10 @@
 OpenAPI schemas (kubernetes-validate, strict), and what a schema cannot see: the kustomizations
 name files that exist, the Service/PDB/HPA point at the Deployment, the settings are settings of
 ``collider serve``, the HPA's metric is one the service exports and the adapter rule serves, the
-grace period matches compose, the CPU and GPU Deployments stay in step."""
+grace period matches compose, the CPU and GPU Deployments stay in step; and, on the rendered
+manifests (a small reader of the kustomizations, checked against ``kubectl kustomize`` where it is
+installed): each pod is scraped through exactly one Service, the HPA alone sets the replica count,
+no placeholder secret reaches a pod (issue 21, items 6-9)."""
 
 from __future__ import annotations
 
@@ -38,21 +41,54 @@ def kustomization_files(folder: Path) -> list[Path]:
     return found
 
 
+def common_labels(folder: Path) -> dict[str, str]:
+    """The ``labels`` pairs a kustomization and the ones it includes put on every resource's
+    metadata (``includeSelectors``/``includeTemplates`` are not used here: metadata only)."""
+    kustomization = documents(folder / "kustomization.yaml")[0]
+    labels = {}
+    for entry in kustomization.get("resources", []):
+        if (folder / entry).is_dir():
+            labels.update(common_labels((folder / entry).resolve()))
+    for group in kustomization.get("labels", []):
+        assert not group.get("includeSelectors") and not group.get("includeTemplates")
+        labels.update(group["pairs"])
+    return labels
+
+
+def render(folder: Path) -> list[dict]:
+    """``kubectl kustomize folder``, for what these kustomizations use (resources, labels)."""
+    kustomization = documents(folder / "kustomization.yaml")[0]
+    assert set(kustomization) <= {"apiVersion", "kind", "resources", "labels"}, \
+        f"{folder}: the reader knows resources and labels only"
+    rendered = []
+    for entry in kustomization["resources"]:
+        target = (folder / entry).resolve()
+        rendered += render(target) if target.is_dir() else copy.deepcopy(documents(target))
+    for group in kustomization.get("labels", []):
+        for doc in rendered:
+            doc["metadata"].setdefault("labels", {}).update(group["pairs"])
+    return rendered
+
+
 def resources(overlay: str) -> dict[tuple[str, str], dict]:
     """What ``kubectl apply -k overlays/<overlay>`` would create, by (kind, name)."""
     found = {}
-    for path in kustomization_files(K8S / "overlays" / overlay):
-        for doc in documents(path):
-            key = (doc["kind"], doc["metadata"]["name"])
-            assert key not in found, f"{key} twice"
-            found[key] = doc
+    for doc in render(K8S / "overlays" / overlay):
+        key = (doc["kind"], doc["metadata"]["name"])
+        assert key not in found, f"{key} twice"
+        found[key] = doc
     return found
+
+
+#: Every kustomization a user applies (docker/README.md, "A cluster").
+KUSTOMIZATIONS = ("overlays/cpu", "overlays/gpu", "monitoring", "router")
 
 
 def all_core_resources() -> list[tuple[Path, dict]]:
     paths = sorted(set(kustomization_files(K8S / "overlays" / "cpu"))
                    | set(kustomization_files(K8S / "overlays" / "gpu"))
-                   | set(kustomization_files(K8S / "router")))
+                   | set(kustomization_files(K8S / "router"))
+                   | {K8S / "models-loader.yaml"})
     return [(p, d) for p in paths for d in documents(p)]
 
 
@@ -103,11 +139,13 @@ def test_deployment_is_wired_to_the_other_resources(overlay):
     assert all(p["port"] in port_names for p in probes.values())
     for ref in c["envFrom"]:
         assert ("ConfigMap", ref["configMapRef"]["name"]) in found
-    secret = found[("Secret", "collider-tokens")]["stringData"]
+    # The Secret is made by hand with the command in base/kustomization.yaml (issue 21, item 8).
+    made = (K8S / "base" / "kustomization.yaml").read_text()
     for env in c["env"]:
         if "valueFrom" in env:
             ref = env["valueFrom"]["secretKeyRef"]
-            assert ref["name"] == "collider-tokens" and ref["key"] in secret
+            assert f"create secret generic {ref['name']}" in made
+            assert f"--from-literal={ref['key']}=" in made
     claims = [v["persistentVolumeClaim"] for v in pod["volumes"] if "persistentVolumeClaim" in v]
     assert claims and all(("PersistentVolumeClaim", c_["claimName"]) in found for c_ in claims)
     assert all(c_["readOnly"] for c_ in claims)
@@ -231,3 +269,124 @@ def test_router_runs_the_compose_nginx_file_against_the_headless_service():
     assert router[("Service", "collider-router")]["spec"]["selector"].items() <= \
         deployment["spec"]["template"]["metadata"]["labels"].items()
     assert pod["securityContext"]["runAsNonRoot"] and nginx["securityContext"]["readOnlyRootFilesystem"]
+
+
+# -- the rendered manifests (issue 21, items 6-9) ----------------------------------------------
+
+
+@pytest.mark.parametrize("folder", KUSTOMIZATIONS)
+def test_the_reader_renders_as_kubectl_kustomize(folder):
+    import shutil
+    import subprocess
+
+    kubectl = shutil.which("kubectl")
+    if kubectl is None:
+        pytest.skip("kubectl is not installed: the reader alone renders the manifests")
+    result = subprocess.run([kubectl, "kustomize", str(K8S / folder)], capture_output=True,
+                            text=True, timeout=120)
+    assert result.returncode == 0, result.stderr
+    key = lambda d: (d["kind"], d["metadata"]["name"])  # noqa: E731
+    assert sorted([d for d in yaml.safe_load_all(result.stdout) if d], key=key) == \
+        sorted(render(K8S / folder), key=key)
+
+
+def cluster(overlay: str) -> list[dict]:
+    """Everything the README applies for one variant: the overlay, monitoring and the router."""
+    return render(K8S / "overlays" / overlay) + render(K8S / "monitoring") + render(K8S / "router")
+
+
+def selects(selector: dict, labels: dict) -> bool:
+    return bool(selector) and selector.items() <= labels.items()
+
+
+@pytest.mark.parametrize("overlay", OVERLAYS)
+def test_each_collider_pod_is_scraped_through_exactly_one_service(overlay):
+    """A pod behind two monitored Services is scraped twice: the adapter's sum by (pod) doubles
+    the queue depth, the HPA scales at half its target and the alerts fire at half theirs."""
+    docs = cluster(overlay)
+    services = [d for d in docs if d["kind"] == "Service"]
+    monitors = [d for d in docs if d["kind"] == "ServiceMonitor"]
+    assert monitors
+    for deployment in (d for d in docs if d["kind"] == "Deployment"):
+        pod = deployment["spec"]["template"]["metadata"]["labels"]
+        ports = {p["name"] for c in deployment["spec"]["template"]["spec"]["containers"]
+                 for p in c.get("ports", [])}
+        scraped = [(m["metadata"]["name"], s["metadata"]["name"]) for m in monitors
+                   for s in services
+                   if selects(m["spec"]["selector"]["matchLabels"], s["metadata"]["labels"])
+                   and selects(s["spec"]["selector"], pod)
+                   and any(e["port"] in {p["name"] for p in s["spec"]["ports"]} for e in
+                           m["spec"]["endpoints"])]
+        if deployment["metadata"]["name"] == "collider":
+            assert scraped == [("collider", "collider-replicas")], scraped
+            assert all(e["port"] in ports for m in monitors for e in m["spec"]["endpoints"])
+        else:  # the router (nginx) has no /metrics of its own
+            assert scraped == [], (deployment["metadata"]["name"], scraped)
+
+
+@pytest.mark.parametrize("overlay", OVERLAYS)
+def test_no_deployment_sets_replicas_where_an_hpa_scales_it(overlay):
+    """``kubectl apply -k`` would reset the HPA's count to the manifest's every time."""
+    docs = cluster(overlay)
+    targets = {(h["spec"]["scaleTargetRef"]["kind"], h["spec"]["scaleTargetRef"]["name"])
+               for h in docs if h["kind"] == "HorizontalPodAutoscaler"}
+    assert ("Deployment", "collider") in targets
+    for doc in docs:
+        if (doc["kind"], doc["metadata"]["name"]) in targets:
+            assert "replicas" not in doc["spec"], f"{doc['metadata']['name']} sets replicas"
+
+
+def secret_values(doc: dict) -> list[str]:
+    import base64
+
+    return [*doc.get("stringData", {}).values(),
+            *(base64.b64decode(v).decode() for v in doc.get("data", {}).values())]
+
+
+def test_no_placeholder_secret_reaches_a_pod():
+    """No rendered Secret, ConfigMap or env value holds a token; the Secret is made by hand, and
+    the service refuses a placeholder token (tests/server/test_operations.py)."""
+    from collider_server.service.settings import PLACEHOLDER_TOKENS
+
+    everything = [d for overlay in OVERLAYS for d in cluster(overlay)] + \
+        documents(K8S / "models-loader.yaml")
+    assert not [d for d in everything if d["kind"] == "Secret"], "a Secret ships with the files"
+    for doc in everything:
+        values = secret_values(doc) if doc["kind"] == "Secret" else \
+            [str(v) for v in doc.get("data", {}).values()] if doc["kind"] == "ConfigMap" else []
+        pod = doc.get("spec", {}).get("template", {}).get("spec") or doc.get("spec", {})
+        for c in pod.get("containers", []):
+            values += [str(e.get("value", "")) for e in c.get("env", [])]
+        assert not {v.strip().lower() for v in values} & PLACEHOLDER_TOKENS, doc["metadata"]
+    for overlay in OVERLAYS:
+        env = {e["name"]: e for e in container(overlay)["env"]}
+        token = env["COLLIDER_TOKEN"]["valueFrom"]["secretKeyRef"]
+        assert not token.get("optional"), "without its token a replica must not start"
+        admin = env["COLLIDER_ADMIN_TOKEN"]["valueFrom"]["secretKeyRef"]
+        assert admin["optional"] is True  # no admin-token key: admin routes off
+    # The documented command makes the query token only: admin stays off unless asked for.
+    made = (K8S / "base" / "kustomization.yaml").read_text()
+    command = re.search(r"kubectl create secret generic collider-tokens.*", made).group(0)
+    assert "--from-literal=token=$(openssl rand" in command and "admin-token" not in command
+
+
+def test_monitoring_is_found_by_a_stock_kube_prometheus_stack_and_the_adapter_finds_prometheus():
+    monitoring = render(K8S / "monitoring")
+    for doc in monitoring:
+        assert doc["metadata"]["labels"].get("release"), f"{doc['kind']} lacks the release label"
+    adapter = documents(K8S / "monitoring" / "prometheus-adapter-values.yaml")[0]
+    assert adapter["prometheus"]["url"].startswith("http://") and adapter["prometheus"]["port"]
+
+
+def test_the_model_claim_can_be_filled_and_is_read_only_to_the_replicas():
+    claim = resources("cpu")[("PersistentVolumeClaim", "collider-models")]
+    assert claim["spec"]["accessModes"] == ["ReadWriteMany"]
+    (loader,) = documents(K8S / "models-loader.yaml")
+    kubernetes_validate.validate(loader, MIN_VERSION, strict=True)
+    (volume,) = loader["spec"]["volumes"]
+    assert volume["persistentVolumeClaim"] == {"claimName": "collider-models"}  # read-write
+    (mount,) = loader["spec"]["containers"][0]["volumeMounts"]
+    assert mount["mountPath"] == "/models" and not mount.get("readOnly")
+    assert loader["spec"]["securityContext"]["runAsUser"] == \
+        resources("cpu")[("Deployment", "collider")]["spec"]["template"]["spec"][
+            "securityContext"]["runAsUser"]

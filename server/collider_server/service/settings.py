@@ -20,6 +20,10 @@ from pydantic_settings import (
 from .batching import BatchSettings
 
 LOG_LEVELS = ("critical", "error", "warning", "info", "debug")
+#: Tokens that examples and templates use as placeholders: a server holding one would be open to
+#: anyone who read them, so it refuses to start.
+PLACEHOLDER_TOKENS = frozenset({"change-me", "change-me-too", "changeme", "replace-me", "secret",
+                                "token"})
 
 
 class ServiceSettings(BaseSettings):
@@ -78,6 +82,14 @@ class ServiceSettings(BaseSettings):
         if level not in LOG_LEVELS:
             raise ValueError(f"must be one of {', '.join(LOG_LEVELS)}, got {value!r}")
         return level
+
+    @field_validator("token", "admin_token")
+    @classmethod
+    def _not_a_placeholder(cls, value: str | None) -> str | None:
+        if value is not None and value.strip().lower() in PLACEHOLDER_TOKENS:
+            raise ValueError(f"{value!r} is a placeholder, not a secret; set a token of your "
+                             "own, e.g. $(openssl rand -hex 24)")
+        return value
 
     @model_validator(mode="after")
     def _request_fits_queue(self) -> "ServiceSettings":
