@@ -142,3 +142,34 @@ def _free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
+
+
+@pytest.mark.parametrize("flags, up", [([], "+y"), (["--fit-size", "0.3"], "+y"),
+                                       (["--scale", "2"], "+y"), (["--z-up"], "+z"),
+                                       (["--z-up", "--fit-size", "0.3"], "+z")])
+def test_view_up_follows_the_placements_z_up_flag(tmp_path, capsys, flags, up):
+    """A Y-up mesh placed with a scale alone stays Y-up in the view (issue 21, item 10): only the
+    placement's --z-up turns it."""
+    import trimesh
+
+    from collider_cli import main
+    from collider_cli.commands.view import view_up
+    from collider_server.engine.repository import ModelRepository
+
+    mesh_file = tmp_path / "box.obj"
+    trimesh.creation.box(extents=(0.2, 0.1, 0.05)).export(mesh_file)
+    assert main(["bake", str(mesh_file), "--kind", "mesh", "--name", "box", *flags,
+                 "--models", str(tmp_path), "--quiet"]) == 0, capsys.readouterr().err
+    info = ModelRepository(tmp_path).load("box", "cpu").info
+    assert view_up(info.source["transform"]) == up
+
+
+def test_view_up_of_the_shipped_models():
+    from collider_cli.commands.view import view_up
+    from collider_server.engine.repository import ModelRepository
+    from tests.conftest import REPO_ROOT
+
+    repository = ModelRepository(REPO_ROOT / "models")
+    # dragon: made with --z-up --fit-size (a scaled rotation); bunny: kept as is.
+    assert view_up(repository.load("dragon", "cpu").info.source["transform"]) == "+z"
+    assert view_up(repository.load("bunny", "cpu").info.source["transform"]) == "+y"

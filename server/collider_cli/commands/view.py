@@ -41,8 +41,8 @@ def register(subparsers) -> None:
     view.add_argument("--clip-mm", type=float, default=None,
                       help="error colour scale, +- mm (default: p95 of the surface's |error|)")
     view.add_argument("--up", default=None, choices=["+x", "+y", "+z", "-x", "-y", "-z"],
-                      help="up axis of the collider frame in the view (default +z, or +y for a "
-                           "model whose source transform kept a Y-up mesh as is)")
+                      help="up axis of the collider frame in the view (default +z for a model "
+                           "placed with --z-up, else +y: the mesh file's Y-up)")
     view.add_argument("--host", default="127.0.0.1",
                       help="address to listen on (default 127.0.0.1; another warns: no authentication)")
     view.add_argument("--port", type=int, default=8080, help="port (default 8080)")
@@ -88,13 +88,22 @@ def run_collider_view(args: argparse.Namespace) -> int:
         if sha and sha != mesh.sha256:
             print(f"collider view: warning: {args.mesh} is not the mesh {collider.info.name} was "
                   "made from (sha256 differs)", file=sys.stderr)
-    up = args.up or ("+z" if not np.allclose(stored, np.eye(4)) else "+y")
+    up = args.up or view_up(stored)
     server = serve_collider_view(collider, mesh, host=args.host, port=args.port,
                                  resolution=args.resolution, up=up, clip_mm=args.clip_mm,
                                  show_progress=not args.quiet)
     wait_until_interrupted(server, f"view of {collider.info.name} at {url_of(server)}  "
                                    "(Ctrl-C to stop)")
     return 0
+
+
+def view_up(transform) -> str:
+    """The view's up axis for a model made with the placement ``transform`` (its stored
+    ``source["transform"]``): +z when the placement turned a Y-up mesh Z-up (``--z-up``), else +y
+    (the mesh file's own Y-up, whatever its scale)."""
+    from collider_server.making.placement import MeshPlacement
+
+    return "+z" if MeshPlacement.z_up_of(transform) else "+y"
 
 
 def run_replay(args: argparse.Namespace) -> int:

@@ -73,6 +73,15 @@ class MeshPlacement:
             scale = self.fit_size / float(np.ptp(mesh.vertices, axis=0).max())
         return np.diag([scale, scale, scale, 1.0]) @ rotation
 
+    @staticmethod
+    def z_up_of(transform) -> bool:
+        """Whether the placement that made ``transform`` (a model's stored
+        ``source["transform"]``, 4x4) had ``z_up``: its rotation, the uniform scale divided out,
+        is :data:`Y_UP_TO_Z_UP`'s. A plain scale (``--scale``, ``--fit-size``) is not."""
+        block = np.asarray(transform, dtype=np.float64)[:3, :3]
+        scale = float(np.cbrt(np.linalg.det(block)))
+        return scale > 0 and bool(np.allclose(block / scale, Y_UP_TO_Z_UP[:3, :3], atol=1e-9))
+
     def apply(self, mesh: Mesh) -> tuple[Mesh, np.ndarray]:
         """The placed mesh and the transform applied (stored in the model's ``source``)."""
         transform = self.transform(mesh)
