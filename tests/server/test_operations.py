@@ -69,6 +69,33 @@ def test_concurrent_callers_are_coalesced_and_each_gets_its_own_answers(repo, en
         assert batches < len(inputs) / 2, f"{batches} batches for {len(inputs)} requests"
 
 
+def test_coalesced_requests_that_differ_only_in_eps_get_their_own_contacts(repo, engine):
+    """Same points, pose and fields, different eps, in one batch (issue 21, item 11): each gets
+    the contacts and collisions of its own eps, not those of the first request of its group."""
+    fields = ["distance", "contact", "collides"]
+    points = sample_points(400, 21)
+    eps_values = [0.001, 0.01, 0.03, 0.06]
+    # A batch waits up to 2 s for more points: the four concurrent requests share one.
+    with ServerThread(models=repo, device="cpu", max_wait_ms=2000) as server:
+        barrier = threading.Barrier(len(eps_values))
+
+        def call(eps):
+            barrier.wait()
+            return decode(post(f"{server.url}/v1/models/sphere/query",
+                               {"points": points, "fields": fields, "eps": eps}))
+
+        with ThreadPoolExecutor(len(eps_values)) as pool:
+            results = list(pool.map(call, eps_values))
+        assert metric(server.url, 'collider_batch_points_count{model="sphere"}') == 1
+    counts = []
+    for eps, got in zip(eps_values, results):
+        want = engine["sphere"].query(points, fields, eps=eps)
+        np.testing.assert_array_equal(got["contact"], want.contact)
+        np.testing.assert_array_equal(got["collides"], want.collides)
+        counts.append(int(got["collides"].sum()))
+    assert counts == sorted(counts) and len(set(counts)) == len(counts)  # the eps mattered
+
+
 def test_large_request_is_split_across_batches(repo, engine):
     with ServerThread(models=repo, device="cpu", max_batch_points=256) as server:
         points = sample_points(2000, 7)
