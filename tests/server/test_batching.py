@@ -793,6 +793,36 @@ def test_a_batch_waits_max_wait_ms_from_its_oldest_request_on_the_batchers_clock
     np.testing.assert_array_equal(answers[1]["row"], rows_of(2, 4))
 
 
+def test_a_request_that_queued_while_the_worker_was_busy_has_already_waited(workers):
+    """max_wait_ms counts from the oldest request's queueing, not from when the loop is free to
+    look at it (issue 21, item 12): a request that waited its max_wait_ms behind a busy worker
+    goes as soon as the worker is free, without a second wait."""
+    clock = Clock()
+    recorder = RowRecorder(gated=True)
+
+    async def main():
+        batcher = RowBatcher(recorder, BatchSettings(max_wait_ms=5), workers.executor("cpu"),
+                             clock=clock)
+        first = asyncio.create_task(batcher.submit_rows(1, 3))  # queued at 0 s
+        await settle()
+        clock.now = 0.005
+        await recorder.wait_calls(1)  # the worker is busy with the first batch
+        clock.now = 0.006
+        second = asyncio.create_task(batcher.submit_rows(2, 4))  # queued at 6 ms, while busy
+        await settle()
+        clock.now = 0.012  # it has waited 6 ms > 5 ms; the clock stands still from here on
+        recorder.release(2)
+        await first
+        # A batch that waited for more points from now would wait forever on this clock.
+        answer = await asyncio.wait_for(second, 5)
+        await batcher.drain()
+        return answer
+
+    answer = run(main())
+    assert recorder.calls == [[(1, 0, 3)], [(2, 0, 4)]]
+    np.testing.assert_array_equal(answer["row"], rows_of(2, 4))
+
+
 def test_a_request_cancelled_while_its_batch_waits_is_never_computed(workers):
     recorder = RowRecorder()
     stats = []
