@@ -1,0 +1,290 @@
+"""Slow connections against a real ``collider serve`` (issue 21, item 1): thousands of connections
+that send nothing, half a request, or their headers a byte a second, while a normal client keeps
+querying.
+
+Measured, in one run, in alternating slices without and with the attack:
+
+- (a) every attacking connection is closed by the server within ``header_timeout_s`` (its
+  lifetime, from the attacker's connect to the server's close; a closed one is opened again at
+  once, so the attack holds its count for the whole slice), and the server's open descriptors
+  (``/proc/PID/fd``) fall back to their quiet level after the attack;
+- (b) the normal client's query latency (1,000 points, distance + normal + contact, msgpack, one
+  keep-alive connection, back to back) during the attack against without it: the ratio of the
+  medians per pair of slices, and its spread.
+
+    python benchmarks/slow_connections.py                       # ~3 minutes; out/slow_connections.json
+    python benchmarks/slow_connections.py --connections 3000 --header-timeout-s 5 --pairs 4
+
+The attacker is a separate process (its own event loop and open-files limit, raised to fit);
+the model is a voxel sphere baked on the spot (no files needed).
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import os
+import resource
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from service_common import (  # noqa: E402
+    LeanConnection,
+    machine_note,
+    percentiles_ms,
+    query_body,
+    serve,
+)
+
+KINDS = ("silent", "half-sent", "trickle")
+
+
+# -- the attacker (a subprocess: python slow_connections.py --attack ...) ------------------------
+
+
+async def attack(port: int, count: int) -> dict:
+    """Hold ``count`` slow connections to ``port``: a third send nothing, a third half a request
+    line, a third a header byte a second. Each one the server closes is recorded and opened
+    again, until a line comes on stdin; then none is opened again, and the open ones are held
+    (never closed from here) until the server closes them, or for 60 s. Prints "ready" once all
+    are open."""
+    lifetimes: dict[str, list[float]] = {k: [] for k in KINDS}
+    answers: dict[str, int] = {}
+    never_closed = [0]
+    stopping = asyncio.Event()
+    opened = asyncio.Event()
+    started = [0]
+
+    async def one(kind: str) -> None:
+        while not stopping.is_set():
+            try:
+                reader, writer = await asyncio.open_connection("127.0.0.1", port)
+            except OSError as exc:
+                key = f"connect failed: {type(exc).__name__}"
+                answers[key] = answers.get(key, 0) + 1
+                await asyncio.sleep(0.1)
+                continue
+            t0 = time.monotonic()
+            started[0] += 1
+            if started[0] == count:
+                opened.set()
+            if kind == "half-sent":
+                writer.write(b"POST /v1/models/sphere/query HTTP/1.1\r\nHost: x\r\nContent-Le")
+            elif kind == "trickle":  # then one more byte of this header a second
+                writer.write(b"GET /livez HTTP/1.1\r\nHost: x\r\nX-Slow: ")
+            data, closed = b"", False
+            while time.monotonic() - t0 < 60:
+                try:
+                    chunk = await asyncio.wait_for(reader.read(4096), 1.0)
+                except asyncio.TimeoutError:
+                    if kind == "trickle":
+                        writer.write(b"a")
+                    continue
+                except OSError:
+                    chunk = b""
+                if not chunk:
+                    closed = True
+                    break
+                data += chunk
+            writer.close()
+            if closed:
+                lifetimes[kind].append(time.monotonic() - t0)
+                status = data.split(b" ", 2)[1].decode() if data.startswith(b"HTTP/") else "none"
+                answers[status] = answers.get(status, 0) + 1
+            else:
+                never_closed[0] += 1
+
+    tasks = [asyncio.create_task(one(KINDS[i % 3])) for i in range(count)]
+    await asyncio.wait_for(opened.wait(), 60)
+    print("ready", flush=True)
+    await asyncio.get_running_loop().run_in_executor(None, sys.stdin.readline)
+    stopping.set()
+    await asyncio.gather(*tasks)
+    every = [x for v in lifetimes.values() for x in v]
+    return {"connections": count, "closed_by_server": len(every),
+            "never_closed_within_60_s": never_closed[0], "answers": answers,
+            "lifetime_s": {k: {"n": len(v), "max": max(v, default=float("nan")),
+                               "median": float(np.median(v)) if v else float("nan")}
+                           for k, v in lifetimes.items()},
+            "max_lifetime_s": max(every, default=float("nan"))}
+
+
+def attacker_main(args) -> int:
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    resource.setrlimit(resource.RLIMIT_NOFILE, (hard, hard))
+    result = asyncio.run(attack(args.port, args.connections))
+    print(json.dumps(result), flush=True)
+    return 0
+
+
+# -- the measurement ---------------------------------------------------------------------------
+
+
+class FdSampler(threading.Thread):
+    """The server's open descriptors every 0.1 s: (monotonic time, count)."""
+
+    def __init__(self, pid: int):
+        super().__init__(daemon=True)
+        self.pid, self.samples, self.stop = pid, [], threading.Event()
+
+    def run(self) -> None:
+        while not self.stop.is_set():
+            try:
+                self.samples.append((time.monotonic(), len(os.listdir(f"/proc/{self.pid}/fd"))))
+            except OSError:
+                return
+            time.sleep(0.1)
+
+
+async def query_for(port: int, body: bytes, seconds: float) -> list[float]:
+    """Latencies (s) of back-to-back queries on one keep-alive connection for ``seconds``."""
+    connection = LeanConnection("127.0.0.1", port)
+    latencies = []
+    try:
+        end = time.monotonic() + seconds
+        while time.monotonic() < end:
+            t0 = time.perf_counter()
+            status, _ = await connection.post("/v1/models/sphere/query", body)
+            latencies.append(time.perf_counter() - t0)
+            assert status == 200, status
+    finally:
+        await connection.close()
+    return latencies
+
+
+def run_attack_slice(port: int, body: bytes, args, sampler: "FdSampler") -> tuple[list[float], dict]:
+    """Queries for ``args.slice_s`` under attack; then the attack stops opening connections and
+    waits for the server to close the ones it holds. Also returns how long the server's
+    descriptors took to come back to their level before the attack."""
+    before = sampler.samples[-1][1]
+    attacker = subprocess.Popen(
+        [sys.executable, __file__, "--attack", "--port", str(port), "--connections",
+         str(args.connections)], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    assert attacker.stdout.readline().strip() == "ready", "the attacker did not open its sockets"
+    latencies = asyncio.run(query_for(port, body, args.slice_s))
+    attacker.stdin.write("stop\n")
+    attacker.stdin.close()
+    stopped = time.monotonic()
+    while sampler.samples[-1][1] > before + 5 and time.monotonic() - stopped < 60:
+        time.sleep(0.05)
+    fds_back_after_s = time.monotonic() - stopped
+    result = json.loads(attacker.stdout.read())
+    attacker.wait()
+    return latencies, {**result, "fds_before": before, "fds_back_after_s": fds_back_after_s}
+
+
+def make_models(root: Path) -> None:
+    import trimesh
+
+    from collider_server.engine.meshes import Mesh
+    from collider_server.engine.modelfile import save_collider
+    from collider_server.making.bake import bake_collider
+
+    tri = trimesh.creation.icosphere(subdivisions=4, radius=0.1)
+    save_collider(bake_collider(Mesh(np.asarray(tri.vertices), np.asarray(tri.faces), "sphere"),
+                                "voxel", "sphere", resolution=64, show_progress=False,
+                                device="cpu"), root / "sphere.safetensors")
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--connections", type=int, default=3000)
+    parser.add_argument("--header-timeout-s", type=float, default=5.0)
+    parser.add_argument("--max-connections", type=int, default=None,
+                        help="the server's bound (default: the server's own, 4096)")
+    parser.add_argument("--pairs", type=int, default=4, help="quiet/attack slice pairs")
+    parser.add_argument("--slice-s", type=float, default=12.0, help="seconds of queries a slice")
+    parser.add_argument("--output", type=Path, default=Path("out/slow_connections.json"))
+    parser.add_argument("--attack", action="store_true", help=argparse.SUPPRESS)
+    parser.add_argument("--port", type=int, help=argparse.SUPPRESS)
+    args = parser.parse_args(argv)
+    if args.attack:
+        return attacker_main(args)
+
+    print(f"machine: {machine_note()}; {args.pairs} pairs of {args.slice_s:g} s slices, "
+          f"{args.connections} slow connections, header_timeout_s {args.header_timeout_s:g}; "
+          f"about {args.pairs * 2 * (args.slice_s + 8) / 60:.0f} minutes", flush=True)
+    load_start = os.getloadavg()
+    body = query_body(np.random.default_rng(0).uniform(-0.15, 0.15, (1000, 3)).astype(np.float32),
+                      ["distance", "normal", "contact"])
+    flags = ["--header-timeout-s", str(args.header_timeout_s), "--compute-threads", "1",
+             "--device", "cpu"]
+    if args.max_connections:
+        flags += ["--max-connections", str(args.max_connections)]
+    report = {"machine": machine_note(), "connections": args.connections,
+              "header_timeout_s": args.header_timeout_s, "slices": []}
+    with tempfile.TemporaryDirectory() as tmp:
+        make_models(Path(tmp))
+        with serve(Path(tmp), *flags) as port:
+            from service_common import SERVER_PIDS
+
+            sampler = FdSampler(SERVER_PIDS[port])
+            sampler.start()
+            asyncio.run(query_for(port, body, 2.0))  # warm up
+            for pair in range(args.pairs):
+                # Alternate which goes first, so that a drift in the machine's load is shared.
+                for mode in (("quiet", "attack") if pair % 2 == 0 else ("attack", "quiet")):
+                    started = time.monotonic()
+                    if mode == "quiet":
+                        latencies, attacked = asyncio.run(query_for(port, body, args.slice_s)), None
+                    else:
+                        latencies, attacked = run_attack_slice(port, body, args, sampler)
+                    fds = [n for t, n in sampler.samples if t >= started]
+                    entry = {"pair": pair, "mode": mode, "queries": len(latencies),
+                             **percentiles_ms(latencies), "server_fds_max": max(fds),
+                             "server_fds_min": min(fds)}
+                    if attacked:
+                        entry["attack"] = attacked
+                    report["slices"].append(entry)
+                    print(f"pair {pair} {mode:6s}: {len(latencies)} queries, p50 "
+                          f"{entry['p50_ms']:.2f} ms, p99 {entry['p99_ms']:.2f} ms, server fds "
+                          f"{min(fds)}-{max(fds)}" + (
+                              f"; attack: {attacked['closed_by_server']} closed by the server, "
+                              f"{attacked['never_closed_within_60_s']} never, longest lived "
+                              f"{attacked['max_lifetime_s']:.2f} s, answers "
+                              f"{attacked['answers']}; fds back {attacked['fds_back_after_s']:.1f}"
+                              " s after the attack stopped" if attacked else ""), flush=True)
+            sampler.stop.set()
+            quiet_fds = min(n for t, n in sampler.samples[:20])
+    quiet = [s for s in report["slices"] if s["mode"] == "quiet"]
+    attacked = [s for s in report["slices"] if s["mode"] == "attack"]
+    ratios = [a["p50_ms"] / q["p50_ms"] for a, q in zip(attacked, quiet)]
+    ratios99 = [a["p99_ms"] / q["p99_ms"] for a, q in zip(attacked, quiet)]
+    longest = max(s["attack"]["max_lifetime_s"] for s in attacked)
+    report["summary"] = {
+        "p50_ratio_attack_over_quiet": {"median": float(np.median(ratios)), "min": min(ratios),
+                                        "max": max(ratios), "each": ratios},
+        "p99_ratio_attack_over_quiet": {"median": float(np.median(ratios99)),
+                                        "min": min(ratios99), "max": max(ratios99)},
+        "longest_attacking_connection_s": longest,
+        "server_fds_quiet": quiet_fds,
+        "server_fds_peak_under_attack": max(s["server_fds_max"] for s in attacked),
+        "fds_back_after_s_max": max(s["attack"]["fds_back_after_s"] for s in attacked),
+        "never_closed": sum(s["attack"]["never_closed_within_60_s"] for s in attacked),
+        "load_average_start_end": [load_start[0], os.getloadavg()[0]],
+    }
+    summary = report["summary"]
+    print(f"\nlongest-lived attacking connection {longest:.2f} s (header_timeout_s "
+          f"{args.header_timeout_s:g}); server descriptors {quiet_fds} quiet, "
+          f"{summary['server_fds_peak_under_attack']} at most under attack, back within "
+          f"{summary['fds_back_after_s_max']:.1f} s after it")
+    print(f"query p50 under attack / quiet: median {summary['p50_ratio_attack_over_quiet']['median']:.2f}x "
+          f"(pairs {', '.join(f'{r:.2f}' for r in ratios)}); p99 median "
+          f"{summary['p99_ratio_attack_over_quiet']['median']:.2f}x; load average "
+          f"{load_start[0]:.1f} -> {os.getloadavg()[0]:.1f}")
+    args.output.parent.mkdir(parents=True, exist_ok=True)
+    args.output.write_text(json.dumps(report, indent=1))
+    print(f"wrote {args.output}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
