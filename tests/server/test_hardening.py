@@ -384,9 +384,7 @@ def test_a_null_value_is_422_naming_the_key(server, key):
                               headers={"content-type": wire.JSON})
         problem = strict_json(response.text)
         assert response.status_code == 422, (path, key, problem)
-        want = "bad-colliders" if path != QUERY and key == "pose" else \
-            f"bad-{key.replace('_', '-')}"
-        assert problem["type"] == want, problem
+        assert problem["type"] == f"bad-{key.replace('_', '-')}", problem
 
 
 def test_a_pose_with_huge_entries_is_refused_without_a_numpy_warning(server, recwarn):
