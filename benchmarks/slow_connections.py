@@ -175,20 +175,33 @@ class FdSampler(threading.Thread):
             time.sleep(0.1)
 
 
-async def query_for(port: int, body: bytes, seconds: float) -> list[float]:
+async def query_for(connection: LeanConnection, body: bytes, seconds: float) -> list[float]:
     """Latencies (s) of back-to-back queries on one keep-alive connection for ``seconds``."""
-    connection = LeanConnection("127.0.0.1", port)
     latencies = []
-    try:
-        end = time.monotonic() + seconds
-        while time.monotonic() < end:
-            t0 = time.perf_counter()
-            status, _ = await connection.post("/v1/models/sphere/query", body)
-            latencies.append(time.perf_counter() - t0)
-            assert status == 200, status
-    finally:
-        await connection.close()
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:
+        t0 = time.perf_counter()
+        status, _ = await connection.post("/v1/models/sphere/query", body)
+        latencies.append(time.perf_counter() - t0)
+        assert status == 200, status
     return latencies
+
+
+def measure(port: int, body: bytes, seconds: float, during=None) -> list[float]:
+    """:func:`query_for` on a new connection, opened (and used once) before ``during()`` is
+    called, as a simulator holds its keep-alive connection: with the server at max_connections
+    a new connection would be refused, an open one keeps being served."""
+    async def run():
+        connection = LeanConnection("127.0.0.1", port)
+        try:
+            await connection.post("/v1/models/sphere/query", body)
+            if during is not None:
+                await asyncio.get_running_loop().run_in_executor(None, during)
+            return await query_for(connection, body, seconds)
+        finally:
+            await connection.close()
+
+    return asyncio.run(run())
 
 
 def run_attack_slice(port: int, body: bytes, args, sampler: "FdSampler") -> tuple[list[float], dict]:
@@ -196,11 +209,16 @@ def run_attack_slice(port: int, body: bytes, args, sampler: "FdSampler") -> tupl
     waits for the server to close the ones it holds. Also returns how long the server's
     descriptors took to come back to their level before the attack."""
     before = sampler.samples[-1][1]
-    attacker = subprocess.Popen(
-        [sys.executable, __file__, "--attack", "--port", str(port), "--connections",
-         str(args.connections)], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
-    assert attacker.stdout.readline().strip() == "ready", "the attacker did not open its sockets"
-    latencies = asyncio.run(query_for(port, body, args.slice_s))
+    attacker = None
+
+    def start_attack():
+        nonlocal attacker
+        attacker = subprocess.Popen(
+            [sys.executable, __file__, "--attack", "--port", str(port), "--connections",
+             str(args.connections)], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+        assert attacker.stdout.readline().strip() == "ready", "the attacker did not connect"
+
+    latencies = measure(port, body, args.slice_s, during=start_attack)
     attacker.stdin.write("stop\n")
     attacker.stdin.close()
     stopped = time.monotonic()
@@ -259,13 +277,13 @@ def main(argv=None) -> int:
 
             sampler = FdSampler(SERVER_PIDS[port])
             sampler.start()
-            asyncio.run(query_for(port, body, 2.0))  # warm up
+            measure(port, body, 2.0)  # warm up
             for pair in range(args.pairs):
                 # Alternate which goes first, so that a drift in the machine's load is shared.
                 for mode in (("quiet", "attack") if pair % 2 == 0 else ("attack", "quiet")):
                     started = time.monotonic()
                     if mode == "quiet":
-                        latencies, attacked = asyncio.run(query_for(port, body, args.slice_s)), None
+                        latencies, attacked = measure(port, body, args.slice_s), None
                     else:
                         latencies, attacked = run_attack_slice(port, body, args, sampler)
                     fds = [n for t, n in sampler.samples if t >= started]

@@ -53,6 +53,11 @@ class ConnectionGuard:
         self.open = 0
         self._closed = metrics.connections_closed
         metrics.connections_open.set_function(lambda: self.open)
+        #: The answer to a connection beyond the bound, made once: under a flood of new
+        #: connections each refusal should cost as little as possible.
+        self.refusal = raw_problem(Problem(
+            503, TOO_MANY_CONNECTIONS, f"the server has max_connections={max_connections} "
+            "connections open; retry shortly", {"Retry-After": "1"}))
 
     def admit(self) -> bool:
         """Count a new connection in, unless the bound is reached."""
@@ -97,10 +102,7 @@ class GuardedProtocol(HttpToolsProtocol):
     def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
         if not self.guard.admit():
             self.guard.count(TOO_MANY_CONNECTIONS)
-            transport.write(raw_problem(Problem(
-                503, TOO_MANY_CONNECTIONS, f"the server has max_connections="
-                f"{self.guard.max_connections} connections open; retry shortly",
-                {"Retry-After": "1"})))
+            transport.write(self.guard.refusal)
             transport.close()
             return
         self._admitted = True
