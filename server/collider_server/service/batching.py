@@ -21,8 +21,8 @@ measured in rows (points), not requests:
 - the batch function runs in a worker thread per device (:class:`DeviceWorkers`), never on the
   event loop.
 
-:class:`RowBatcher` is the general queue; :class:`PointBatcher` adapts it to a plain
-``compute(local points, want_gradient) -> (distance, normal)``.
+:class:`RowBatcher` is the queue; the service gives it its batch function
+(``collider_server.service.answers.answer_batch``).
 
 Only asyncio and numpy are used here: no HTTP. Policy (which status code "queue full" becomes) is
 the web layer's business. The clock is injected (``time.monotonic`` by default) and the loop
@@ -41,10 +41,6 @@ from dataclasses import dataclass, field
 from typing import Any, Callable, NamedTuple, Sequence
 
 import numpy as np
-
-#: ``compute(local (n, 3) float64 collider frame, want_gradient) ->
-#: (distance (n,) float64 collider units, normal (n, 3) float64 unit collider frame or None)``
-ComputeFn = Callable[[np.ndarray, bool], "tuple[np.ndarray, np.ndarray | None]"]
 
 
 class BatchPart(NamedTuple):
@@ -442,61 +438,3 @@ def _check_answers(answers, rows: list[int]) -> None:
                 shape = getattr(array, "shape", type(array).__name__)
                 raise BatchContractError(f"the batch function returned {name} of shape {shape} "
                                          f"for a part of {n} rows")
-
-
-class PointBatcher(RowBatcher):
-    """A :class:`RowBatcher` around a plain ``compute(local, want_gradient) -> (distance,
-    normal)`` (see :data:`ComputeFn`): the batch's points are concatenated and computed in one
-    call (with the gradient if any request wants it), and each request gets its rows."""
-
-    def __init__(self, compute: ComputeFn, settings: BatchSettings, executor, *,
-                 clock: Callable[[], float] = time.monotonic,
-                 on_batch: Callable[[BatchStats], None] | None = None):
-        self._compute = compute
-        super().__init__(self._batch_points, settings, executor, clock=clock, on_batch=on_batch)
-
-    async def submit(self, local: np.ndarray, want_gradient: bool,
-                     deadline: float | None = None) -> tuple[np.ndarray, np.ndarray | None]:
-        """Queue ``local`` and wait for its answers.
-
-        local : (n, 3) float64, collider frame and units (already validated)
-        want_gradient : whether ``normal`` is needed
-        deadline : clock time (seconds) after which the caller no longer wants the answer
-        Returns ``(distance (n,) float64, normal (n, 3) float64 or None)`` in the collider frame.
-        Raises as :meth:`RowBatcher.submit_rows`.
-        """
-        answer = await self.submit_rows((local, want_gradient), len(local), deadline)
-        return answer["distance"], answer.get("normal")
-
-    def _batch_points(self, parts: Sequence[BatchPart]) -> list[dict[str, np.ndarray]]:
-        if len(parts) == 1:
-            part = parts[0]
-            local = part.payload[0][part.start:part.stop]  # a view, no copy
-        else:
-            local = np.concatenate([p.payload[0][p.start:p.stop] for p in parts])
-        want_gradient = any(p.payload[1] for p in parts)
-        n = len(local)
-        if n == 0:
-            distance, normal = np.empty(0), np.empty((0, 3))  # (only handed to who wants it)
-        else:
-            distance, normal = self._compute(local, want_gradient)
-        _check_output(distance, normal, n, want_gradient)
-        answers, offset = [], 0
-        for part in parts:
-            rows = slice(offset, offset + part.rows)
-            answer = {"distance": distance[rows]}
-            if part.payload[1]:
-                answer["normal"] = normal[rows]
-            answers.append(answer)
-            offset += part.rows
-        return answers
-
-
-def _check_output(distance, normal, n: int, want_gradient: bool) -> None:
-    """The compute contract: one distance per point, and a normal per point when asked for."""
-    if not isinstance(distance, np.ndarray) or distance.shape != (n,):
-        shape = getattr(distance, "shape", type(distance).__name__)
-        raise BatchContractError(f"compute returned distance of shape {shape} for {n} points")
-    if want_gradient and (not isinstance(normal, np.ndarray) or normal.shape != (n, 3)):
-        shape = getattr(normal, "shape", type(normal).__name__)
-        raise BatchContractError(f"compute returned normal of shape {shape} for {n} points")
