@@ -98,3 +98,46 @@ def placement_from_args(args: argparse.Namespace) -> MeshPlacement | None:
         units=getattr(args, "units", "m"), meters_per_unit_override=getattr(args, "meters_per_unit", None))
     placement.check()
     return placement
+
+
+def load_placed_mesh(args: argparse.Namespace):
+    """(mesh in the collider frame, 4x4 transform applied, units, metres per unit) of
+    ``args.mesh`` under the placement options."""
+    from collider_server.making.mesh_files import load_mesh
+
+    placement = placement_from_args(args)
+    mesh, transform = placement.apply(load_mesh(args.mesh))
+    return mesh, transform, placement.units, placement.meters_per_unit
+
+
+# -- the cache of bench and the budget bake -------------------------------------------------------
+
+CACHE_HELP = ("cache folder of baked grids, bench-trained networks and the budget bake's measured "
+              "figures (default: $XDG_CACHE_HOME/neural-collider, else ~/.cache/neural-collider); "
+              "its size is printed after each run, delete it to free the space")
+
+
+def default_cache_dir() -> Path:
+    """``$XDG_CACHE_HOME/neural-collider``, else ``~/.cache/neural-collider`` (the XDG base
+    directory rule: the user's cache, not the working folder)."""
+    import os
+
+    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    return Path(base) / "neural-collider"
+
+
+def add_cache_argument(parser) -> None:
+    parser.add_argument("--cache", type=Path, default=None, metavar="DIR", help=CACHE_HELP)
+
+
+def cache_dir(args: argparse.Namespace) -> Path:
+    return args.cache if args.cache is not None else default_cache_dir()
+
+
+def cache_size_line(cache: Path) -> str:
+    """``cache /home/u/.cache/neural-collider: 152.3 MB in 7 files (...)``: its regular files
+    (links not counted)."""
+    files = [p for p in Path(cache).rglob("*") if p.is_file() and not p.is_symlink()] if Path(cache).is_dir() else []
+    size = sum(p.stat().st_size for p in files)
+    return (f"cache {cache}: {size / 1e6:.1f} MB in {len(files)} files (grids and networks a next run "
+            "reuses; delete the folder to free the space, or pass --cache DIR)")
