@@ -62,6 +62,7 @@ def build_parser() -> argparse.ArgumentParser:
     subparsers = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for name in COMMAND_MODULES:
         importlib.import_module(name).register(subparsers)
+    parser.commands = subparsers.choices  # name -> its parser (refusals name the command)
     # No command takes NaN or infinity for a number (`--max-minutes nan` meant "no limit").
     from .commands.options import require_finite
 
@@ -71,7 +72,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
-    args = build_parser().parse_args(argv)
+    parser = build_parser()
+    args, unknown = parser.parse_known_args(argv)
+    if unknown:  # said by the command's parser: "collider bake: error: unrecognized arguments: ..."
+        parser.commands[args.command].error(f"unrecognized arguments: {' '.join(unknown)}")
     args.argv = argv  # the command as typed: hints repeat it (commands.hints.again_with)
     if args.command in LONG_COMMANDS:
         previous = signal.signal(signal.SIGTERM, _raise_terminated)

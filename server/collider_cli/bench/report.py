@@ -328,7 +328,7 @@ def place_labels(ax, labels: list[tuple[str, float, float, float]],
                 arrow = {"arrowstyle": "-", "color": "grey", "linewidth": 0.6} if ring else None
                 note = ax.annotate(text, (x, y), textcoords="offset points", xytext=(ux * gap, uy * gap),
                                    ha=ha, va=va, fontsize=8, arrowprops=arrow, zorder=5)
-                b = note.get_window_extent(renderer)
+                b = text_box(note, renderer)
                 inside = frame.x0 <= b.x0 and b.x1 <= frame.x1 and frame.y0 <= b.y0 and b.y1 <= frame.y1
                 if inside and not any(b.x0 < t[2] and t[0] < b.x1 and b.y0 < t[3] and t[1] < b.y1 for t in taken):
                     chosen = note
@@ -339,10 +339,18 @@ def place_labels(ax, labels: list[tuple[str, float, float, float]],
         if chosen is None:  # nowhere free: below the marker anyway
             chosen = ax.annotate(text, (x, y), textcoords="offset points", xytext=(0, -diameter / 2 - 3),
                                  ha="center", va="top", fontsize=8, zorder=5)
-        b = chosen.get_window_extent(renderer)
+        b = text_box(chosen, renderer)
         taken.append((b.x0, b.y0, b.x1, b.y1))
         annotations.append(chosen)
     return annotations
+
+
+def text_box(note, renderer):
+    """The display box of an annotation's text alone (its leader line runs to the marker)."""
+    from matplotlib.text import Text
+
+    note.update_positions(renderer)
+    return Text.get_window_extent(note, renderer)
 
 
 # -- files ------------------------------------------------------------------------------------
@@ -411,8 +419,7 @@ def figure(report: dict, device: str = "cpu"):
             ax.step(xs, ys, where="post", color="crimson", linestyle="--", linewidth=1.5, zorder=2)
             ax.scatter(xs, ys, s=12, color="crimson", zorder=4)
         elif names is None:
-            ax.text(0.5, 0.97, "Pareto front not called: unstable timings (see bench.md)", transform=ax.transAxes,
-                    ha="center", va="top", fontsize=8, color="crimson")
+            ax.set_title("Pareto front not called: unstable timings (see bench.md)", fontsize=9, color="crimson")
         ax.set_xscale("log")
         ax.set_yscale("log")
         ax.set_xlabel(f"distance + normal + contact: microseconds per point ({size_label(size)} points "

@@ -196,6 +196,7 @@ def _build_and_check(args, row, report, budget, mesh, transform, units, meters_p
     collider.info.name = args.name
     collider.info.accuracy = fresh
     collider.info.source["check"] = check.to_dict()
+    collider.info.source["path"] = str(Path(args.mesh).resolve())
     collider.info.settings["picked_for_budget"] = {
         "max_error_mm": budget.max_error_mm, "max_normal_error_deg": budget.max_normal_error_deg,
         "max_memory_bytes": budget.max_memory_bytes, "candidate": row["name"],

@@ -91,6 +91,7 @@ def run_bake(args) -> int:
     )
     collider.info.source["transform"] = transform.tolist()
     collider.info.source["check"] = check.to_dict()
+    collider.info.source["path"] = str(Path(args.mesh).resolve())
     path = save_collider(collider, repository.path(args.name))
     print(f"wrote {path} ({path.stat().st_size:,} bytes, kind {args.kind})")
     print(sign_check_line(collider, mesh, check))
@@ -219,7 +220,8 @@ def run_info(args) -> int:
     source = info.source
     if source:
         print(f"  source      {source.get('mesh')} sha256 {str(source.get('sha256', ''))[:16]} "
-              f"({source.get('faces', '?')} faces)")
+              f"({source.get('faces', '?')} faces)" + (f", {source['path']}" if source.get("path") else ""))
+    print_source_check(source, info.accuracy)
     for key, value in info.settings.items():
         print(f"  {key:<11} {value}")
     if info.accuracy:
@@ -227,5 +229,38 @@ def run_info(args) -> int:
         for key, value in info.accuracy.items():
             print(f"    {key}: {value}")
     else:
-        print("  accuracy    not evaluated (run `collider eval`)")
+        print("  accuracy    not evaluated; " + eval_hint(info, path, args))
     return 0
+
+
+def print_source_check(source: dict, accuracy: dict | None) -> None:
+    """The mesh check recorded when the model was made, and the measured sign errors."""
+    from collider_server.making.mesh_check import MeshCheck
+
+    if not source.get("check"):
+        print("  mesh check  not recorded (made before models recorded it; `collider bake`, `train` and "
+              "`bench` print it for a mesh file)")
+        return
+    lines = MeshCheck.from_dict(source["check"]).lines()
+    print(f"  {lines[0]}")
+    for line in lines[1:]:
+        print(f"  {line}")
+    band = (accuracy or {}).get("band_1mm")
+    if band:
+        print(f"  sign errors {band['sign_errors_percent']:.3f} % of the +-1 mm band points farther than 0.2 mm "
+              "from the surface (the stored evaluation)")
+
+
+def eval_hint(info, path, args) -> str:
+    """How to evaluate the model: a pasteable ``collider eval`` when its mesh file is known and
+    unchanged, else which mesh it needs."""
+    from collider_server.making.mesh_files import file_sha256
+
+    from .hints import command, models_options
+
+    mesh = info.source.get("path")
+    if mesh and Path(mesh).is_file() and file_sha256(Path(mesh)) == info.source.get("sha256"):
+        model = args.model if Path(args.model).name != args.model or args.model.endswith(".safetensors") else info.name
+        return f"`{command('eval', model, '--mesh', mesh, *models_options(args))}` measures it"
+    return (f"`collider eval` measures it against the mesh it was made from ({info.source.get('mesh', '?')}, "
+            f"sha256 {str(info.source.get('sha256', ''))[:16]})")

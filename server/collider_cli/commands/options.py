@@ -80,7 +80,9 @@ def add_placement_arguments(parser: argparse.ArgumentParser, *, units: bool = Tr
     group.add_argument("--z-up", action="store_true", default=None if as_stored else False,
                        help="rotate a Y-up mesh to Z-up (the paper's frame)")
     if units:
-        group.add_argument("--units", default="m", help="length unit of the placed mesh, e.g. m, mm (default m)")
+        group.add_argument("--units", default=None if as_stored else "m",
+                           help="length unit of the placed mesh, e.g. m, mm (default "
+                                + ("the model's)" if as_stored else "m)"))
         group.add_argument("--meters-per-unit", type=finite_float, default=None,
                            help="metres in one unit (derived from --units for m, cm, mm, um, km, in, ft)")
 
@@ -95,7 +97,7 @@ def placement_from_args(args: argparse.Namespace) -> MeshPlacement | None:
         raise ValueError("give --scale or --fit-size, not both")
     placement = MeshPlacement(
         scale=1.0 if args.scale is None else args.scale, fit_size=args.fit_size, z_up=bool(args.z_up),
-        units=getattr(args, "units", "m"), meters_per_unit_override=getattr(args, "meters_per_unit", None))
+        units=getattr(args, "units", None) or "m", meters_per_unit_override=getattr(args, "meters_per_unit", None))
     placement.check()
     return placement
 
