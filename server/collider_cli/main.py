@@ -50,7 +50,14 @@ class Terminated(KeyboardInterrupt):
     """SIGTERM, raised in the main thread as Ctrl-C's KeyboardInterrupt is."""
 
 
+#: Set by the SIGTERM handler: a command that catches the interrupt to write what it made and
+#: raises KeyboardInterrupt again still exits with SIGTERM's status.
+_terminated = False
+
+
 def _raise_terminated(signum, frame):
+    global _terminated
+    _terminated = True
     raise Terminated()
 
 
@@ -77,6 +84,8 @@ def main(argv: list[str] | None = None) -> int:
     if unknown:  # said by the command's parser: "collider bake: error: unrecognized arguments: ..."
         parser.commands[args.command].error(f"unrecognized arguments: {' '.join(unknown)}")
     args.argv = argv  # the command as typed: hints repeat it (commands.hints.again_with)
+    global _terminated
+    _terminated = False
     if args.command in LONG_COMMANDS:
         previous = signal.signal(signal.SIGTERM, _raise_terminated)
     try:
@@ -93,7 +102,7 @@ def main(argv: list[str] | None = None) -> int:
               f"'{extra}' extra: pip install 'neural-collider[{extra}]'", file=sys.stderr)
         return 2
     except KeyboardInterrupt as exc:
-        terminated = isinstance(exc, Terminated)
+        terminated = isinstance(exc, Terminated) or _terminated
         print(f"collider {args.command}: {'terminated (SIGTERM)' if terminated else 'interrupted'}",
               file=sys.stderr)
         return 143 if terminated else 130

@@ -100,7 +100,7 @@ def run_train(args) -> int:
     except KeyboardInterrupt:  # what the run made: its checkpoint, which the same command resumes
         if checkpoint.is_file():
             print(f"interrupted: {checkpoint} keeps the run up to its last validation; the same command "
-                  f"resumes it: {again_with(args)}", file=sys.stderr)
+                  f"resumes it: `{again_with(args)}`", file=sys.stderr)
         raise
     result.collider.info.source["check"] = check.to_dict()
     result.collider.info.source["path"] = str(Path(args.mesh).resolve())
