@@ -25,7 +25,7 @@ from collider_cli.bench.budget import (
     size_bytes,
 )
 from collider_cli.bench.plan import PlanConfig, plan_candidates
-from collider_cli.bench.report import equal_times, front, front_text, pareto_front
+from collider_cli.bench.report import equal_times, front, front_text, pareto_front, ranking_basis
 from collider_cli.bench.timing import (
     Cell,
     Timing,
@@ -151,12 +151,14 @@ def test_times_within_the_measurement_are_equal_for_the_front():
     assert equal_times(1.0, 1.25) and not equal_times(1.0, 1.26) and equal_times(1.0, 1.5, 0.0, 0.5)
 
 
-def _row(name, seconds, error, normal=1.0, memory=1000, spread=0.05, stable=True):
+def _row(name, seconds, error, normal=1.0, memory=1000, spread=0.05, stable=True, cpu=None, cpu_stable=True):
     return {"name": name, "label": name, "memory_bytes": memory,
             "accuracy": {"band_1mm": {"distance_mean_mm": error, "normal_mean_deg": normal}},
             "timings": [{"path": "embedded", "device": "cpu", "mode": "distance+normal+contact",
                          "points": 100, "median_s": seconds * 100, "spread": spread, "stable": stable,
-                         "repeats": 5, "times_s": [seconds * 100] * 5}]}
+                         "repeats": 5, "times_s": [seconds * 100] * 5,
+                         "cpu_median_s": None if cpu is None else cpu * 100, "cpu_spread": 0.05,
+                         "cpu_stable": cpu_stable}]}
 
 
 def test_no_front_is_called_from_an_unstable_reference_time():
@@ -168,6 +170,21 @@ def test_no_front_is_called_from_an_unstable_reference_time():
     report["colliders"][1] = _row("grid", 0.2, 0.03)
     assert front(report, "cpu", "distance") == ["grid", "exact"]
     assert "Pareto front (cpu, time vs distance error): grid, exact" in front_text(report, "cpu")
+
+
+def test_unstable_wall_times_fall_back_to_stable_cpu_times_for_the_front_and_the_pick():
+    report = {"config": {"sizes": [100], "timing": {"max_spread": 0.25}}, "skipped": [], "colliders": [
+        _row("exact", 10.0, 0.0, cpu=9.0), _row("grid", 0.2, 0.03, spread=0.6, stable=False, cpu=12.0),
+        _row("coarse", 0.1, 0.2, cpu=0.1)]}
+    assert ranking_basis(report) == "cpu"
+    # On CPU time the grid (12 s) is slower than the exact mesh (9 s) and less accurate: dominated.
+    assert front(report, "cpu", "distance") == ["coarse", "exact"]
+    text = front_text(report, "cpu")
+    assert "The wall times of grid (spread 60 % over 5 calls) stayed unstable" in text
+    assert "Pareto front (cpu, CPU time vs distance error): coarse, exact" in text
+    assert [r["name"] for r in rank(report, Budget(0.05))] == ["exact", "grid"]
+    report["colliders"][0] = _row("exact", 10.0, 0.0, cpu=9.0, cpu_stable=False)
+    assert ranking_basis(report) is None and front(report, "cpu", "distance") is None
 
 
 def test_budget_quantities_take_units_and_refuse_nonsense():

@@ -16,7 +16,7 @@ import math
 import re
 from dataclasses import dataclass
 
-from .report import equal_times, reference_timing
+from .report import equal_times, ranking_basis, reference_seconds_per_point, reference_spread
 
 LENGTH_MM = {"mm": 1.0, "um": 1e-3, "µm": 1e-3, "cm": 10.0, "m": 1000.0}
 ANGLE_DEG = {"deg": 1.0, "°": 1.0, "rad": 180.0 / math.pi}
@@ -110,10 +110,13 @@ class NothingMeetsBudget(Exception):
 def rank(report: dict, budget: Budget, device: str = "cpu") -> list[dict]:
     """The bench's colliders that meet ``budget``, the pick first (the fastest; among those
     equally fast within the measurement, the least memory, then the most accurate), then the
-    others fastest first (reference time on ``device``). Raises :class:`NothingMeetsBudget`
+    others fastest first (reference time on ``device``, on the report's ranking basis: wall
+    time, or process CPU time when wall times were unstable). Raises :class:`NothingMeetsBudget`
     saying, per collider, what it misses."""
-    timed = [(reference_timing(r, report, device), r) for r in report["colliders"]]
-    timed = [(t["median_s"] / t["points"], t.get("spread") or 0.0, r) for t, r in timed if t is not None]
+    basis = ranking_basis(report, device) or "wall"
+    timed = [(reference_seconds_per_point(r, report, device, basis=basis), reference_spread(r, report, device, basis), r)
+             for r in report["colliders"]]
+    timed = [(t, s, r) for t, s, r in timed if t is not None]
     if not timed:
         raise ValueError(f"the bench report has no embedded {device} timings to rank by")
     meeting = sorted(((t, s, r) for t, s, r in timed if not budget.misses(r)), key=lambda tsr: tsr[0])
@@ -132,11 +135,11 @@ def rank(report: dict, budget: Budget, device: str = "cpu") -> list[dict]:
 
 def equally_fast(report: dict, ranked: list[dict], device: str = "cpu") -> list[dict]:
     """The meeting colliders whose reference time equals the pick's within the measurement."""
-    first = reference_timing(ranked[0], report, device)
-    out = []
-    for r in ranked[1:]:
-        t = reference_timing(r, report, device)
-        if equal_times(first["median_s"] / first["points"], t["median_s"] / t["points"],
-                       first.get("spread"), t.get("spread")):
-            out.append(r)
-    return out
+    basis = ranking_basis(report, device) or "wall"
+
+    def figure(row):
+        return (reference_seconds_per_point(row, report, device, basis=basis),
+                reference_spread(row, report, device, basis))
+
+    first, first_spread = figure(ranked[0])
+    return [r for r in ranked[1:] if equal_times(first, figure(r)[0], first_spread, figure(r)[1])]

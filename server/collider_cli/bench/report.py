@@ -4,9 +4,11 @@ ratios to the exact ``mesh`` collider, the Pareto front and the error-vs-time pi
 The *reference time* of a collider (what the front, the plot and the budget picker rank by) is
 the median seconds per point of a ``distance+normal+contact`` query of the largest measured size,
 embedded, on the device asked for (``cpu`` unless told), over interleaved rounds
-(:mod:`.timing`). Two reference times count as *equal* when they differ by less than
-:data:`TIE` or than either one's spread: a front or a pick never rests on a smaller difference,
-and no front is called from a reference time whose spread stayed above the policy's limit.
+(:mod:`.timing`): its wall time, or, when some collider's wall time stayed unstable, its process
+CPU time if every collider's is stable (the *basis*, :func:`ranking_basis`; CPU time does not
+grow with other processes' load, wall time does), else no front is called. Two reference times
+count as *equal* when they differ by less than :data:`TIE` or than either one's spread: a front or
+a pick never rests on a smaller difference.
 """
 
 from __future__ import annotations
@@ -36,11 +38,31 @@ def reference_timing(row: dict, report: dict, device: str = "cpu", path: str = "
     return timing(row, path=path, device=device, mode=REFERENCE_MODE, points=size)
 
 
+#: Where a basis reads a cell's figure, spread and stability.
+BASES = {"wall": ("median_s", "spread", "stable"), "cpu": ("cpu_median_s", "cpu_spread", "cpu_stable")}
+
+
 def reference_seconds_per_point(row: dict, report: dict, device: str = "cpu",
-                                path: str = "embedded") -> float | None:
-    """Median seconds per point of the largest measured ``distance+normal+contact`` call."""
+                                path: str = "embedded", basis: str = "wall") -> float | None:
+    """Median seconds per point (wall, or process CPU) of the largest measured
+    ``distance+normal+contact`` call."""
     t = reference_timing(row, report, device, path)
-    return None if t is None else t["median_s"] / t["points"]
+    value = None if t is None else t.get(BASES[basis][0])
+    return None if value is None else value / t["points"]
+
+
+def reference_spread(row: dict, report: dict, device: str = "cpu", basis: str = "wall") -> float:
+    t = reference_timing(row, report, device)
+    return (t or {}).get(BASES[basis][1]) or 0.0
+
+
+def ranking_basis(report: dict, device: str = "cpu") -> str | None:
+    """``"wall"`` when every collider's reference wall time is stable, else ``"cpu"`` when every
+    one's process CPU time is, else None (nothing to rank by: no front is called)."""
+    for basis in BASES:
+        if not unstable_references(report, device, basis):
+            return basis
+    return None
 
 
 def equal_times(a: float, b: float, spread_a: float | None = 0.0, spread_b: float | None = 0.0) -> bool:
@@ -70,15 +92,17 @@ def pareto_front(items: list[tuple]) -> list[str]:
     return [name for _, name in sorted(front)]
 
 
-def unstable_references(report: dict, device: str = "cpu") -> list[str]:
-    """Labels (with their spread) of colliders whose reference time is missing or unstable."""
+def unstable_references(report: dict, device: str = "cpu", basis: str = "wall") -> list[str]:
+    """Labels (with their spread) of colliders whose reference time on ``basis`` is missing or
+    unstable."""
+    key, spread_key, stable_key = BASES[basis]
     out = []
     for r in report["colliders"]:
         t = reference_timing(r, report, device)
-        if t is None:
+        if t is None or t.get(key) is None:
             out.append(f"{r['label']} (not timed)")
-        elif not t.get("stable", True):
-            spread = t.get("spread")
+        elif not t.get(stable_key, True):
+            spread = t.get(spread_key)
             out.append(f"{r['label']} (spread {'?' if spread is None else f'{100 * spread:.0f} %'} over "
                        f"{t['repeats']} calls)")
     return out
@@ -256,38 +280,46 @@ def _load(value) -> str:
     return "?" if value is None else f"{value:.1f}"
 
 
-def front_items(report: dict, device: str, error: str) -> list[tuple[str, float, float, float]]:
+def front_items(report: dict, device: str, error: str, basis: str = "wall") -> list[tuple[str, float, float, float]]:
     """``(name, reference seconds per point, +-1 mm band mean error, spread)`` per timed collider."""
     items = []
     for r in report["colliders"]:
-        t = reference_timing(r, report, device)
+        t = reference_seconds_per_point(r, report, device, basis=basis)
         if t is not None:
-            items.append((r["name"], t["median_s"] / t["points"], r["accuracy"]["band_1mm"][ERROR_KEYS[error]],
-                          t.get("spread") or 0.0))
+            items.append((r["name"], t, r["accuracy"]["band_1mm"][ERROR_KEYS[error]],
+                          reference_spread(r, report, device, basis)))
     return items
 
 
 def front(report: dict, device: str, error: str) -> list[str] | None:
-    """The Pareto front's names, or None when it is not called: some reference time is missing
-    (an interrupted run) or stayed unstable."""
-    if unstable_references(report, device) or not report["colliders"]:
+    """The Pareto front's names on the :func:`ranking_basis`, or None when it is not called
+    (some reference time is missing, an interrupted run, or unstable on both bases)."""
+    basis = ranking_basis(report, device)
+    if basis is None or not report["colliders"]:
         return None
-    return pareto_front(front_items(report, device, error))
+    return pareto_front(front_items(report, device, error, basis))
 
 
 def front_text(report: dict, device: str) -> str:
     labels = {r["name"]: r["label"] for r in report["colliders"]}
-    unstable = unstable_references(report, device)
-    if unstable:
-        return (f"Pareto front ({device}): not called: the reference time of {', '.join(unstable)} is not a "
-                f"stable figure (spread above {100 * report['config']['timing']['max_spread']:.0f} % after "
-                "retiming, or not measured); a front drawn from it could change from run to run. Rerun on "
-                "a quieter machine (the load average is in the header).")
+    basis = ranking_basis(report, device)
+    limit = 100 * report["config"]["timing"]["max_spread"]
+    if basis is None:
+        return (f"Pareto front ({device}): not called: the reference time of "
+                f"{', '.join(unstable_references(report, device))} is not a stable figure (spread above "
+                f"{limit:.0f} % after retiming, or not measured), nor is its process CPU time "
+                f"({', '.join(unstable_references(report, device, 'cpu'))}); a front drawn from them could change "
+                "from run to run. Rerun on a quieter machine (the load average is in the header).")
     lines = []
+    if basis == "cpu":
+        lines.append(f"The wall times of {', '.join(unstable_references(report, device))} stayed unstable (spread "
+                     f"above {limit:.0f} %): the front ranks by process CPU time per point, which other "
+                     "processes' load does not inflate.")
     for error in ERROR_KEYS:
         names = front(report, device, error)
         if names:
-            lines.append(f"Pareto front ({device}, time vs {error} error): " + ", ".join(labels[n] for n in names))
+            lines.append(f"Pareto front ({device}, {'CPU ' if basis == 'cpu' else ''}time vs {error} error): "
+                         + ", ".join(labels[n] for n in names))
     lines.append(f"(Reference times within {100 * TIE:.0f} % or within their spread of each other count as equal.)")
     return "\n".join(lines)
 
@@ -389,7 +421,9 @@ def figure(report: dict, device: str = "cpu"):
     import matplotlib.pyplot as plt
     from matplotlib.lines import Line2D
 
-    rows = [r for r in report["colliders"] if reference_seconds_per_point(r, report, device) is not None]
+    basis = ranking_basis(report, device) or "wall"
+    rows = [r for r in report["colliders"]
+            if reference_seconds_per_point(r, report, device, basis=basis) is not None]
     size = max(report["config"]["sizes"])
     colours = plt.get_cmap("tab10")
     fig, axes = plt.subplots(1, 2, figsize=(13, 5.4), dpi=110)
@@ -399,13 +433,13 @@ def figure(report: dict, device: str = "cpu"):
     for ax, (error, key) in zip(axes, ERROR_KEYS.items()):
         points, labels, served_markers = {}, [], []
         for i, r in enumerate(rows):
-            t = reference_seconds_per_point(r, report, device) * 1e6
+            t = reference_seconds_per_point(r, report, device, basis=basis) * 1e6
             e = max(r["accuracy"]["band_1mm"][key], floor[error])
             points[r["name"]] = (t, e)
             area = 30 + 600 * np.sqrt(r["memory_bytes"] / biggest)
             ax.scatter(t, e, s=area, color=colours(i % 10), alpha=0.8, edgecolors="black", linewidths=0.6,
                        zorder=3)
-            served = reference_seconds_per_point(r, report, device, "served")
+            served = reference_seconds_per_point(r, report, device, "served", basis)
             if served is not None:
                 ax.scatter(served * 1e6, e, s=area, facecolors="none", edgecolors=colours(i % 10),
                            linewidths=1.2, zorder=3)
@@ -422,8 +456,8 @@ def figure(report: dict, device: str = "cpu"):
             ax.set_title("Pareto front not called: unstable timings (see bench.md)", fontsize=9, color="crimson")
         ax.set_xscale("log")
         ax.set_yscale("log")
-        ax.set_xlabel(f"distance + normal + contact: microseconds per point ({size_label(size)} points "
-                      f"per call, {device})")
+        ax.set_xlabel(f"distance + normal + contact: {'CPU ' if basis == 'cpu' else ''}microseconds per point "
+                      f"({size_label(size)} points per call, {device})")
         ax.set_ylabel("mean distance error, +-1 mm band (mm)" if error == "distance"
                       else "mean normal angle error, +-1 mm band (degrees)")
         ax.grid(True, which="both", alpha=0.3)

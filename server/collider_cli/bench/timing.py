@@ -120,11 +120,13 @@ class Timing:
 
     def to_dict(self, max_spread: float) -> dict:
         cpu = median(self.cpu_s) if self.cpu_s else None
+        cpu_spread = spread(self.cpu_s)
         return {"path": self.path, "device": self.device, "mode": self.mode, "points": self.points,
                 "reference": self.reference, "median_s": self.median_s, "spread": self.spread,
                 "repeats": len(self.times_s), "retimed": self.retimed, "stable": self.stable(max_spread),
                 "times_s": self.times_s, "seconds_per_million": self.median_s * 1e6 / self.points,
-                "cpu_median_s": cpu, "cpu_spread": spread(self.cpu_s), "cpu_s": self.cpu_s,
+                "cpu_median_s": cpu, "cpu_spread": cpu_spread, "cpu_s": self.cpu_s,
+                "cpu_stable": cpu_spread is not None and len(self.cpu_s) >= 3 and cpu_spread <= max_spread,
                 "cpu_seconds_per_million": None if cpu is None else cpu * 1e6 / self.points}
 
 

@@ -84,22 +84,22 @@ def print_ranking(report: dict, ranked: list[dict], budget, device: str) -> None
     """Every measured collider: its reference time (+- spread) and whether it meets the budget
     (and why not); then which colliders were equally fast as the pick, and unstable figures."""
     from ..bench.budget import equally_fast, format_bytes
-    from ..bench.report import reference_timing, unstable_references
+    from ..bench.report import ranking_basis, reference_seconds_per_point, reference_spread, unstable_references
 
+    basis = ranking_basis(report, device)
     meeting = {r["name"] for r in ranked}
-    print(f"measured colliders ({device}, distance+normal+contact, s per 1M points +- spread; "
-          f"+-1 mm band mean errors), for {budget.describe()}:")
+    print(f"measured colliders ({device}, distance+normal+contact, {'CPU ' if basis == 'cpu' else ''}s per 1M "
+          f"points +- spread; +-1 mm band mean errors), for {budget.describe()}:")
 
     def seconds(row):
-        t = reference_timing(row, report, device)
-        return float("inf") if t is None else t["median_s"] / t["points"]
+        t = reference_seconds_per_point(row, report, device, basis=basis or "wall")
+        return float("inf") if t is None else t
 
     for r in sorted(report["colliders"], key=seconds):
-        t = reference_timing(r, report, device)
-        if t is None:
+        if seconds(r) == float("inf"):
             continue
         a = r["accuracy"]["band_1mm"]
-        spread = "" if t.get("spread") is None else f" +-{100 * t['spread']:3.0f}%"
+        spread = f" +-{100 * reference_spread(r, report, device, basis or 'wall'):3.0f}%"
         verdict = "meets" if r["name"] in meeting else "misses: " + "; ".join(budget.misses(r))
         print(f"  {r['label']:<34} {seconds(r) * 1e6:8.2f}{spread}  {a['distance_mean_mm']:.4f} mm  "
               f"{a['normal_mean_deg']:5.2f} deg  {format_bytes(r['memory_bytes']):>9}  {verdict}")
@@ -109,10 +109,13 @@ def print_ranking(report: dict, ranked: list[dict], budget, device: str) -> None
     if tied:
         print(f"{ranked[0]['label']} and {', '.join(r['label'] for r in tied)} are equally fast within the "
               "measurement; the pick is the one with the least memory")
-    unstable = unstable_references(report, device)
-    if unstable:
-        print(f"warning: unstable timings ({', '.join(unstable)}): the ranking by speed may differ in "
-              "another run; the budget itself is checked afresh below", file=sys.stderr)
+    if basis == "cpu":
+        print(f"the wall times of {', '.join(unstable_references(report, device))} stayed unstable: ranked by "
+              "process CPU time per point")
+    elif basis is None:
+        print(f"warning: unstable timings ({', '.join(unstable_references(report, device))}), wall and CPU: the "
+              "ranking by speed may differ in another run; the budget itself is checked afresh below",
+              file=sys.stderr)
 
 
 def _bake_device(device: str | None) -> str:
@@ -170,7 +173,7 @@ def _build_and_check(args, row, report, budget, mesh, transform, units, meters_p
 
     from ..bench.budget import format_bytes
     from ..bench.plan import Candidate, build_candidate
-    from ..bench.report import reference_seconds_per_point
+    from ..bench.report import ranking_basis, reference_seconds_per_point
 
     repo = ModelRepository(args.models)
     candidate = Candidate(row["name"], row["label"], row["kind"], row["settings"], build=row["build"])
@@ -178,10 +181,11 @@ def _build_and_check(args, row, report, budget, mesh, transform, units, meters_p
         candidate.path = Path(row["settings"]["model_file"])
     collider = build_candidate(candidate, mesh, transform, units=units, meters_per_unit=meters_per_unit,
                                cache=cache_dir(args), show_progress=not args.quiet)
-    seconds = reference_seconds_per_point(row, report, device)
+    basis = ranking_basis(report, device) or "wall"
+    seconds = reference_seconds_per_point(row, report, device, basis=basis)
     bench = row["accuracy"]["band_1mm"]
     print(f"picked {row['label']}: the fastest measured collider meeting {budget.describe()}: "
-          f"{seconds * 1e6:.2f} s per 1M points ({device}), mean distance error "
+          f"{seconds * 1e6:.2f} {'CPU ' if basis == 'cpu' else ''}s per 1M points ({device}), mean distance error "
           f"{bench['distance_mean_mm']:.4f} mm, normal {bench['normal_mean_deg']:.2f} deg, "
           f"{format_bytes(row['memory_bytes'])} (measured with seed {report['config']['seed']})")
     fresh = evaluate_collider(collider, mesh, points=100_000, seed=FRESH_SEED, reconstruction=False,
