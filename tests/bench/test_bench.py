@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -96,13 +97,16 @@ def test_unstable_figures_are_retimed_then_flagged_and_stable_ones_are_not():
     clock, order = FakeClock(), []
     cells = _cells(clock, {"steady": 1.0, "bursty": [1.0, 5.0, 1.0, 9.0]}, order)
     policy = TimingPolicy(repeats=4, cell_budget_s=100.0, max_spread=0.25, retime_rounds=3)
+    # bursty: median 3 of [1, 1, 5, 9], IQR 5: spread 1.57 x 5 / (3 x 2) = 1.3
     time_rounds(cells, policy, clock=clock)
     steady, bursty = (c.timing for c in cells)
     assert len(steady.times_s) == 4 and steady.retimed == 0 and steady.stable(0.25)
     assert len(bursty.times_s) == 7 and bursty.retimed == 3 and not bursty.stable(0.25)
     assert steady.to_dict(0.25)["stable"] is True and bursty.to_dict(0.25)["stable"] is False
     assert spread([1.0, 1.0, 1.0]) == 0.0 and spread([1.0]) is None
-    assert spread([1.0, 2.0, 3.0, 4.0, 5.0]) == pytest.approx(2.0 / 3.0)  # IQR 2 over median 3
+    # The median's ~95 % half-width: 1.57 x IQR 2 / (median 3 x sqrt(5)); four times the calls halve it.
+    assert spread([1.0, 2.0, 3.0, 4.0, 5.0]) == pytest.approx(1.57 * 2.0 / (3.0 * 5 ** 0.5))
+    assert spread([1.0, 2.0, 3.0, 4.0, 5.0] * 4) == pytest.approx(spread([1.0, 2.0, 3.0, 4.0, 5.0] * 4 * 4) * 2, rel=0.05)
 
 
 def test_served_faster_than_embedded_beyond_the_spread_is_retimed_with_its_twin():
@@ -216,6 +220,14 @@ def test_memory_limits_are_shown_in_units_that_tell_them_apart():
     assert format_bytes(8_388_608) == "8.39 MB" and format_bytes(1.5e9) == "1.5 GB"
     assert Budget(0.05, max_memory_bytes=size_bytes("1KB")).describe() == \
         "mean distance error <= 0.05 mm, memory <= 1 kB (+-1 mm band)"
+    import trimesh
+
+    from collider_server.engine.meshes import Mesh
+
+    box = trimesh.creation.box(extents=(0.1, 0.1, 0.1))
+    plan = plan_candidates(Mesh(np.asarray(box.vertices), np.asarray(box.faces), "box"), np.eye(4),
+                           PlanConfig(kinds=("voxel",), resolutions=(8,), max_memory_bytes=size_bytes("1KB")), None)
+    assert plan.skipped == [{"name": "voxel-8", "reason": "2.05 kB grid exceeds --max-memory 1 kB; larger grids not tried"}]
 
 
 def test_rank_takes_the_fastest_that_meets_every_limit_and_explains_when_none_does():
@@ -305,7 +317,7 @@ def test_quick_bench_measures_every_kind_embedded_and_served_with_plausible_accu
         cells = {(t["path"], t["device"], t["mode"], t["points"]) for t in row["timings"]}
         assert cells == {(path, "cpu", mode, n) for path in ("embedded", "served")
                          for mode in ("distance", "distance+normal+contact") for n in (10_000, 40_000)}
-        assert all(t["median_s"] > 0 and 1 <= t["repeats"] <= 9 for t in row["timings"])
+        assert all(t["median_s"] > 0 and 1 <= t["repeats"] <= 15 for t in row["timings"])
         reference = [t for t in row["timings"] if t["reference"]]
         assert [(t["path"], t["mode"], t["points"]) for t in reference] == [
             ("embedded", "distance+normal+contact", 40_000)]
@@ -447,3 +459,27 @@ def test_the_plot_labels_each_marker_without_covering_another(quick_bench):
                 assert label.arrow_patch is not None or np.allclose(nearest[:2], own, atol=1.0), label.get_text()
     finally:
         plt.close(fig)
+
+
+@pytest.mark.slow
+def test_the_budget_bake_trains_neural_candidates_and_names_every_limit_it_checked(tmp_path):
+    import trimesh
+
+    mesh = tmp_path / "ball.obj"
+    trimesh.creation.icosphere(subdivisions=3, radius=0.05).export(mesh)
+    result = collider("bake", mesh, "--name", "pick", "--models", tmp_path / "models", "--max-error", "0.5mm",
+                      "--max-normal-error", "20deg", "--max-memory", "3MB", "--train-minutes", "0.05",
+                      "--cache", tmp_path / "cache", "--quiet")
+    assert result.returncode == 0, result.stdout + result.stderr
+    report = json.loads((tmp_path / "cache" / "budget-pick" / "bench.json").read_text())
+    trained = {r["settings"]["preset"] for r in report["colliders"] if r["build"] == "train"}
+    from collider_server.engine.kinds.neural import PRESETS
+
+    assert trained == set(PRESETS)  # every preset, trained 0.05 min each, was a candidate
+    assert not [s for s in report["skipped"] if s.get("preset")]
+    verdict = next(line for line in result.stdout.splitlines() if "meets the budget" in line)
+    assert re.fullmatch(r"fresh evaluation \(seed 1234, 100,000 points per band\) meets the budget: mean distance "
+                        r"error \d\.\d{4} mm <= 0\.5 mm; mean normal error \d+\.\d\d deg <= 20 deg; memory "
+                        r"[\d.]+ (kB|MB|bytes) <= 3 MB", verdict), verdict
+    assert "mesh: 1,280 faces, watertight, 1 piece, no self-intersections" in result.stdout
+    assert f"cache {tmp_path / 'cache'}: " in result.stdout

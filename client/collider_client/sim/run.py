@@ -218,7 +218,7 @@ def run_scene(scene: Scene, client, out_dir: Path, *, show_progress: bool = True
             interrupt = exc
             # A step cut short leaves the state of the last whole step (its new positions are
             # committed at its end): that state is the last frame, at that step's time.
-            if len(times) < 2 or times[-1] < done * scene.dt_s - 0.5 * scene.dt_s:
+            if times[-1] < done * scene.dt_s - 0.5 * scene.dt_s:
                 keep_frame(done * scene.dt_s)
     if bar is not None:
         bar.close()

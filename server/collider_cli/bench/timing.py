@@ -22,7 +22,6 @@ take the cores, and reported beside it.
 from __future__ import annotations
 
 import math
-import os
 import time
 from dataclasses import dataclass, field
 from typing import Callable
@@ -46,7 +45,7 @@ class TimingPolicy:
     warmup_points : size of the untimed warm-up call of each (collider, path, device, mode)
     min_repeats : calls of a reference cell (what the front and the budget picker rank by),
         whatever its budget: a spread needs three
-    max_spread : a figure whose spread (interquartile range / median) exceeds this is unstable
+    max_spread : a figure whose spread (:func:`spread`, relative) exceeds this is unstable
     retime_rounds : most extra rounds for unstable figures
     """
 
@@ -55,7 +54,7 @@ class TimingPolicy:
     warmup_points: int = 10_000
     min_repeats: int = 3
     max_spread: float = 0.25
-    retime_rounds: int = 4
+    retime_rounds: int = 10
 
     def check(self) -> None:
         if not isinstance(self.repeats, int) or self.repeats < 1:
@@ -74,13 +73,18 @@ def median(values: list[float]) -> float:
     return float(np.median(values))
 
 
+#: The notch factor: median +- 1.57 IQR / sqrt(n) holds the median of the distribution with about
+#: 95 % confidence (McGill, Tukey and Larsen 1978).
+NOTCH = 1.57
+
+
 def spread(values: list[float]) -> float | None:
-    """Interquartile range over the median (0.1 = the middle half of the calls lies within 10 %
-    of the median); None below two values (nothing to judge by)."""
+    """How far the median of ``values`` may be off, relative to it: 1.57 IQR / (median sqrt(n))
+    (0.1: the median is known within 10 %). None below two values (nothing to judge by)."""
     if len(values) < 2:
         return None
     q1, mid, q3 = np.percentile(values, [25, 50, 75])
-    return float((q3 - q1) / mid) if mid > 0 else 0.0
+    return float(NOTCH * (q3 - q1) / (mid * np.sqrt(len(values)))) if mid > 0 else 0.0
 
 
 @dataclass
@@ -178,7 +182,8 @@ def time_rounds(cells: list[Cell], policy: TimingPolicy, on_call: Callable[[Cell
     in the list's order), then retime unstable ones: cells that are unstable and have had at
     least three calls, and served cells measured faster than their embedded twin by more than
     the spread (:func:`served_beats_embedded`), with that twin, in up to ``retime_rounds``
-    extra rounds while their calls stay under twice the cell budget. Returns the rounds run."""
+    extra rounds while their calls stay under twice the cell budget (more calls narrow a
+    median's spread). Returns the rounds run."""
     rounds = 0
     while True:
         due = [c for c in cells if c.wants_more(policy)]
@@ -218,18 +223,19 @@ def retime_due(cells: list[Cell], policy: TimingPolicy) -> list[Cell]:
     return [c for c in cells if id(c) in due and sum(c.timing.times_s) < 2 * policy.cell_budget_s]
 
 
-def quartiles(values: list[float]) -> tuple[float, float]:
-    q1, q3 = np.percentile(values, [25, 75])
-    return float(q1), float(q3)
+def interval(values: list[float]) -> tuple[float, float]:
+    """The median of ``values`` minus and plus its :func:`spread` (seconds)."""
+    mid, s = median(values), spread(values) or 0.0
+    return mid * (1 - s), mid * (1 + s)
 
 
 def served_beats_embedded(embedded: Timing, served: Timing) -> bool:
-    """Served faster than embedded by more than the measured spread: the served calls' upper
-    quartile below the embedded calls' lower quartile. The same query plus HTTP cannot be
-    faster, so this is a measurement to redo, never a figure to report as is."""
+    """Served faster than embedded by more than the measured spread: the served median's
+    interval wholly below the embedded one's. The same query plus HTTP cannot be faster, so this
+    is a measurement to redo, never a figure to report as is."""
     if not embedded.times_s or not served.times_s:
         return False
-    return quartiles(served.times_s)[1] < quartiles(embedded.times_s)[0]
+    return interval(served.times_s)[1] < interval(embedded.times_s)[0]
 
 
 def warm_up(call: Callable[[], object], clock: Callable[[], float] = time.perf_counter) -> float:
@@ -238,6 +244,3 @@ def warm_up(call: Callable[[], object], clock: Callable[[], float] = time.perf_c
     call()
     return clock() - started
 
-
-def cpu_count() -> int:
-    return os.cpu_count() or 1

@@ -108,11 +108,10 @@ def empty_reason(path: Path, vertices: int) -> str:
             shaped = any(line.split(maxsplit=1)[0] in ("v", "f") for line in lines)
         else:
             shaped = bool(lines) and lines[0].upper().endswith("OFF")
-        if not shaped:
-            start = lines[0][:40] if lines else ""
+        if lines and not shaped:
+            start = lines[0][:40]
             what = "no vertex (v) or face (f) line" if suffix == ".obj" else "no OFF header"
-            return (f"not an {suffix[1:].upper()} file: {what}" + (f" (it starts with {start!r})" if start else
-                                                                   " (it holds no text)"))
+            return f"not an {suffix[1:].upper()} file: {what} (it starts with {start!r})"
     if vertices:
         return f"mesh is empty: {vertices} vertices but no triangles"
     return "mesh is empty (no triangles)"
