@@ -159,8 +159,9 @@ def time_tables(report: dict) -> str:
             out.append(f"| {size_label(size)} | " + " | ".join(cells) + " |")
         out.append("")
     out.append(f"Each cell: a warm-up call, then one call per round, the colliders interleaved in "
-               f"rounds (up to {policy['repeats']}); the median and, after +-, the spread (interquartile "
-               f"range over the median). A cell leaves the rounds once its calls add up to "
+               f"rounds (up to {policy['repeats']}); the median and, after +-, its spread (how far the median "
+               f"may be off: 1.57 x the calls' interquartile range / sqrt(calls)). A cell leaves the rounds once "
+               f"its calls add up to "
                f"{policy['cell_budget_s']:g} s ((r): its r calls), the reference cells after "
                f"{policy['min_repeats']} calls at least; ! marks a spread above "
                f"{100 * policy['max_spread']:.0f} % left after up to {policy['retime_rounds']} extra rounds.")

@@ -65,7 +65,7 @@ def register(subparsers) -> None:
 def run_bake(args) -> int:
     from collider_server.engine.modelfile import save_collider
     from collider_server.engine.repository import ModelRepository, check_name
-    from collider_server.making.bake import bake_collider
+    from collider_server.making.bake import bake_collider, check_bake_settings
     from collider_server.making.mesh_files import load_mesh
 
     check_name(args.name)
@@ -77,6 +77,7 @@ def run_bake(args) -> int:
     if args.cache is not None:
         raise ValueError("--cache is where the budget bake (--max-error) keeps what it measures; a plain "
                          "bake keeps nothing but the model")
+    check_bake_settings(args.kind, args.resolution, args.padding)  # before the mesh check and the estimate
     placement = placement_from_args(args)
     mesh, transform = placement.apply(load_mesh(args.mesh))
     repository = ModelRepository(args.models)
