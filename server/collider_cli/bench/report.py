@@ -20,9 +20,11 @@ import numpy as np
 
 REFERENCE_MODE = "distance+normal+contact"
 ERROR_KEYS = {"distance": "distance_mean_mm", "normal": "normal_mean_deg"}
-#: Reference times closer than this (relative) are equal for the front and the budget picker:
-#: on a shared machine the ratio of two colliders' times moved by up to ~20 % between runs.
-TIE = 0.25
+#: Reference times closer than this (relative) are equal for the front and the budget picker: on
+#: the shared 2-core machine the ratio of two colliders' CPU times moved by up to 30 % between
+#: quick benches minutes apart (voxel 64^3 over 32^3: 0.97 to 1.30x) while each run's own spread
+#: said 7 %: a front resting on a smaller difference would change from run to run.
+TIE = 0.35
 
 
 def timing(row: dict, *, path: str, device: str, mode: str, points: int) -> dict | None:

@@ -179,11 +179,10 @@ class Cell:
 def time_rounds(cells: list[Cell], policy: TimingPolicy, on_call: Callable[[Cell], None] = lambda c: None,
                 clock: Callable[[], float] = time.perf_counter) -> int:
     """Time ``cells`` in interleaved rounds (one call of every cell still wanting more per round,
-    in the list's order), then retime unstable ones: cells that are unstable and have had at
-    least three calls, and served cells measured faster than their embedded twin by more than
-    the spread (:func:`served_beats_embedded`), with that twin, in up to ``retime_rounds``
-    extra rounds while their calls stay under twice the cell budget (more calls narrow a
-    median's spread). Returns the rounds run."""
+    in the list's order), then retime, in up to ``retime_rounds`` extra rounds, the cells
+    :func:`retime_due` names: unstable ones (more calls narrow a median's spread) and served
+    cells measured faster than their embedded twin (:func:`served_beats_embedded`) with that
+    twin. Returns the rounds run."""
     rounds = 0
     while True:
         due = [c for c in cells if c.wants_more(policy)]
@@ -206,12 +205,15 @@ def time_rounds(cells: list[Cell], policy: TimingPolicy, on_call: Callable[[Cell
 
 
 def retime_due(cells: list[Cell], policy: TimingPolicy) -> list[Cell]:
-    """Cells to time once more (see :func:`time_rounds`), in the list's order."""
-    due = set()
-    for cell in cells:
-        t = cell.timing
-        if len(t.times_s) >= 3 and not t.stable(policy.max_spread):
-            due.add(id(cell))
+    """Cells to time once more (see :func:`time_rounds`), in the list's order: unstable ones
+    while their calls stay under twice the cell budget, and both twins of a served call faster
+    than its embedded one until each has three calls (a spread to judge by), then as unstable
+    ones."""
+    def under_budget(cell):
+        return sum(cell.timing.times_s) < 2 * policy.cell_budget_s
+
+    due = {id(c) for c in cells if len(c.timing.times_s) >= 3 and not c.timing.stable(policy.max_spread)
+           and under_budget(c)}
     twins: dict[tuple, dict[str, Cell]] = {}
     for cell in cells:
         t = cell.timing
@@ -219,8 +221,8 @@ def retime_due(cells: list[Cell], policy: TimingPolicy) -> list[Cell]:
     for pair in twins.values():
         if "served" in pair and "embedded" in pair and served_beats_embedded(pair["embedded"].timing,
                                                                             pair["served"].timing):
-            due.update({id(pair["served"]), id(pair["embedded"])})
-    return [c for c in cells if id(c) in due and sum(c.timing.times_s) < 2 * policy.cell_budget_s]
+            due.update(id(c) for c in pair.values() if len(c.timing.times_s) < 3 or under_budget(c))
+    return [c for c in cells if id(c) in due]
 
 
 def interval(values: list[float]) -> tuple[float, float]:
