@@ -104,7 +104,7 @@ def test_every_hint_every_command_prints_works_when_pasted(user):
     budget = shell(f"collider bake ball.obj --name ball-pick --models '{models}' --max-error 50mm --kind voxel "
                    "--quiet --bench box-bench.json", home, env)
     assert budget.returncode == 2  # no such file: refused in one line, no hint
-    other = shell(f"collider bench box.obj --kinds kdtree --no-served --sizes 1k --accuracy-points 1000 "
+    other = shell("collider bench box.obj --kinds kdtree --no-served --sizes 1k --accuracy-points 1000 "
                   "--repeats 3 --quiet --output box-bench", home, env)
     assert other.returncode == 0, other.stderr
     wrong = shell(f"collider bake ball.obj --name ball-pick --models '{models}' --max-error 50mm "

@@ -21,9 +21,9 @@ import os
 # is set before anything imports torch; a value the user set wins.
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
-from collider_contract import FIELDS  # noqa: E402, MAX_COORDINATE_M, Pose, PoseError, QueryResult, as_pose
+from collider_contract import FIELDS
 
-from .engine import Collider, ColliderInfo, ModelFileError, ModelRepository, load_collider, save_collider  # noqa: E402
+from .engine import Collider, ColliderInfo, ModelFileError, ModelRepository, load_collider, save_collider
 
 __all__ = [
     "FIELDS",

@@ -94,7 +94,7 @@ class Budget:
         return ", ".join(parts) + " (+-1 mm band)"
 
 
-def format_bytes(n: int | float) -> str:
+def format_bytes(n: float) -> str:
     """``"512 bytes"``, ``"1 kB"``, ``"8.39 MB"``, ``"1.5 GB"`` (powers of 1000, as --max-memory's
     kB, MB, GB), with enough digits to tell a limit from a figure near it."""
     for unit, size in (("GB", 1e9), ("MB", 1e6), ("kB", 1e3)):

@@ -113,7 +113,7 @@ def unstable_references(report: dict, device: str = "cpu", basis: str = "wall") 
 def served_faster(report: dict) -> list[str]:
     """Cells where the served call measured faster than the embedded one by more than the
     spread (after the retiming of :mod:`.timing`): never a figure to trust."""
-    from .timing import served_beats_embedded, Timing
+    from .timing import Timing, served_beats_embedded
 
     out = []
     for r in report["colliders"]:

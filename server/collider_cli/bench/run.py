@@ -107,7 +107,7 @@ def run_bench(mesh: Mesh, transform: np.ndarray, config: BenchConfig, *, units: 
     rows: dict[str, dict] = {}
     report = {
         "mesh": {"path": mesh_path, "name": mesh.name, "sha256": mesh.sha256,
-                 "vertices": int(len(mesh.vertices)), "faces": int(len(mesh.faces)),
+                 "vertices": len(mesh.vertices), "faces": len(mesh.faces),
                  "transform": np.asarray(transform).tolist(), "units": units,
                  "meters_per_unit": meters_per_unit},
         "config": {**asdict(config), "devices": list(devices)},
@@ -334,7 +334,7 @@ def _load_average() -> float | None:
 
 def machine_info(load_at_start: float | None) -> dict:
     """CPU model, cores, GPU, load average (start and end of the run) and library versions."""
-    import importlib.metadata as metadata
+    from importlib import metadata
 
     import torch
 

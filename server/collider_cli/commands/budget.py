@@ -84,7 +84,12 @@ def print_ranking(report: dict, ranked: list[dict], budget, device: str) -> None
     """Every measured collider: its reference time (+- spread) and whether it meets the budget
     (and why not); then which colliders were equally fast as the pick, and unstable figures."""
     from ..bench.budget import equally_fast, format_bytes
-    from ..bench.report import ranking_basis, reference_seconds_per_point, reference_spread, unstable_references
+    from ..bench.report import (
+        ranking_basis,
+        reference_seconds_per_point,
+        reference_spread,
+        unstable_references,
+    )
 
     basis = ranking_basis(report, device)
     meeting = {r["name"] for r in ranked}
@@ -209,7 +214,7 @@ def _build_and_check(args, row, report, budget, mesh, transform, units, meters_p
     print(f"fresh evaluation (seed {FRESH_SEED}, 100,000 points per band) meets the budget: {verdict}")
     print(f"sign errors: {fresh['band_1mm']['sign_errors_percent']:.2f} % of the +-1 mm band points farther than "
           "0.2 mm from the surface (fresh evaluation, against the exact winding-number sign)"
-          + ("" if check.watertight else f"; the mesh is not watertight: sign errors gather near its holes"))
+          + ("" if check.watertight else "; the mesh is not watertight: sign errors gather near its holes"))
     print(f"wrote {path} ({path.stat().st_size:,} bytes, kind {collider.info.kind}"
           + (f", resolution {row['settings']['resolution']}" if row["kind"] == "voxel" else "") + ")")
     return True

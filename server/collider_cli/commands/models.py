@@ -109,7 +109,6 @@ def bake_estimate(mesh, resolution: int) -> str:
 
     from collider_server.engine.meshes import ExactSDF
     from collider_server.making.bake import padded_box
-
     from collider_server.making.progress import format_duration
 
     sdf = ExactSDF(mesh)

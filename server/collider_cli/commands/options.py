@@ -52,7 +52,7 @@ def add_models_argument(parser, purpose: str = "") -> None:
                         help=f"{purpose}: {MODELS_HELP}" if purpose else MODELS_HELP)
 
 
-def add_device_argument(parser, help: str = DEVICE_HELP) -> None:  # noqa: A002
+def add_device_argument(parser, help: str = DEVICE_HELP) -> None:
     """``--device``: where the engine runs (None: CUDA when present, else the CPU)."""
     parser.add_argument("--device", default=None, help=help)
 

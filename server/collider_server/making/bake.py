@@ -65,8 +65,8 @@ def mesh_source(mesh: Mesh, transform: np.ndarray | None = None) -> dict:
     return {
         "mesh": mesh.name,
         "sha256": mesh.sha256,
-        "vertices": int(len(mesh.vertices)),
-        "faces": int(len(mesh.faces)),
+        "vertices": len(mesh.vertices),
+        "faces": len(mesh.faces),
         "transform": (np.eye(4) if transform is None else np.asarray(transform)).tolist(),
     }
 

@@ -54,7 +54,7 @@ class MeshCheck:
         return {**asdict(self), "watertight": self.watertight}
 
     @classmethod
-    def from_dict(cls, data: dict) -> "MeshCheck":
+    def from_dict(cls, data: dict) -> MeshCheck:
         """The check :meth:`to_dict` wrote (stored in a model's ``source`` or a bench report)."""
         return cls(**{k: data[k] for k in cls.__dataclass_fields__ if k in data})
 
@@ -135,7 +135,7 @@ def check_mesh(mesh: Mesh, max_faces_intersections: int = MAX_FACES_INTERSECTION
         labels = connected_components(graph, directed=False)[1]
         pieces = len(np.unique(labels[np.unique(faces)]))
     pairs, note = self_intersections(unique, faces, max_faces_intersections)
-    return MeshCheck(faces=int(len(mesh.faces)), vertices=int(n), boundary_edges=int(len(boundary)),
+    return MeshCheck(faces=len(mesh.faces), vertices=int(n), boundary_edges=len(boundary),
                      holes=int(holes), non_manifold_edges=int((counts > 2).sum()), flipped_edges=flipped,
                      pieces=int(pieces), intersecting_pairs=pairs, intersections_note=note)
 
@@ -153,4 +153,4 @@ def self_intersections(vertices: np.ndarray, faces: np.ndarray, max_faces: int) 
                                           detect_only=True)[2]
     except Exception as exc:  # CGAL refuses some degenerate input; the other checks still stand
         return None, f"libigl could not check: {type(exc).__name__}"
-    return int(len(pairs)), ""
+    return len(pairs), ""
