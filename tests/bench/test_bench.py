@@ -493,3 +493,21 @@ def test_a_served_call_faster_than_embedded_is_retimed_whatever_its_cell_budget(
     time_rounds(cells, TimingPolicy(repeats=5, cell_budget_s=1.0, retime_rounds=10), clock=clock)
     assert [len(c.timing.times_s) for c in cells] == [2, 2]
     assert not served_beats_embedded(cells[0].timing, cells[1].timing)
+
+
+def test_figures_unstable_in_cpu_time_only_are_retimed_too():
+    """The front may rank by CPU time (when wall times stay unstable): a cell steady in wall time
+    but not in CPU time is retimed as well."""
+    clock, order = FakeClock(), []
+    steps, reads = [0.01, 0.05, 0.01, 0.09], [0, 0.0]
+
+    def cpu():  # advances by the next of ``steps`` at each reading pair, like FakeClock
+        reads[0] += 1
+        if reads[0] % 2 == 0:
+            reads[1] += steps[(reads[0] // 2 - 1) % len(steps)]
+        return reads[1]
+
+    cells = _cells(clock, {"steady": 1.0}, order, cpu=(cpu,))
+    time_rounds(cells, TimingPolicy(repeats=4, cell_budget_s=100.0, retime_rounds=3), clock=clock)
+    t = cells[0].timing
+    assert t.stable(0.25) and not t.cpu_stable(0.25) and t.retimed == 3 and len(t.cpu_s) == 7

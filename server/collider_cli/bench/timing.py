@@ -122,6 +122,11 @@ class Timing:
         s = self.spread
         return s is not None and len(self.times_s) >= 3 and s <= max_spread
 
+    def cpu_stable(self, max_spread: float) -> bool:
+        """The same for the process CPU times of the calls."""
+        s = spread(self.cpu_s)
+        return s is not None and len(self.cpu_s) >= 3 and s <= max_spread
+
     def to_dict(self, max_spread: float) -> dict:
         cpu = median(self.cpu_s) if self.cpu_s else None
         cpu_spread = spread(self.cpu_s)
@@ -130,7 +135,7 @@ class Timing:
                 "repeats": len(self.times_s), "retimed": self.retimed, "stable": self.stable(max_spread),
                 "times_s": self.times_s, "seconds_per_million": self.median_s * 1e6 / self.points,
                 "cpu_median_s": cpu, "cpu_spread": cpu_spread, "cpu_s": self.cpu_s,
-                "cpu_stable": cpu_spread is not None and len(self.cpu_s) >= 3 and cpu_spread <= max_spread,
+                "cpu_stable": self.cpu_stable(max_spread),
                 "cpu_seconds_per_million": None if cpu is None else cpu * 1e6 / self.points}
 
 
@@ -205,15 +210,17 @@ def time_rounds(cells: list[Cell], policy: TimingPolicy, on_call: Callable[[Cell
 
 
 def retime_due(cells: list[Cell], policy: TimingPolicy) -> list[Cell]:
-    """Cells to time once more (see :func:`time_rounds`), in the list's order: unstable ones
-    while their calls stay under twice the cell budget, and both twins of a served call faster
+    """Cells to time once more (see :func:`time_rounds`), in the list's order: unstable ones (wall
+    or CPU time) while their calls stay under twice the cell budget, and both twins of a served call faster
     than its embedded one until each has three calls (a spread to judge by), then as unstable
     ones."""
     def under_budget(cell):
         return sum(cell.timing.times_s) < 2 * policy.cell_budget_s
 
-    due = {id(c) for c in cells if len(c.timing.times_s) >= 3 and not c.timing.stable(policy.max_spread)
-           and under_budget(c)}
+    def unstable(t):  # on either basis: the report may rank by wall or by CPU time
+        return not (t.stable(policy.max_spread) and t.cpu_stable(policy.max_spread))
+
+    due = {id(c) for c in cells if len(c.timing.times_s) >= 3 and unstable(c.timing) and under_budget(c)}
     twins: dict[tuple, dict[str, Cell]] = {}
     for cell in cells:
         t = cell.timing
