@@ -115,8 +115,8 @@ def print_ranking(report: dict, ranked: list[dict], budget, device: str) -> None
         print(f"{ranked[0]['label']} and {', '.join(r['label'] for r in tied)} are equally fast within the "
               "measurement; the pick is the one with the least memory")
     if basis == "cpu":
-        print(f"the wall times of {', '.join(unstable_references(report, device))} stayed unstable: ranked by "
-              "process CPU time per point")
+        print("ranked by process CPU time per point: the wall times were unstable or ranked otherwise (the load of "
+              "the moment)")
     elif basis is None:
         print(f"warning: unstable timings ({', '.join(unstable_references(report, device))}), wall and CPU: the "
               "ranking by speed may differ in another run; the budget itself is checked afresh below",
