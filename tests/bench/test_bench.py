@@ -184,7 +184,7 @@ def test_unstable_wall_times_fall_back_to_stable_cpu_times_for_the_front_and_the
     # On CPU time the grid (12 s) is slower than the exact mesh (9 s) and less accurate: dominated.
     assert front(report, "cpu", "distance") == ["coarse", "exact"]
     text = front_text(report, "cpu")
-    assert "The wall times of grid (spread 60 % over 5 calls) stayed unstable" in text
+    assert "the wall times of grid (spread 60 % over 5 calls) stayed unstable" in text
     assert "Pareto front (cpu, CPU time vs distance error): coarse, exact" in text
     assert [r["name"] for r in rank(report, Budget(0.05))] == ["exact", "grid"]
     report["colliders"][0] = _row("exact", 10.0, 0.0, cpu=9.0, cpu_stable=False)
