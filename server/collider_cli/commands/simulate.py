@@ -52,9 +52,10 @@ def estimate_line(stem: str, estimate) -> str:
             f"{1e3 * estimate.per_step_s:.1f} ms each: about {format_duration(estimate.seconds)} at that rate")
     worst = estimate.worst_seconds
     if worst is not None and worst > 1.05 * estimate.seconds:
-        text += (f"; up to {format_duration(worst)} ({1e3 * estimate.worst_per_step_s:.0f} ms a step) once the "
-                 f"whole cloth is inside the colliders' boxes (a query costs {1e6 * estimate.per_point_s:.2f} us "
-                 "per point here)")
+        text += (f"; about {format_duration(worst)} ({1e3 * estimate.worst_per_step_s:.0f} ms a step) if the whole "
+                 f"cloth comes inside the colliders' boxes (a query costs {1e6 * estimate.per_point_s:.2f} us per "
+                 "point here; fast vertices that need several queries a step, and a busier machine, add to it; "
+                 "the progress bar keeps the estimate up to date)")
     return text
 
 
