@@ -25,7 +25,7 @@ import pytest
 
 HINT = re.compile(r"next: (collider .+)$|`(collider [^`]+)`", re.MULTILINE)
 #: A pasted hint still running after this long is a long job: it is stopped with SIGTERM.
-LONG_AFTER_S = 15.0
+LONG_AFTER_S = 20.0
 
 pytestmark = pytest.mark.skipif(shutil.which("collider") is None, reason="the collider command is not installed")
 
@@ -66,7 +66,9 @@ def paste(hint: str, cwd: Path, env: dict) -> str:
         # A long job that started without refusing anything: stop it as a user or a scheduler would.
         process.send_signal(signal.SIGTERM)
         out, err = process.communicate(timeout=120)
-        assert process.returncode == 143, f"{hint!r} after SIGTERM: {process.returncode}\n{err[-2000:]}"
+        # 143: stopped as a long command stops; -15: the signal came as it was exiting after its
+        # work (its SIGTERM handler already handed back), e.g. an eval that took the whole wait.
+        assert process.returncode in (143, -signal.SIGTERM), f"{hint!r} after SIGTERM: {process.returncode}\n{err[-2000:]}"
         assert "error:" not in err, f"{hint!r}: {err[-2000:]}"
         return "143 after SIGTERM"
     assert process.returncode == 0, f"{hint!r} exited {process.returncode}:\n{out[-2000:]}\n{err[-2000:]}"

@@ -90,19 +90,21 @@ class RunInterrupted(KeyboardInterrupt):
         self.report, self.frames, self.interrupt = report, frames, interrupt
 
 
-def query_cost_per_point(client, scene: Scene, fields: list[str]) -> float | None:
-    """Seconds per point of one query of ``fields`` at :data:`PROBE_POINTS` points spread over
-    the first collider's domain box (collider frame), measured now: what each vertex inside a
-    collider's box costs a step (an upper bound: every field at every point)."""
+def query_cost_per_point(client, scene: Scene, hook) -> float | None:
+    """Seconds per point of one query, asked as the collision ``hook`` asks (its fields, contacts
+    of the colliding points only when it does), at :data:`PROBE_POINTS` points spread over the
+    first collider's domain box (collider frame), measured now: what each vertex inside a
+    collider's box costs a step."""
     if client is None or not scene.colliders:
         return None
     info = {m.name: m for m in client.list_models()}.get(scene.colliders[0].model)
     if info is None:
         return None
     points = np.random.default_rng(0).uniform(info.domain_min, info.domain_max, (PROBE_POINTS, 3))
-    client.query(info.name, points[:1000], fields=fields)  # warm-up
+    ask = {"fields": hook.fields, "only_colliding": hook.only_colliding}
+    client.query(info.name, points[:1000], **ask)  # warm-up
     started = time.perf_counter()
-    client.query(info.name, points, fields=fields)
+    client.query(info.name, points, **ask)
     return (time.perf_counter() - started) / PROBE_POINTS
 
 
@@ -149,8 +151,8 @@ def run_scene(scene: Scene, client, out_dir: Path, *, show_progress: bool = True
     ``NAME.obj``, ``NAME.pc2``, ``NAME.png`` and ``NAME.report.json``.
 
     on_estimate : called once with a :class:`DurationEstimate` after the first measured steps
-        (``ESTIMATE_AFTER_S`` seconds and ``ESTIMATE_AFTER_STEPS`` steps; at the end when the run
-        is shorter)
+        (``ESTIMATE_AFTER_S`` seconds and ``ESTIMATE_AFTER_STEPS`` steps; not at all for a run
+        shorter than that)
     Raises :class:`RunInterrupted` (a KeyboardInterrupt) on Ctrl-C, after writing the outputs
     of the steps that ran (the report's ``interrupted`` set).
 
@@ -183,7 +185,9 @@ def run_scene(scene: Scene, client, out_dir: Path, *, show_progress: bool = True
     c = scene.cloth
     write_obj(out_dir / f"{stem}.obj", sim.vertices, quad_faces(c.width, c.height), stem)
     times: list[float] = []
-    per_point = query_cost_per_point(client, scene, sim.hook.fields) if sim.hook is not None else None
+    # The probe query only when someone asked for the estimate (it is two extra queries).
+    per_point = (query_cost_per_point(client, scene, sim.hook)
+                 if sim.hook is not None and on_estimate is not None else None)
     bar = _progress(total, stem, show_progress)
     started = time.perf_counter()
     per_frame_colliding = []
@@ -205,8 +209,8 @@ def run_scene(scene: Scene, client, out_dir: Path, *, show_progress: bool = True
                     keep_frame()
                 if on_step is not None:
                     on_step(sim, i)
-                if on_estimate is not None and (i == total or (
-                        i >= ESTIMATE_AFTER_STEPS and time.perf_counter() - started >= ESTIMATE_AFTER_S)):
+                if (on_estimate is not None and i < total and i >= ESTIMATE_AFTER_STEPS
+                        and time.perf_counter() - started >= ESTIMATE_AFTER_S):
                     on_estimate(duration_estimate(scene, sim, i, total, time.perf_counter() - started,
                                                   per_point))
                     on_estimate = None

@@ -107,7 +107,7 @@ def exact_check_text(check: dict) -> str:
     if closest is not None and closest != float("inf"):
         where = "outside" if closest >= 0 else "inside"
         text += f", closest approach {1e3 * abs(closest):.3f} mm {where}"
-    return text + f", over {check['frames']} frames"
+    return text + (f", over {check['frames']} frames" if "frames" in check else "")
 
 
 class SimulationError(ValueError):

@@ -11,9 +11,11 @@ Candidates, in the order they are measured:
   training run of ``train_minutes`` when that is > 0; trained models of the mesh with an
   architecture outside the presets are included too.
 
-Voxel grids and bench-trained networks are cached in ``cache`` (keyed by the mesh file's sha256,
-the placement and the settings), with the seconds their bake or training took, so a second run
-measures the same colliders without rebuilding them and still reports what building cost.
+Voxel grids and bench-trained networks are cached in the cache folder's ``colliders/`` (keyed by
+the mesh file's sha256, the placement and the settings), with the seconds their bake or training
+took, so a second run measures the same colliders without rebuilding them and still reports what
+building cost; the mesh and kdtree colliders, rebuilt every run, are written there too (a served
+run loads every candidate from its file).
 """
 
 from __future__ import annotations

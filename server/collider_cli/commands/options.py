@@ -5,9 +5,12 @@
   :func:`collider_cli.main.build_parser`, so options added later are covered too).
 - :func:`add_models_argument`, :func:`add_device_argument`, :func:`add_quiet_argument`: the
   options that name the model repository, the torch device and the progress bar, declared once;
-- :func:`add_placement_arguments` / :func:`placement_from_args`: the mesh placement options
-  (``--scale``, ``--fit-size``, ``--z-up``, ``--units``, ``--meters-per-unit``) of every command
-  that reads a mesh, applied with :class:`collider_server.making.placement.MeshPlacement`.
+- :func:`add_placement_arguments` / :func:`placement_from_args` / :func:`load_placed_mesh`: the
+  mesh placement options (``--scale``, ``--fit-size``, ``--z-up``, ``--units``,
+  ``--meters-per-unit``) of every command that reads a mesh, applied with
+  :class:`collider_server.making.placement.MeshPlacement`;
+- :func:`add_cache_argument` / :func:`cache_dir` / :func:`cache_size_line`: the one cache folder
+  of ``bench`` and the budget bake (``--cache``, default under the user's cache directory).
 """
 
 from __future__ import annotations
