@@ -6,13 +6,15 @@
 Newton integrates the cloth (springs, gravity -z); between its substeps the adapter sends the
 particles near the collider to the collider service and applies our response (projection to the
 contact points, Coulomb friction). Writes the final particle positions to OUTPUT.npy (metres,
-world frame) and prints how deep the deepest particle is inside (collider's own distance).
+world frame; default out/newton_cloth_drop.npy, like the ``collider`` commands' outputs) and
+prints how deep the deepest particle is inside (collider's own distance).
 """
 
 from __future__ import annotations
 
 import argparse
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -90,19 +92,22 @@ def main(argv=None) -> int:
     parser.add_argument("--steps", type=int, default=300)
     parser.add_argument("--eps-m", type=float, default=1e-3)
     parser.add_argument("--friction", type=float, default=0.4)
-    parser.add_argument("--output", default="newton_cloth_drop")
+    parser.add_argument("--output", type=Path, default=Path("out") / "newton_cloth_drop",
+                        help="output path without .npy (default out/newton_cloth_drop; the folder is created)")
     args = parser.parse_args(argv)
 
     from collider_client import Client
 
+    output = args.output.with_name(args.output.name + ".npy")
+    output.parent.mkdir(parents=True, exist_ok=True)  # before the run, not after it
     client = Client(args.server) if args.server else Client(models=args.models)
     with client:
         q, deepest, stats, wall = run(client, args)
-    np.save(f"{args.output}.npy", q)
+    np.save(output, q)
     print(f"{args.steps} Newton steps in {wall:.2f} s ({1e3 * wall / args.steps:.2f} ms/step, "
           f"query {1e3 * stats.query_s / args.steps:.2f} ms/step); contacts at the end "
           f"{stats.colliding_last}; deepest particle {1e3 * max(0.0, -deepest):.3f} mm inside; "
-          f"wrote {args.output}.npy")
+          f"wrote {output}")
     return 0
 
 

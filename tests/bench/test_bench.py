@@ -6,6 +6,8 @@ picked from its report. Structure and plausible accuracy are asserted, never tim
 from __future__ import annotations
 
 import json
+import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -13,10 +15,27 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from collider_cli.bench.budget import Budget, NothingMeetsBudget, angle_deg, length_mm, rank, size_bytes
+from collider_cli.bench.budget import (
+    Budget,
+    NothingMeetsBudget,
+    angle_deg,
+    equally_fast,
+    format_bytes,
+    length_mm,
+    rank,
+    size_bytes,
+)
 from collider_cli.bench.plan import PlanConfig, plan_candidates
-from collider_cli.bench.report import pareto_front
-from collider_cli.bench.timing import TimingPolicy, time_calls
+from collider_cli.bench.report import equal_times, front, front_text, pareto_front, ranking_basis
+from collider_cli.bench.timing import (
+    Cell,
+    Timing,
+    TimingPolicy,
+    process_cpu_clock,
+    served_beats_embedded,
+    spread,
+    time_rounds,
+)
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 
@@ -30,10 +49,11 @@ def bunny(meshes_dir) -> Path:
 
 
 class FakeClock:
-    """A clock that advances by a fixed step per reading pair: each timed call "takes" ``step``."""
+    """A clock that advances by ``durations[name]`` per reading pair: each timed call "takes"
+    the duration of the cell being called (the cell name is set by the call itself)."""
 
-    def __init__(self, step: float):
-        self.now, self.step, self.reads = 0.0, step, 0
+    def __init__(self):
+        self.now, self.reads, self.step = 0.0, 0, 0.0
 
     def __call__(self) -> float:
         self.reads += 1
@@ -42,18 +62,146 @@ class FakeClock:
         return self.now
 
 
-def test_time_calls_repeats_until_the_cell_budget_then_stops():
-    calls = []
-    times = time_calls(lambda: calls.append(1), TimingPolicy(repeats=5, cell_budget_s=2.5), FakeClock(1.0))
-    assert times == [1.0, 1.0, 1.0] and len(calls) == 3  # 3 s >= 2.5 s budget: no 4th call
-    assert time_calls(lambda: None, TimingPolicy(repeats=5, cell_budget_s=0.1), FakeClock(7.0)) == [7.0]
-    assert len(time_calls(lambda: None, TimingPolicy(repeats=4, cell_budget_s=100), FakeClock(1.0))) == 4
+def _cells(clock, durations: dict, order: list, reference=(), cpu=None):
+    """Cells named by ``durations``, each call taking its duration(s) (a list is cycled) and
+    logging its name in ``order``."""
+    cells = []
+    for name, duration in durations.items():
+        values = duration if isinstance(duration, list) else [duration]
+
+        def call(name=name, values=values, count=[0]):
+            clock.step = values[count[0] % len(values)]
+            count[0] += 1
+            order.append(name)
+
+        path = "served" if name.endswith("served") else "embedded"
+        timing = Timing(path, "cpu", "distance+normal+contact", 1000, reference=name in reference)
+        cells.append(Cell(name.split()[0], timing, call, cpu or (lambda: 0.0,)))
+    return cells
+
+
+def test_rounds_interleave_the_cells_and_stop_each_at_its_budget():
+    clock, order = FakeClock(), []
+    cells = _cells(clock, {"fast": 0.01, "slow": 3.0, "slow-reference": 3.0}, order, reference={"slow-reference"})
+    rounds = time_rounds(cells, TimingPolicy(repeats=4, cell_budget_s=5.0, min_repeats=3, retime_rounds=0),
+                         clock=clock)
+    # One call of every cell still timing per round, in the list's order: never one cell's
+    # repeats in a row while the others wait.
+    assert order[:3] == ["fast", "slow", "slow-reference"] and order[3:6] == ["fast", "slow", "slow-reference"]
+    counts = {c.name: len(c.timing.times_s) for c in cells}
+    assert counts == {"fast": 4, "slow": 2, "slow-reference": 3}  # 6 s >= 5 s; a reference cell: 3 calls
+    assert rounds == 4 and cells[0].timing.median_s == pytest.approx(0.01)
+
+
+def test_unstable_figures_are_retimed_then_flagged_and_stable_ones_are_not():
+    clock, order = FakeClock(), []
+    cells = _cells(clock, {"steady": 1.0, "bursty": [1.0, 5.0, 1.0, 9.0]}, order)
+    policy = TimingPolicy(repeats=4, cell_budget_s=100.0, max_spread=0.25, retime_rounds=3)
+    # bursty: median 3 of [1, 1, 5, 9], IQR 5: spread 1.57 x 5 / (3 x 2) = 1.3
+    time_rounds(cells, policy, clock=clock)
+    steady, bursty = (c.timing for c in cells)
+    assert len(steady.times_s) == 4 and steady.retimed == 0 and steady.stable(0.25)
+    assert len(bursty.times_s) == 7 and bursty.retimed == 3 and not bursty.stable(0.25)
+    assert steady.to_dict(0.25)["stable"] is True and bursty.to_dict(0.25)["stable"] is False
+    assert spread([1.0, 1.0, 1.0]) == 0.0 and spread([1.0]) is None
+    # The median's ~95 % half-width: 1.57 x IQR 2 / (median 3 x sqrt(5)); four times the calls halve it.
+    assert spread([1.0, 2.0, 3.0, 4.0, 5.0]) == pytest.approx(1.57 * 2.0 / (3.0 * 5 ** 0.5))
+    assert spread([1.0, 2.0, 3.0, 4.0, 5.0] * 4) == pytest.approx(spread([1.0, 2.0, 3.0, 4.0, 5.0] * 4 * 4) * 2, rel=0.05)
+
+
+def test_served_faster_than_embedded_beyond_the_spread_is_retimed_with_its_twin():
+    clock, order = FakeClock(), []
+    cells = _cells(clock, {"grid embedded": [1.0, 1.02, 0.98], "grid served": [0.5, 0.51, 0.49],
+                           "net embedded": [1.0, 1.02, 0.98], "net served": [1.1, 1.12, 1.08]}, order)
+    time_rounds(cells, TimingPolicy(repeats=3, cell_budget_s=100.0, retime_rounds=2), clock=clock)
+    retimed = {f"{c.name} {c.timing.path}": c.timing.retimed for c in cells}
+    assert retimed == {"grid embedded": 2, "grid served": 2, "net embedded": 0, "net served": 0}
+    assert served_beats_embedded(cells[0].timing, cells[1].timing)
+    assert not served_beats_embedded(cells[2].timing, cells[3].timing)
+
+
+def test_cpu_time_is_read_from_this_process_and_from_another_one():
+    import os
+    import time
+
+    busy = subprocess.Popen([sys.executable, "-c", "import time\nt = time.time()\nwhile time.time() - t < 3: pass"])
+    try:
+        time.sleep(0.3)
+        theirs, ours = process_cpu_clock(busy.pid), process_cpu_clock()
+        t0, o0 = theirs(), ours()
+        time.sleep(0.5)  # they spin, we sleep (a busy machine gives them less than 0.5 s)
+        spun, slept = theirs() - t0, ours() - o0
+        assert spun > 0.05 and slept < 0.05 and spun > 3 * slept
+    finally:
+        busy.kill()
+        busy.wait()
+    assert process_cpu_clock(os.getpid())() > 0
 
 
 def test_pareto_front_keeps_only_undominated_items_ordered_by_time():
     items = [("slow-exact", 10.0, 0.0), ("fast-rough", 0.1, 0.3), ("mid", 1.0, 0.05),
              ("dominated", 2.0, 0.06), ("tie-worse", 1.0, 0.07)]
     assert pareto_front(items) == ["fast-rough", "mid", "slow-exact"]
+
+
+def test_times_within_the_measurement_are_equal_for_the_front():
+    # voxel 32^3 and 64^3 answer in about the same time: the coarser grid is on the front only
+    # when it is faster beyond the tie (35 %) or the figures' spread, whichever is larger.
+    assert pareto_front([("v32", 0.27, 0.28), ("v64", 0.35, 0.08)]) == ["v64"]  # 1.30x: equal
+    assert pareto_front([("v32", 0.20, 0.28), ("v64", 0.31, 0.08)]) == ["v32", "v64"]  # 1.55x
+    assert pareto_front([("v32", 0.20, 0.28, 0.6), ("v64", 0.31, 0.08, 0.1)]) == ["v64"]  # within its spread
+    # An exact tie in both: neither dominates.
+    assert pareto_front([("a", 1.0, 0.0), ("b", 1.1, 0.0)]) == ["a", "b"]
+    assert equal_times(1.0, 1.35) and not equal_times(1.0, 1.36) and equal_times(1.0, 1.5, 0.0, 0.5)
+
+
+def _row(name, seconds, error, normal=1.0, memory=1000, spread=0.05, stable=True, cpu=None, cpu_stable=True):
+    return {"name": name, "label": name, "memory_bytes": memory,
+            "accuracy": {"band_1mm": {"distance_mean_mm": error, "normal_mean_deg": normal}},
+            "timings": [{"path": "embedded", "device": "cpu", "mode": "distance+normal+contact",
+                         "points": 100, "median_s": seconds * 100, "spread": spread, "stable": stable,
+                         "repeats": 5, "times_s": [seconds * 100] * 5,
+                         "cpu_median_s": None if cpu is None else cpu * 100, "cpu_spread": 0.05,
+                         "cpu_stable": cpu_stable}]}
+
+
+def test_no_front_is_called_from_an_unstable_reference_time():
+    report = {"config": {"sizes": [100], "timing": {"max_spread": 0.25}}, "colliders": [
+        _row("exact", 10.0, 0.0), _row("grid", 0.2, 0.03, spread=0.6, stable=False)]}
+    assert front(report, "cpu", "distance") is None
+    text = front_text(report, "cpu")
+    assert text.startswith("Pareto front (cpu): not called: the reference time of grid (spread 60 % over 5 calls)")
+    report["colliders"][1] = _row("grid", 0.2, 0.03)
+    assert front(report, "cpu", "distance") == ["grid", "exact"]
+    assert "Pareto front (cpu, time vs distance error): grid, exact" in front_text(report, "cpu")
+
+
+def test_unstable_wall_times_fall_back_to_stable_cpu_times_for_the_front_and_the_pick():
+    report = {"config": {"sizes": [100], "timing": {"max_spread": 0.25}}, "skipped": [], "colliders": [
+        _row("exact", 10.0, 0.0, cpu=9.0), _row("grid", 0.2, 0.03, spread=0.6, stable=False, cpu=12.0),
+        _row("coarse", 0.1, 0.2, cpu=0.1)]}
+    assert ranking_basis(report) == "cpu"
+    # On CPU time the grid (12 s) is slower than the exact mesh (9 s) and less accurate: dominated.
+    assert front(report, "cpu", "distance") == ["coarse", "exact"]
+    text = front_text(report, "cpu")
+    assert "the wall times of grid (spread 60 % over 5 calls) stayed unstable" in text
+    assert "Pareto front (cpu, CPU time vs distance error): coarse, exact" in text
+    assert [r["name"] for r in rank(report, Budget(0.05))] == ["exact", "grid"]
+    report["colliders"][0] = _row("exact", 10.0, 0.0, cpu=9.0, cpu_stable=False)
+    assert ranking_basis(report) is None and front(report, "cpu", "distance") is None
+
+
+def test_when_stable_wall_and_cpu_times_call_different_fronts_the_cpu_one_is_called():
+    """Measured on the shared machine: voxel 32^3 1.56x faster than 64^3 in wall time (cache
+    traffic of other processes slows the 1 MB grid more), 1.2x in CPU time: the ranking by wall
+    time was the load's, not the colliders'."""
+    report = {"config": {"sizes": [100], "timing": {"max_spread": 0.25}}, "skipped": [], "colliders": [
+        _row("voxel-32", 0.36, 0.28, cpu=0.25), _row("voxel-64", 0.56, 0.08, cpu=0.30),
+        _row("mesh", 41.0, 0.0, cpu=23.0)]}
+    assert ranking_basis(report) == "cpu" and front(report, "cpu", "distance") == ["voxel-64", "mesh"]
+    assert "wall and CPU times call different fronts" in front_text(report, "cpu")
+    report["colliders"][1] = _row("voxel-64", 0.40, 0.08, cpu=0.30)  # both agree now: wall time it is
+    assert ranking_basis(report) == "wall" and front(report, "cpu", "distance") == ["voxel-64", "mesh"]
 
 
 def test_budget_quantities_take_units_and_refuse_nonsense():
@@ -68,11 +216,31 @@ def test_budget_quantities_take_units_and_refuse_nonsense():
             length_mm(bad)
 
 
-def _row(name, seconds, error, normal=1.0, memory=1000):
-    return {"name": name, "label": name, "memory_bytes": memory,
-            "accuracy": {"band_1mm": {"distance_mean_mm": error, "normal_mean_deg": normal}},
-            "timings": [{"path": "embedded", "device": "cpu", "mode": "distance+normal+contact",
-                         "points": 100, "median_s": seconds * 100}]}
+def test_a_budget_met_exactly_is_met_and_every_limit_checked_is_named():
+    budget = Budget(0.05, max_normal_error_deg=3.0, max_memory_bytes=1000)
+    exact = {"distance_mean_mm": 0.05, "normal_mean_deg": 3.0}
+    assert budget.misses_figures(exact, 1000) == []
+    assert [text for _, text in budget.checks(exact, 1000)] == [
+        "mean distance error 0.0500 mm <= 0.05 mm", "mean normal error 3.00 deg <= 3 deg", "memory 1 kB <= 1 kB"]
+    assert budget.misses_figures({"distance_mean_mm": 0.0500001, "normal_mean_deg": 3.0}, 1001) == [
+        "mean distance error 0.0500 mm > 0.05 mm", "memory 1 kB > 1 kB"]
+    report = {"config": {"sizes": [100]}, "skipped": [], "colliders": [_row("grid", 0.2, 0.05)]}
+    assert [r["name"] for r in rank(report, Budget(0.05))] == ["grid"]
+
+
+def test_memory_limits_are_shown_in_units_that_tell_them_apart():
+    assert format_bytes(1000) == "1 kB" and format_bytes(512) == "512 bytes"
+    assert format_bytes(8_388_608) == "8.39 MB" and format_bytes(1.5e9) == "1.5 GB"
+    assert Budget(0.05, max_memory_bytes=size_bytes("1KB")).describe() == \
+        "mean distance error <= 0.05 mm, memory <= 1 kB (+-1 mm band)"
+    import trimesh
+
+    from collider_server.engine.meshes import Mesh
+
+    box = trimesh.creation.box(extents=(0.1, 0.1, 0.1))
+    plan = plan_candidates(Mesh(np.asarray(box.vertices), np.asarray(box.faces), "box"), np.eye(4),
+                           PlanConfig(kinds=("voxel",), resolutions=(8,), max_memory_bytes=size_bytes("1KB")), None)
+    assert plan.skipped == [{"name": "voxel-8", "reason": "2.05 kB grid exceeds --max-memory 1 kB; larger grids not tried"}]
 
 
 def test_rank_takes_the_fastest_that_meets_every_limit_and_explains_when_none_does():
@@ -82,8 +250,21 @@ def test_rank_takes_the_fastest_that_meets_every_limit_and_explains_when_none_do
     assert [r["name"] for r in rank(report, Budget(0.05))] == ["grid", "net", "exact"]
     assert [r["name"] for r in rank(report, Budget(0.05, max_normal_error_deg=3))] == ["net", "exact"]
     assert [r["name"] for r in rank(report, Budget(0.05, max_memory_bytes=1000))] == ["net"]
-    with pytest.raises(NothingMeetsBudget, match=r"no measured collider meets.*\n.*exact: memory 0.00 MB"):
+    with pytest.raises(NothingMeetsBudget, match=r"no measured collider meets.*\n.*exact: memory 2 kB > 10 bytes"):
         rank(report, Budget(0.001, max_memory_bytes=10))
+
+
+def test_rank_takes_the_smaller_of_colliders_equally_fast_within_the_measurement():
+    # The issue's voxel 128^3 (0.30 s per 1M) and 256^3 (0.35 s): equally fast on a busy
+    # machine; the pick is the one with an eighth of the memory.
+    report = {"config": {"sizes": [100]}, "skipped": [],
+              "colliders": [_row("voxel-256", 0.30, 0.008, memory=67_000_000),
+                            _row("voxel-128", 0.35, 0.024, memory=8_400_000), _row("mesh", 30.0, 0.0)]}
+    ranked = rank(report, Budget(0.05))
+    assert [r["name"] for r in ranked] == ["voxel-128", "voxel-256", "mesh"]
+    assert [r["name"] for r in equally_fast(report, ranked)] == ["voxel-256"]
+    report["colliders"][1] = _row("voxel-128", 0.50, 0.024, memory=8_400_000)  # 1.67x: measurably slower
+    assert [r["name"] for r in rank(report, Budget(0.05))][0] == "voxel-256"
 
 
 def test_plan_stops_voxels_at_the_memory_budget_and_lists_every_neural_preset(monkeypatch, load_shared_mesh):
@@ -96,9 +277,9 @@ def test_plan_stops_voxels_at_the_memory_budget_and_lists_every_neural_preset(mo
     names = [c.name for c in plan.candidates]
     assert names[:4] == ["kdtree", "mesh", "voxel-32", "voxel-64"]
     assert "neural-bunny" in names  # the shipped model of this very mesh file
-    skipped = {s["name"]: s["reason"] for s in plan.skipped}
-    assert "--max-memory" in skipped["voxel-128"]
-    assert "--train-minutes" in skipped["neural-bench-test-preset"]  # a new preset shows up by itself
+    skipped = {s["name"]: s for s in plan.skipped}
+    assert skipped["voxel-128"]["reason"] == "8.39 MB grid exceeds --max-memory 2 MB; larger grids not tried"
+    assert skipped["neural-bench-test-preset"]["preset"] == "bench-test-preset"  # a new preset shows up by itself
     with_training = plan_candidates(mesh, np.eye(4), PlanConfig(kinds=("neural",), train_minutes=0.5),
                                     REPO_ROOT / "models")
     assert "neural-bench-test-preset" in [c.name for c in with_training.candidates]
@@ -110,6 +291,7 @@ def test_plan_stops_voxels_at_the_memory_budget_and_lists_every_neural_preset(mo
     other = plan_candidates(mesh, np.diag([2.0, 2.0, 2.0, 1.0]), PlanConfig(kinds=("neural",), train_minutes=0),
                             REPO_ROOT / "models")
     assert "another placement" in {s["name"]: s["reason"] for s in other.skipped}["neural-bunny"]
+    assert {s["name"]: s.get("model") for s in other.skipped}["neural-bunny"] == "bunny"
 
 
 def collider(*args):
@@ -148,7 +330,12 @@ def test_quick_bench_measures_every_kind_embedded_and_served_with_plausible_accu
         cells = {(t["path"], t["device"], t["mode"], t["points"]) for t in row["timings"]}
         assert cells == {(path, "cpu", mode, n) for path in ("embedded", "served")
                          for mode in ("distance", "distance+normal+contact") for n in (10_000, 40_000)}
-        assert all(t["median_s"] > 0 and 1 <= t["repeats"] <= 2 for t in row["timings"])
+        assert all(t["median_s"] > 0 and 1 <= t["repeats"] <= 15 for t in row["timings"])
+        reference = [t for t in row["timings"] if t["reference"]]
+        assert [(t["path"], t["mode"], t["points"]) for t in reference] == [
+            ("embedded", "distance+normal+contact", 40_000)]
+        assert reference[0]["repeats"] >= 3 and reference[0]["spread"] is not None
+        assert all(t["cpu_median_s"] > 0 and len(t["cpu_s"]) == t["repeats"] for t in row["timings"])
         assert row["file_bytes"] > 0 and row["memory_bytes"] > 0
         assert set(row["accuracy"]) == {"band_1mm", "band_10mm"}
     band = {name: r["accuracy"]["band_1mm"] for name, r in rows.items()}
@@ -161,6 +348,10 @@ def test_quick_bench_measures_every_kind_embedded_and_served_with_plausible_accu
     machine = report["machine"]
     assert machine["cores"] >= 1 and machine["versions"]["torch"] and "cpu" in machine
     assert "| 10k |" in stdout and "| 40k |" in stdout and "Pareto front (cpu" in stdout
+    assert report["timing"]["rounds"] >= 5 and report["machine"]["torch_threads"] == max(1, (os.cpu_count() or 2) - 1)
+    assert "mesh: 69,451 faces, not watertight (5 holes, 223 boundary edges), 1 piece" in stdout
+    assert "sign errors, +-1 mm band" in stdout and f"cache {out / 'cache'}: " in stdout
+    assert not list((out / "cache").glob("served-*"))  # the served run's links are gone
     png = (out / "result" / "bench-cpu.png").read_bytes()
     assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 20_000
 
@@ -170,7 +361,7 @@ def test_budget_bake_picks_the_fastest_collider_that_meets_it_and_checks_it_afre
     out, report, _ = quick_bench
     mesh = bunny
     result = collider("bake", mesh, "--name", "picked", "--models", tmp_path, "--max-error", "0.1mm",
-                      "--bench", out / "result" / "bench.json", "--quiet")
+                      "--bench", out / "result" / "bench.json", "--quiet", "--cache", out / "cache")
     assert result.returncode == 0, result.stdout + result.stderr
     from collider_server.engine.modelfile import read_info
 
@@ -180,19 +371,24 @@ def test_budget_bake_picks_the_fastest_collider_that_meets_it_and_checks_it_afre
     assert info.kind == expected["kind"]
     assert info.accuracy["band_1mm"]["distance_mean_mm"] <= 0.1  # the fresh evaluation, seed 1234
     assert "meets the budget" in result.stdout
+    verdict = next(line for line in result.stdout.splitlines() if "meets the budget" in line)
+    assert verdict.endswith(f"meets the budget: mean distance error "
+                            f"{info.accuracy['band_1mm']['distance_mean_mm']:.4f} mm <= 0.1 mm")
 
     # A memory limit at the shipped network's size: whatever is picked is what rank() says, and a
     # picked network is the trained model's own file (the shipped bunny is smaller than `mesh`).
     limit = next(r for r in report["colliders"] if r["name"] == "neural-bunny")["memory_bytes"]
     small = collider("bake", mesh, "--name", "small", "--models", tmp_path, "--max-error", "0.05mm",
-                     "--max-memory", str(limit), "--bench", out / "result" / "bench.json", "--quiet")
+                     "--max-memory", str(limit), "--bench", out / "result" / "bench.json", "--quiet",
+                     "--cache", out / "cache")
     assert small.returncode == 0, small.stdout + small.stderr
     info = read_info(tmp_path / "small.safetensors")
     picked = rank(report, Budget(0.05, max_memory_bytes=limit))[0]
     assert info.settings["picked_for_budget"]["candidate"] == picked["name"] and info.kind == picked["kind"]
 
     nothing = collider("bake", mesh, "--name", "none", "--models", tmp_path, "--max-error", "0.05mm",
-                       "--max-memory", "0.5MB", "--bench", out / "result" / "bench.json", "--quiet")
+                       "--max-memory", "0.5MB", "--bench", out / "result" / "bench.json", "--quiet",
+                       "--cache", out / "cache")
     assert nothing.returncode == 1
     assert "no measured collider meets mean distance error <= 0.05 mm" in nothing.stderr
     assert "Traceback" not in nothing.stderr and not (tmp_path / "none.safetensors").exists()
@@ -233,3 +429,98 @@ def test_bench_places_the_mesh_like_every_command_and_reports_errors_in_mm(tmp_p
     metres = reports["m"]["colliders"][0]["accuracy"]["band_1mm"]["distance_mean_mm"]
     millimetres = reports["mm"]["colliders"][0]["accuracy"]["band_1mm"]["distance_mean_mm"]
     assert 0.1 < metres < 0.5 and millimetres == pytest.approx(metres, rel=1e-3)
+
+
+@pytest.mark.slow
+def test_the_plot_labels_each_marker_without_covering_another(quick_bench):
+    """Every label of the error-vs-time PNG lies inside its panel, covers no marker and no other
+    label, and is either next to its own marker (nearer to it than to any other) or tied to it
+    by a leader line."""
+    import matplotlib.pyplot as plt
+    from matplotlib.text import Annotation
+
+    from collider_cli.bench.report import figure, text_box
+
+    _, report, _ = quick_bench
+    fig = figure(report, "cpu")
+    renderer = fig.canvas.get_renderer()
+    try:
+        for ax in fig.axes:
+            markers = []
+            for collection in ax.collections:
+                sizes = collection.get_sizes()
+                for (x, y), size in zip(collection.get_offsets(), np.broadcast_to(sizes, (len(collection.get_offsets()),))):
+                    if size > 20:  # the colliders' markers (not the front's small dots)
+                        cx, cy = ax.transData.transform((x, y))
+                        r = np.sqrt(size) * fig.dpi / 72 / 2
+                        markers.append((cx, cy, r))
+            labels = [a for a in ax.texts if isinstance(a, Annotation)]
+            assert len(labels) == len(report["colliders"])
+            frame = ax.get_window_extent(renderer)
+            boxes = []
+            for label in labels:
+                b = text_box(label, renderer)
+                assert frame.x0 <= b.x0 and b.x1 <= frame.x1 and frame.y0 <= b.y0 and b.y1 <= frame.y1, label.get_text()
+                for cx, cy, r in markers:  # no marker under the text
+                    assert not (b.x0 < cx + r and cx - r < b.x1 and b.y0 < cy + r and cy - r < b.y1), label.get_text()
+                for other in boxes:
+                    assert not (b.x0 < other.x1 and other.x0 < b.x1 and b.y0 < other.y1 and other.y0 < b.y1)
+                boxes.append(b)
+                own = ax.transData.transform(label.xy)
+                centre = np.array([(b.x0 + b.x1) / 2, (b.y0 + b.y1) / 2])
+                nearest = min(markers, key=lambda m: np.hypot(*(centre - m[:2])))
+                assert label.arrow_patch is not None or np.allclose(nearest[:2], own, atol=1.0), label.get_text()
+    finally:
+        plt.close(fig)
+
+
+@pytest.mark.slow
+def test_the_budget_bake_trains_neural_candidates_and_names_every_limit_it_checked(tmp_path):
+    import trimesh
+
+    mesh = tmp_path / "ball.obj"
+    trimesh.creation.icosphere(subdivisions=3, radius=0.05).export(mesh)
+    result = collider("bake", mesh, "--name", "pick", "--models", tmp_path / "models", "--max-error", "0.5mm",
+                      "--max-normal-error", "20deg", "--max-memory", "3MB", "--train-minutes", "0.05",
+                      "--cache", tmp_path / "cache", "--quiet")
+    assert result.returncode == 0, result.stdout + result.stderr
+    report = json.loads((tmp_path / "cache" / "budget-pick" / "bench.json").read_text())
+    trained = {r["settings"]["preset"] for r in report["colliders"] if r["build"] == "train"}
+    from collider_server.engine.kinds.neural import PRESETS
+
+    assert trained == set(PRESETS)  # every preset, trained 0.05 min each, was a candidate
+    assert not [s for s in report["skipped"] if s.get("preset")]
+    verdict = next(line for line in result.stdout.splitlines() if "meets the budget" in line)
+    assert re.fullmatch(r"fresh evaluation \(seed 1234, 100,000 points per band\) meets the budget: mean distance "
+                        r"error \d\.\d{4} mm <= 0\.5 mm; mean normal error \d+\.\d\d deg <= 20 deg; memory "
+                        r"[\d.]+ (kB|MB|bytes) <= 3 MB", verdict), verdict
+    assert "mesh: 1,280 faces, watertight, 1 piece, no self-intersections" in result.stdout
+    assert f"cache {tmp_path / 'cache'}: " in result.stdout
+
+
+def test_a_served_call_faster_than_embedded_is_retimed_whatever_its_cell_budget():
+    """Slow cells time one call each (their budget spent); a served one faster than its embedded
+    twin has no spread to judge by: both are timed again until it is not faster beyond it."""
+    clock, order = FakeClock(), []
+    cells = _cells(clock, {"mesh embedded": [4.8, 4.8, 4.8], "mesh served": [3.8, 4.9, 5.0]}, order)
+    time_rounds(cells, TimingPolicy(repeats=5, cell_budget_s=1.0, retime_rounds=10), clock=clock)
+    assert [len(c.timing.times_s) for c in cells] == [2, 2]
+    assert not served_beats_embedded(cells[0].timing, cells[1].timing)
+
+
+def test_figures_unstable_in_cpu_time_only_are_retimed_too():
+    """The front may rank by CPU time (when wall times stay unstable): a cell steady in wall time
+    but not in CPU time is retimed as well."""
+    clock, order = FakeClock(), []
+    steps, reads = [0.01, 0.05, 0.01, 0.09], [0, 0.0]
+
+    def cpu():  # advances by the next of ``steps`` at each reading pair, like FakeClock
+        reads[0] += 1
+        if reads[0] % 2 == 0:
+            reads[1] += steps[(reads[0] // 2 - 1) % len(steps)]
+        return reads[1]
+
+    cells = _cells(clock, {"steady": 1.0}, order, cpu=(cpu,))
+    time_rounds(cells, TimingPolicy(repeats=4, cell_budget_s=100.0, retime_rounds=3), clock=clock)
+    t = cells[0].timing
+    assert t.stable(0.25) and not t.cpu_stable(0.25) and t.retimed == 3 and len(t.cpu_s) == 7

@@ -54,3 +54,20 @@ def test_adapter_needs_particles():
     model = newton.ModelBuilder().finalize(device="cpu")
     with pytest.raises(ValueError, match="no particles"):
         NewtonCollider(model, hook=None)
+
+
+def test_the_example_writes_its_output_under_out_not_into_the_working_folder(tmp_path, models_dir):
+    """``examples/newton_cloth_drop.py`` (two steps): the positions go to out/newton_cloth_drop.npy
+    like every command's outputs; nothing else appears in the working folder."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    example = Path(__file__).resolve().parents[2] / "examples" / "newton_cloth_drop.py"
+    result = subprocess.run([sys.executable, str(example), "--models", str(models_dir), "--model", "sphere",
+                             "--pose", "identity", "--steps", "2", "--cells", "5"], cwd=tmp_path,
+                            capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
+    assert np.load(tmp_path / "out" / "newton_cloth_drop.npy").shape == (25, 3)
+    assert result.stdout.strip().endswith("wrote out/newton_cloth_drop.npy")

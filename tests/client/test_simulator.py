@@ -737,7 +737,7 @@ def test_run_report_text_states_each_figure():
     assert "fields asked     none (no collisions)\n" in text
     assert "points sent      0 of 0 (0.0 %) in 0 queries" in text
     assert text.split("\n")[-2].endswith(" 0.000 mm")
-    assert text.split("\n")[-1] == "exact check      {'max_depth_m': 0.0}"
+    assert text.split("\n")[-1] == "exact check      deepest vertex 0.000 mm inside the exact mesh"  # words, not a dict
     assert "(100.0 %)" in run_report(points_total=1, points_sent=1).text()
 
 

@@ -4,6 +4,7 @@ success, and for every bad input one clear error line, exit code 2, no traceback
 from __future__ import annotations
 
 import json
+import re
 import subprocess
 import sys
 
@@ -42,7 +43,8 @@ def run(capsys, *argv):
 def assert_user_error(capsys, argv, message):
     code, out, err = run(capsys, *argv)
     assert code == 2, (code, out, err)
-    assert "Traceback" not in err
+    assert "Traceback" not in err and "usage:" not in err
+    assert len(err.strip().splitlines()) == 1, err  # one line, argparse's refusals too
     last = err.strip().splitlines()[-1]
     assert last.startswith("collider"), err
     assert message in last, last
@@ -110,6 +112,12 @@ def test_info_lists_the_repository_and_prints_json(capsys, models):
     (["bake", "{tmp}/missing.obj", "--name", "x"], "no such mesh file"),
     (["bake", "{tmp}/blob.obj", "--name", "x"], "cannot read mesh"),
     (["bake", "{tmp}/empty.obj", "--name", "x"], "mesh is empty"),
+    (["bake", "{tmp}/text.obj", "--name", "x"],
+     "text.obj: not an OBJ file: no vertex (v) or face (f) line (it starts with 'hello world')"),
+    (["bake", "{ball}", "--name", "x", "--bogus"],
+     "collider bake: error: unrecognized arguments: --bogus (`collider bake --help` lists the options)"),
+    (["eval", "sphere", "--mesh", "{ball}", "--units", "mm", "--models", "{models}"],
+     "--units mm (0.001 m per unit) is not the unit sphere was made in (m, 1 m per unit)"),
     (["bake", "{tmp}/flat.obj", "--name", "x"], "mesh is flat"),
     (["bake", "{tmp}", "--name", "x"], "is a directory"),
     (["bake", "{ball}", "--name", "../evil"], "invalid model name"),
@@ -119,7 +127,7 @@ def test_info_lists_the_repository_and_prints_json(capsys, models):
     (["bake", "{ball}", "--name", "x", "--padding", "-1"], "padding must be a finite number >= 0"),
     (["bake", "{ball}", "--name", "x", "--kind", "neural"], "invalid choice: 'neural'"),
     (["bake", "{ball}", "--name", "x", "--resolution", "many"], "invalid int value: 'many'"),
-    (["bake", "{ball}"], "required: --name"),
+    (["bake", "{ball}"], "collider bake: error: the following arguments are required: --name (`collider bake --help`"),
     (["query", "nosuch", "0", "0", "0", "--models", "{models}"], "no model named 'nosuch'"),
     (["query", "sphere", "0", "0", "--models", "{models}"], "give x y z triples (got 2 numbers)"),
     (["query", "sphere", "--models", "{models}"], "give x y z triples (got 0 numbers)"),
@@ -140,6 +148,7 @@ def test_info_lists_the_repository_and_prints_json(capsys, models):
 def test_bad_input_gives_one_clear_line_and_exit_2(capsys, tmp_path, sphere_obj, models, argv, message):
     (tmp_path / "blob.obj").write_bytes(bytes(range(256)) * 4)
     (tmp_path / "empty.obj").write_text("# nothing\n")
+    (tmp_path / "text.obj").write_text("hello world\nthis is not a mesh\n")
     (tmp_path / "flat.obj").write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
     (tmp_path / "blob.safetensors").write_bytes(b"\x00" * 5)
     (tmp_path / "mirror.json").write_text(json.dumps(np.diag([1.0, 1.0, -1.0, 1.0]).tolist()))
@@ -166,3 +175,23 @@ def test_query_output_names_the_file_it_writes(capsys, models, tmp_path):
     assert code == 0, err
     assert out.strip() == f"wrote {tmp_path / 'result.npz'} (1 points)"
     assert np.load(tmp_path / "result.npz")["distance"][0] < 0
+
+
+def test_bake_says_what_the_mesh_is_its_sign_errors_and_what_to_run_next(capsys, tmp_path, sphere_obj):
+    models = tmp_path / "my models"
+    code, out, err = run(capsys, "bake", sphere_obj, "--name", "ball", "--resolution", "16", "--models", models,
+                         "--quiet")
+    assert code == 0, err
+    lines = out.splitlines()
+    assert lines[0] == "mesh: 1,280 faces, watertight, 1 piece, no self-intersections"
+    assert re.fullmatch(r"sign errors: \d+\.\d\d % of 20,000 points in the \+-1 mm band \(those farther than 0\.2 mm "
+                        r"from the surface; against the exact winding-number sign\), mean distance error \d\.\d{4} mm",
+                        lines[-2]), lines[-2]
+    assert lines[-1] == f"next: collider eval ball --mesh {sphere_obj} --models '{models}'"
+    code, out, err = run(capsys, "info", "ball", "--models", models)
+    assert code == 0, err
+    assert "  mesh: 1,280 faces, watertight, 1 piece, no self-intersections" in out.splitlines()
+    assert f"`collider eval ball --mesh {sphere_obj.resolve()} --models '{models}'` measures it" in out
+    code, out, err = run(capsys, "eval", "ball", "--mesh", sphere_obj, "--units", "m", "--models", models,
+                         "--points", "1000", "--no-reconstruction", "--no-save", "--quiet")
+    assert code == 0, err  # the model's own unit is accepted

@@ -139,6 +139,9 @@ def preview_figure(frames: dict[int, np.ndarray], width: int, height: int,
         ax.set_ylabel("y (m)", fontsize=7)
         ax.set_zlabel("z (m)", fontsize=7)
         ax.tick_params(labelsize=6)
+        # The default box fills the panel and pushes the z label past its right edge (cut off
+        # in the PNG): a smaller box leaves it room.
+        ax.set_box_aspect(None, zoom=0.82)
     fig.suptitle(title, fontsize=10)
     fig.tight_layout()
     return fig

@@ -1,4 +1,6 @@
-"""One simulation run: scene -> OBJ + PC2 + PNG + report, with a progress bar."""
+"""One simulation run: scene -> OBJ + PC2 + PNG + report, with a progress bar and, after the
+first measured steps, the run's expected duration. Ctrl-C (KeyboardInterrupt) ends a run with
+the same outputs for the steps that ran, the report marked interrupted."""
 
 from __future__ import annotations
 
@@ -6,6 +8,7 @@ import json
 import os
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -70,12 +73,88 @@ def check_resources(scene: Scene, steps: int) -> dict[str, int]:
     return need
 
 
+#: The duration estimate is made once the run has measured at least this many seconds and steps.
+ESTIMATE_AFTER_S = 3.0
+ESTIMATE_AFTER_STEPS = 20
+#: Points of the probe query that measures what a collider query costs per point.
+PROBE_POINTS = 20_000
+
+
+class RunInterrupted(KeyboardInterrupt):
+    """Ctrl-C (or what the caller raises as KeyboardInterrupt) ended the run; its outputs for
+    the steps that ran are written. ``report`` and ``frames`` are :func:`run_scene`'s;
+    ``interrupt`` is the KeyboardInterrupt that ended it."""
+
+    def __init__(self, report, frames, interrupt: KeyboardInterrupt):
+        super().__init__(f"interrupted after {report.steps} of {report.steps_planned} steps")
+        self.report, self.frames, self.interrupt = report, frames, interrupt
+
+
+def query_cost_per_point(client, scene: Scene, hook) -> float | None:
+    """Seconds per point of one query, asked as the collision ``hook`` asks (its fields, contacts
+    of the colliding points only when it does), at :data:`PROBE_POINTS` points spread over the
+    first collider's domain box (collider frame), measured now: what each vertex inside a
+    collider's box costs a step."""
+    if client is None or not scene.colliders:
+        return None
+    info = {m.name: m for m in client.list_models()}.get(scene.colliders[0].model)
+    if info is None:
+        return None
+    points = np.random.default_rng(0).uniform(info.domain_min, info.domain_max, (PROBE_POINTS, 3))
+    ask = {"fields": hook.fields, "only_colliding": hook.only_colliding}
+    client.query(info.name, points[:1000], **ask)  # warm-up
+    started = time.perf_counter()
+    client.query(info.name, points, **ask)
+    return (time.perf_counter() - started) / PROBE_POINTS
+
+
+@dataclass(frozen=True)
+class DurationEstimate:
+    """What a run will take, from its first measured steps (seconds).
+
+    steps : the run's steps; measured : the steps measured; per_step_s : their mean wall time;
+    worst_per_step_s : a step once every vertex is inside a collider's box (each step then
+        queries every vertex, at the probe's cost per point), None without colliders;
+    per_point_s : the probe's seconds per queried point (None without colliders)
+    """
+
+    steps: int
+    measured: int
+    per_step_s: float
+    worst_per_step_s: float | None
+    per_point_s: float | None
+
+    @property
+    def seconds(self) -> float:
+        return self.per_step_s * self.steps
+
+    @property
+    def worst_seconds(self) -> float | None:
+        return None if self.worst_per_step_s is None else max(self.worst_per_step_s, self.per_step_s) * self.steps
+
+
+def duration_estimate(scene: Scene, sim: Simulator, done: int, total: int, elapsed: float,
+                      per_point: float | None) -> DurationEstimate:
+    """The :class:`DurationEstimate` after ``done`` steps that took ``elapsed`` seconds."""
+    worst = None
+    if per_point is not None and sim.hook is not None:
+        others = (elapsed - sim.timings.query_s) / done
+        worst = others + per_point * scene.cloth.width * scene.cloth.height * len(scene.colliders)
+    return DurationEstimate(total, done, elapsed / done, worst, per_point)
+
+
 def run_scene(scene: Scene, client, out_dir: Path, *, show_progress: bool = True,
               steps: int | None = None, preview: bool = True, backend: str = "embedded",
               collider_points: dict[str, np.ndarray] | None = None,
-              on_step=None) -> tuple[RunReport, list]:
+              on_step=None, on_estimate=None) -> tuple[RunReport, list]:
     """Simulate ``scene`` (``steps`` overrides its step count), writing into ``out_dir``:
     ``NAME.obj``, ``NAME.pc2``, ``NAME.png`` and ``NAME.report.json``.
+
+    on_estimate : called once with a :class:`DurationEstimate` after the first measured steps
+        (``ESTIMATE_AFTER_S`` seconds and ``ESTIMATE_AFTER_STEPS`` steps; not at all for a run
+        shorter than that)
+    Raises :class:`RunInterrupted` (a KeyboardInterrupt) on Ctrl-C, after writing the outputs
+    of the steps that ran (the report's ``interrupted`` set).
 
     collider_points : model name -> (m, 3) surface points in the collider frame, drawn in the
         preview (optional)
@@ -106,34 +185,53 @@ def run_scene(scene: Scene, client, out_dir: Path, *, show_progress: bool = True
     c = scene.cloth
     write_obj(out_dir / f"{stem}.obj", sim.vertices, quad_faces(c.width, c.height), stem)
     times: list[float] = []
+    # The probe query only when someone asked for the estimate (it is two extra queries).
+    per_point = (query_cost_per_point(client, scene, sim.hook)
+                 if sim.hook is not None and on_estimate is not None else None)
     bar = _progress(total, stem, show_progress)
     started = time.perf_counter()
     per_frame_colliding = []
+    interrupt = None
+    done = 0
     with PC2Writer(out_dir / f"{stem}.pc2", c.width * c.height) as pc2:
-        def keep_frame():
+        def keep_frame(t=None):
             vertices = sim.vertices.astype(np.float32)
             pc2.write(vertices)
-            times.append(sim.t)
+            times.append(sim.t if t is None else t)
             per_frame_colliding.append(sim.hook.stats.colliding_last if sim.hook else 0)
 
         keep_frame()
-        for i in range(1, total + 1):
-            sim.step()
-            if i % scene.frame_every == 0 or i == total:
-                keep_frame()
-            if on_step is not None:
-                on_step(sim, i)
-            if bar is not None and (i % 50 == 0 or i == total):
-                bar.update(i - bar.n)
-                if sim.hook is not None:
-                    bar.set_postfix(colliding=sim.hook.stats.colliding_last, refresh=False)
+        try:
+            for i in range(1, total + 1):
+                sim.step()
+                done = i
+                if i % scene.frame_every == 0 or i == total:
+                    keep_frame()
+                if on_step is not None:
+                    on_step(sim, i)
+                if (on_estimate is not None and i < total and i >= ESTIMATE_AFTER_STEPS
+                        and time.perf_counter() - started >= ESTIMATE_AFTER_S):
+                    on_estimate(duration_estimate(scene, sim, i, total, time.perf_counter() - started,
+                                                  per_point))
+                    on_estimate = None
+                if bar is not None and (i % 50 == 0 or i == total):
+                    bar.update(i - bar.n)
+                    if sim.hook is not None:
+                        bar.set_postfix(colliding=sim.hook.stats.colliding_last, refresh=False)
+        except KeyboardInterrupt as exc:  # the outputs of the steps that ran, then re-raised
+            interrupt = exc
+            # A step cut short leaves the state of the last whole step (its new positions are
+            # committed at its end): that state is the last frame, at that step's time.
+            if times[-1] < done * scene.dt_s - 0.5 * scene.dt_s:
+                keep_frame(done * scene.dt_s)
     if bar is not None:
         bar.close()
     frames = PC2Frames(out_dir / f"{stem}.pc2", times, c.width * c.height)
     wall = time.perf_counter() - started
     stats = sim.hook.stats if sim.hook else None
     report = RunReport(
-        scene=scene.name, backend=backend, vertices=c.width * c.height, steps=total,
+        scene=scene.name, backend=backend, vertices=c.width * c.height, steps=done,
+        steps_planned=total, interrupted=interrupt is not None,
         dt_s=scene.dt_s, frames=len(frames), effects=sim.effects,
         fields=stats.fields if stats else [], wall_s=wall, timings=sim.timings,
         points_total=stats.points_total if stats else 0,
@@ -157,4 +255,6 @@ def run_scene(scene: Scene, client, out_dir: Path, *, show_progress: bool = True
                       c.height, {i: frames[i][0] for i in chosen}, f"{scene.name}", shown)
     (out_dir / f"{stem}.report.json").write_text(json.dumps(report.to_dict(), indent=2,
                                                             default=float))
+    if interrupt is not None:
+        raise RunInterrupted(report, frames, interrupt)
     return report, frames

@@ -55,6 +55,8 @@ class RunReport:
     deepest_penetration_m: float = 0.0
     per_frame_colliding: list[int] = field(default_factory=list)
     exact_check: dict | None = None
+    steps_planned: int | None = None  # the run's step count; ``steps`` is what ran
+    interrupted: bool = False  # Ctrl-C or SIGTERM ended the run after ``steps`` steps
 
     def per_step_ms(self) -> dict[str, float]:
         s = max(self.steps, 1)
@@ -64,6 +66,7 @@ class RunReport:
 
     def text(self) -> str:
         ms = self.per_step_ms()
+        planned = self.steps if self.steps_planned is None else self.steps_planned
         lines = [
             f"scene            {self.scene}  ({self.backend} backend)",
             f"cloth            {self.vertices} vertices, {self.steps} steps of {self.dt_s:g} s, "
@@ -79,7 +82,10 @@ class RunReport:
             f"{1e3 * max(0.0, -self.deepest_penetration_m):.3f} mm",
         ]
         if self.exact_check:
-            lines.append(f"exact check      {self.exact_check}")
+            lines.append(f"exact check      {exact_check_text(self.exact_check)}")
+        if self.interrupted:
+            lines.insert(0, f"INTERRUPTED      after {self.steps:,} of {planned:,} steps "
+                            f"(t = {self.steps * self.dt_s:.4g} s); every figure covers the steps that ran")
         return "\n".join(lines)
 
     def to_dict(self) -> dict:
@@ -87,6 +93,21 @@ class RunReport:
         d["timings_s"] = self.timings.__dict__.copy()
         d["time_per_step_ms"] = self.per_step_ms()
         return d
+
+
+def exact_check_text(check: dict) -> str:
+    """:func:`collider_server.making.evaluation.penetration`'s figures in words: the deepest
+    vertex inside the exact meshes (per collider when several), the closest approach, and over
+    how many frames."""
+    per_model = check.get("by_model") or {}
+    text = f"deepest vertex {1e3 * check['max_depth_m']:.3f} mm inside the exact mesh"
+    if len(per_model) > 1:
+        text += " (" + ", ".join(f"{name} {1e3 * depth:.3f} mm" for name, depth in per_model.items()) + ")"
+    closest = check.get("min_distance_m")
+    if closest is not None and closest != float("inf"):
+        where = "outside" if closest >= 0 else "inside"
+        text += f", closest approach {1e3 * abs(closest):.3f} mm {where}"
+    return text + (f", over {check['frames']} frames" if "frames" in check else "")
 
 
 class SimulationError(ValueError):

@@ -2,9 +2,11 @@
 this machine.
 
 - :mod:`.plan`: which colliders are compared and how each is built (cached);
-- :mod:`.timing`: warm-up, then the median of repeats per (path, device, mode, size) cell;
+- :mod:`.timing`: every (collider, path, device, mode, size) cell timed in interleaved rounds:
+  median, spread, process CPU time, unstable figures retimed;
 - :mod:`.run`: the measurement run, returning every raw figure as a JSON-ready dict;
-- :mod:`.report`: tables, Pareto front, the error-vs-time PNG, the files;
+- :mod:`.report`: tables, the Pareto front (or why none is called), the error-vs-time PNG, the
+  files;
 - :mod:`.budget`: an error budget in, the fastest collider that meets it out.
 
 The engine knows nothing of this package; it only calls the engine (and the client SDK for the

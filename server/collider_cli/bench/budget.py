@@ -2,10 +2,12 @@
 
 A budget is a most-allowed mean distance error (and optionally mean normal angle error and
 memory); errors are the means in the +-1 mm band around the surface (where collisions are
-decided), as ``collider eval`` reports them. Among the measured colliders that meet every limit
-the picker takes the one with the smallest reference time (see
-:mod:`collider_cli.bench.report`): it is on the measured Pareto front by construction, and no
-other measured collider meeting the budget is faster.
+decided), as ``collider eval`` reports them; a figure equal to its limit meets it. Among the
+measured colliders that meet every limit the picker takes the one with the smallest reference
+time (see :mod:`collider_cli.bench.report`); colliders whose times are equal within the
+measurement (:func:`~collider_cli.bench.report.equal_times`) count as equally fast, and of those
+it takes the one with the least memory (then the most accurate): no other measured collider
+meeting the budget is faster by more than the measurement can tell.
 """
 
 from __future__ import annotations
@@ -14,7 +16,7 @@ import math
 import re
 from dataclasses import dataclass
 
-from .report import reference_seconds_per_point
+from .report import equal_times, ranking_basis, reference_seconds_per_point, reference_spread
 
 LENGTH_MM = {"mm": 1.0, "um": 1e-3, "µm": 1e-3, "cm": 10.0, "m": 1000.0}
 ANGLE_DEG = {"deg": 1.0, "°": 1.0, "rad": 180.0 / math.pi}
@@ -62,26 +64,43 @@ class Budget:
 
     def misses(self, row: dict) -> list[str]:
         """Why ``row`` (a bench collider) does not meet the budget; empty when it does."""
-        a = row["accuracy"]["band_1mm"]
-        return self.misses_figures(a, row["memory_bytes"])
+        return self.misses_figures(row["accuracy"]["band_1mm"], row["memory_bytes"])
+
+    def checks(self, band_1mm: dict, memory_bytes: int) -> list[tuple[bool, str]]:
+        """Every limit of the budget against the figures: ``(met, "figure <= limit")``, one per
+        limit given. A figure equal to its limit meets it."""
+        out = [(band_1mm["distance_mean_mm"] <= self.max_error_mm,
+                f"mean distance error {band_1mm['distance_mean_mm']:.4f} mm "
+                f"{'<=' if band_1mm['distance_mean_mm'] <= self.max_error_mm else '>'} {self.max_error_mm:g} mm")]
+        if self.max_normal_error_deg is not None:
+            met = band_1mm["normal_mean_deg"] <= self.max_normal_error_deg
+            out.append((met, f"mean normal error {band_1mm['normal_mean_deg']:.2f} deg "
+                             f"{'<=' if met else '>'} {self.max_normal_error_deg:g} deg"))
+        if self.max_memory_bytes is not None:
+            met = memory_bytes <= self.max_memory_bytes
+            out.append((met, f"memory {format_bytes(memory_bytes)} {'<=' if met else '>'} "
+                             f"{format_bytes(self.max_memory_bytes)}"))
+        return out
 
     def misses_figures(self, band_1mm: dict, memory_bytes: int) -> list[str]:
-        why = []
-        if band_1mm["distance_mean_mm"] > self.max_error_mm:
-            why.append(f"mean distance error {band_1mm['distance_mean_mm']:.4f} mm > {self.max_error_mm:g} mm")
-        if self.max_normal_error_deg is not None and band_1mm["normal_mean_deg"] > self.max_normal_error_deg:
-            why.append(f"mean normal error {band_1mm['normal_mean_deg']:.2f} deg > {self.max_normal_error_deg:g} deg")
-        if self.max_memory_bytes is not None and memory_bytes > self.max_memory_bytes:
-            why.append(f"memory {memory_bytes / 1e6:.2f} MB > {self.max_memory_bytes / 1e6:g} MB")
-        return why
+        return [text for met, text in self.checks(band_1mm, memory_bytes) if not met]
 
     def describe(self) -> str:
         parts = [f"mean distance error <= {self.max_error_mm:g} mm"]
         if self.max_normal_error_deg is not None:
             parts.append(f"mean normal error <= {self.max_normal_error_deg:g} deg")
         if self.max_memory_bytes is not None:
-            parts.append(f"memory <= {self.max_memory_bytes / 1e6:g} MB")
+            parts.append(f"memory <= {format_bytes(self.max_memory_bytes)}")
         return ", ".join(parts) + " (+-1 mm band)"
+
+
+def format_bytes(n: float) -> str:
+    """``"512 bytes"``, ``"1 kB"``, ``"8.39 MB"``, ``"1.5 GB"`` (powers of 1000, as --max-memory's
+    kB, MB, GB), with enough digits to tell a limit from a figure near it."""
+    for unit, size in (("GB", 1e9), ("MB", 1e6), ("kB", 1e3)):
+        if n >= size:
+            return f"{n / size:.3g} {unit}"
+    return f"{int(n)} bytes"
 
 
 class NothingMeetsBudget(Exception):
@@ -89,18 +108,38 @@ class NothingMeetsBudget(Exception):
 
 
 def rank(report: dict, budget: Budget, device: str = "cpu") -> list[dict]:
-    """The bench's colliders that meet ``budget``, fastest first (reference time on
-    ``device``). Raises :class:`NothingMeetsBudget` saying, per collider, what it misses."""
-    timed = [(reference_seconds_per_point(r, report, device), r) for r in report["colliders"]]
-    timed = [(t, r) for t, r in timed if t is not None]
+    """The bench's colliders that meet ``budget``, the pick first (the fastest; among those
+    equally fast within the measurement, the least memory, then the most accurate), then the
+    others fastest first (reference time on ``device``, on the report's ranking basis: wall
+    time, or process CPU time when wall times were unstable). Raises :class:`NothingMeetsBudget`
+    saying, per collider, what it misses."""
+    basis = ranking_basis(report, device) or "wall"
+    timed = [(reference_seconds_per_point(r, report, device, basis=basis), reference_spread(r, report, device, basis), r)
+             for r in report["colliders"]]
+    timed = [(t, s, r) for t, s, r in timed if t is not None]
     if not timed:
         raise ValueError(f"the bench report has no embedded {device} timings to rank by")
-    meeting = sorted(((t, r) for t, r in timed if not budget.misses(r)), key=lambda tr: tr[0])
+    meeting = sorted(((t, s, r) for t, s, r in timed if not budget.misses(r)), key=lambda tsr: tsr[0])
     if meeting:
-        return [r for _, r in meeting]
+        fastest, spread, _ = meeting[0]
+        tied = [m for m in meeting if equal_times(fastest, m[0], spread, m[1])]
+        pick = min(tied, key=lambda m: (m[2]["memory_bytes"], m[2]["accuracy"]["band_1mm"]["distance_mean_mm"]))
+        return [pick[2]] + [r for _, _, r in meeting if r is not pick[2]]
     lines = [f"no measured collider meets {budget.describe()}:"]
-    for t, r in sorted(timed, key=lambda tr: tr[1]["accuracy"]["band_1mm"]["distance_mean_mm"]):
+    for _, _, r in sorted(timed, key=lambda tsr: tsr[2]["accuracy"]["band_1mm"]["distance_mean_mm"]):
         lines.append(f"  {r['label']}: " + "; ".join(budget.misses(r)))
     if report.get("skipped"):
         lines.append("not measured: " + "; ".join(f"{s['name']} ({s['reason']})" for s in report["skipped"]))
     raise NothingMeetsBudget("\n".join(lines))
+
+
+def equally_fast(report: dict, ranked: list[dict], device: str = "cpu") -> list[dict]:
+    """The meeting colliders whose reference time equals the pick's within the measurement."""
+    basis = ranking_basis(report, device) or "wall"
+
+    def figure(row):
+        return (reference_seconds_per_point(row, report, device, basis=basis),
+                reference_spread(row, report, device, basis))
+
+    first, first_spread = figure(ranked[0])
+    return [r for r in ranked[1:] if equal_times(first, figure(r)[0], first_spread, figure(r)[1])]

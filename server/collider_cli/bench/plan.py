@@ -11,9 +11,11 @@ Candidates, in the order they are measured:
   training run of ``train_minutes`` when that is > 0; trained models of the mesh with an
   architecture outside the presets are included too.
 
-Voxel grids and bench-trained networks are cached in ``cache`` (keyed by the mesh file's sha256,
-the placement and the settings), with the seconds their bake or training took, so a second run
-measures the same colliders without rebuilding them and still reports what building cost.
+Voxel grids and bench-trained networks are cached in the cache folder's ``colliders/`` (keyed by
+the mesh file's sha256, the placement and the settings), with the seconds their bake or training
+took, so a second run measures the same colliders without rebuilding them and still reports what
+building cost; the mesh and kdtree colliders, rebuilt every run, are written there too (a served
+run loads every candidate from its file).
 """
 
 from __future__ import annotations
@@ -119,6 +121,8 @@ def placement_key(mesh: Mesh, transform: np.ndarray, padding: float, units: str,
 def plan_candidates(mesh: Mesh, transform: np.ndarray, config: PlanConfig,
                     models_root: Path | None) -> Plan:
     """The candidates for ``mesh`` (already placed by ``transform``), not yet built."""
+    from .budget import format_bytes
+
     config.check()
     candidates: list[Candidate] = []
     skipped: list[dict] = []
@@ -131,8 +135,8 @@ def plan_candidates(mesh: Mesh, transform: np.ndarray, config: PlanConfig,
             size = resolution**3 * VOXEL_BYTES_PER_SAMPLE
             if size > config.max_memory_bytes:
                 skipped.append({"name": f"voxel-{resolution}", "reason": (
-                    f"{size / 1e6:.2f} MB grid exceeds --max-memory "
-                    f"{config.max_memory_bytes / 1e6:.2f} MB; larger grids not tried")})
+                    f"{format_bytes(size)} grid exceeds --max-memory "
+                    f"{format_bytes(config.max_memory_bytes)}; larger grids not tried")})
                 break
             candidates.append(Candidate(f"voxel-{resolution}", f"voxel {resolution}^3", "voxel",
                                         {"resolution": resolution, "padding": config.padding}))
@@ -189,13 +193,12 @@ def neural_candidates(mesh: Mesh, transform: np.ndarray, config: PlanConfig,
                 {"preset": preset, "train_minutes": config.train_minutes,
                  "architecture": asdict(PRESETS[preset])}, build="train"))
         else:
-            skipped.append({"name": f"neural-{preset}", "reason": (
-                "no trained model of this mesh in the model repository; give --train-minutes M "
-                f"or run `collider train MESH --preset {preset}`")})
+            skipped.append({"name": f"neural-{preset}", "preset": preset,
+                            "reason": "no trained model of this mesh in the model repository"})
     for name in other_placement:
-        skipped.append({"name": f"neural-{name}", "reason": (
-            "trained from this mesh file with another placement (see `collider info "
-            f"{name}`: source.transform); pass the same --scale/--fit-size/--z-up to compare it")})
+        skipped.append({"name": f"neural-{name}", "model": name, "reason": (
+            "trained from this mesh file with another placement (its source.transform); pass the "
+            "same --scale/--fit-size/--z-up to compare it")})
     return candidates, skipped
 
 
@@ -213,33 +216,40 @@ def preset_of(architecture: dict) -> str:
 
 
 def build_candidate(candidate: Candidate, mesh: Mesh, transform: np.ndarray, *, units: str,
-                    meters_per_unit: float, cache: Path, out_dir: Path,
-                    show_progress: bool = True) -> Collider:
-    """Build (or load from the cache) ``candidate``'s collider on the CPU, save it as
-    ``out_dir/NAME.safetensors`` (the served repository), set ``candidate.path`` and
-    ``candidate.build_seconds``; returns the collider."""
+                    meters_per_unit: float, cache: Path, show_progress: bool = True) -> Collider:
+    """Build (or load from ``cache``) ``candidate``'s collider on the CPU; set ``candidate.path``
+    (the file a served run loads: the cached file, or a trained model's own file) and
+    ``candidate.build_seconds``; returns the collider.
+
+    cache : the cache folder (:func:`collider_cli.commands.options.default_cache_dir`); files go
+        to its ``colliders/`` folder, named by :func:`placement_key` and the settings."""
     from collider_server.engine.modelfile import load_collider, save_collider
 
-    out_dir.mkdir(parents=True, exist_ok=True)
-    target = out_dir / f"{candidate.name}.safetensors"
     if candidate.build == "trained":
-        collider = load_collider(candidate.path, "cpu")
-        save_collider(collider, target)
-    elif candidate.kind in ("voxel",) or candidate.build == "train":
-        collider = _cached(candidate, mesh, transform, units, meters_per_unit, cache, show_progress)
-        save_collider(collider, target)
-    else:  # mesh and kdtree: cheap to build, timed every run
-        from collider_server.making.bake import bake_collider
+        return load_collider(candidate.path, "cpu")
+    if candidate.kind == "voxel" or candidate.build == "train":
+        return _cached(candidate, mesh, transform, units, meters_per_unit, cache, show_progress)
+    # mesh and kdtree: cheap to build, rebuilt and timed every run (written for the served run)
+    from collider_server.making.bake import bake_collider
 
-        started = time.perf_counter()
-        collider = bake_collider(mesh, candidate.kind, candidate.name, padding=candidate.settings["padding"],
-                                 units=units, meters_per_unit=meters_per_unit, device="cpu",
-                                 show_progress=False)
-        candidate.build_seconds = time.perf_counter() - started
-        collider.info.source["transform"] = np.asarray(transform).tolist()
-        save_collider(collider, target)
-    candidate.path = target
+    started = time.perf_counter()
+    collider = bake_collider(mesh, candidate.kind, candidate.name, padding=candidate.settings["padding"],
+                             units=units, meters_per_unit=meters_per_unit, device="cpu", show_progress=False)
+    candidate.build_seconds = time.perf_counter() - started
+    collider.info.source["transform"] = np.asarray(transform).tolist()
+    candidate.path = cache_path(candidate, mesh, transform, units, meters_per_unit, cache)
+    candidate.path.parent.mkdir(parents=True, exist_ok=True)
+    save_collider(collider, candidate.path)
     return collider
+
+
+def cache_path(candidate: Candidate, mesh: Mesh, transform, units: str, meters_per_unit: float,
+               cache: Path) -> Path:
+    """Where ``candidate``'s file lives in ``cache``: keyed by the mesh file, the placement, the
+    units, the padding and every setting."""
+    key = placement_key(mesh, transform, candidate.settings.get("padding", 0.1), units, meters_per_unit)
+    detail = json.dumps(candidate.settings, sort_keys=True)
+    return cache / "colliders" / f"{key}-{candidate.name}-{hashlib.sha256(detail.encode()).hexdigest()[:8]}.safetensors"
 
 
 def _cached(candidate: Candidate, mesh: Mesh, transform, units, meters_per_unit, cache: Path,
@@ -247,9 +257,8 @@ def _cached(candidate: Candidate, mesh: Mesh, transform, units, meters_per_unit,
     """A voxel grid or a bench-trained network from ``cache``, made (and timed) when absent."""
     from collider_server.engine.modelfile import load_collider, save_collider
 
-    key = placement_key(mesh, transform, candidate.settings.get("padding", 0.1), units, meters_per_unit)
-    detail = json.dumps(candidate.settings, sort_keys=True)
-    path = cache / f"{key}-{candidate.name}-{hashlib.sha256(detail.encode()).hexdigest()[:8]}.safetensors"
+    path = cache_path(candidate, mesh, transform, units, meters_per_unit, cache)
+    candidate.path = path
     if path.is_file():
         collider = load_collider(path, "cpu")
         candidate.build_seconds = collider.info.settings.get("bench_build_seconds")
@@ -273,6 +282,22 @@ def _cached(candidate: Candidate, mesh: Mesh, transform, units, meters_per_unit,
     collider.info.source["transform"] = np.asarray(transform).tolist()
     candidate.build_seconds = time.perf_counter() - started
     collider.info.settings["bench_build_seconds"] = candidate.build_seconds
-    cache.mkdir(parents=True, exist_ok=True)
+    path.parent.mkdir(parents=True, exist_ok=True)
     save_collider(collider, path)
     return collider
+
+
+def build_seconds_estimate(candidate: Candidate, mesh: Mesh, transform, units: str, meters_per_unit: float,
+                           cache: Path, sdf_seconds_per_point: float) -> float:
+    """Expected seconds to build ``candidate`` given the exact SDF's measured cost per point: a
+    voxel grid's resolution^3 points, a training run's minutes, nothing for what the cache or the
+    repository already holds (mesh and kdtree: about a second)."""
+    if candidate.build == "trained":
+        return 0.0
+    if candidate.kind == "voxel" or candidate.build == "train":
+        if cache_path(candidate, mesh, transform, units, meters_per_unit, cache).is_file():
+            return 0.0
+        if candidate.kind == "voxel":
+            return candidate.settings["resolution"] ** 3 * sdf_seconds_per_point
+        return 60.0 * candidate.settings["train_minutes"] + 500_000 * sdf_seconds_per_point
+    return 1.0

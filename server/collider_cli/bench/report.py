@@ -3,7 +3,12 @@ ratios to the exact ``mesh`` collider, the Pareto front and the error-vs-time pi
 
 The *reference time* of a collider (what the front, the plot and the budget picker rank by) is
 the median seconds per point of a ``distance+normal+contact`` query of the largest measured size,
-embedded, on the device asked for (``cpu`` unless told).
+embedded, on the device asked for (``cpu`` unless told), over interleaved rounds
+(:mod:`.timing`): its wall time, or, when some collider's wall time stayed unstable, its process
+CPU time if every collider's is stable (the *basis*, :func:`ranking_basis`; CPU time does not
+grow with other processes' load, wall time does), else no front is called. Two reference times
+count as *equal* when they differ by less than :data:`TIE` or than either one's spread: a front or
+a pick never rests on a smaller difference.
 """
 
 from __future__ import annotations
@@ -15,6 +20,11 @@ import numpy as np
 
 REFERENCE_MODE = "distance+normal+contact"
 ERROR_KEYS = {"distance": "distance_mean_mm", "normal": "normal_mean_deg"}
+#: Reference times closer than this (relative) are equal for the front and the budget picker: on
+#: the shared 2-core machine the ratio of two colliders' CPU times moved by up to 30 % between
+#: quick benches minutes apart (voxel 64^3 over 32^3: 0.97 to 1.30x) while each run's own spread
+#: said 7 %: a front resting on a smaller difference would change from run to run.
+TIE = 0.35
 
 
 def timing(row: dict, *, path: str, device: str, mode: str, points: int) -> dict | None:
@@ -24,35 +34,119 @@ def timing(row: dict, *, path: str, device: str, mode: str, points: int) -> dict
     return None
 
 
-def reference_seconds_per_point(row: dict, report: dict, device: str = "cpu",
-                                path: str = "embedded") -> float | None:
-    """Median seconds per point of the largest measured ``distance+normal+contact`` call."""
+def reference_timing(row: dict, report: dict, device: str = "cpu", path: str = "embedded") -> dict | None:
+    """The cell of the largest measured ``distance+normal+contact`` call (None: not measured)."""
     size = max(report["config"]["sizes"])
-    t = timing(row, path=path, device=device, mode=REFERENCE_MODE, points=size)
-    return None if t is None else t["median_s"] / t["points"]
+    return timing(row, path=path, device=device, mode=REFERENCE_MODE, points=size)
 
 
-def pareto_front(items: list[tuple[str, float, float]]) -> list[str]:
-    """Names of the ``(name, time, error)`` items no other item beats on both time and error
-    (<= on both, < on one), ordered by time."""
+#: Where a basis reads a cell's figure, spread and stability.
+BASES = {"wall": ("median_s", "spread", "stable"), "cpu": ("cpu_median_s", "cpu_spread", "cpu_stable")}
+
+
+def reference_seconds_per_point(row: dict, report: dict, device: str = "cpu",
+                                path: str = "embedded", basis: str = "wall") -> float | None:
+    """Median seconds per point (wall, or process CPU) of the largest measured
+    ``distance+normal+contact`` call."""
+    t = reference_timing(row, report, device, path)
+    value = None if t is None else t.get(BASES[basis][0])
+    return None if value is None else value / t["points"]
+
+
+def reference_spread(row: dict, report: dict, device: str = "cpu", basis: str = "wall") -> float:
+    t = reference_timing(row, report, device)
+    return (t or {}).get(BASES[basis][1]) or 0.0
+
+
+def ranking_basis(report: dict, device: str = "cpu") -> str | None:
+    """What the front and the picker rank by: ``"wall"`` when every collider's reference wall
+    time is stable and, if the CPU times are stable too, they call the same fronts; ``"cpu"``
+    when the CPU times are stable and the wall times are not, or call other fronts (then the
+    load of the moment changed the ranking: on the shared machine a 1 MB voxel grid slowed
+    against a 128 kB one under other processes' cache traffic, 1.56x in wall time, 1.2x in CPU
+    time); None when neither is stable (no front is called)."""
+    stable = [basis for basis in BASES if not unstable_references(report, device, basis)]
+    if stable == ["wall", "cpu"]:
+        same = all(pareto_front(front_items(report, device, error, "wall"))
+                   == pareto_front(front_items(report, device, error, "cpu")) for error in ERROR_KEYS)
+        return "wall" if same else "cpu"
+    return stable[0] if stable else None
+
+
+def equal_times(a: float, b: float, spread_a: float | None = 0.0, spread_b: float | None = 0.0) -> bool:
+    """Times ``a`` and ``b`` (same unit) equal within :data:`TIE` or either one's spread."""
+    tolerance = max(TIE, spread_a or 0.0, spread_b or 0.0)
+    return max(a, b) <= min(a, b) * (1.0 + tolerance)
+
+
+def pareto_front(items: list[tuple]) -> list[str]:
+    """Names of the ``(name, time, error[, spread])`` items that no other item dominates,
+    ordered by time. B dominates A when B is at least as accurate and not slower beyond the
+    measurement (:func:`equal_times`), and strictly better in one: more accurate, or faster
+    beyond the measurement."""
+    full = [(n, t, e, (rest[0] if rest else 0.0)) for n, t, e, *rest in items]
     front = []
-    for name, t, e in items:
-        dominated = any((t2 <= t and e2 <= e) and (t2 < t or e2 < e) for n2, t2, e2 in items if n2 != name)
+    for name, t, e, s in full:
+        dominated = False
+        for n2, t2, e2, s2 in full:
+            if n2 == name or e2 > e:
+                continue
+            tied = equal_times(t, t2, s, s2)
+            if (t2 < t or tied) and (e2 < e or (t2 < t and not tied)):
+                dominated = True
+                break
         if not dominated:
             front.append((t, name))
     return [name for _, name in sorted(front)]
 
 
+def unstable_references(report: dict, device: str = "cpu", basis: str = "wall") -> list[str]:
+    """Labels (with their spread) of colliders whose reference time on ``basis`` is missing or
+    unstable."""
+    key, spread_key, stable_key = BASES[basis]
+    out = []
+    for r in report["colliders"]:
+        t = reference_timing(r, report, device)
+        if t is None or t.get(key) is None:
+            out.append(f"{r['label']} (not timed)")
+        elif not t.get(stable_key, True):
+            spread = t.get(spread_key)
+            out.append(f"{r['label']} (spread {'?' if spread is None else f'{100 * spread:.0f} %'} over "
+                       f"{t['repeats']} calls)")
+    return out
+
+
+def served_faster(report: dict) -> list[str]:
+    """Cells where the served call measured faster than the embedded one by more than the
+    spread (after the retiming of :mod:`.timing`): never a figure to trust."""
+    from .timing import Timing, served_beats_embedded
+
+    out = []
+    for r in report["colliders"]:
+        for t in r["timings"]:
+            if t["path"] != "served":
+                continue
+            e = timing(r, path="embedded", device=t["device"], mode=t["mode"], points=t["points"])
+            if e is None:
+                continue
+            if served_beats_embedded(Timing("embedded", "", "", 1, times_s=e["times_s"]),
+                                     Timing("served", "", "", 1, times_s=t["times_s"])):
+                out.append(f"{r['label']} {t['mode']} {size_label(t['points'])} {t['device']} "
+                           f"(served {1e3 * t['median_s']:.3g} ms, embedded {1e3 * e['median_s']:.3g} ms)")
+    return out
+
+
 # -- text tables (Markdown) -------------------------------------------------------------------
 
 
-def _size_label(n: int) -> str:
+def size_label(n: int) -> str:
     return f"{n // 1_000_000}M" if n % 1_000_000 == 0 else (f"{n // 1000}k" if n % 1000 == 0 else str(n))
 
 
 def time_tables(report: dict) -> str:
     """One paper-layout table per (path, device, mode): rows = call sizes, a column per
-    collider, median milliseconds per call; ``(r)`` after a figure = only r timed repeats."""
+    collider, median milliseconds per call and the spread of the calls; ``!`` marks an
+    unstable figure, ``(r)`` a cell with only r calls."""
     rows = report["colliders"]
     policy = report["config"]["timing"]
     out = []
@@ -61,7 +155,7 @@ def time_tables(report: dict) -> str:
     for path, device, mode in combos:
         present = [r for r in rows if any((t["path"], t["device"], t["mode"]) == (path, device, mode)
                                           for t in r["timings"])]
-        out.append(f"**{mode}, {path}, {device}**: median ms per call")
+        out.append(f"**{mode}, {path}, {device}**: median ms per call, +- spread")
         out.append("")
         out.append("| points | " + " | ".join(r["label"] for r in present) + " |")
         out.append("|---|" + "---|" * len(present))
@@ -69,17 +163,30 @@ def time_tables(report: dict) -> str:
             cells = []
             for r in present:
                 t = timing(r, path=path, device=device, mode=mode, points=size)
-                if t is None:
-                    cells.append("-")
-                    continue
-                note = f" ({t['repeats']})" if t["repeats"] < policy["repeats"] else ""
-                cells.append(f"{1e3 * t['median_s']:.{_digits(1e3 * t['median_s'])}f}{note}")
-            out.append(f"| {_size_label(size)} | " + " | ".join(cells) + " |")
+                cells.append("-" if t is None else timing_text(t, policy))
+            out.append(f"| {size_label(size)} | " + " | ".join(cells) + " |")
         out.append("")
-    out.append(f"Warm-up call first, then the median of up to {policy['repeats']} calls; a cell "
-               f"stops repeating once its calls add up to {policy['cell_budget_s']:g} s, and (r) "
-               "gives the repeats of such cells.")
+    out.append(f"Each cell: a warm-up call, then one call per round, the colliders interleaved in "
+               f"rounds (up to {policy['repeats']}); the median and, after +-, its spread (how far the median "
+               f"may be off: 1.57 x the calls' interquartile range / sqrt(calls)). A cell leaves the rounds once "
+               f"its calls add up to "
+               f"{policy['cell_budget_s']:g} s ((r): its r calls), the reference cells after "
+               f"{policy['min_repeats']} calls at least; ! marks a spread above "
+               f"{100 * policy['max_spread']:.0f} % left after up to {policy['retime_rounds']} extra rounds.")
     return "\n".join(out)
+
+
+def timing_text(t: dict, policy: dict) -> str:
+    """``"12.3 +-4%"``, ``"531 +-41%!"`` (unstable), ``"30466 (1)"`` (one call)."""
+    ms = 1e3 * t["median_s"]
+    text = f"{ms:.{_digits(ms)}f}"
+    if t.get("spread") is not None:
+        text += f" +-{100 * t['spread']:.0f}%"
+    if t["repeats"] >= 3 and not t.get("stable", True):
+        text += "!"
+    if t["repeats"] < policy["repeats"]:
+        text += f" ({t['repeats']})"
+    return text
 
 
 def _digits(value: float) -> int:
@@ -117,24 +224,26 @@ def _mb(n: int) -> str:
 
 
 def ratio_table(report: dict, device: str = "cpu") -> str:
-    """Per collider, relative to ``mesh`` (exact): reference time, and memory."""
+    """Per collider, relative to ``mesh`` (exact): reference time (wall and process CPU), and
+    the +-1 mm band's errors."""
     rows = {r["name"]: r for r in report["colliders"]}
-    if "mesh" not in rows:
-        return ""
-    base = reference_seconds_per_point(rows["mesh"], report, device)
-    if base is None:
-        return ""
+    base = reference_seconds_per_point(rows["mesh"], report, device) if "mesh" in rows else None
     size = max(report["config"]["sizes"])
-    out = [f"Relative to `mesh` (exact), {REFERENCE_MODE} on {_size_label(size)} points, embedded, "
-           f"{device}: time ratio (below 1 = faster than exact), and the +-1 mm band mean error.", "",
-           "| collider | s per 1M points | time / mesh | distance mean (mm) | normal mean (deg) |",
-           "|---|---|---|---|---|"]
+    out = [f"Reference time: {REFERENCE_MODE} on {size_label(size)} points per call, embedded, {device}: "
+           "median wall seconds per 1M points (+- spread), the process CPU seconds it cost, the time "
+           "relative to `mesh` (exact; below 1 = faster), and the +-1 mm band mean errors.", "",
+           "| collider | s per 1M points | CPU s per 1M points | time / mesh | distance mean (mm) | normal mean (deg) |",
+           "|---|---|---|---|---|---|"]
     for r in report["colliders"]:
-        t = reference_seconds_per_point(r, report, device)
+        t = reference_timing(r, report, device)
         if t is None:
             continue
         a = r["accuracy"]["band_1mm"]
-        out.append(f"| {r['label']} | {t * 1e6:.2f} | {t / base:.2f}x | {a['distance_mean_mm']:.4f} | "
+        per = t["median_s"] / t["points"]
+        spread = "" if t.get("spread") is None else f" +-{100 * t['spread']:.0f}%" + ("!" if not t.get("stable", True) else "")
+        cpu = "-" if t.get("cpu_seconds_per_million") is None else f"{t['cpu_seconds_per_million']:.2f}"
+        ratio = "-" if base is None else f"{per / base:.2f}x"
+        out.append(f"| {r['label']} | {per * 1e6:.2f}{spread} | {cpu} | {ratio} | {a['distance_mean_mm']:.4f} | "
                    f"{a['normal_mean_deg']:.2f} |")
     return "\n".join(out)
 
@@ -142,79 +251,149 @@ def ratio_table(report: dict, device: str = "cpu") -> str:
 def summary(report: dict) -> str:
     """Everything a person reads after a run, as Markdown."""
     m = report["machine"]
+    timing_info = report.get("timing") or {}
     parts = [
         f"# collider bench: {report['mesh']['name']} ({report['mesh']['faces']:,} faces, "
         f"{report['mesh']['units']})", "",
+    ]
+    if report.get("interrupted"):
+        parts += ["**Interrupted** (Ctrl-C or SIGTERM): what follows is what was measured until then.", ""]
+    parts += [
         f"Machine: {m['cpu']}, {m['cores']} cores, torch {m['versions'].get('torch')} with "
         f"{m['torch_threads']} threads, GPU {m['gpu'] or 'none'}; load average "
         f"{_load(m['load_average_start'])} at start, {_load(m['load_average_end'])} at the end; "
-        f"{report['seconds'] / 60:.1f} min in all.", "",
-        time_tables(report), "", accuracy_table(report), "", ratio_table(report), "",
+        f"{report['seconds'] / 60:.1f} min in all"
+        + (f"; {timing_info['rounds']} timing rounds" if timing_info.get("rounds") else "") + ".", "",
+        *_mesh_lines(report), time_tables(report), "", accuracy_table(report), "", ratio_table(report), "",
     ]
     for device in report["config"]["devices"]:
         parts.append(front_text(report, device))
+    faster = served_faster(report)
+    if faster:
+        parts += ["", "Served measured faster than embedded by more than the spread, even after retiming "
+                  "(the same query plus HTTP cannot be: these cells measured the machine's load, not the "
+                  "colliders; rerun on a quieter machine):"] + [f"- {f}" for f in faster]
     if report["skipped"]:
         parts += ["", "Not measured:"] + [f"- {s['name']}: {s['reason']}" for s in report["skipped"]]
     return "\n".join(parts) + "\n"
+
+
+def _mesh_lines(report: dict) -> list[str]:
+    from collider_server.making.mesh_check import MeshCheck
+
+    check = report["mesh"].get("check")
+    return [] if not check else [*MeshCheck.from_dict(check).lines(), ""]
 
 
 def _load(value) -> str:
     return "?" if value is None else f"{value:.1f}"
 
 
-def front_items(report: dict, device: str, error: str) -> list[tuple[str, float, float]]:
+def front_items(report: dict, device: str, error: str, basis: str = "wall") -> list[tuple[str, float, float, float]]:
+    """``(name, reference seconds per point, +-1 mm band mean error, spread)`` per timed collider."""
     items = []
     for r in report["colliders"]:
-        t = reference_seconds_per_point(r, report, device)
+        t = reference_seconds_per_point(r, report, device, basis=basis)
         if t is not None:
-            items.append((r["name"], t, r["accuracy"]["band_1mm"][ERROR_KEYS[error]]))
+            items.append((r["name"], t, r["accuracy"]["band_1mm"][ERROR_KEYS[error]],
+                          reference_spread(r, report, device, basis)))
     return items
+
+
+def front(report: dict, device: str, error: str) -> list[str] | None:
+    """The Pareto front's names on the :func:`ranking_basis`, or None when it is not called
+    (some reference time is missing, an interrupted run, or unstable on both bases)."""
+    basis = ranking_basis(report, device)
+    if basis is None or not report["colliders"]:
+        return None
+    return pareto_front(front_items(report, device, error, basis))
 
 
 def front_text(report: dict, device: str) -> str:
     labels = {r["name"]: r["label"] for r in report["colliders"]}
+    basis = ranking_basis(report, device)
+    limit = 100 * report["config"]["timing"]["max_spread"]
+    if basis is None:
+        return (f"Pareto front ({device}): not called: the reference time of "
+                f"{', '.join(unstable_references(report, device))} is not a stable figure (spread above "
+                f"{limit:.0f} % after retiming, or not measured), nor is its process CPU time "
+                f"({', '.join(unstable_references(report, device, 'cpu'))}); a front drawn from them could change "
+                "from run to run. Rerun on a quieter machine (the load average is in the header).")
     lines = []
+    if basis == "cpu":
+        unstable = unstable_references(report, device)
+        why = (f"the wall times of {', '.join(unstable)} stayed unstable (spread above {limit:.0f} %)" if unstable
+               else "wall and CPU times call different fronts: the load of the moment changed the ranking")
+        lines.append(f"The front ranks by process CPU time per point, which other processes' load inflates "
+                     f"least: {why}.")
     for error in ERROR_KEYS:
-        names = pareto_front(front_items(report, device, error))
+        names = front(report, device, error)
         if names:
-            lines.append(f"Pareto front ({device}, time vs {error} error): " + ", ".join(labels[n] for n in names))
+            lines.append(f"Pareto front ({device}, {'CPU ' if basis == 'cpu' else ''}time vs {error} error): "
+                         + ", ".join(labels[n] for n in names))
+    lines.append(f"(Reference times within {100 * TIE:.0f} % or within their spread of each other count as equal.)")
     return "\n".join(lines)
 
 
+#: Where a label may go around its marker, tried in this order at growing distances: (x, y)
+#: direction of the offset, and the label's alignment there.
+LABEL_SPOTS = ((0, -1, "center", "top"), (0, 1, "center", "bottom"), (1, 0, "left", "center"),
+               (-1, 0, "right", "center"), (0.7, 0.7, "left", "bottom"), (0.7, -0.7, "left", "top"),
+               (-0.7, 0.7, "right", "bottom"), (-0.7, -0.7, "right", "top"))
+
+
 def place_labels(ax, labels: list[tuple[str, float, float, float]],
-                 obstacles: list[tuple[float, float, float]] = ()) -> None:
-    """Annotate each ``(text, x, y, marker diameter in points)`` near its marker: the first of
-    a few offsets (growing rings around the marker) whose box overlaps no marker and no label
-    placed before, with a thin leader line when it had to move away (clustered colliders, e.g.
-    voxel grids of similar speed, would otherwise print over each other)."""
-    to_points = 72.0 / ax.figure.dpi
-    centres = [tuple(ax.transData.transform((x, y)) * to_points) + (size,) for _, x, y, size in labels]
-    others = [tuple(ax.transData.transform((x, y)) * to_points) + (size,) for x, y, size in obstacles]
-    placed = [(cx - s / 2, cy - s / 2, cx + s / 2, cy + s / 2) for cx, cy, s in centres + others]
-    for (text, x, y, size), (px, py, _) in sorted(zip(labels, centres), key=lambda item: item[0][1]):
-        width, height = 5.0 * len(text), 10.0
-        choice = None
-        for ring in range(4):
-            gap = size / 2 + 3 + 14 * ring
-            for dx, dy, ha in ((0, -gap - height, "center"), (0, gap, "center"), (gap, -height / 2, "left"),
-                               (-gap, -height / 2, "right"), (gap * 0.7, gap * 0.7, "left"),
-                               (gap * 0.7, -gap * 0.7 - height, "left"), (-gap * 0.7, gap * 0.7, "right"),
-                               (-gap * 0.7, -gap * 0.7 - height, "right")):
-                left = px + dx - {"center": width / 2, "left": 0, "right": width}[ha]
-                box = (left, py + dy, left + width, py + dy + height)
-                if not any(box[0] < b[2] and b[0] < box[2] and box[1] < b[3] and b[1] < box[3] for b in placed):
-                    choice = (dx, dy, ha, box, ring)
+                 obstacles: list[tuple[float, float, float]] = ()) -> list:
+    """Annotate each ``(text, x, y, marker diameter in points)`` near its marker: the first
+    spot of :data:`LABEL_SPOTS`, on growing rings around the marker, where the label's rendered
+    box lies inside the axes and overlaps no marker (``obstacles`` too: ``(x, y, diameter)``)
+    and no label placed before; with a thin leader line when it had to move off the first ring
+    (clustered colliders would otherwise print over each other, or beside another marker).
+    Call it once the figure's layout is final: it works in display coordinates. Returns the
+    annotations."""
+    fig = ax.figure
+    renderer = fig.canvas.get_renderer()
+    pixels_per_point = fig.dpi / 72.0
+
+    def box(x, y, diameter):
+        cx, cy = ax.transData.transform((x, y))
+        r = diameter * pixels_per_point / 2
+        return (cx - r, cy - r, cx + r, cy + r)
+
+    taken = [box(x, y, d) for _, x, y, d in labels] + [box(x, y, d) for x, y, d in obstacles]
+    frame = ax.get_window_extent(renderer)
+    annotations = []
+    for text, x, y, diameter in sorted(labels, key=lambda item: item[1]):
+        chosen = None
+        for ring in range(6):
+            gap = diameter / 2 + 3 + 12 * ring
+            for ux, uy, ha, va in LABEL_SPOTS:
+                arrow = {"arrowstyle": "-", "color": "grey", "linewidth": 0.6} if ring else None
+                note = ax.annotate(text, (x, y), textcoords="offset points", xytext=(ux * gap, uy * gap),
+                                   ha=ha, va=va, fontsize=8, arrowprops=arrow, zorder=5)
+                b = text_box(note, renderer)
+                inside = frame.x0 <= b.x0 and b.x1 <= frame.x1 and frame.y0 <= b.y0 and b.y1 <= frame.y1
+                if inside and not any(b.x0 < t[2] and t[0] < b.x1 and b.y0 < t[3] and t[1] < b.y1 for t in taken):
+                    chosen = note
                     break
-            if choice:
+                note.remove()
+            if chosen is not None:
                 break
-        if choice is None:  # nowhere free: below the marker anyway
-            gap = size / 2 + 3
-            choice = (0, -gap - height, "center", (px - width / 2, py - gap - height, px + width / 2, py - gap), 0)
-        dx, dy, ha, box, ring = choice
-        placed.append(box)
-        arrow = {"arrowstyle": "-", "color": "grey", "linewidth": 0.6} if ring else None
-        ax.annotate(text, (x, y), textcoords="offset points", xytext=(dx, dy), ha=ha, va="bottom", fontsize=8,
-                    arrowprops=arrow)
+        if chosen is None:  # nowhere free: below the marker anyway
+            chosen = ax.annotate(text, (x, y), textcoords="offset points", xytext=(0, -diameter / 2 - 3),
+                                 ha="center", va="top", fontsize=8, zorder=5)
+        b = text_box(chosen, renderer)
+        taken.append((b.x0, b.y0, b.x1, b.y1))
+        annotations.append(chosen)
+    return annotations
+
+
+def text_box(note, renderer):
+    """The display box of an annotation's text alone (its leader line runs to the marker)."""
+    from matplotlib.text import Text
+
+    note.update_positions(renderer)
+    return Text.get_window_extent(note, renderer)
 
 
 # -- files ------------------------------------------------------------------------------------
@@ -232,31 +411,46 @@ def write_outputs(report: dict, directory: Path) -> dict[str, Path]:
 
 
 def plot(report: dict, output: Path, device: str = "cpu") -> Path:
+    """Save :func:`figure` as a PNG at ``output``."""
+    import matplotlib.pyplot as plt
+
+    fig = figure(report, device)
+    output.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(output, dpi=fig.dpi)
+    plt.close(fig)
+    return output
+
+
+def figure(report: dict, device: str = "cpu"):
     """Two panels, distance and normal error (+-1 mm band, log) against the reference time per
-    point (log); marker area ~ memory; the Pareto front as a dashed staircase; embedded as filled
-    markers and served (same query through ``collider serve``) as open ones."""
+    point (log); marker area ~ memory; the Pareto front as a dashed staircase (or a note saying
+    why it is not called); embedded as filled markers and served (same query through
+    ``collider serve``) as open ones. Returns the matplotlib figure."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     from matplotlib.lines import Line2D
 
-    rows = [r for r in report["colliders"] if reference_seconds_per_point(r, report, device) is not None]
+    basis = ranking_basis(report, device) or "wall"
+    rows = [r for r in report["colliders"]
+            if reference_seconds_per_point(r, report, device, basis=basis) is not None]
     size = max(report["config"]["sizes"])
     colours = plt.get_cmap("tab10")
-    fig, axes = plt.subplots(1, 2, figsize=(13, 5.4))
+    fig, axes = plt.subplots(1, 2, figsize=(13, 5.4), dpi=110)
     floor = {"distance": 1e-4, "normal": 1e-2}  # exact colliders (error 0) drawn on this floor
-    biggest = max(r["memory_bytes"] for r in rows)
+    biggest = max([r["memory_bytes"] for r in rows] or [1])
+    panels = []
     for ax, (error, key) in zip(axes, ERROR_KEYS.items()):
         points, labels, served_markers = {}, [], []
         for i, r in enumerate(rows):
-            t = reference_seconds_per_point(r, report, device) * 1e6
+            t = reference_seconds_per_point(r, report, device, basis=basis) * 1e6
             e = max(r["accuracy"]["band_1mm"][key], floor[error])
             points[r["name"]] = (t, e)
             area = 30 + 600 * np.sqrt(r["memory_bytes"] / biggest)
             ax.scatter(t, e, s=area, color=colours(i % 10), alpha=0.8, edgecolors="black", linewidths=0.6,
                        zorder=3)
-            served = reference_seconds_per_point(r, report, device, "served")
+            served = reference_seconds_per_point(r, report, device, "served", basis)
             if served is not None:
                 ax.scatter(served * 1e6, e, s=area, facecolors="none", edgecolors=colours(i % 10),
                            linewidths=1.2, zorder=3)
@@ -264,15 +458,17 @@ def plot(report: dict, output: Path, device: str = "cpu") -> Path:
                 served_markers.append((served * 1e6, e, np.sqrt(area)))
             exact = " (error 0, drawn on the floor)" if r["accuracy"]["band_1mm"][key] < floor[error] else ""
             labels.append((f"{r['label']}{exact}", t, e, np.sqrt(area)))
-        front = pareto_front([(n, t, e) for n, (t, e) in points.items()])
-        if front:
-            xs, ys = zip(*(points[n] for n in front))
+        names = front(report, device, error)
+        if names:
+            xs, ys = zip(*(points[n] for n in names))
             ax.step(xs, ys, where="post", color="crimson", linestyle="--", linewidth=1.5, zorder=2)
             ax.scatter(xs, ys, s=12, color="crimson", zorder=4)
+        elif names is None:
+            ax.set_title("Pareto front not called: unstable timings (see bench.md)", fontsize=9, color="crimson")
         ax.set_xscale("log")
         ax.set_yscale("log")
-        ax.set_xlabel(f"distance + normal + contact: microseconds per point ({_size_label(size)} points "
-                      f"per call, {device})")
+        ax.set_xlabel(f"distance + normal + contact: {'CPU ' if basis == 'cpu' else ''}microseconds per point "
+                      f"({size_label(size)} points per call, {device})")
         ax.set_ylabel("mean distance error, +-1 mm band (mm)" if error == "distance"
                       else "mean normal angle error, +-1 mm band (degrees)")
         ax.grid(True, which="both", alpha=0.3)
@@ -280,7 +476,7 @@ def plot(report: dict, output: Path, device: str = "cpu") -> Path:
         ax.set_xlim(xlo / 1.5, xhi * 1.5)
         ylo, yhi = ax.get_ylim()
         ax.set_ylim(ylo / 2, yhi * 1.5)
-        place_labels(ax, labels, served_markers)
+        panels.append((ax, labels, served_markers))
     handles = [Line2D([], [], marker="o", linestyle="", color=colours(i % 10), markersize=8, label=r["label"])
                for i, r in enumerate(rows)]
     handles += [Line2D([], [], color="crimson", linestyle="--", label="Pareto front (embedded)"),
@@ -293,7 +489,7 @@ def plot(report: dict, output: Path, device: str = "cpu") -> Path:
     fig.suptitle(f"{report['mesh']['name']}: what accuracy costs in time on {where} "
                  f"(marker area ~ memory, largest {biggest / 1e6:.1f} MB)", fontsize=11)
     fig.tight_layout(rect=(0, 0.08, 1, 0.95))
-    output.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(output, dpi=110)
-    plt.close(fig)
-    return output
+    fig.canvas.draw()  # the final layout: labels are placed in display coordinates
+    for ax, labels, served_markers in panels:
+        place_labels(ax, labels, served_markers)
+    return fig

@@ -9,9 +9,12 @@ placed mesh's frame), which is also the world frame here (identity pose).
 
 from __future__ import annotations
 
+import contextlib
+import functools
 import os
 import platform
 import shutil
+import sys
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -19,10 +22,11 @@ from pathlib import Path
 import numpy as np
 
 from collider_server.engine.meshes import ExactSDF, Mesh
-from collider_server.making.progress import progress
+from collider_server.making.progress import format_duration, progress
 
-from .plan import Candidate, PlanConfig, build_candidate, plan_candidates
-from .timing import MODES, TimingPolicy, time_cells
+from .plan import Candidate, PlanConfig, build_candidate, build_seconds_estimate, plan_candidates
+from .report import REFERENCE_MODE, size_label
+from .timing import MODES, Cell, Timing, TimingPolicy, process_cpu_clock, time_rounds, warm_up
 
 PATHS = ("embedded", "served")
 GPU_KINDS = ("voxel", "neural")  # mesh and kdtree run on the CPU only (libigl, SciPy)
@@ -32,8 +36,9 @@ GPU_KINDS = ("voxel", "neural")  # mesh and kdtree run on the CPU only (libigl, 
 class BenchConfig:
     """sizes : points per query call (the paper's table rows); accuracy_points : points per
     band for the error figures; paths : "embedded" and/or "served"; devices : None for "cpu"
-    plus "cuda" when present; seed : of every point set; threads : torch CPU threads (None:
-    torch's default), used embedded and by the served process alike."""
+    plus "cuda" when present; seed : of every point set; threads : CPU threads of the engine
+    (None: what ``collider serve`` computes with by default, all cores but one), used embedded
+    and by the served process alike."""
 
     sizes: tuple[int, ...] = (10_000, 40_000, 1_000_000)
     accuracy_points: int = 40_000
@@ -59,7 +64,7 @@ class BenchConfig:
 
 #: ``collider bench --quick``: the same run at a size that takes well under a minute.
 QUICK = BenchConfig(sizes=(10_000, 40_000), accuracy_points=5_000,
-                    timing=TimingPolicy(repeats=2, cell_budget_s=1.0, warmup_points=2_000),
+                    timing=TimingPolicy(repeats=5, cell_budget_s=1.0, warmup_points=2_000),
                     plan=PlanConfig(resolutions=(32, 64)))
 
 
@@ -69,67 +74,93 @@ def default_devices() -> tuple[str, ...]:
     return ("cpu", "cuda") if torch.cuda.is_available() else ("cpu",)
 
 
+def default_threads() -> int:
+    """``collider serve``'s compute threads when not told (and ``collider simulate``'s embedded
+    engine's): all cores but one, at least one."""
+    return max(1, (os.cpu_count() or 2) - 1)
+
+
+def say(text: str) -> None:
+    """One line for the person watching (stderr: stdout is the report)."""
+    print(text, file=sys.stderr, flush=True)
+
+
 def run_bench(mesh: Mesh, transform: np.ndarray, config: BenchConfig, *, units: str = "m",
-              meters_per_unit: float = 1.0, models_root: Path | None = None,
-              cache: Path = Path("out/bench-cache"), work_dir: Path = Path("out/bench"),
+              meters_per_unit: float = 1.0, models_root: Path | None = None, cache: Path,
               mesh_path: str = "", show_progress: bool = True) -> dict:
     """Measure every candidate of ``mesh`` (already placed: ``transform`` is what was applied
     to the file's coordinates). Returns the report dict (``colliders``, ``skipped``, ``mesh``,
-    ``machine``, ``config``, ``seconds``); model files of the run go to ``work_dir/models``."""
+    ``machine``, ``config``, ``timing``, ``seconds``, and ``interrupted`` when Ctrl-C or SIGTERM
+    ended the run early: the report then holds what was measured until then).
+
+    cache : grids, bench-trained networks and the served run's repository (links) go there."""
     import torch
 
     config.check()
     started = time.perf_counter()
     load_at_start = _load_average()
-    if config.threads is not None:
-        torch.set_num_threads(config.threads)
+    torch.set_num_threads(config.threads or default_threads())
     devices = config.devices or default_devices()
     plan = plan_candidates(mesh, transform, config.plan, models_root)
     if not plan.candidates:
         raise ValueError("nothing to measure: " + "; ".join(f"{s['name']}: {s['reason']}" for s in plan.skipped))
-    sets = point_sets(mesh, config, meters_per_unit)
-    served_dir = work_dir / "models"
-    sdf = ExactSDF(mesh)
-    # Progress steps: build + accuracy, then one per timing cell on each path and device.
-    cells = len(MODES) * len(config.sizes)
-    total = sum(2 + cells * len(_devices_of(c, devices)) * len(config.paths) for c in plan.candidates)
     rows: dict[str, dict] = {}
-    with progress(total, "bench", "step", show_progress) as bar:
-        for candidate in plan.candidates:
-            bar.set_postfix_str(f"build {candidate.label}")
-            collider = build_candidate(candidate, mesh, transform, units=units, meters_per_unit=meters_per_unit,
-                                       cache=cache, out_dir=served_dir, show_progress=False)
-            bar.update(1)
-            bar.set_postfix_str(f"accuracy {candidate.label}")
-            rows[candidate.name] = candidate_row(candidate, collider, sdf, sets)
-            bar.update(1)
-            if "embedded" in config.paths:
-                for device in _devices_of(candidate, devices):
-                    bar.set_postfix_str(f"time {candidate.label}, embedded, {device}")
-                    timings = time_embedded(candidate, collider, device, sets["timing"], config,
-                                            lambda: bar.update(1))
-                    rows[candidate.name]["timings"] += [t.to_dict() for t in timings]
-            del collider
-        if "served" in config.paths:
-            for device in devices:
-                names = [c for c in plan.candidates if device in _devices_of(c, devices)]
-                if not names:
-                    continue
-                bar.set_postfix_str(f"start collider serve on {device}")
-                for name, timings in time_served(names, served_dir, device, sets["timing"], config,
-                                                 bar).items():
-                    rows[name]["timings"] += [t.to_dict() for t in timings]
-    return {
+    report = {
         "mesh": {"path": mesh_path, "name": mesh.name, "sha256": mesh.sha256,
-                 "vertices": int(len(mesh.vertices)), "faces": int(len(mesh.faces)),
+                 "vertices": len(mesh.vertices), "faces": len(mesh.faces),
                  "transform": np.asarray(transform).tolist(), "units": units,
                  "meters_per_unit": meters_per_unit},
         "config": {**asdict(config), "devices": list(devices)},
-        "machine": machine_info(load_at_start),
-        "colliders": list(rows.values()),
-        "skipped": plan.skipped,
-        "seconds": time.perf_counter() - started,
+        "colliders": [], "skipped": plan.skipped, "timing": {},
     }
+    try:
+        sets = point_sets(mesh, config, meters_per_unit)
+        sdf = ExactSDF(mesh)
+        colliders = build_all(plan.candidates, mesh, transform, sdf, sets, config, units=units,
+                              meters_per_unit=meters_per_unit, cache=cache, rows=rows,
+                              show_progress=show_progress)
+        report["timing"] = time_all(plan.candidates, colliders, devices, sets["timing"], config, cache,
+                                    rows, show_progress)
+    except KeyboardInterrupt:  # Ctrl-C or SIGTERM: the report of what was measured until now
+        report["interrupted"] = True
+        say("interrupted: the report holds what was measured until now")
+    report["colliders"] = list(rows.values())
+    report["machine"] = machine_info(load_at_start)
+    report["seconds"] = time.perf_counter() - started
+    return report
+
+
+def build_all(candidates: list[Candidate], mesh: Mesh, transform, sdf: ExactSDF, sets: dict,
+              config: BenchConfig, *, units: str, meters_per_unit: float, cache: Path, rows: dict,
+              show_progress: bool) -> dict:
+    """Build (or take from the cache) every candidate and measure its accuracy, first saying how
+    long that will take (from the exact SDF's cost measured on this machine). Fills ``rows``;
+    returns name -> collider (CPU)."""
+    probe = sets["band_1mm"][: min(len(sets["band_1mm"]), 5_000)]
+    t0 = time.perf_counter()
+    sdf.query(probe)
+    per_point = (time.perf_counter() - t0) / len(probe)
+    builds = {c.name: build_seconds_estimate(c, mesh, transform, units, meters_per_unit, cache, per_point)
+              for c in candidates}
+    # Accuracy: the exact SDF and its gradient at both bands' points, then again at the contacts.
+    accuracy = 4 * config.accuracy_points * per_point
+    total = sum(builds.values()) + len(candidates) * accuracy
+    slow = [f"{c.label} {format_duration(builds[c.name])}" for c in candidates if builds[c.name] >= 10]
+    say(f"bench: building and measuring {len(candidates)} colliders, about {format_duration(total)}"
+        + (f" ({', '.join(slow)})" if slow else "")
+        + f" (the exact SDF measured at {per_point * 1e6:.1f} us per point here)")
+    colliders = {}
+    with progress(len(candidates) * 2, "bench: build + accuracy", "step", show_progress) as bar:
+        for candidate in candidates:
+            bar.set_postfix_str(f"build {candidate.label}")
+            collider = build_candidate(candidate, mesh, transform, units=units, meters_per_unit=meters_per_unit,
+                                       cache=cache, show_progress=False)
+            bar.update(1)
+            bar.set_postfix_str(f"accuracy {candidate.label}")
+            rows[candidate.name] = candidate_row(candidate, collider, sdf, sets)
+            colliders[candidate.name] = collider
+            bar.update(1)
+    return colliders
 
 
 def point_sets(mesh: Mesh, config: BenchConfig, meters_per_unit: float) -> dict[str, np.ndarray]:
@@ -159,28 +190,112 @@ def _devices_of(candidate: Candidate, devices) -> list[str]:
     return [d for d in devices if d == "cpu" or candidate.kind in GPU_KINDS]
 
 
-def time_embedded(candidate: Candidate, collider, device: str, points: np.ndarray, config: BenchConfig,
-                  on_cell) -> list:
-    """The engine in this process: ``Collider.query`` on ``device``."""
-    if device != "cpu":
-        from collider_server.engine.modelfile import load_collider
+def time_all(candidates: list[Candidate], colliders: dict, devices, points: np.ndarray, config: BenchConfig,
+             cache: Path, rows: dict, show_progress: bool) -> dict:
+    """Time every cell of every candidate in interleaved rounds (:mod:`.timing`): embedded, and
+    behind one real ``collider serve`` per device when served is asked for. Appends each cell's
+    figures to its row (also when interrupted); returns the run's timing summary."""
+    from contextlib import ExitStack
 
-        collider = load_collider(candidate.path, device)
+    policy = config.timing
+    biggest = max(config.sizes)
+    cells: list[Cell] = []
+    with ExitStack() as stack:
+        clients = {}
+        if "served" in config.paths:
+            for device in devices:
+                served = [c for c in candidates if device in _devices_of(c, devices)]
+                if served:
+                    say(f"bench: starting collider serve on {device} with {len(served)} colliders ...")
+                    clients[device] = stack.enter_context(served_client(served, device, cache, config))
+        embedded = {}
+        for candidate in candidates:
+            for device in _devices_of(candidate, devices):
+                embedded[candidate.name, device] = (colliders[candidate.name] if device == "cpu" else
+                                                    _load_on(candidate, device))
+        # Cells in round order: per device, mode and size, every collider, embedded then served
+        # (twins side by side, so a load burst hits both).
+        warm: dict[tuple, float] = {}
+        for device in devices:
+            for mode, fields in MODES.items():
+                for size in config.sizes:
+                    chunk = points[:size]
+                    for candidate in candidates:
+                        if device not in _devices_of(candidate, devices):
+                            continue
+                        for path in config.paths:
+                            if path == "served" and device not in clients:
+                                continue
+                            call, clocks = _query_call(path, embedded.get((candidate.name, device)),
+                                                       clients.get(device), candidate.name, device, fields)
+                            timing = Timing(path, device, mode, size,
+                                            reference=(mode == REFERENCE_MODE and size == biggest
+                                                       and path == "embedded"))
+                            cells.append(Cell(candidate.name, timing, functools.partial(call, chunk), clocks))
+                            key = (candidate.name, path, device, mode)
+                            if key not in warm:  # one untimed call per (collider, path, device, mode)
+                                warm[key] = warm_up(functools.partial(call, points[: min(policy.warmup_points,
+                                                                                         len(points))]))
+        per_point = {k: v / min(policy.warmup_points, len(points)) for k, v in warm.items()}
+        expected = [per_point[c.name, c.timing.path, c.timing.device, c.timing.mode] * c.timing.points
+                    for c in cells]
+        calls = sum(_expected_calls(c, e, policy) for c, e in zip(cells, expected))
+        estimate = sum(_expected_calls(c, e, policy) * e for c, e in zip(cells, expected))
+        say(f"bench: timing {len(cells)} cells in {policy.repeats} interleaved rounds, about "
+            f"{format_duration(estimate)} (from the warm-up calls)")
+        rounds = 0
+        try:
+            with progress(calls, "bench: timing", "call", show_progress) as bar:
+                def on_call(cell):
+                    if bar.n >= bar.total:  # retiming adds calls beyond the plan
+                        bar.total += 1
+                    bar.set_postfix_str(f"{cell.name} {cell.timing.path} {size_label(cell.timing.points)}",
+                                        refresh=False)
+                    bar.update(1)
 
-    def query(chunk, fields):
-        result = collider.query(chunk, fields)
-        if device != "cpu":
-            _synchronize(device)
-        return result
+                rounds = time_rounds(cells, policy, on_call)
+        finally:
+            for cell in cells:
+                if cell.timing.times_s:
+                    rows[cell.name]["timings"].append(cell.timing.to_dict(policy.max_spread))
+    retimed = sorted({f"{c.name} {c.timing.path} {c.timing.mode} {size_label(c.timing.points)}"
+                      for c in cells if c.timing.retimed})
+    return {"rounds": rounds, "estimate_s": estimate, "retimed": retimed,
+            "max_spread": policy.max_spread}
 
-    return time_cells(query, points, config.sizes, "embedded", device, config.timing, on_cell)
+
+def _expected_calls(cell: Cell, seconds: float, policy: TimingPolicy) -> int:
+    floor = min(policy.min_repeats, policy.repeats) if cell.timing.reference else 1
+    within = int(policy.cell_budget_s // seconds) + 1 if seconds > 0 else policy.repeats
+    return max(floor, min(policy.repeats, within))
 
 
-def time_served(candidates: list[Candidate], models: Path, device: str, points: np.ndarray,
-                config: BenchConfig, bar) -> dict[str, list]:
-    """The same colliders behind one real ``collider serve --device DEVICE`` (HTTP + msgpack,
-    float32 points) through the client SDK; the server gets as many compute threads as this
-    process uses, so the two paths differ only by the service."""
+def _load_on(candidate: Candidate, device: str):
+    from collider_server.engine.modelfile import load_collider
+
+    return load_collider(candidate.path, device)
+
+
+def _query_call(path: str, collider, client, name: str, device: str, fields):
+    """``(call(points), cpu clocks)`` of one (collider, path, device, fields)."""
+    if path == "embedded":
+        def call(chunk):
+            result = collider.query(chunk, fields)
+            if device != "cpu":
+                _synchronize(device)
+            return result
+
+        return call, (process_cpu_clock(),)
+    return (lambda chunk: client.query(name, chunk, fields=fields)), (process_cpu_clock(),
+                                                                     client.server_cpu_clock)
+
+
+@contextlib.contextmanager
+def served_client(candidates: list[Candidate], device: str, cache: Path, config: BenchConfig):
+    """A client of one real ``collider serve --device DEVICE`` (HTTP + msgpack, float32 points)
+    serving ``candidates`` (links to their files in a folder of the cache, removed after); the
+    server gets as many compute threads as this process uses, so the two paths differ only by
+    the service. The client carries ``server_cpu_clock``, the server process's CPU seconds."""
     import torch
 
     from collider_client import Client
@@ -192,22 +307,18 @@ def time_served(candidates: list[Candidate], models: Path, device: str, points: 
              "--max-request-points", str(max(biggest, 1_000_000)),
              "--max-queue-points", str(max(4 * biggest, 4_000_000)),
              "--max-body-bytes", str(max(64 * 2**20, 64 * biggest))]
-    # Only the candidates of this device in the served repository.
-    served = models.parent / f"served-{device}"
-    served.mkdir(parents=True, exist_ok=True)
-    for old in served.glob("*.safetensors"):
-        old.unlink()
-    for candidate in candidates:
-        shutil.copyfile(candidate.path, served / candidate.path.name)
-    results = {}
-    with serve_process(served, *flags, ready_timeout_s=300.0, capture=True) as server, \
-            Client(server.url, timeout_s=None) as client:
+    served = cache / f"served-{os.getpid()}-{device.replace(':', '-')}"
+    shutil.rmtree(served, ignore_errors=True)
+    served.mkdir(parents=True)
+    try:
         for candidate in candidates:
-            bar.set_postfix_str(f"time {candidate.label}, served, {device}")
-            results[candidate.name] = time_cells(
-                lambda chunk, fields: client.query(candidate.name, chunk, fields=fields),
-                points, config.sizes, "served", device, config.timing, lambda: bar.update(1))
-    return results
+            (served / f"{candidate.name}.safetensors").symlink_to(Path(candidate.path).resolve())
+        with serve_process(served, *flags, ready_timeout_s=300.0, capture=True) as server, \
+                Client(server.url, timeout_s=None) as client:
+            client.server_cpu_clock = process_cpu_clock(server.process.pid)
+            yield client
+    finally:
+        shutil.rmtree(served, ignore_errors=True)
 
 
 def _synchronize(device: str) -> None:
@@ -223,7 +334,7 @@ def _load_average() -> float | None:
 
 def machine_info(load_at_start: float | None) -> dict:
     """CPU model, cores, GPU, load average (start and end of the run) and library versions."""
-    import importlib.metadata as metadata
+    from importlib import metadata
 
     import torch
 

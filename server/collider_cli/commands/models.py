@@ -10,8 +10,10 @@ import numpy as np
 
 from collider_contract import FIELDS
 
-from .bench import add_budget_arguments, budget_from_args
+from .budget import add_budget_arguments, budget_from_args
+from .diagnostics import print_mesh_check, sign_check_line
 from .options import (
+    add_cache_argument,
     add_device_argument,
     add_models_argument,
     add_placement_arguments,
@@ -32,6 +34,7 @@ def register(subparsers) -> None:
     add_device_argument(bake)
     add_quiet_argument(bake)
     add_budget_arguments(bake)
+    add_cache_argument(bake)
     bake.set_defaults(func=run_bake)
 
     query = subparsers.add_parser("query", help="distance/normal/contact of points")
@@ -62,26 +65,60 @@ def register(subparsers) -> None:
 def run_bake(args) -> int:
     from collider_server.engine.modelfile import save_collider
     from collider_server.engine.repository import ModelRepository, check_name
-    from collider_server.making.bake import bake_collider
+    from collider_server.making.bake import bake_collider, check_bake_settings
     from collider_server.making.mesh_files import load_mesh
 
     check_name(args.name)
     budget = budget_from_args(args)
-    if budget is not None:  # an error budget: bake picks the kind (collider_cli.bench)
-        from .bench import run_budget_bake
+    if budget is not None:  # an error budget: bake picks the kind (commands.budget)
+        from .budget import run_budget_bake
 
         return run_budget_bake(args, budget)
+    if args.cache is not None:
+        raise ValueError("--cache is where the budget bake (--max-error) keeps what it measures; a plain "
+                         "bake keeps nothing but the model")
+    check_bake_settings(args.kind, args.resolution, args.padding)  # before the mesh check and the estimate
     placement = placement_from_args(args)
     mesh, transform = placement.apply(load_mesh(args.mesh))
+    repository = ModelRepository(args.models)
+    repository.check_writable()  # before the bake, not after
+    check = print_mesh_check(mesh)
+    if args.kind == "voxel":
+        print(bake_estimate(mesh, args.resolution), file=sys.stderr, flush=True)
     collider = bake_collider(
         mesh, args.kind, args.name, resolution=args.resolution, padding=args.padding,
         units=placement.units, meters_per_unit=placement.meters_per_unit,
         device=args.device, show_progress=not args.quiet,
     )
     collider.info.source["transform"] = transform.tolist()
-    path = save_collider(collider, ModelRepository(args.models).path(args.name))
+    collider.info.source["check"] = check.to_dict()
+    collider.info.source["path"] = str(Path(args.mesh).resolve())
+    path = save_collider(collider, repository.path(args.name))
     print(f"wrote {path} ({path.stat().st_size:,} bytes, kind {args.kind})")
+    print(sign_check_line(collider, mesh, check))
+    from .hints import command, models_options
+
+    print("next: " + command("eval", args.name, "--mesh", args.mesh, *models_options(args)))
     return 0
+
+
+def bake_estimate(mesh, resolution: int) -> str:
+    """How long a voxel bake will take: resolution^3 exact distances at the rate measured on a
+    few thousand points of this mesh's box, now."""
+    import time
+
+    from collider_server.engine.meshes import ExactSDF
+    from collider_server.making.bake import padded_box
+    from collider_server.making.progress import format_duration
+
+    sdf = ExactSDF(mesh)
+    lo, hi = padded_box(mesh, 0.1)
+    probe = np.random.default_rng(0).uniform(lo, hi, (4096, 3))
+    started = time.perf_counter()
+    sdf.signed_distance(probe)
+    per_point = (time.perf_counter() - started) / len(probe)
+    return (f"bake voxel {resolution}^3: {resolution ** 3:,} exact distances, about "
+            f"{format_duration(resolution ** 3 * per_point)} ({per_point * 1e6:.1f} us per point measured here)")
 
 
 def load_points(args) -> np.ndarray:
@@ -183,7 +220,8 @@ def run_info(args) -> int:
     source = info.source
     if source:
         print(f"  source      {source.get('mesh')} sha256 {str(source.get('sha256', ''))[:16]} "
-              f"({source.get('faces', '?')} faces)")
+              f"({source.get('faces', '?')} faces)" + (f", {source['path']}" if source.get("path") else ""))
+    print_source_check(source, info.accuracy)
     for key, value in info.settings.items():
         print(f"  {key:<11} {value}")
     if info.accuracy:
@@ -191,5 +229,38 @@ def run_info(args) -> int:
         for key, value in info.accuracy.items():
             print(f"    {key}: {value}")
     else:
-        print("  accuracy    not evaluated (run `collider eval`)")
+        print("  accuracy    not evaluated; " + eval_hint(info, path, args))
     return 0
+
+
+def print_source_check(source: dict, accuracy: dict | None) -> None:
+    """The mesh check recorded when the model was made, and the measured sign errors."""
+    from collider_server.making.mesh_check import MeshCheck
+
+    if not source.get("check"):
+        print("  mesh check  not recorded (made before models recorded it; `collider bake`, `train` and "
+              "`bench` print it for a mesh file)")
+        return
+    lines = MeshCheck.from_dict(source["check"]).lines()
+    print(f"  {lines[0]}")
+    for line in lines[1:]:
+        print(f"  {line}")
+    band = (accuracy or {}).get("band_1mm")
+    if band:
+        print(f"  sign errors {band['sign_errors_percent']:.3f} % of the +-1 mm band points farther than 0.2 mm "
+              "from the surface (the stored evaluation)")
+
+
+def eval_hint(info, path, args) -> str:
+    """How to evaluate the model: a pasteable ``collider eval`` when its mesh file is known and
+    unchanged, else which mesh it needs."""
+    from collider_server.making.mesh_files import file_sha256
+
+    from .hints import command, models_options
+
+    mesh = info.source.get("path")
+    if mesh and Path(mesh).is_file() and file_sha256(Path(mesh)) == info.source.get("sha256"):
+        model = args.model if Path(args.model).name != args.model or args.model.endswith(".safetensors") else info.name
+        return f"`{command('eval', model, '--mesh', mesh, *models_options(args))}` measures it"
+    return (f"`collider eval` measures it against the mesh it was made from ({info.source.get('mesh', '?')}, "
+            f"sha256 {str(info.source.get('sha256', ''))[:16]})")

@@ -5,9 +5,12 @@
   :func:`collider_cli.main.build_parser`, so options added later are covered too).
 - :func:`add_models_argument`, :func:`add_device_argument`, :func:`add_quiet_argument`: the
   options that name the model repository, the torch device and the progress bar, declared once;
-- :func:`add_placement_arguments` / :func:`placement_from_args`: the mesh placement options
-  (``--scale``, ``--fit-size``, ``--z-up``, ``--units``, ``--meters-per-unit``) of every command
-  that reads a mesh, applied with :class:`collider_server.making.placement.MeshPlacement`.
+- :func:`add_placement_arguments` / :func:`placement_from_args` / :func:`load_placed_mesh`: the
+  mesh placement options (``--scale``, ``--fit-size``, ``--z-up``, ``--units``,
+  ``--meters-per-unit``) of every command that reads a mesh, applied with
+  :class:`collider_server.making.placement.MeshPlacement`;
+- :func:`add_cache_argument` / :func:`cache_dir` / :func:`cache_size_line`: the one cache folder
+  of ``bench`` and the budget bake (``--cache``, default under the user's cache directory).
 """
 
 from __future__ import annotations
@@ -52,7 +55,7 @@ def add_models_argument(parser, purpose: str = "") -> None:
                         help=f"{purpose}: {MODELS_HELP}" if purpose else MODELS_HELP)
 
 
-def add_device_argument(parser, help: str = DEVICE_HELP) -> None:  # noqa: A002
+def add_device_argument(parser, help: str = DEVICE_HELP) -> None:
     """``--device``: where the engine runs (None: CUDA when present, else the CPU)."""
     parser.add_argument("--device", default=None, help=help)
 
@@ -80,7 +83,9 @@ def add_placement_arguments(parser: argparse.ArgumentParser, *, units: bool = Tr
     group.add_argument("--z-up", action="store_true", default=None if as_stored else False,
                        help="rotate a Y-up mesh to Z-up (the paper's frame)")
     if units:
-        group.add_argument("--units", default="m", help="length unit of the placed mesh, e.g. m, mm (default m)")
+        group.add_argument("--units", default=None if as_stored else "m",
+                           help="length unit of the placed mesh, e.g. m, mm (default "
+                                + ("the model's)" if as_stored else "m)"))
         group.add_argument("--meters-per-unit", type=finite_float, default=None,
                            help="metres in one unit (derived from --units for m, cm, mm, um, km, in, ft)")
 
@@ -95,6 +100,49 @@ def placement_from_args(args: argparse.Namespace) -> MeshPlacement | None:
         raise ValueError("give --scale or --fit-size, not both")
     placement = MeshPlacement(
         scale=1.0 if args.scale is None else args.scale, fit_size=args.fit_size, z_up=bool(args.z_up),
-        units=getattr(args, "units", "m"), meters_per_unit_override=getattr(args, "meters_per_unit", None))
+        units=getattr(args, "units", None) or "m", meters_per_unit_override=getattr(args, "meters_per_unit", None))
     placement.check()
     return placement
+
+
+def load_placed_mesh(args: argparse.Namespace):
+    """(mesh in the collider frame, 4x4 transform applied, units, metres per unit) of
+    ``args.mesh`` under the placement options."""
+    from collider_server.making.mesh_files import load_mesh
+
+    placement = placement_from_args(args)
+    mesh, transform = placement.apply(load_mesh(args.mesh))
+    return mesh, transform, placement.units, placement.meters_per_unit
+
+
+# -- the cache of bench and the budget bake -------------------------------------------------------
+
+CACHE_HELP = ("cache folder of baked grids, bench-trained networks and the budget bake's measured "
+              "figures (default: $XDG_CACHE_HOME/neural-collider, else ~/.cache/neural-collider); "
+              "its size is printed after each run, delete it to free the space")
+
+
+def default_cache_dir() -> Path:
+    """``$XDG_CACHE_HOME/neural-collider``, else ``~/.cache/neural-collider`` (the XDG base
+    directory rule: the user's cache, not the working folder)."""
+    import os
+
+    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    return Path(base) / "neural-collider"
+
+
+def add_cache_argument(parser) -> None:
+    parser.add_argument("--cache", type=Path, default=None, metavar="DIR", help=CACHE_HELP)
+
+
+def cache_dir(args: argparse.Namespace) -> Path:
+    return args.cache if args.cache is not None else default_cache_dir()
+
+
+def cache_size_line(cache: Path) -> str:
+    """``cache /home/u/.cache/neural-collider: 152.3 MB in 7 files (...)``: its regular files
+    (links not counted)."""
+    files = [p for p in Path(cache).rglob("*") if p.is_file() and not p.is_symlink()] if Path(cache).is_dir() else []
+    size = sum(p.stat().st_size for p in files)
+    return (f"cache {cache}: {size / 1e6:.1f} MB in {len(files)} files (grids and networks a next run "
+            "reuses; delete the folder to free the space, or pass --cache DIR)")

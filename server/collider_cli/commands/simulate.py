@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 from collider_client.sim.scene import resolve_scene, shipped_scenes
@@ -43,9 +44,24 @@ def register(subparsers) -> None:
     p.set_defaults(func=run_simulate)
 
 
+def estimate_line(stem: str, estimate) -> str:
+    """A run's :class:`~collider_client.sim.run.DurationEstimate` in words (one line)."""
+    from collider_server.making.progress import format_duration
+
+    text = (f"{stem}: {estimate.steps:,} steps; the first {estimate.measured:,} took "
+            f"{1e3 * estimate.per_step_s:.1f} ms each: about {format_duration(estimate.seconds)} at that rate")
+    worst = estimate.worst_seconds
+    if worst is not None and worst > 1.05 * estimate.seconds:
+        text += (f"; about {format_duration(worst)} ({1e3 * estimate.worst_per_step_s:.0f} ms a step) if the whole "
+                 f"cloth comes inside the colliders' boxes (a query costs {1e6 * estimate.per_point_s:.2f} us per "
+                 "point here; fast vertices that need several queries a step, and a busier machine, add to it; "
+                 "the progress bar keeps the estimate up to date)")
+    return text
+
+
 def run_simulate(args: argparse.Namespace) -> int:
     from collider_client import Client, ColliderError
-    from collider_client.sim.run import run_scene
+    from collider_client.sim.run import RunInterrupted, run_scene
     from collider_client.sim.scene import load_scene
 
     scene = load_scene(resolve_scene(args.scene))
@@ -86,15 +102,20 @@ def run_simulate(args: argparse.Namespace) -> int:
         on_step = None
         if args.view:
             server, on_step = start_live_view(args, scene, client)
-        report, frames = run_scene(scene, client, args.output, show_progress=not args.quiet,
-                                   steps=args.steps, preview=not args.no_preview,
-                                   backend="remote" if args.server else "embedded",
-                                   collider_points=shown, on_step=on_step)
+        report, frames = run_scene(
+            scene, client, args.output, show_progress=not args.quiet, steps=args.steps,
+            preview=not args.no_preview, backend="remote" if args.server else "embedded",
+            collider_points=shown, on_step=on_step,
+            on_estimate=lambda e: print(estimate_line(scene.path.stem, e), file=sys.stderr, flush=True))
     except BaseException as exc:  # Ctrl-C or an error mid-run: do not leave the view's port open
         if server is not None:
             server.stop()
         if isinstance(exc, ColliderError):  # a server that is down or refuses: one line
             raise ValueError(str(exc)) from None
+        if isinstance(exc, RunInterrupted):  # what the steps that ran made, then the exit status
+            print(exc.report.text())
+            print(written_line(args, scene) + (" (no exact check of an interrupted run)" if placed else ""))
+            raise exc.interrupt from None
         raise
     finally:
         if client is not None:
@@ -112,15 +133,19 @@ def run_simulate(args: argparse.Namespace) -> int:
         (args.output / f"{scene.path.stem}.report.json").write_text(
             json.dumps(report.to_dict(), indent=2, default=float))
     print(report.text())
-    stem = scene.path.stem
-    written = ".pc2, .report.json" if args.no_preview else ".pc2, .png, .report.json"
-    print(f"wrote {args.output / (stem + '.obj')}, {written}")
+    print(written_line(args, scene))
     if server is not None:
         from ..views.page import url_of, wait_until_interrupted
 
         wait_until_interrupted(server, f"run finished; the view stays at {url_of(server)} "
                                        "(Ctrl-C to stop)")
     return 0
+
+
+def written_line(args, scene) -> str:
+    stem = scene.path.stem
+    written = ".pc2, .report.json" if args.no_preview else ".pc2, .png, .report.json"
+    return f"wrote {args.output / (stem + '.obj')}, {written}"
 
 
 def placed_meshes(client, checks: dict[str, Path]) -> dict:

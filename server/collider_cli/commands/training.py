@@ -8,6 +8,8 @@ from pathlib import Path
 
 import numpy as np
 
+from .diagnostics import print_mesh_check, sign_check_line
+from .hints import again_with, command, models_options, placement_options
 from .options import (
     add_device_argument,
     add_models_argument,
@@ -42,8 +44,10 @@ def register(subparsers) -> None:
     train.add_argument("--threads", type=int, default=None, help="CPU threads for torch")
     add_placement_arguments(train)
     add_models_argument(train, "where the model is written")
+    train.add_argument("--runs", type=Path, default=None, metavar="DIR",
+                       help="folder of the resumable checkpoints (default: runs/ beside the model folder)")
     train.add_argument("--checkpoint", type=Path, default=None,
-                       help="resumable checkpoint file (default: runs/NAME.ckpt.safetensors)")
+                       help="resumable checkpoint file (default: RUNS/NAME.ckpt.safetensors)")
     add_device_argument(train)
     add_quiet_argument(train)
     train.set_defaults(func=run_train)
@@ -62,7 +66,7 @@ def register(subparsers) -> None:
     add_models_argument(evaluate)
     add_device_argument(evaluate)
     add_quiet_argument(evaluate)
-    add_placement_arguments(evaluate, units=False, as_stored=True)
+    add_placement_arguments(evaluate, as_stored=True)
     evaluate.set_defaults(func=run_eval)
 
 
@@ -81,22 +85,33 @@ def run_train(args) -> int:
     config.check()
     placement = placement_from_args(args)
     mesh, transform = placement.apply(load_mesh(args.mesh))
-    checkpoint = args.checkpoint or Path("runs") / f"{args.name}.ckpt.safetensors"
-    # Both folders are proved writable now, not after the training budget is spent.
     repository = ModelRepository(args.models)
+    checkpoint = args.checkpoint or (args.runs or repository.root.parent / "runs") / f"{args.name}.ckpt.safetensors"
+    # Both folders are proved writable now, not after the training budget is spent.
     repository.check_writable()
     check_writable_folder(checkpoint.parent, "checkpoint folder")
-    result = train_neural(
-        mesh, args.name, config, units=placement.units,
-        meters_per_unit=placement.meters_per_unit, transform=transform,
-        device=args.device, checkpoint=checkpoint, show_progress=not args.quiet,
-    )
+    check = print_mesh_check(mesh)
+    try:
+        result = train_neural(
+            mesh, args.name, config, units=placement.units,
+            meters_per_unit=placement.meters_per_unit, transform=transform,
+            device=args.device, checkpoint=checkpoint, show_progress=not args.quiet,
+        )
+    except KeyboardInterrupt:  # what the run made: its checkpoint, which the same command resumes
+        if checkpoint.is_file():
+            print(f"interrupted: {checkpoint} keeps the run up to its last validation; the same command "
+                  f"resumes it: `{again_with(args)}`", file=sys.stderr)
+        raise
+    result.collider.info.source["check"] = check.to_dict()
+    result.collider.info.source["path"] = str(Path(args.mesh).resolve())
     path = save_collider(result.collider, repository.path(args.name))
     history = checkpoint.with_name(checkpoint.name + ".history.json")
     history.write_text(json.dumps(result.history, indent=1))
     print(f"wrote {path} ({path.stat().st_size:,} bytes): {result.steps} steps in "
           f"{result.seconds / 60:.1f} min, best mean error in the +-1 mm band {result.best_validation_mm:.4f} mm")
-    print(f"next: collider eval {args.name} --mesh {args.mesh}")
+    print(f"checkpoint {checkpoint} (resumable; its history beside it)")
+    print(sign_check_line(result.collider, mesh, check))
+    print("next: " + command("eval", args.name, "--mesh", args.mesh, *models_options(args), *placement_options(args)))
     return 0
 
 
@@ -109,6 +124,7 @@ def run_eval(args) -> int:
     repo = ModelRepository(args.models)
     path = repo.resolve(args.model)
     collider = repo.load(args.model, args.device)
+    check_units(collider.info, args)
     raw = load_mesh(args.mesh)
     stored = np.asarray(collider.info.source.get("transform", np.eye(4)), dtype=np.float64)
     placement = placement_from_args(args)
@@ -134,6 +150,20 @@ def run_eval(args) -> int:
     save_collider(collider, path)
     print(f"figures written into {path}")
     return 0
+
+
+def check_units(info, args) -> None:
+    """``--units`` / ``--meters-per-unit`` of ``eval`` say which unit the placed mesh is in: it
+    must be the model's (errors are converted to mm with it); ValueError naming both otherwise."""
+    from collider_server.making.placement import meters_per_unit
+
+    if args.units is None and args.meters_per_unit is None:
+        return
+    given = meters_per_unit(args.units or "m", args.meters_per_unit)
+    if abs(given - info.meters_per_unit) > 1e-12 * max(given, info.meters_per_unit):
+        raise ValueError(f"--units {args.units or 'm'} ({given:g} m per unit) is not the unit {info.name} was made in "
+                         f"({info.units}, {info.meters_per_unit:g} m per unit); give the placement it was made with "
+                         f"(`{command('info', info.name, *models_options(args))}` shows it)")
 
 
 def source_differences(info, mesh, transform: np.ndarray, mesh_arg: str) -> list[str]:

@@ -21,11 +21,27 @@ def padded_box(mesh: Mesh, padding: float) -> tuple[np.ndarray, np.ndarray]:
     return lo - margin, hi + margin
 
 
+def check_bake_settings(kind: str, resolution: int, padding: float) -> None:
+    """ValueError naming the setting that :func:`bake_collider` cannot bake with (checked before
+    any work: a bad padding would otherwise surface only after the bake)."""
+    if kind not in BAKED_KINDS:
+        raise ValueError(f"cannot bake kind {kind!r}; bake one of {list(BAKED_KINDS)} (neural is trained)")
+    if not (np.isfinite(padding) and padding >= 0):
+        raise ValueError(f"padding must be a finite number >= 0 (fraction of the largest side), got {padding}")
+    if kind == "voxel":
+        check_resolution(resolution)
+
+
+def check_resolution(resolution: int) -> None:
+    """ValueError unless a voxel grid of ``resolution`` samples per axis can be baked."""
+    if not MIN_RESOLUTION <= resolution <= MAX_RESOLUTION:
+        raise ValueError(f"resolution must be in {MIN_RESOLUTION}..{MAX_RESOLUTION}, got {resolution}")
+
+
 def bake_grid(sdf: ExactSDF, lo, hi, resolution: int, chunk_points: int = 262_144,
               show_progress: bool = True) -> np.ndarray:
     """Exact signed distances at the grid corners: (R, R, R) float32, indexed [x, y, z]."""
-    if not MIN_RESOLUTION <= resolution <= MAX_RESOLUTION:
-        raise ValueError(f"resolution must be in {MIN_RESOLUTION}..{MAX_RESOLUTION}, got {resolution}")
+    check_resolution(resolution)
     axes = [np.linspace(lo[i], hi[i], resolution) for i in range(3)]
     total = resolution**3
     grid = np.empty(total, dtype=np.float32)
@@ -49,8 +65,8 @@ def mesh_source(mesh: Mesh, transform: np.ndarray | None = None) -> dict:
     return {
         "mesh": mesh.name,
         "sha256": mesh.sha256,
-        "vertices": int(len(mesh.vertices)),
-        "faces": int(len(mesh.faces)),
+        "vertices": len(mesh.vertices),
+        "faces": len(mesh.faces),
         "transform": (np.eye(4) if transform is None else np.asarray(transform)).tolist(),
     }
 
@@ -63,11 +79,7 @@ def bake_collider(mesh: Mesh, kind: str, name: str, *, resolution: int = 256, pa
     resolution : voxel samples per axis (voxel only)
     padding : fraction of the largest side added around the mesh's box (the domain)
     """
-    if kind not in BAKED_KINDS:
-        raise ValueError(f"cannot bake kind {kind!r}; bake one of {list(BAKED_KINDS)} (neural is trained)")
-    # Checked before any work: a bad padding would otherwise surface only after the bake.
-    if not (np.isfinite(padding) and padding >= 0):
-        raise ValueError(f"padding must be a finite number >= 0 (fraction of the largest side), got {padding}")
+    check_bake_settings(kind, resolution, padding)
     lo, hi = padded_box(mesh, padding)
     info = ColliderInfo(
         name=name, kind=kind, domain_min=lo.tolist(), domain_max=hi.tolist(), units=units,

@@ -60,7 +60,7 @@ def load_mesh(path: str | Path, max_faces: int = MAX_FACES) -> Mesh:
     faces = np.asarray(loaded.faces, dtype=np.int64)
     vertices = np.asarray(loaded.vertices, dtype=np.float64)
     if len(faces) == 0 or len(vertices) == 0:
-        raise MeshError(f"{path}: mesh is empty (no triangles)")
+        raise MeshError(f"{path}: {empty_reason(path, len(vertices))}")
     if len(faces) > max_faces:
         raise MeshError(
             f"{path}: mesh has {len(faces):,} faces, more than this machine handles "
@@ -93,6 +93,28 @@ def check_text_format(path: Path, probe_bytes: int = 1 << 20) -> None:
     if b"\x00" in head:
         raise MeshError(f"{path}: cannot read mesh (binary data, so not a valid {path.suffix} "
                         "file; it is a text format)")
+
+
+def empty_reason(path: Path, vertices: int) -> str:
+    """Why a file that read as no triangles has none: a text file that is not of its format at
+    all (no OBJ ``v`` / ``f`` line, no OFF header) says so and quotes its start; else the mesh is
+    empty (vertices without faces, or nothing)."""
+    suffix = path.suffix.lower()
+    if suffix in TEXT_SUFFIXES:
+        with open(path, "rb") as fh:
+            head = fh.read(1 << 20).decode("utf-8", errors="replace")
+        lines = [line.strip() for line in head.splitlines() if line.strip() and not line.lstrip().startswith("#")]
+        if suffix == ".obj":
+            shaped = any(line.split(maxsplit=1)[0] in ("v", "f") for line in lines)
+        else:
+            shaped = bool(lines) and lines[0].upper().endswith("OFF")
+        if lines and not shaped:
+            start = lines[0][:40]
+            what = "no vertex (v) or face (f) line" if suffix == ".obj" else "no OFF header"
+            return f"not an {suffix[1:].upper()} file: {what} (it starts with {start!r})"
+    if vertices:
+        return f"mesh is empty: {vertices} vertices but no triangles"
+    return "mesh is empty (no triangles)"
 
 
 def check_has_volume(mesh: Mesh, where: str) -> float:

@@ -1,4 +1,5 @@
-"""Progress bars for long work (baking, training, benchmarks, simulation), on stderr."""
+"""Progress bars for long work (baking, training, benchmarks, simulation), on stderr, and how
+durations are written in the estimates those commands print up front."""
 
 from __future__ import annotations
 
@@ -10,7 +11,7 @@ import sys
 def progress(total: int | None, desc: str, unit: str = "it", enabled: bool = True):
     """A tqdm bar on stderr, or a do-nothing stand-in when ``enabled`` is False."""
     if not enabled:
-        yield _Silent()
+        yield _Silent(total)
         return
     from tqdm import tqdm
 
@@ -20,11 +21,25 @@ def progress(total: int | None, desc: str, unit: str = "it", enabled: bool = Tru
 
 
 class _Silent:
+    """A bar that shows nothing but counts like tqdm (``n`` of ``total``)."""
+
+    def __init__(self, total: int | None = None):
+        self.n, self.total = 0, total
+
     def update(self, n: int = 1) -> None:
-        pass
+        self.n += n
 
     def set_postfix(self, *args, **kwargs) -> None:
         pass
 
     def set_postfix_str(self, *args, **kwargs) -> None:
         pass
+
+
+def format_duration(seconds: float) -> str:
+    """``"45 s"``, ``"3.2 min"``, ``"2 h 31 min"``."""
+    if seconds < 90:
+        return f"{seconds:.0f} s"
+    if seconds < 5400:
+        return f"{seconds / 60:.1f} min"
+    return f"{int(seconds // 3600)} h {int(seconds % 3600 // 60):02d} min"

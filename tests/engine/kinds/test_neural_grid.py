@@ -492,3 +492,25 @@ def test_the_collider_queries_through_the_fused_network_kernel_on_a_cpu():
         reference = network.value_and_gradient(x)
     np.testing.assert_array_equal(distance, reference[0].numpy())
     np.testing.assert_array_equal(gradient, reference[1].numpy())
+
+
+@pytest.mark.skipif(not grid_kernels.available(), reason="numba is not installed")
+def test_the_first_fused_query_keeps_the_thread_counts_it_was_given():
+    """In a fresh process (numba's OpenMP pool starts with the first kernel): torch keeps the
+    thread count set before the query (the pool's start set it to every core), and the
+    OpenMP wait policy is the engine's passive one (idle threads sleep instead of spinning)."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    models = Path(__file__).resolve().parents[3] / "models"
+    code = ("import os, collider_server, torch, numpy as np\n"
+            "torch.set_num_threads(1)\n"
+            "from collider_server.engine.modelfile import load_collider\n"
+            f"c = load_collider({str(models / 'bunny.safetensors')!r}, 'cpu')\n"
+            "c.query(np.zeros((100, 3)), ['distance', 'normal'])\n"
+            "print(torch.get_num_threads(), os.environ['OMP_WAIT_POLICY'])\n")
+    env = {k: v for k, v in __import__("os").environ.items() if k != "OMP_WAIT_POLICY"}
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, env=env)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.split() == ["1", "PASSIVE"]

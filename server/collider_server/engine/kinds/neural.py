@@ -143,8 +143,14 @@ class NeuralCollider(Collider):
         if hasattr(self.network, "can_fuse") and self.network.can_fuse(x):
             # The CPU fast path: one fused kernel for the whole network (grid_kernels), on as
             # many threads as torch is given (the service's --compute-threads, a simulator's).
-            grid_kernels.set_threads(torch.get_num_threads())
+            threads = torch.get_num_threads()
+            grid_kernels.set_threads(threads)
             d, g = self.network.fused_query(x, want_gradient)
+            if torch.get_num_threads() != threads:
+                # numba's OpenMP pool, started by the first kernel of the process, sets the
+                # process-wide OpenMP thread count to every core, torch's included: give it back
+                # (`collider serve --compute-threads 1` computed on 2 threads after it).
+                torch.set_num_threads(threads)
             return d.double().numpy(), (g.double().numpy() if want_gradient else None)
         if not want_gradient:
             with torch.inference_mode():

@@ -1,0 +1,156 @@
+"""What a mesh is, as far as the sign of its distance is concerned: watertight or not, holes,
+pieces, edges shared by more than two faces, faces wound against their neighbours, and faces
+that cross each other.
+
+Every collider takes its inside/outside from the exact SDF's sign, the fast generalised winding
+number (:class:`~collider_server.engine.meshes.ExactSDF`): exact for a closed, consistently wound,
+non-self-intersecting surface, a smooth guess elsewhere. ``collider bake``, ``train``, ``bench``
+and ``info`` say what the mesh is and what that means for the sign (:meth:`MeshCheck.lines`),
+and the closing lines of the first three give the sign errors they measured.
+
+Topology is read on the vertices merged by position (OBJ files split vertices along texture
+seams; those are not holes). Self-intersections: libigl's CGAL-based
+``remesh_self_intersections`` in detect-only mode (exact predicates; pairs of faces that cross,
+not faces that only share an edge or a vertex). Units: those of the mesh.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import numpy as np
+
+from ..engine.meshes import Mesh
+
+#: Above this many faces the self-intersection test is skipped (it is O(n log n) but CGAL's
+#: exact arithmetic needs about 1 KB per face); the others always run.
+MAX_FACES_INTERSECTIONS = 2_000_000
+
+
+@dataclass(frozen=True)
+class MeshCheck:
+    """faces : triangles of the file; vertices : after merging equal positions; boundary_edges :
+    edges of one face only; holes : loops those edges form; non_manifold_edges : edges of more
+    than two faces; flipped_edges : edges whose two faces are wound the same way along them
+    (one is inside out); pieces : connected parts; intersecting_pairs : pairs of faces that
+    cross (None: not checked, see ``intersections_note``)."""
+
+    faces: int
+    vertices: int
+    boundary_edges: int
+    holes: int
+    non_manifold_edges: int
+    flipped_edges: int
+    pieces: int
+    intersecting_pairs: int | None
+    intersections_note: str = ""
+
+    @property
+    def watertight(self) -> bool:
+        """Every edge shared by exactly two faces wound against each other."""
+        return self.boundary_edges == 0 and self.non_manifold_edges == 0 and self.flipped_edges == 0
+
+    def to_dict(self) -> dict:
+        return {**asdict(self), "watertight": self.watertight}
+
+    @classmethod
+    def from_dict(cls, data: dict) -> MeshCheck:
+        """The check :meth:`to_dict` wrote (stored in a model's ``source`` or a bench report)."""
+        return cls(**{k: data[k] for k in cls.__dataclass_fields__ if k in data})
+
+    def summary(self) -> str:
+        """One line: ``mesh: 69,451 faces, not watertight (5 holes, 223 boundary edges), 1 piece,
+        no self-intersections``."""
+        parts = [f"{self.faces:,} faces"]
+        if self.watertight:
+            parts.append("watertight")
+        else:
+            why = []
+            if self.boundary_edges:
+                why.append(f"{self.holes} hole{'s' * (self.holes != 1)}, {self.boundary_edges} boundary edges")
+            if self.non_manifold_edges:
+                why.append(f"{self.non_manifold_edges} edges of more than two faces")
+            if self.flipped_edges:
+                why.append(f"{self.flipped_edges} edges between faces wound against each other")
+            parts.append(f"not watertight ({'; '.join(why)})")
+        parts.append(f"{self.pieces} piece{'s' * (self.pieces != 1)}")
+        if self.intersecting_pairs is None:
+            parts.append(f"self-intersections not checked ({self.intersections_note})")
+        elif self.intersecting_pairs:
+            parts.append(f"{self.intersecting_pairs} pairs of faces that cross each other")
+        else:
+            parts.append("no self-intersections")
+        return ", ".join(parts)
+
+    def lines(self) -> list[str]:
+        """The summary, then what it means for the sign, one line per finding."""
+        out = [f"mesh: {self.summary()}"]
+        if self.watertight and self.pieces == 1 and not self.intersecting_pairs:
+            out.append("  sign: inside and outside are well defined; the winding-number sign is exact")
+            return out
+        if self.boundary_edges:
+            out.append("  sign near the holes is a guess: the winding number closes each hole smoothly, so "
+                       "points within about a hole's size of it may get either sign, and every collider "
+                       "made from this mesh carries that guess (sign errors gather there)")
+        if self.non_manifold_edges:
+            out.append("  edges of more than two faces: the surface branches there; the winding number "
+                       "adds the branches, so the inside next to them may count twice or not at all")
+        if self.flipped_edges:
+            out.append("  faces wound against their neighbours turn their part of the surface inside out "
+                       "for the winding number: expect wrong signs near them (fix the winding in the file)")
+        if self.pieces > 1:
+            out.append(f"  {self.pieces} pieces: the inside is the union of the pieces (winding numbers add); "
+                       "a piece inside another counts as inside")
+        if self.intersecting_pairs:
+            out.append("  where the surface passes through itself, points between the layers have a "
+                       "winding number near 0.5 or 2: their sign is ambiguous")
+        return out
+
+
+def check_mesh(mesh: Mesh, max_faces_intersections: int = MAX_FACES_INTERSECTIONS) -> MeshCheck:
+    """The :class:`MeshCheck` of ``mesh`` (vertices merged by position first)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    unique, inverse = np.unique(np.asarray(mesh.vertices, dtype=np.float64), axis=0, return_inverse=True)
+    faces = inverse.reshape(-1)[np.asarray(mesh.faces, dtype=np.int64)]
+    faces = faces[(faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 0] != faces[:, 2])]
+    n = len(unique)
+    directed = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+    low, high = directed.min(axis=1), directed.max(axis=1)
+    codes, key, counts = np.unique(low * n + high, return_inverse=True, return_counts=True)
+    edges = np.stack([codes // n, codes % n], axis=1)
+    boundary = edges[counts == 1]
+    # Along an interior edge its two faces run opposite ways (a->b and b->a) when wound alike.
+    forward_count = np.bincount(key.reshape(-1), weights=directed[:, 0] < directed[:, 1], minlength=len(edges))
+    flipped = int(((counts == 2) & (forward_count != 1)).sum())
+    holes = 0
+    if len(boundary):
+        graph = coo_matrix((np.ones(len(boundary)), (boundary[:, 0], boundary[:, 1])), shape=(n, n))
+        labels = connected_components(graph, directed=False)[1]
+        holes = len(np.unique(labels[np.unique(boundary)]))
+    pieces = 0
+    if len(faces):
+        graph = coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(n, n))
+        labels = connected_components(graph, directed=False)[1]
+        pieces = len(np.unique(labels[np.unique(faces)]))
+    pairs, note = self_intersections(unique, faces, max_faces_intersections)
+    return MeshCheck(faces=len(mesh.faces), vertices=int(n), boundary_edges=len(boundary),
+                     holes=int(holes), non_manifold_edges=int((counts > 2).sum()), flipped_edges=flipped,
+                     pieces=int(pieces), intersecting_pairs=pairs, intersections_note=note)
+
+
+def self_intersections(vertices: np.ndarray, faces: np.ndarray, max_faces: int) -> tuple[int | None, str]:
+    """Pairs of faces that cross (exact, CGAL through libigl), or None and why not."""
+    if len(faces) > max_faces:
+        return None, f"more than {max_faces:,} faces"
+    try:
+        from igl.copyleft.cgal import remesh_self_intersections
+    except ImportError:
+        return None, "libigl without its CGAL module"
+    try:
+        pairs = remesh_self_intersections(np.ascontiguousarray(vertices), np.ascontiguousarray(faces),
+                                          detect_only=True)[2]
+    except Exception as exc:  # CGAL refuses some degenerate input; the other checks still stand
+        return None, f"libigl could not check: {type(exc).__name__}"
+    return len(pairs), ""
