@@ -330,6 +330,13 @@ def test_check_finite_counts_rows_from_first_row():
                                   "too far from the colliders (world frame, with the pose given)")
     result.normal[1, 0] = 0.0
     check_finite(result, points, "the colliders", first_row=1000)  # finite: nothing to say
+    # every float field counts: a bad distance with finite normals
+    result.distance[0] = np.nan
+    with pytest.raises(QueryError, match=r"^points row 1000 \(\[0\.0, 0\.0, 0\.0\]\) has no finite"):
+        check_finite(result, points, "the colliders", first_row=1000)
+    result.normal[1, 2] = -np.inf
+    with pytest.raises(QueryError, match=r"^points row 1000 "):
+        check_finite(result, points, "the colliders", first_row=1000)
     check_finite(QueryResult(collides=np.array([True])), points[:1], "x")
     check_finite(QueryResult(distance=np.zeros(0, np.float32)), np.zeros((0, 3)), "x")
 
@@ -446,3 +453,14 @@ def test_a_scene_answer_that_is_not_finite_is_refused():
     assert str(refused.value) == ("points row 1 ([0.0, 0.0, 3.0]) has no finite answer: it lies too "
                                   "far from the colliders (world frame, with the pose given)")
     assert refused.value.code == "out-of-range"
+
+
+def test_a_collide_only_scene_query_zeroes_the_normals_a_collider_gives_anyway():
+    points = np.array([[0.0, 0.0, -1.0], [0.0, 0.0, 0.5], [7.0, 8.0, 9.0], [10.0, 0.0, 0.2]])
+    far = pose_matrix(translation=(10.0, 0.0, 0.0), scale=2.0)  # the plane z = 0 too, but scaled
+    query = SceneQuery.build(points, ["near", ("far", far)], ["normal", "contact", "collides"], 0.5, True)
+    result = answer_scene_query(query, [1.0, 1.0], [HalfSpace(honour_threshold=False)] * 2)
+    assert result.collider.tolist() == [0, 0, 0, 0]  # a tie goes to the first
+    assert result.collides.tolist() == [True, False, False, True]
+    assert result.normal.tolist() == [[0.0, 0.0, 1.0], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0], [0.0, 0.0, 1.0]]
+    assert result.contact.tolist() == [[0.0, 0.0, 0.5], [0.0, 0.0, 0.5], [7.0, 8.0, 9.0], [10.0, 0.0, 0.5]]

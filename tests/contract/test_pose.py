@@ -161,6 +161,16 @@ def test_to_world_is_scale_rotate_then_translate():
                                [[0.0, 1.0, 0.0], [0.0, 0.0, 1.0]], rtol=0, atol=1e-15)
 
 
+def test_float32_points_are_moved_in_float64():
+    pose = as_pose(matrix(np.eye(3), [0.25, 0.0, 0.0], 0.1))
+    local = np.array([[0.1, 0.2, 0.3], [1.0 / 3.0, 5.0, -7.0]], np.float32)
+    expected = local.astype(np.float64) * pose.scale + [0.25, 0.0, 0.0]
+    np.testing.assert_allclose(pose.to_world(local), expected, rtol=1e-15, atol=0)
+    world = np.array([[0.1, 0.2, 0.3]], np.float32)
+    expected = (world.astype(np.float64) - [0.25, 0.0, 0.0]) / pose.scale
+    np.testing.assert_allclose(pose.to_local(world), expected, rtol=1e-15, atol=0)
+
+
 def test_the_identity_copies_points_to_float64_and_passes_directions_through():
     points = np.array([[1.0, 2.0, 3.0]], dtype=np.float32)
     for move in (IDENTITY.to_local, IDENTITY.to_world):

@@ -112,7 +112,7 @@ def test_model_info_defaults():
 
 def test_model_info_to_dict_is_json_ready_and_from_dict_reads_it_back():
     info = ModelInfo("bunny", "neural", units="cm", meters_per_unit=0.01,
-                     domain_min=np.array([-1, -2, -3], np.float32), domain_max=[1, 2, 3], bytes=1234,
+                     domain_min=np.array([-1, -2, -3]), domain_max=[1, 2, 3], bytes=1234,
                      approximate=True, accuracy={"mae_m": 1e-4}, source={"mesh": "bunny.obj"},
                      settings={"grid": 64}, device="cuda", extra={"trained_at": "2024-01-01"})
     data = info.to_dict()
@@ -121,7 +121,8 @@ def test_model_info_to_dict_is_json_ready_and_from_dict_reads_it_back():
                     "domain_max": [1.0, 2.0, 3.0], "bytes": 1234, "approximate": True,
                     "accuracy": {"mae_m": 1e-4}, "source": {"mesh": "bunny.obj"},
                     "settings": {"grid": 64}, "device": "cuda"}
-    assert all(type(v) is float for v in data["domain_min"] + data["domain_max"])
+    # integer bounds are written as floats
+    assert [type(v) for v in data["domain_min"] + data["domain_max"]] == [float] * 6
     back = ModelInfo.from_dict(wire.loads(wire.dumps(data, wire.JSON), wire.JSON))
     assert back.domain_min.dtype == back.domain_max.dtype == np.float64
     assert back.domain_min.shape == (3,) and back.domain_min.tolist() == [-1.0, -2.0, -3.0]
@@ -142,6 +143,10 @@ def test_from_dict_keeps_unknown_keys_and_defaults_the_missing_ones():
     assert info.extra == {"future": [1]}
     with pytest.raises(ValueError):
         ModelInfo.from_dict({"name": "x", "kind": "y", "domain_min": [1, 2]})
+    # a newer server's key named "extra" is one more unknown key, not the field
+    info = ModelInfo.from_dict({"name": "spot", "kind": "voxel", "extra": {"a": 1}, "device": "cuda"})
+    assert info.extra == {"extra": {"a": 1}} and info.device == "cuda"
+    assert info.to_dict()["extra"] == {"a": 1}
 
 
 def test_the_domain_corners_are_the_boxes_eight_corners():

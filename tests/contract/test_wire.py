@@ -165,6 +165,14 @@ def test_dumps_json_writes_arrays_as_lists_and_never_nan():
         assert str(refused.value) == "NaN or Infinity cannot be sent as JSON"
 
 
+def test_dumps_json_leaves_values_other_than_arrays_as_they_are():
+    body = {"fields": ["distance"], "eps": 1, "shape": [1, 2.5], "colliders": [["a"], ["b", None]],
+            "only_colliding": True, "pose": np.eye(2, dtype=np.float32)}
+    assert dumps(body, wire.JSON) == (b'{"fields": ["distance"], "eps": 1, "shape": [1, 2.5], '
+                                      b'"colliders": [["a"], ["b", null]], "only_colliding": true, '
+                                      b'"pose": [[1.0, 0.0], [0.0, 1.0]]}')
+
+
 @pytest.mark.parametrize("media", ["text/plain", "application/JSON", "", "application/msgpack; x=1"])
 def test_dumps_refuses_other_media_types(media):
     with pytest.raises(WireError) as refused:
