@@ -479,19 +479,42 @@ def test_more_than_max_points_in_a_body_is_a_413():
     assert refusal(ModelQuery.from_body, nan)[2] == "bad-points"
 
 
-def test_from_body_checks_keys_then_points_first():
-    assert refusal(ModelQuery.from_body, {"speed": 1})[2] == "unknown-key"
-    both = {"points": [[np.nan, 0, 0]], "fields": ["speed"], "pose": None, "eps": -1,
+def test_from_body_checks_the_keys_then_as_build_then_the_mode():
+    assert refusal(ModelQuery.from_body, {"speed": 1, "points": None})[2] == "unknown-key"
+    body = {"points": [[np.nan, 0, 0]], "fields": ["speed"], "pose": None, "eps": -1,
             "only_colliding": None}
-    assert refusal(ModelQuery.from_body, both)[2] == "bad-points"
-    both["points"] = POINTS
-    assert refusal(ModelQuery.from_body, both)[2] == "unknown-field"
-    both["fields"] = ["distance"]
-    assert refusal(ModelQuery.from_body, both)[2] == "bad-pose"
-    del both["pose"]
-    assert refusal(ModelQuery.from_body, both)[2] == "eps-out-of-range"
-    del both["eps"]
-    assert refusal(ModelQuery.from_body, both)[2] == "bad-only-colliding"
+    for key, good, code in (("fields", ["distance"], "unknown-field"), ("points", POINTS, "bad-points"),
+                            ("pose", np.eye(4).tolist(), "bad-pose"), ("eps", 0, "eps-out-of-range"),
+                            ("only_colliding", True, "bad-only-colliding")):
+        assert refusal(ModelQuery.from_body, body)[2] == code
+        body[key] = good
+    assert ModelQuery.from_body(body).only_colliding is True
+
+
+#: Inputs with several errors each (JSON forms): points, fields, pose, eps.
+SEVERAL_ERRORS = [
+    ([[np.nan, 0, 0]], ["speed"], SHEAR.tolist(), -1),
+    ([[np.nan, 0, 0]], ["normal"], SHEAR.tolist(), -1),
+    ([[0, 0]], [], [[1, 0], [0, 1]], float("inf")),
+    ([[0, 0, 2e6]], ["contact"], np.full((4, 4), np.nan).tolist(), 2e6),
+    ([[0, 0, 0]], ["contact"], np.diag([1.0, 1.0, 1.0, 2.0]).tolist(), True),
+    ([[0, 0, 0]], ["collides"], None, -1e-9),
+]
+
+
+@pytest.mark.parametrize("points, fields, pose, eps", SEVERAL_ERRORS)
+def test_build_and_from_body_refuse_the_same_input_alike(points, fields, pose, eps):
+    """The Python API (embedded) and a wire body (the service) give the same first refusal."""
+    body = {"points": points, "fields": fields, "eps": eps}
+    if pose is not None:
+        body["pose"] = pose
+    assert refusal(ModelQuery.from_body, body) == refusal(ModelQuery.build, points, fields, pose, eps)
+    colliders = [{"model": "a"}, {"model": "b", "pose": pose}] if pose is not None else [{"model": "a"}]
+    scene = {"points": points, "fields": fields, "eps": eps, "colliders": colliders}
+    assert refusal(SceneQuery.from_body, scene) == refusal(SceneQuery.build, points, colliders, fields, eps)
+    for bad in ([], [{"model": 1}], [{"model": "a", "extra": 0}]):
+        scene["colliders"] = bad
+        assert refusal(SceneQuery.from_body, scene) == refusal(SceneQuery.build, points, bad, fields, eps)
 
 
 # -- SceneQuery --------------------------------------------------------------------------------
@@ -602,15 +625,15 @@ def test_more_colliders_than_allowed_is_a_413_checked_before_each_collider():
         "5 points exceed max_request_points=4", 413, "too-many-points")
 
 
-def test_scene_from_body_checks_colliders_then_points_then_fields_then_eps():
+def test_scene_from_body_checks_the_keys_then_as_build_then_the_mode():
     body = {"points": [[np.nan, 0, 0]], "colliders": [{"model": 1}], "fields": ["speed"], "eps": -1,
-            "only_colliding": None}
-    assert refusal(SceneQuery.from_body, body)[2] == "bad-colliders"
-    body["colliders"] = [{"model": "a"}]
-    assert refusal(SceneQuery.from_body, body)[2] == "bad-points"
-    body["points"] = POINTS
-    assert refusal(SceneQuery.from_body, body)[2] == "unknown-field"
-    body["fields"] = ["normal"]
-    assert refusal(SceneQuery.from_body, body)[2] == "eps-out-of-range"
-    body["eps"] = 0
-    assert refusal(SceneQuery.from_body, body)[2] == "bad-only-colliding"
+            "only_colliding": None, "pose": None}
+    assert refusal(SceneQuery.from_body, body)[2] == "unknown-key"
+    del body["pose"]
+    for key, good, code in (("fields", ["normal"], "unknown-field"),
+                            ("colliders", [{"model": "a"}], "bad-colliders"),
+                            ("points", POINTS, "bad-points"), ("eps", 0, "eps-out-of-range"),
+                            ("only_colliding", False, "bad-only-colliding")):
+        assert refusal(SceneQuery.from_body, body)[2] == code
+        body[key] = good
+    assert SceneQuery.from_body(body).colliders == (("a", IDENTITY),)
