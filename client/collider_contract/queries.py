@@ -175,7 +175,8 @@ def check_colliders(items: Sequence, time=None) -> tuple[Placed, ...]:
         raise QueryError("colliders must be a non-empty list of {\"model\": name, \"pose\": 4x4 "
                          f"(optional)}}, got {items!r:.200}", code="bad-colliders")
     out = []
-    for i, item in enumerate(items):
+    for i, given in enumerate(items):
+        item = given
         if isinstance(item, SceneCollider):
             item = {"model": item.model, "pose": item.pose, "time": item.time,
                     "pose_velocity": item.pose_velocity}
@@ -185,7 +186,7 @@ def check_colliders(items: Sequence, time=None) -> tuple[Placed, ...]:
             item = {"model": item[0], "pose": item[1]}
         if not (isinstance(item, dict) and isinstance(item.get("model"), str)
                 and not set(item) - COLLIDER_KEYS):
-            raise _bad_collider(i, item)
+            raise _bad_collider(i, given)  # named as the caller gave it
         own_time = check_time(item.get("time"), f"colliders[{i}].time")
         out.append(Placed(item["model"], check_pose(item.get("pose"), f"colliders[{i}].pose"),
                           own_time if own_time is not None else time,
