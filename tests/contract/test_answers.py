@@ -10,12 +10,12 @@ import numpy as np
 import pytest
 
 from collider_contract import (DEFAULT_EPS_METERS, IDENTITY, Evaluation, ModelQuery, QueryError,
-                               QueryResult, SceneQuery, answer_model_query, answer_scene_query,
-                               as_pose, check_finite, default_eps, finish, finish_scene,
-                               nearest_collider, prepare, resolve_eps)
+                               QueryResult, SceneCollider, SceneQuery, answer_model_query,
+                               answer_scene_query, as_pose, check_finite, default_eps, finish,
+                               finish_scene, nearest_collider, prepare, require_time, resolve_eps)
 from collider_contract.answers import gradient_threshold
 
-ALL_FIELDS = ("distance", "normal", "contact", "collides")
+ALL_FIELDS = ("distance", "normal", "contact", "collides", "velocity")
 
 
 #: +90 degrees about z, exactly
@@ -36,23 +36,26 @@ def pose_matrix(rotation=np.eye(3), translation=(0.0, 0.0, 0.0), scale=1.0) -> n
 
 class Sphere:
     """A sphere of ``radius`` (collider units) about the collider frame's origin, as an
-    ``Evaluate``: its exact SDF and unit normal, the normal only below ``gradient_below``.
-    Records every call's arguments."""
+    ``Evaluate``: its exact SDF and unit normal, the normal only below ``gradient_below``; when
+    ``growth`` (collider units/s) its radius grows at that rate, so that its surface moves along
+    the normal at ``growth`` (the velocity it gives, collider frame). Records every call's
+    arguments."""
 
-    def __init__(self, radius: float):
+    def __init__(self, radius: float, growth: float | None = None):
         self.radius = radius
+        self.growth = growth
         self.calls = []
 
-    def __call__(self, local, want_gradient, gradient_below):
-        self.calls.append((np.array(local), want_gradient, gradient_below))
+    def __call__(self, local, want_gradient, gradient_below, time):
+        self.calls.append((np.array(local), want_gradient, gradient_below, time))
         r = np.linalg.norm(local, axis=1)
         distance = r - self.radius
         if not want_gradient:
-            return distance, None
+            return distance, None, None
         normal = local / r[:, None]
         if gradient_below is not None:
             normal = np.where((distance < gradient_below)[:, None], normal, 0.0)
-        return distance, normal
+        return distance, normal, None if self.growth is None else self.growth * normal
 
 
 class HalfSpace:
@@ -63,28 +66,48 @@ class HalfSpace:
         self.honour_threshold = honour_threshold
         self.calls = []
 
-    def __call__(self, local, want_gradient, gradient_below):
-        self.calls.append((np.array(local), want_gradient, gradient_below))
+    def __call__(self, local, want_gradient, gradient_below, time):
+        self.calls.append((np.array(local), want_gradient, gradient_below, time))
         distance = local[:, 2].copy()
         if not want_gradient:
-            return distance, None
+            return distance, None, None
         normal = np.tile([0.0, 0.0, 1.0], (len(local), 1))
         if gradient_below is not None and self.honour_threshold:
             normal[distance >= gradient_below] = 0.0
-        return distance, normal
+        return distance, normal, None
 
 
 def sphere_in_world(points, radius, rotation=np.eye(3), translation=(0.0, 0.0, 0.0), scale=1.0,
-                    eps=1e-3):
+                    eps=1e-3, spin=(0.0, 0.0, 0.0), drift=(0.0, 0.0, 0.0), scale_rate=0.0, growth=0.0):
     """The closed-form answer of a sphere posed in the world: centre ``translation``, radius
-    ``scale * radius`` (the rotation does not move a sphere centred at the origin)."""
+    ``scale * radius`` (the rotation does not move a sphere centred at the origin). Its frame
+    turns at ``spin`` (rad/s, world), moves at ``drift`` (world units/s) and scales at
+    ``scale_rate`` (1/s); its radius grows at ``growth`` (collider units/s): a contact ``c`` moves
+    at ``spin x (c - t) + drift + scale_rate / scale (c - t) + growth * scale * normal``."""
     offset = np.asarray(points, dtype=np.float64) - translation
     r = np.linalg.norm(offset, axis=1)
     unit = offset / r[:, None]
     distance = r - scale * radius
-    return {"distance": distance, "normal": unit,
-            "contact": np.asarray(translation) + (scale * radius + eps) * unit,
-            "collides": distance < eps}
+    contact = np.asarray(translation) + (scale * radius + eps) * unit
+    arm = contact - translation
+    velocity = (np.cross(spin, arm) + np.asarray(drift) + scale_rate / scale * arm
+                + growth * scale * unit)
+    return {"distance": distance, "normal": unit, "contact": contact, "collides": distance < eps,
+            "velocity": velocity}
+
+
+def skew(w) -> np.ndarray:
+    """The matrix of ``w x``."""
+    return np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
+
+
+def pose_rate(rotation, scale, spin=(0.0, 0.0, 0.0), drift=(0.0, 0.0, 0.0), scale_rate=0.0):
+    """d/dt of the pose ``[s R, t]`` turning at ``spin``, moving at ``drift``, scaling at
+    ``scale_rate``: ``[s W R + s' R, v; 0 0 0 0]``."""
+    rate = np.zeros((4, 4))
+    rate[:3, :3] = scale * skew(spin) @ rotation + scale_rate * np.asarray(rotation)
+    rate[:3, 3] = drift
+    return rate
 
 
 def local_of(points, rotation, translation, scale):
@@ -137,12 +160,13 @@ def test_prepare_says_what_the_collider_must_compute(fields, only_colliding, wan
     assert evaluation.want_gradient is want and evaluation.eps == 0.2
     assert evaluation.gradient_below == (None if below is None else pytest.approx(below, rel=1e-15))
     sphere = Sphere(1.0)
-    distance, normal = evaluation.run(sphere)
+    distance, normal, velocity = evaluation.run(sphere)
     assert len(sphere.calls) == 1
-    local, wanted, given_below = sphere.calls[0]
+    local, wanted, given_below, time = sphere.calls[0]
     assert local.tolist() == evaluation.local.tolist() and wanted is want and given_below == evaluation.gradient_below
+    assert time is None and evaluation.time is None
     np.testing.assert_allclose(distance, [-0.75, 0.0, np.sqrt(1.25) - 1.0], rtol=0, atol=1e-15)
-    assert (normal is None) is (not want)
+    assert (normal is None) is (not want) and velocity is None
 
 
 def test_prepare_resolves_the_default_eps_in_world_units():
@@ -180,6 +204,8 @@ def test_a_model_query_is_answered_as_the_posed_sphere_in_the_world(dtype, rotat
     np.testing.assert_allclose(result.normal, expected["normal"], rtol=0, atol=1e-6)
     np.testing.assert_allclose(result.contact, expected["contact"], rtol=1e-7, atol=tolerance)
     assert result.collides.sum() > 0 and not result.collides.all()
+    # a static collider under a still pose: its surface does not move
+    assert result.velocity.dtype == np.float32 and result.velocity.tolist() == [[0.0, 0.0, 0.0]] * 40
     if dtype == np.float64:
         np.testing.assert_array_equal(result.collides, expected["collides"])
 
@@ -246,7 +272,7 @@ def test_collide_only_mode_without_gradient_fields_changes_nothing():
     sphere = Sphere(1.0)
     result = answer_model_query(ModelQuery.build(points, ["distance", "collides"], eps=0.1,
                                                  only_colliding=True), 1.0, sphere)
-    assert sphere.calls[0][1:] == (False, None)
+    assert sphere.calls[0][1:] == (False, None, None)
     assert result.distance.tolist() == [1.0, -0.5] and result.collides.tolist() == [False, True]
 
 
@@ -295,12 +321,12 @@ def test_finish_scales_distances_and_rotates_normals_into_the_world():
 @pytest.mark.filterwarnings("ignore:invalid value encountered:RuntimeWarning")  # inf x 0
 def test_an_answer_that_is_not_finite_is_refused_naming_the_first_bad_row():
     class Overflowing(Sphere):
-        def __call__(self, local, want_gradient, gradient_below):
-            distance, normal = super().__call__(local, want_gradient, gradient_below)
+        def __call__(self, local, want_gradient, gradient_below, time):
+            distance, normal, velocity = super().__call__(local, want_gradient, gradient_below, time)
             distance[2:] = np.inf
             if normal is not None:
                 normal[1] = np.nan
-            return distance, normal
+            return distance, normal, velocity
 
     points = np.array([[0.0, 0.0, 2.0], [0.0, 3.0, 0.0], [4.0, 0.0, 0.0], [5.0, 0.0, 0.0]])
     for fields, row in ((["distance"], 2), (["normal"], 1), (["contact"], 1), (["collides"], None),
@@ -464,3 +490,100 @@ def test_a_collide_only_scene_query_zeroes_the_normals_a_collider_gives_anyway()
     assert result.collides.tolist() == [True, False, False, True]
     assert result.normal.tolist() == [[0.0, 0.0, 1.0], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0], [0.0, 0.0, 1.0]]
     assert result.contact.tolist() == [[0.0, 0.0, 0.5], [0.0, 0.0, 0.5], [7.0, 8.0, 9.0], [10.0, 0.0, 0.5]]
+
+
+
+# -- time and velocity -------------------------------------------------------------------------
+
+MOTIONS = {
+    "spin": dict(spin=(0.0, 0.0, 2.0)),
+    "tumble": dict(spin=(0.3, -1.0, 0.5)),
+    "drift": dict(drift=(1.0, -2.0, 0.5)),
+    "swell": dict(scale_rate=0.5),
+    "growth": dict(growth=0.25),
+    "all": dict(spin=(0.3, -1.0, 0.5), drift=(1.0, -2.0, 0.5), scale_rate=-0.5, growth=0.25),
+}
+
+
+@pytest.mark.parametrize("motion", MOTIONS)
+@pytest.mark.parametrize("fields", [ALL_FIELDS, ("velocity",), ("distance", "velocity")])
+def test_velocity_is_the_frames_motion_at_the_contact_plus_the_surfaces_own(motion, fields):
+    rotation, translation, scale, eps = rotation_z(37), np.array([1.0, -2.0, 0.5]), 2.0, 0.05
+    motion = MOTIONS[motion]
+    frame = {k: v for k, v in motion.items() if k != "growth"}
+    points = np.random.default_rng(9).uniform(-3.0, 3.0, (25, 3)) + translation
+    query = ModelQuery.build(points, fields, pose_matrix(rotation, translation, scale), eps,
+                             pose_velocity=pose_rate(rotation, scale, **frame) if frame else None)
+    result = answer_model_query(query, 1.0, Sphere(0.5, motion.get("growth")))
+    expected = sphere_in_world(points, 0.5, rotation, translation, scale, eps, **motion)
+    assert result.velocity.dtype == np.float32 and result.velocity.shape == (25, 3)
+    assert np.abs(expected["velocity"]).max() > 0.1
+    np.testing.assert_allclose(result.velocity, expected["velocity"], rtol=0, atol=2e-6)
+    assert sorted(result.fields()) == sorted(fields)
+
+
+def test_collide_only_velocity_is_zero_for_free_points():
+    rotation, translation = QUARTER_TURN, np.array([0.0, 0.0, 1.0])
+    points = np.array([[0.0, 0.0, 1.5], [0.9, 0.0, 1.0], [0.0, 3.0, 1.0], [0.0, -1.2, 1.0]])
+    motion = dict(spin=(0.0, 0.0, 1.0), drift=(0.0, 0.0, 3.0))
+    query = ModelQuery.build(points, ["velocity", "collides"], pose_matrix(rotation, translation), 0.1,
+                             True, pose_velocity=pose_rate(rotation, 1.0, **motion))
+    result = answer_model_query(query, 1.0, Sphere(1.0, growth=1.0))
+    expected = sphere_in_world(points, 1.0, rotation, translation, 1.0, 0.1, growth=1.0, **motion)
+    assert result.collides.tolist() == [True, True, False, False]
+    np.testing.assert_allclose(result.velocity[:2], expected["velocity"][:2], rtol=0, atol=1e-6)
+    assert result.velocity[2:].tolist() == [[0.0, 0.0, 0.0]] * 2
+
+
+def test_the_time_goes_to_the_collider():
+    sphere = Sphere(1.0)
+    query = ModelQuery.build(np.zeros((1, 3)) + 2.0, "distance", time=2.5)
+    assert prepare(query, 1.0).time == 2.5
+    answer_model_query(query, 1.0, sphere, animated=True)
+    assert sphere.calls[0][3] == 2.5
+
+
+def test_an_animated_collider_needs_a_time():
+    untimed = ModelQuery.build(np.zeros((1, 3)) + 2.0, "distance")
+    require_time(untimed, False, "x")
+    require_time(ModelQuery.build(np.zeros((1, 3)), time=0.0), True, "x")
+    sphere = Sphere(1.0)
+    with pytest.raises(QueryError) as refused:
+        answer_model_query(untimed, 1.0, sphere, where="model 'walker'", animated=True)
+    assert str(refused.value) == "model 'walker' is animated: give the time (seconds) to ask it at"
+    assert (refused.value.status, refused.value.code) == (422, "missing-time")
+    assert sphere.calls == []  # refused before any evaluation
+    assert answer_model_query(untimed, 1.0, sphere).distance.tolist() == [pytest.approx(np.sqrt(12) - 1)]
+
+
+def test_a_scene_names_its_animated_collider_without_a_time():
+    points = np.zeros((1, 3)) + 2.0
+    spheres = [Sphere(1.0), Sphere(1.0)]
+    untimed = SceneQuery.build(points, ["still", "walker", SceneCollider("dancer", time=1.0)])
+    with pytest.raises(QueryError) as refused:
+        answer_scene_query(untimed, [1.0] * 3, spheres + [Sphere(1.0)], animated=[False, True, True])
+    assert str(refused.value) == "model 'walker' is animated: give the time (seconds) to ask it at"
+    assert refused.value.code == "missing-time" and spheres[0].calls == []
+    answer_scene_query(untimed, [1.0] * 3, spheres + [Sphere(1.0)], animated=[False, False, True])
+    answer_scene_query(untimed, [1.0] * 3, spheres + [Sphere(1.0)])
+    timed = SceneQuery.build(points, ["still", "walker", SceneCollider("dancer", time=1.0)], time=4.0)
+    spheres = [Sphere(1.0), Sphere(1.0), Sphere(1.0)]
+    answer_scene_query(timed, [1.0] * 3, spheres, animated=[True, True, True])
+    assert [s.calls[-1][3] for s in spheres] == [4.0, 4.0, 1.0]
+
+
+def test_a_scene_gives_each_point_the_velocity_of_its_nearest_colliders_frame():
+    # two unit spheres, at x = -2 spinning about z, at x = +2 drifting up
+    spin, drift = (0.0, 0.0, 3.0), (0.0, 0.0, 5.0)
+    left, right = pose_matrix(translation=(-2.0, 0.0, 0.0)), pose_matrix(translation=(2.0, 0.0, 0.0))
+    points = np.array([[-2.0, 1.5, 0.0], [2.0, 1.5, 0.0], [-0.5, 0.0, 0.0], [3.5, 0.0, 0.0]])
+    colliders = [SceneCollider("a", left, pose_velocity=pose_rate(np.eye(3), 1.0, spin=spin)),
+                 {"model": "b", "pose": right, "pose_velocity": pose_rate(np.eye(3), 1.0, drift=drift)}]
+    result = answer_scene_query(SceneQuery.build(points, colliders, ["velocity"], 0.1), [1.0, 1.0],
+                                [Sphere(1.0), Sphere(1.0)])
+    expected = [sphere_in_world(points, 1.0, translation=(-2.0, 0.0, 0.0), eps=0.1, spin=spin),
+                sphere_in_world(points, 1.0, translation=(2.0, 0.0, 0.0), eps=0.1, drift=drift)]
+    assert result.collider.tolist() == [0, 1, 0, 1]
+    want = [expected[k]["velocity"][i] for i, k in enumerate([0, 1, 0, 1])]
+    np.testing.assert_allclose(result.velocity, want, rtol=0, atol=1e-6)
+    assert result.velocity.dtype == np.float32

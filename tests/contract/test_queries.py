@@ -10,11 +10,12 @@ import pytest
 from collider_contract import (FIELDS, GRADIENT_FIELDS, IDENTITY, ModelQuery, QueryError, SceneCollider,
                                SceneQuery, as_pose, check_eps, check_fields, check_points, wire)
 from collider_contract import queries
-from collider_contract.queries import (DEFAULT_FIELDS, MAX_POINTS, TRANSPORT_KEYS, check_colliders,
-                                       check_number, check_pose, read_deadline_ms)
+from collider_contract.queries import (COLLIDER_KEYS, DEFAULT_FIELDS, MAX_POINTS, MAX_TIME_S,
+                                       TRANSPORT_KEYS, Placed, check_colliders, check_number,
+                                       check_pose, check_pose_velocity, check_time, read_deadline_ms)
 
 RANGE_ONE_ABOVE = np.nextafter(1e6, np.inf)
-ALL_FIELDS = ["distance", "normal", "contact", "collides"]
+ALL_FIELDS = ["distance", "normal", "contact", "collides", "velocity"]
 
 
 def refusal(call, *args, **kwargs) -> tuple[str, int, str]:
@@ -43,9 +44,10 @@ RIGID_MESSAGE = ("pose is not rigid: its 3x3 block is not a rotation times a uni
 # -- constants ---------------------------------------------------------------------------------
 
 def test_the_fields_and_limits():
-    assert FIELDS == ("distance", "normal", "contact", "collides")
-    assert GRADIENT_FIELDS == {"normal", "contact"} and DEFAULT_FIELDS == ("distance",)
-    assert MAX_POINTS == 200_000_000 and TRANSPORT_KEYS == {"deadline_ms"}
+    assert FIELDS == ("distance", "normal", "contact", "collides", "velocity")
+    assert GRADIENT_FIELDS == {"normal", "contact", "velocity"} and DEFAULT_FIELDS == ("distance",)
+    assert MAX_POINTS == 200_000_000 and TRANSPORT_KEYS == {"deadline_ms"} and MAX_TIME_S == 1e9
+    assert COLLIDER_KEYS == {"model", "pose", "time", "pose_velocity"}
 
 
 # -- fields ------------------------------------------------------------------------------------
@@ -66,11 +68,11 @@ def test_any_iterable_of_fields_is_read_once():
 
 @pytest.mark.parametrize("given, message", [
     (["distance", "speed", "Normal"], "unknown field(s) ['speed', 'Normal']; valid fields are "
-                                      "['distance', 'normal', 'contact', 'collides']"),
+                                      "['distance', 'normal', 'contact', 'collides', 'velocity']"),
     ("normals", "unknown field(s) ['normals']; valid fields are "
-                "['distance', 'normal', 'contact', 'collides']"),
-    ([], "no fields asked for; choose from ['distance', 'normal', 'contact', 'collides']"),
-    ("", "unknown field(s) ['']; valid fields are ['distance', 'normal', 'contact', 'collides']"),
+                "['distance', 'normal', 'contact', 'collides', 'velocity']"),
+    ([], "no fields asked for; choose from ['distance', 'normal', 'contact', 'collides', 'velocity']"),
+    ("", "unknown field(s) ['']; valid fields are ['distance', 'normal', 'contact', 'collides', 'velocity']"),
 ])
 def test_bad_fields_are_refused(given, message):
     assert refusal(check_fields, given) == (message, 422, "unknown-field")
@@ -237,10 +239,12 @@ def test_every_form_of_collider_gives_a_name_and_a_validated_pose():
     given = [SceneCollider("a"), SceneCollider("b", moved(2.0)), "c", {"model": "d"},
              {"model": "e", "pose": moved(3.0)}, ("f", None), ["g", moved(4.0)]]
     checked = check_colliders(given)
-    assert [name for name, _ in checked] == list("abcdefg")
-    assert [pose.translation[0] for _, pose in checked] == [0.0, 2.0, 0.0, 0.0, 3.0, 0.0, 4.0]
-    assert [pose is IDENTITY for _, pose in checked] == [True, False, True, True, False, True, False]
-    assert check_colliders(("a",)) == (("a", IDENTITY),)
+    assert all(isinstance(placed, Placed) for placed in checked)
+    assert [placed.model for placed in checked] == list("abcdefg")
+    assert [placed.pose.translation[0] for placed in checked] == [0.0, 2.0, 0.0, 0.0, 3.0, 0.0, 4.0]
+    assert [placed.pose is IDENTITY for placed in checked] == [True, False, True, True, False, True, False]
+    assert [(placed.time, placed.pose_velocity) for placed in checked] == [(None, None)] * 7
+    assert check_colliders(("a",)) == (Placed("a", IDENTITY, None, None),)
 
 
 LIST_FORM = "colliders must be a non-empty list of {\"model\": name, \"pose\": 4x4 (optional)}, got "
@@ -265,7 +269,9 @@ ITEM_FORM = "must be {\"model\": name, \"pose\": 4x4 (optional)}, got "
     ({"model": 3}, "a map with keys ['model']"),
     ({1: "a"}, "a map with keys ['1']"),
     (("a",), "('a',)"), (("a", None, None), "('a', None, None)"), ((3, None), "(3, None)"),
-    (SceneCollider(None), "SceneCollider(model=None, pose=None)"), (7, "7"),
+    (SceneCollider(None), "SceneCollider(model=None, pose=None, time=None, pose_velocit"),  # 60
+    (SceneCollider(3, time=1.0), "SceneCollider(model=3, pose=None, time=1.0, pose_velocity=No"),
+    ({"model": "a", "velocity": 1}, "a map with keys ['model', 'velocity']"), (7, "7"),
     ("y" * 100 + "z", None),
 ])
 def test_a_bad_collider_is_refused_naming_its_index(item, got):
@@ -386,10 +392,12 @@ def test_from_body_reads_eps_pose_and_mode():
 @pytest.mark.parametrize("body, message, status, code", [
     ({"points": POINTS, "pose_": 1, "Eps": 2},
      "unknown key(s) ['Eps', 'pose_']; valid keys are ['deadline_ms', 'eps', 'fields', "
-     "'only_colliding', 'points', 'pose']", 422, "unknown-key"),
+     "'only_colliding', 'points', 'pose', 'pose_velocity', 'time']", 422,
+     "unknown-key"),
     ({"fields": ["distance"]}, "the body has no 'points'", 422, "missing-points"),
     ({"colliders": []}, "unknown key(s) ['colliders']; valid keys are ['deadline_ms', 'eps', 'fields', "
-                        "'only_colliding', 'points', 'pose']", 422, "unknown-key"),
+                        "'only_colliding', 'points', 'pose', 'pose_velocity', 'time']", 422,
+     "unknown-key"),
     # null is not absent
     ({"points": POINTS, "fields": None}, "fields must not be null (leave it out for its default)",
      422, "bad-fields"),
@@ -408,7 +416,7 @@ def test_from_body_reads_eps_pose_and_mode():
     ({"points": POINTS, "fields": {"distance": 1}}, "fields must be a list of strings, got "
                                                     "{'distance': 1}", 422, "bad-fields"),
     ({"points": POINTS, "fields": []}, "no fields asked for; choose from ['distance', 'normal', "
-                                       "'contact', 'collides']", 422, "unknown-field"),
+                                       "'contact', 'collides', 'velocity']", 422, "unknown-field"),
     ({"points": POINTS, "only_colliding": 1}, "only_colliding must be true or false, got 1", 422,
      "bad-only-colliding"),
     ({"points": POINTS, "only_colliding": "true"}, "only_colliding must be true or false, got 'true'",
@@ -484,39 +492,54 @@ def test_more_than_max_points_in_a_body_is_a_413():
 def test_from_body_checks_the_keys_then_as_build_then_the_mode():
     assert refusal(ModelQuery.from_body, {"speed": 1, "points": None})[2] == "unknown-key"
     body = {"points": [[np.nan, 0, 0]], "fields": ["speed"], "pose": None, "eps": -1,
-            "only_colliding": None}
+            "only_colliding": None, "time": None, "pose_velocity": None}
     for key, good, code in (("fields", ["distance"], "unknown-field"), ("points", POINTS, "bad-points"),
                             ("pose", np.eye(4).tolist(), "bad-pose"), ("eps", 0, "eps-out-of-range"),
+                            ("time", 0, "bad-time"), ("pose_velocity", np.zeros((4, 4)).tolist(),
+                                                      "bad-pose-velocity"),
                             ("only_colliding", True, "bad-only-colliding")):
         assert refusal(ModelQuery.from_body, body)[2] == code
         body[key] = good
     assert ModelQuery.from_body(body).only_colliding is True
 
 
-#: Inputs with several errors each (JSON forms): points, fields, pose, eps.
+BAD_RATE = [[0, 0, 0, 0]] * 3 + [[0, 0, 0, 1]]  # a pose velocity whose bottom row is not zero
+
+#: Inputs with several errors each (JSON forms): points, fields, pose, eps, time, pose velocity.
 SEVERAL_ERRORS = [
-    ([[np.nan, 0, 0]], ["speed"], SHEAR.tolist(), -1),
-    ([[np.nan, 0, 0]], ["normal"], SHEAR.tolist(), -1),
-    ([[0, 0]], [], [[1, 0], [0, 1]], float("inf")),
-    ([[0, 0, 2e6]], ["contact"], np.full((4, 4), np.nan).tolist(), 2e6),
-    ([[0, 0, 0]], ["contact"], np.diag([1.0, 1.0, 1.0, 2.0]).tolist(), True),
-    ([[0, 0, 0]], ["collides"], None, -1e-9),
+    ([[np.nan, 0, 0]], ["speed"], SHEAR.tolist(), -1, True, BAD_RATE),
+    ([[np.nan, 0, 0]], ["normal"], SHEAR.tolist(), -1, True, BAD_RATE),
+    ([[0, 0]], [], [[1, 0], [0, 1]], float("inf"), "now", [[1]]),
+    ([[0, 0, 2e6]], ["contact"], np.full((4, 4), np.nan).tolist(), 2e6, 2e9, BAD_RATE),
+    ([[0, 0, 0]], ["contact"], np.diag([1.0, 1.0, 1.0, 2.0]).tolist(), True, 1.0, None),
+    ([[0, 0, 0]], ["collides"], None, -1e-9, None, BAD_RATE),
+    ([[0, 0, 0]], ["velocity"], None, 0.5, -2e9, BAD_RATE),
+    ([[0, 0, 0]], ["velocity"], None, None, 0.5, BAD_RATE),
+    ([[0, 0, 0]], ["velocity"], None, None, None, [[np.inf] * 4] * 4),
 ]
 
 
-@pytest.mark.parametrize("points, fields, pose, eps", SEVERAL_ERRORS)
-def test_build_and_from_body_refuse_the_same_input_alike(points, fields, pose, eps):
+@pytest.mark.parametrize("points, fields, pose, eps, time, rate", SEVERAL_ERRORS)
+def test_build_and_from_body_refuse_the_same_input_alike(points, fields, pose, eps, time, rate):
     """The Python API (embedded) and a wire body (the service) give the same first refusal."""
-    body = {"points": points, "fields": fields, "eps": eps}
-    if pose is not None:
-        body["pose"] = pose
-    assert refusal(ModelQuery.from_body, body) == refusal(ModelQuery.build, points, fields, pose, eps)
-    colliders = [{"model": "a"}, {"model": "b", "pose": pose}] if pose is not None else [{"model": "a"}]
+    body = {"points": points, "fields": fields, "eps": eps, "pose": pose, "time": time,
+            "pose_velocity": rate}
+    body = {key: value for key, value in body.items() if value is not None}
+    assert refusal(ModelQuery.from_body, body) == refusal(ModelQuery.build, points, fields, pose, eps,
+                                                          False, time, rate)
+    item = {"model": "b", "pose": pose, "time": time, "pose_velocity": rate}
+    colliders = [{"model": "a"}, {key: value for key, value in item.items() if value is not None}]
     scene = {"points": points, "fields": fields, "eps": eps, "colliders": colliders}
+    scene = {key: value for key, value in scene.items() if value is not None}
     assert refusal(SceneQuery.from_body, scene) == refusal(SceneQuery.build, points, colliders, fields, eps)
+    if time is not None:  # a scene-wide time is checked before the colliders
+        scene["time"] = time
+        assert refusal(SceneQuery.from_body, scene) == refusal(SceneQuery.build, points, colliders,
+                                                               fields, eps, time=time)
     for bad in ([], [{"model": 1}], [{"model": "a", "extra": 0}]):
         scene["colliders"] = bad
-        assert refusal(SceneQuery.from_body, scene) == refusal(SceneQuery.build, points, bad, fields, eps)
+        assert refusal(SceneQuery.from_body, scene) == refusal(SceneQuery.build, points, bad, fields, eps,
+                                                               time=scene.get("time"))
 
 
 # -- SceneQuery --------------------------------------------------------------------------------
@@ -524,13 +547,16 @@ def test_build_and_from_body_refuse_the_same_input_alike(points, fields, pose, e
 def test_scene_build_defaults_and_order_of_checks():
     scene = SceneQuery.build([[0, 0, 1]], ["a", ("b", moved())])
     assert scene.fields == ("distance",) and scene.eps is None and scene.only_colliding is False
-    assert [name for name, _ in scene.colliders] == ["a", "b"] and scene.colliders[0][1] is IDENTITY
+    assert [placed.model for placed in scene.colliders] == ["a", "b"]
+    assert scene.colliders[0].pose is IDENTITY
     assert SceneQuery.build([[0, 0, 1]], ["a"], "normal", 0, 1).only_colliding is True
-    bad = dict(points=[[np.nan, 0, 0]], colliders=[], fields="speed", eps=-1)
-    assert refusal(SceneQuery.build, **bad)[2] == "unknown-field"
-    assert refusal(SceneQuery.build, **{**bad, "fields": "normal"})[2] == "bad-colliders"
-    assert refusal(SceneQuery.build, **{**bad, "fields": "normal", "colliders": ["a"]})[2] == "bad-points"
-    assert refusal(SceneQuery.build, [[0, 0, 0]], ["a"], eps=-1)[2] == "eps-out-of-range"
+    bad = dict(points=[[np.nan, 0, 0]], colliders=[], fields="speed", eps=-1, time="t")
+    for key, good, code in (("fields", "normal", "unknown-field"), ("time", 1.0, "bad-time"),
+                            ("colliders", ["a"], "bad-colliders"), ("points", [[0, 0, 0]], "bad-points"),
+                            ("eps", 0.0, "eps-out-of-range")):
+        assert refusal(SceneQuery.build, **bad)[2] == code
+        bad[key] = good
+    assert SceneQuery.build(**bad).colliders[0].time == 1.0
 
 
 def test_of_collider_is_the_scene_query_under_that_colliders_pose():
@@ -561,7 +587,7 @@ def test_scene_round_trip_is_bit_identical(media):
     got = SceneQuery.from_body(wire.loads(wire.dumps(sent.to_body(), media), media))
     assert got.points.tobytes() == points.tobytes() and got.fields == tuple(ALL_FIELDS)
     assert (got.eps, got.only_colliding) == (0.1, True)
-    assert [name for name, _ in got.colliders] == ["a", "b"]
+    assert [placed.model for placed in got.colliders] == ["a", "b"]
     assert got.colliders[0][1].source.tobytes() == a.tobytes()
     assert got.colliders[0][1].rotation.tobytes() == sent.colliders[0][1].rotation.tobytes()
     assert got.colliders[0][1].scale == sent.colliders[0][1].scale
@@ -571,13 +597,13 @@ def test_scene_round_trip_is_bit_identical(media):
 def test_scene_from_body_reads_defaults():
     got = SceneQuery.from_body({"points": POINTS, "colliders": [{"model": "a"}], "deadline_ms": 3})
     assert (got.fields, got.eps, got.only_colliding) == (("distance",), None, False)
-    assert got.colliders == (("a", IDENTITY),)
+    assert got.colliders == (Placed("a", IDENTITY, None, None),)
 
 
 @pytest.mark.parametrize("body, message, code", [
     ({"points": POINTS, "colliders": [{"model": "a"}], "pose": None},
      "unknown key(s) ['pose']; valid keys are ['colliders', 'deadline_ms', 'eps', 'fields', "
-     "'only_colliding', 'points']", "unknown-key"),
+     "'only_colliding', 'points', 'time']", "unknown-key"),
     ({"colliders": [{"model": "a"}]}, "the body has no 'points'", "missing-points"),
     ({"points": POINTS}, "the body has no 'colliders'", "missing-colliders"),
     ({"points": POINTS, "colliders": []}, LIST_FORM + "[]", "bad-colliders"),
@@ -632,10 +658,209 @@ def test_scene_from_body_checks_the_keys_then_as_build_then_the_mode():
             "only_colliding": None, "pose": None}
     assert refusal(SceneQuery.from_body, body)[2] == "unknown-key"
     del body["pose"]
-    for key, good, code in (("fields", ["normal"], "unknown-field"),
+    body["time"] = None
+    for key, good, code in (("fields", ["normal"], "unknown-field"), ("time", 2.0, "bad-time"),
                             ("colliders", [{"model": "a"}], "bad-colliders"),
                             ("points", POINTS, "bad-points"), ("eps", 0, "eps-out-of-range"),
                             ("only_colliding", False, "bad-only-colliding")):
         assert refusal(SceneQuery.from_body, body)[2] == code
         body[key] = good
-    assert SceneQuery.from_body(body).colliders == (("a", IDENTITY),)
+    assert SceneQuery.from_body(body).colliders == (Placed("a", IDENTITY, 2.0, None),)
+
+
+# -- time and pose velocity --------------------------------------------------------------------
+
+@pytest.mark.parametrize("given, expected", [(0, 0.0), (-0.0, 0.0), (2.5, 2.5), (1e9, 1e9), (-1e9, -1e9),
+                                             (np.float32(0.5), 0.5), (np.int32(-3), -3.0)])
+def test_a_time_within_a_billion_seconds_is_a_float(given, expected):
+    checked = check_time(given)
+    assert type(checked) is float and checked == expected
+
+
+@pytest.mark.parametrize("given, where, message", [
+    (np.nextafter(1e9, np.inf), "time", "time=1000000000.0000001 is outside +-1e+09 s"),
+    (-2e9, "time", "time=-2000000000.0 is outside +-1e+09 s"),
+    (-2e9, "colliders[3].time", "colliders[3].time=-2000000000.0 is outside +-1e+09 s"),
+    (True, "time", "time must be a finite number, got True"),
+    (float("nan"), "time", "time must be a finite number, got nan"),
+    ("1.5", "colliders[0].time", "colliders[0].time must be a finite number, got '1.5'"),
+    (10 ** 400, "time", "time must be a finite number, got 1" + "0" * 59),
+])
+def test_a_bad_time_is_refused(given, where, message):
+    assert refusal(check_time, given, where) == (message, 422, "bad-time")
+
+
+def test_no_time_is_a_static_query():
+    assert check_time(None) is None and check_time(None, "colliders[0].time") is None
+
+
+def rate(spin_z=0.0, drift=(0.0, 0.0, 0.0)) -> list:
+    """A pose velocity (4x4 nested lists): turning about z at ``spin_z``, moving at ``drift``."""
+    m = [[0.0, -spin_z, 0.0, drift[0]], [spin_z, 0.0, 0.0, drift[1]], [0.0, 0.0, 0.0, drift[2]],
+         [0.0, 0.0, 0.0, 0.0]]
+    return m
+
+
+def test_a_pose_velocity_is_a_float64_copy():
+    assert check_pose_velocity(None) is None
+    given = np.array(rate(2.0, (1.0, 0.0, -1.0)))
+    checked = check_pose_velocity(given)
+    assert checked.dtype == np.float64 and checked.tolist() == rate(2.0, (1.0, 0.0, -1.0))
+    given[0, 3] = 9.0
+    assert checked[0, 3] == 1.0
+    ints = check_pose_velocity([[0, 1, 0, 5], [-1, 0, 0, 0], [0, 0, 0, 0], [0, 0, 0, 0]])
+    assert ints.dtype == np.float64 and ints[0, 3] == 5.0
+    edge = np.zeros((4, 4))
+    edge[:3] = 1e6
+    assert check_pose_velocity(-edge)[0, 0] == -1e6
+
+
+def _rate_with(row, col, value):
+    m = np.zeros((4, 4))
+    m[row, col] = value
+    return m
+
+
+@pytest.mark.parametrize("given, message", [
+    (np.zeros((3, 3)), "pose_velocity must be a 4x4 matrix, got shape (3, 3)"),
+    ([[0.0] * 4] * 3, "pose_velocity must be a 4x4 matrix, got shape (3, 4)"),
+    (np.full((3, 4), np.nan), "pose_velocity must be a 4x4 matrix, got shape (3, 4)"),
+    (_rate_with(1, 2, np.nan), "pose_velocity must hold finite numbers within +-1e+06"),
+    (_rate_with(0, 3, -np.inf), "pose_velocity must hold finite numbers within +-1e+06"),
+    (_rate_with(2, 3, np.nextafter(1e6, np.inf)), "pose_velocity must hold finite numbers within +-1e+06"),
+    (_rate_with(3, 3, np.nan), "pose_velocity must hold finite numbers within +-1e+06"),
+    (_rate_with(3, 3, 1.0), "pose_velocity bottom row must be [0, 0, 0, 0] (a pose's bottom row does "
+                            "not change), got [0.0, 0.0, 0.0, 1.0]"),
+    (_rate_with(3, 0, -1e-300), "pose_velocity bottom row must be [0, 0, 0, 0] (a pose's bottom row "
+                                "does not change), got [-1e-300, 0.0, 0.0, 0.0]"),
+])
+def test_a_bad_pose_velocity_is_refused(given, message):
+    assert refusal(check_pose_velocity, given) == (message, 422, "bad-pose-velocity")
+
+
+def test_a_pose_velocity_refusal_names_where_it_was_given():
+    message, status, code = refusal(check_pose_velocity, [["a"] * 4] * 4, "colliders[1].pose_velocity")
+    assert message.startswith("colliders[1].pose_velocity must be a 4x4 matrix of numbers: ")
+    assert (status, code) == (422, "bad-pose-velocity")
+    assert refusal(check_pose_velocity, [[0.0], [0.0, 1.0]])[0].startswith(
+        "pose_velocity must be a 4x4 matrix of numbers: ")
+    assert refusal(check_pose_velocity, np.eye(2), "colliders[0].pose_velocity")[0] == (
+        "colliders[0].pose_velocity must be a 4x4 matrix, got shape (2, 2)")
+
+
+def test_a_model_query_carries_its_time_and_pose_velocity_to_the_wire_and_back():
+    query = ModelQuery.build([[0, 0, 1]], "velocity", moved(), time=2, pose_velocity=rate(1.0 / 3.0))
+    assert query.time == 2.0 and type(query.time) is float
+    assert query.pose_velocity.tolist() == rate(1.0 / 3.0)
+    body = query.to_body()
+    assert body["time"] == 2.0 and body["pose_velocity"] is query.pose_velocity
+    assert ModelQuery.build([[0, 0, 1]], time=0.0).to_body()["time"] == 0.0
+    assert ModelQuery.build([[0, 0, 1]], pose_velocity=np.zeros((4, 4))).to_body().keys() == {
+        "points", "fields", "pose_velocity"}
+    defaults = ModelQuery.build([[0, 0, 1]])
+    assert (defaults.time, defaults.pose_velocity) == (None, None)
+    assert defaults.to_body().keys() == {"points", "fields"}
+    for media in (wire.MSGPACK, wire.JSON):
+        got = ModelQuery.from_body(wire.loads(wire.dumps(body, media), media))
+        assert got.time == 2.0 and got.pose_velocity.tobytes() == query.pose_velocity.tobytes()
+        assert got.fields == ("velocity",)
+    absent = ModelQuery.from_body({"points": POINTS})
+    assert (absent.time, absent.pose_velocity) == (None, None)
+
+
+@pytest.mark.parametrize("extra, message, code", [
+    ({"time": None}, "time must not be null (leave it out for its default)", "bad-time"),
+    ({"time": "0"}, "time must be a finite number, got '0'", "bad-time"),
+    ({"time": 1e10}, "time=10000000000.0 is outside +-1e+09 s", "bad-time"),
+    ({"pose_velocity": None}, "pose_velocity must not be null (leave it out for its default)",
+     "bad-pose-velocity"),
+    ({"pose_velocity": "still"}, "pose_velocity: expected an array (msgpack map or JSON list), got str",
+     "bad-pose-velocity"),
+    ({"pose_velocity": wire.encode_array(np.zeros((4, 4), bool))}, "pose_velocity: must hold numbers, got bool",
+     "bad-pose-velocity"),
+    ({"pose_velocity": [[False] * 4] * 4}, "pose_velocity: must hold numbers, got bool", "bad-pose-velocity"),
+    ({"pose_velocity": wire.encode_array(np.zeros((4, 3)))}, "pose_velocity must be a 4x4 matrix, got "
+                                                             "shape (4, 3)", "bad-pose-velocity"),
+    ({"pose_velocity": {"dtype": "<f8", "shape": [4, 4], "data": b""}},
+     "pose_velocity: data has 0 bytes but dtype <f8 and shape [4, 4] need 128", "bad-pose-velocity"),
+])
+def test_a_bad_time_or_pose_velocity_in_a_body_is_refused(extra, message, code):
+    assert refusal(ModelQuery.from_body, {"points": POINTS, **extra}) == (message, 422, code)
+
+
+def test_every_form_of_scene_collider_carries_its_time_and_pose_velocity():
+    given = [SceneCollider("a", moved(), time=1.5, pose_velocity=rate(2.0)),
+             {"model": "b", "time": 0.0}, {"model": "c", "pose_velocity": rate(drift=(1, 0, 0))},
+             "d", ("e", None), SceneCollider("f")]
+    checked = check_colliders(given, 7.0)
+    assert [p.time for p in checked] == [1.5, 0.0, 7.0, 7.0, 7.0, 7.0]  # a time of 0 is a time
+    assert [None if p.pose_velocity is None else p.pose_velocity.tolist() for p in checked] == [
+        rate(2.0), None, rate(drift=(1, 0, 0)), None, None, None]
+    assert checked[0].pose.source.tolist() == moved().tolist()
+    assert [p.time for p in check_colliders(given)] == [1.5, 0.0, None, None, None, None]
+
+
+def test_a_scene_colliders_checks_run_time_then_pose_then_pose_velocity():
+    item = {"model": "a", "time": "t", "pose": SHEAR, "pose_velocity": np.eye(4)}
+    for key, good, message, code in (
+            ("time", 1.0, "colliders[1].time must be a finite number, got 't'", "bad-time"),
+            ("pose", None, "colliders[1].pose: " + RIGID_MESSAGE, "bad-pose"),
+            ("pose_velocity", None, "colliders[1].pose_velocity bottom row must be [0, 0, 0, 0] (a "
+                                    "pose's bottom row does not change), got [0.0, 0.0, 0.0, 1.0]",
+             "bad-pose-velocity")):
+        assert refusal(check_colliders, ["z", item]) == (message, 422, code)
+        wire_item = {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in item.items()
+                     if v is not None}
+        assert refusal(SceneQuery.from_body, {"points": POINTS, "colliders": [{"model": "z"}, wire_item]}) == (
+            message, 422, code)
+        item[key] = good
+    assert check_colliders(["z", item])[1] == Placed("a", IDENTITY, 1.0, None)
+
+
+def test_a_scene_query_gives_each_collider_its_time_and_pose_velocity():
+    points = np.zeros((2, 3))
+    scene = SceneQuery.build(points, [SceneCollider("a", time=0.0, pose_velocity=rate(1.0)),
+                                      ("b", moved()), {"model": "c", "time": -4.0}], "velocity", 0.5,
+                             time=3)
+    parts = [scene.of_collider(i) for i in range(3)]
+    assert [part.time for part in parts] == [0.0, 3.0, -4.0]
+    assert parts[0].pose_velocity.tolist() == rate(1.0) and parts[1].pose_velocity is None
+    assert parts[1].pose is scene.colliders[1].pose and parts[1].eps == 0.5
+    body = scene.to_body()
+    assert "time" not in body  # each collider's own, resolved
+    assert body["colliders"] == [{"model": "a", "time": 0.0, "pose_velocity": rate(1.0)},
+                                 {"model": "b", "pose": moved().tolist(), "time": 3.0},
+                                 {"model": "c", "time": -4.0}]
+    for media in (wire.MSGPACK, wire.JSON):
+        got = SceneQuery.from_body(wire.loads(wire.dumps(body, media), media))
+        assert [p.time for p in got.colliders] == [0.0, 3.0, -4.0]
+        assert got.colliders[0].pose_velocity.tolist() == rate(1.0)
+        assert got.colliders[1].pose.source.tobytes() == moved().tobytes()
+
+
+def test_a_scene_bodys_time_is_that_of_the_colliders_that_give_none():
+    body = {"points": POINTS, "time": 5, "colliders": [{"model": "a"}, {"model": "b", "time": 0},
+                                                       {"model": "c", "time": 2.5}]}
+    assert [p.time for p in SceneQuery.from_body(body).colliders] == [5.0, 0.0, 2.5]
+    del body["time"]
+    assert [p.time for p in SceneQuery.from_body(body).colliders] == [None, 0.0, 2.5]
+
+
+@pytest.mark.parametrize("body, message, code", [
+    ({"time": None, "colliders": [{"model": "a"}]}, "time must not be null (leave it out for its default)",
+     "bad-time"),
+    ({"colliders": [{"model": "a"}, {"model": "b", "time": None}]},
+     "colliders[1].time must not be null (leave it out for its default)", "bad-time"),
+    ({"colliders": [{"model": "a", "time": 2e9}]}, "colliders[0].time=2000000000.0 is outside +-1e+09 s",
+     "bad-time"),
+    ({"colliders": [{"model": "a", "pose_velocity": None}]},
+     "colliders[0].pose_velocity must not be null (leave it out for its default)", "bad-pose-velocity"),
+    ({"colliders": [{"model": "a", "pose_velocity": "x"}]},
+     "colliders[0].pose_velocity: expected an array (msgpack map or JSON list), got str", "bad-pose-velocity"),
+    ({"colliders": [{"model": "a", "pose_velocity": [[True] * 4] * 4}]},
+     "colliders[0].pose_velocity: must hold numbers, got bool", "bad-pose-velocity"),
+    ({"colliders": [{"model": "a", "pose_velocity": [[0.0] * 4] * 3}]},
+     "colliders[0].pose_velocity must be a 4x4 matrix, got shape (3, 4)", "bad-pose-velocity"),
+])
+def test_a_bad_time_or_pose_velocity_in_a_scene_body_is_refused(body, message, code):
+    assert refusal(SceneQuery.from_body, {"points": POINTS, **body}) == (message, 422, code)
