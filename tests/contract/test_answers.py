@@ -1,6 +1,7 @@
 """How a query is answered: the eps policy, prepare / evaluate / finish, collide-only mode, the
-scene rule and the finiteness guard, each checked against closed forms in the world frame (an
-analytic sphere or half-space as the collider's ``evaluate``)."""
+velocity field, the time an animated collider needs, the scene rule and the finiteness guard, each
+checked against closed forms in the world frame (an analytic sphere, possibly moving, or a
+half-space as the collider's ``evaluate``; metres, seconds)."""
 
 from __future__ import annotations
 

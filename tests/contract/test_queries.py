@@ -1,6 +1,7 @@
-"""What a query is: fields, points, eps, pose, colliders and mode, validated by ``build`` (the
-Python API) and ``from_body`` (a decoded wire body), each refusal with its exact message, HTTP
-status and problem code; ``to_body`` -> wire -> ``from_body`` gives the query back bit for bit."""
+"""What a query is: fields, points, eps, pose, time, pose velocity, colliders and mode, validated
+by ``build`` (the Python API) and ``from_body`` (a decoded wire body) in the same order, each
+refusal with its exact message, HTTP status and problem code; ``to_body`` -> wire -> ``from_body``
+gives the query back bit for bit."""
 
 from __future__ import annotations
 
