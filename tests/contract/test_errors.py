@@ -9,7 +9,7 @@ from collider_contract import TITLES, QueryError, unknown_model
 
 def test_the_titles_are_the_services_problem_titles():
     assert TITLES == {
-        400: "Malformed request body", 401: "Unauthorized", 403: "Forbidden", 404: "Not found",
+        400: "Malformed request", 401: "Unauthorized", 403: "Forbidden", 404: "Not found",
         405: "Method not allowed", 408: "Request timeout", 409: "Conflict",
         413: "Request too large", 415: "Unsupported media type", 422: "Invalid request",
         429: "Too many requests", 499: "Client closed request", 500: "Internal server error",

@@ -261,6 +261,15 @@ def test_the_checks_run_in_the_documented_order():
     assert _refusal(matrix(-np.eye(3), [0, 0, 0], 1e7)).startswith("pose is a reflection")
 
 
+@pytest.mark.parametrize("block, entry", [(np.diag([1e200] * 3), "1e+200"),
+                                          (np.diag([-1e300, 1.0, 1.0]), "1e+300"),
+                                          (np.diag([1.0, 1.0, 2e154]), "2e+154")])
+def test_a_block_whose_squares_overflow_is_refused_as_out_of_the_scale_range(block, entry):
+    with np.errstate(all="raise"):  # quietly: no overflow warning escapes
+        assert _refusal(matrix(block, [0, 0, 0])) == (
+            f"pose scale is outside [1e-06, 1e+06]: its 3x3 block has an entry of {entry}")
+
+
 def test_a_block_of_scale_squared_1e24_is_zero_and_one_above_is_out_of_range():
     assert _refusal(np.diag([1e-12, 1e-12, 1e-12, 1.0])) == "pose rotation block is zero (scale 0)"
     assert _refusal(np.diag([1.1e-12, 1.1e-12, 1.1e-12, 1.0])) == (
