@@ -24,7 +24,7 @@ JOBS="${JOBS:-2}"
 # name | files to mutate (under server/ or client/, space-separated globs) | tests that cover them
 SIM=client/collider_client/sim
 MODULES=(
-  "contract|client/collider_contract/*|tests/contract tests/engine/test_pose.py tests/engine/test_collider.py tests/engine/test_only_colliding.py tests/client/test_backends.py tests/client/test_errors.py tests/server/test_queries.py tests/hard_cases/test_engine_hard_cases.py"
+  "contract|client/collider_contract/*|tests/contract"
   "collider|server/collider_server/engine/collider.py|tests/engine/test_collider.py tests/engine/test_only_colliding.py tests/engine/test_modelfile.py tests/hard_cases/test_engine_hard_cases.py tests/client/test_backends.py"
   "kinds|server/collider_server/engine/kinds/*|tests/engine/kinds tests/engine/test_modelfile.py tests/engine/test_analytic.py tests/engine/test_only_colliding.py tests/hard_cases/test_engine_hard_cases.py"
   "batching|server/collider_server/service/batching.py|tests/server/test_batching.py"

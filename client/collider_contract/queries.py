@@ -175,7 +175,8 @@ def check_colliders(items: Sequence, time=None) -> tuple[Placed, ...]:
         raise QueryError("colliders must be a non-empty list of {\"model\": name, \"pose\": 4x4 "
                          f"(optional)}}, got {items!r:.200}", code="bad-colliders")
     out = []
-    for i, item in enumerate(items):
+    for i, given in enumerate(items):
+        item = given
         if isinstance(item, SceneCollider):
             item = {"model": item.model, "pose": item.pose, "time": item.time,
                     "pose_velocity": item.pose_velocity}
@@ -185,7 +186,7 @@ def check_colliders(items: Sequence, time=None) -> tuple[Placed, ...]:
             item = {"model": item[0], "pose": item[1]}
         if not (isinstance(item, dict) and isinstance(item.get("model"), str)
                 and not set(item) - COLLIDER_KEYS):
-            raise _bad_collider(i, item)
+            raise _bad_collider(i, given)  # named as the caller gave it
         own_time = check_time(item.get("time"), f"colliders[{i}].time")
         out.append(Placed(item["model"], check_pose(item.get("pose"), f"colliders[{i}].pose"),
                           own_time if own_time is not None else time,
@@ -249,15 +250,15 @@ class ModelQuery:
     @classmethod
     def from_body(cls, body: dict, max_points: int = MAX_POINTS) -> "ModelQuery":
         """The query of a decoded wire body (:func:`~.wire.loads`); more than ``max_points``
-        points is a 413. Raises :class:`~.errors.QueryError`."""
+        points is a 413. Checked in :meth:`build`'s order, then ``only_colliding``. Raises
+        :class:`~.errors.QueryError`."""
         _check_keys(body, {"points", "fields", "pose", "eps", "only_colliding", "time",
                            "pose_velocity"}, ("points",))
-        return cls(points=_wire_points(body["points"], max_points),
-                   fields=_wire_fields(body), pose=_wire_pose(body, "pose"),
-                   eps=check_eps(_optional(body, "eps")),
-                   only_colliding=_wire_flag(body, "only_colliding"),
+        return cls(fields=_wire_fields(body), points=_wire_points(body["points"], max_points),
+                   pose=_wire_pose(body, "pose"), eps=check_eps(_optional(body, "eps")),
                    time=check_time(_optional(body, "time")),
-                   pose_velocity=_wire_pose_velocity(body, "pose_velocity"))
+                   pose_velocity=_wire_pose_velocity(body, "pose_velocity"),
+                   only_colliding=_wire_flag(body, "only_colliding"))
 
 
 @dataclass(frozen=True)
@@ -321,6 +322,8 @@ class SceneQuery:
         top-level ``time`` is the time of the colliders that give none."""
         _check_keys(body, {"points", "colliders", "fields", "eps", "only_colliding", "time"},
                     ("points", "colliders"))
+        fields = _wire_fields(body)  # build's order: fields, time, colliders, points, eps
+        time = check_time(_optional(body, "time"))
         items = body["colliders"]
         if not isinstance(items, list):
             check_colliders(items)  # refuses it, saying what colliders must be
@@ -329,7 +332,6 @@ class SceneQuery:
                              status=413, code="too-many-colliders")
         if not items:
             check_colliders(items)
-        time = check_time(_optional(body, "time"))
         colliders = []
         for i, item in enumerate(items):  # on the wire a collider is a map, its arrays wire arrays
             if not (isinstance(item, dict) and isinstance(item.get("model"), str)
@@ -341,8 +343,9 @@ class SceneQuery:
                 item["model"], _wire_pose(item, "pose", f"colliders[{i}].pose"),
                 own_time if own_time is not None else time,
                 _wire_pose_velocity(item, "pose_velocity", f"colliders[{i}].pose_velocity")))
-        return cls(points=_wire_points(body["points"], max_points), colliders=tuple(colliders),
-                   fields=_wire_fields(body), eps=check_eps(_optional(body, "eps")),
+        return cls(fields=fields, colliders=tuple(colliders),
+                   points=_wire_points(body["points"], max_points),
+                   eps=check_eps(_optional(body, "eps")),
                    only_colliding=_wire_flag(body, "only_colliding"))
 
 

@@ -5,14 +5,13 @@ Units: metres; the sphere has radius 0.1 m and is centred at the origin of its f
 from __future__ import annotations
 
 import itertools
-import re
 
 import numpy as np
 import pytest
 
 from collider_contract import FIELDS
 from collider_contract.pose import MAX_COORDINATE_M
-from collider_contract import QueryError, nearest_collider
+from collider_contract import QueryError
 from collider_contract.queries import MAX_POINTS as MAX_POINTS_PER_CALL
 from collider_server.engine.collider import Collider, ColliderInfo
 
@@ -441,25 +440,6 @@ def test_a_zero_gradient_takes_the_documented_fallback_normals(value):
     np.testing.assert_allclose(result.normal[2:],
                                direction / np.linalg.norm(direction, axis=1)[:, None], atol=1e-7)
     assert np.einsum("ij,ij->i", result.normal[2:], away_unit).min() > 0.999  # away from the box
-
-
-def test_nearest_collider_is_the_smallest_distance_and_a_tie_goes_to_the_first():
-    world_distance = np.array([[0.3, -0.1, 0.2, 0.5, -2.0],   # collider 0, metres
-                               [0.3, -0.2, 0.1, 0.5, 1.0],    # collider 1
-                               [0.1, 0.0, 0.1, 0.5, -1.0]])   # collider 2
-    nearest = nearest_collider(world_distance)
-    assert nearest.dtype == np.int32 and nearest.shape == (5,)
-    np.testing.assert_array_equal(nearest, [2, 1, 1, 0, 0])
-    np.testing.assert_array_equal(nearest_collider(world_distance[1:2]), np.zeros(5))
-    # Compared in float64: 1e-12 m apart is not a tie.
-    np.testing.assert_array_equal(nearest_collider([[0.05], [0.05 - 1e-12]]), [1])
-
-
-@pytest.mark.parametrize("world_distance", [np.zeros(3), np.zeros((0, 4)), np.zeros((2, 2, 2))])
-def test_nearest_collider_needs_one_row_per_collider(world_distance):
-    with pytest.raises(ValueError, match=r"world_distance must be \(k, n\) with k >= 1, got "
-                                         + re.escape(str(world_distance.shape))):
-        nearest_collider(world_distance)
 
 
 def test_cpu_path_is_explicit(fresh_collider):
