@@ -89,11 +89,11 @@ def run_collider_view(args: argparse.Namespace) -> int:
             print(f"collider view: warning: {args.mesh} is not the mesh {collider.info.name} was "
                   "made from (sha256 differs)", file=sys.stderr)
     up = args.up or ("+z" if not np.allclose(stored, np.eye(4)) else "+y")
-    server = serve_collider_view(collider, mesh, host=args.host, port=args.port,
-                                 resolution=args.resolution, up=up, clip_mm=args.clip_mm,
-                                 show_progress=not args.quiet)
-    wait_until_interrupted(server, f"view of {collider.info.name} at {url_of(server)}  "
-                                   "(Ctrl-C to stop)")
+    page = serve_collider_view(collider, mesh, host=args.host, port=args.port,
+                               resolution=args.resolution, up=up, clip_mm=args.clip_mm,
+                               show_progress=not args.quiet)
+    wait_until_interrupted(page.server, f"view of {collider.info.name} at {url_of(page.server)}  "
+                                        "(Ctrl-C to stop)")
     return 0
 
 
