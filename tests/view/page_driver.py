@@ -81,51 +81,61 @@ def pose_of(handle) -> np.ndarray:
 
 
 class _Stdout(io.StringIO):
-    """stdout that sets ``printed`` once ``text`` was written."""
+    """stdout that sets ``printed`` once ``text`` was written and flushed: what a script reading
+    the command's output through a pipe sees (block-buffered until flushed)."""
 
     def __init__(self, text: str):
         super().__init__()
         self.text, self.printed = text, threading.Event()
 
-    def write(self, s: str) -> int:
-        n = super().write(s)
+    def flush(self) -> None:
+        super().flush()
         if self.text in self.getvalue():
             self.printed.set()
-        return n
 
 
 def interrupt_once_printed(serve, text: str, signum: int = signal.SIGINT,
                            timeout_s: float = 30.0) -> str:
     """Call ``serve()`` in this thread (the main one, where Python runs signal handlers) and,
-    once it printed ``text`` on stdout, send this process ``signum`` (a user's Ctrl-C, or a
-    SIGTERM), from a job started in the background by a non-interactive shell (SIGINT and
-    SIGTERM ignored until the view installs its handlers). Returns what it printed; raises
-    TimeoutError when it had not returned ``timeout_s`` after the signal."""
+    once it printed and flushed ``text`` on stdout, send this process ``signum`` (a user's
+    Ctrl-C, or a SIGTERM), as to a job started in the background by a non-interactive shell
+    (SIGINT and SIGTERM ignored until the view installs its handlers). Returns what it printed;
+    raises TimeoutError when ``text`` did not come, or ``serve()`` did not return, within
+    ``timeout_s``."""
     out = _Stdout(text)
     watched = (signal.SIGINT, signal.SIGTERM, signal.SIGUSR1)
     saved = {s: signal.getsignal(s) for s in watched}
-    returned = threading.Event()
+    finished = threading.Event()  # serve() returned or raised: send nothing more
+    why = []
 
     def stuck(signum, frame):  # the watchdog's
-        raise TimeoutError(f"{text!r} was printed, but signal {signum} did not stop the view")
+        raise TimeoutError(f"{text!r}: {why[0]}")
 
     def send():
-        if out.printed.wait(timeout_s):
+        if not out.printed.wait(timeout_s):
+            why.append(f"not printed and flushed within {timeout_s} s")
+        elif finished.is_set():
+            return
+        else:
             os.kill(os.getpid(), signum)
-        if not returned.wait(timeout_s):
+            if finished.wait(timeout_s):
+                return
+            why.append(f"printed, but signal {signum} did not stop the view")
+        if not finished.is_set():
             signal.pthread_kill(threading.main_thread().ident, signal.SIGUSR1)
 
     stdout, sys.stdout = sys.stdout, out
+    sender = threading.Thread(target=send, daemon=True)
     try:
         signal.signal(signal.SIGINT, signal.SIG_IGN)
         signal.signal(signal.SIGTERM, signal.SIG_IGN)
         signal.signal(signal.SIGUSR1, stuck)
-        sender = threading.Thread(target=send, daemon=True)
         sender.start()
         serve()
-        returned.set()
-        sender.join(timeout=timeout_s)
     finally:
+        finished.set()
+        out.printed.set()  # a sender still waiting for the text gives up
+        sender.join(timeout=timeout_s)
         sys.stdout = stdout
         for s, handler in saved.items():
             signal.signal(s, handler)

@@ -125,7 +125,7 @@ def assert_cloth_shows(server, vertices: np.ndarray, colliding: np.ndarray | Non
     np.testing.assert_array_equal(node(server, "/cloth").vertices, vertices.astype(np.float32))
     dots = node(server, "/colliding")
     if colliding is None or not colliding.any():
-        assert not dots.visible
+        assert dots.visible is False
         return
     assert dots.visible
     # Exactly the colliding rows (stored at viser's float16 point precision), all red.
@@ -183,6 +183,12 @@ def test_collider_surface_through_the_client(world, monkeypatch):
     np.testing.assert_allclose(np.linalg.norm(verts, axis=1), RADIUS, atol=2e-3)
     coarse = collider_surface_via_client(client, info, resolution=12)
     assert len(coarse[1]) < len(faces) / 10
+    # Whatever the client asks by default: the surface asks for distances.
+    import collider_client as cc
+
+    _, _, _, _, root = world
+    with cc.Client(models=root / "models", device="cpu", fields=["collides"]) as collides_only:
+        np.testing.assert_array_equal(collider_surface_via_client(collides_only, info)[1], faces)
     # A domain that the surface does not cross: nothing to draw.
     outside = dataclasses.replace(info, domain_min=np.array([0.2, 0.2, 0.2]),
                                   domain_max=np.array([0.3, 0.3, 0.3]))
@@ -205,7 +211,7 @@ def test_cloth_view_draws_the_cloth_its_colliding_vertices_and_the_colliders(wor
     np.testing.assert_array_equal(cloth.faces, triangles(9, 9))
     assert tuple(cloth.color) == (70, 130, 200) and cloth.side == "double"
     dots = node(server, "/colliding")
-    assert not dots.visible and dots.point_shape == "circle"
+    assert dots.visible is False and dots.point_shape == "circle"
     assert dots.point_size == pytest.approx(2.5 * 0.02)
     ball = node(server, "/colliders/0_ball")
     assert tuple(ball.color) == (200, 200, 190) and ball.side == "double"
@@ -267,20 +273,28 @@ def test_colliders_are_named_by_their_place_in_the_scene(world, server):
     np.testing.assert_allclose(pose_of(node(server, "/colliders/1_ball")),
                                pose_function(second)(0.006), atol=1e-6)
     assert_ball_at(server, 0.006)
+    # A collider whose model the client does not have is left out, not the ones after it.
+    unknown = copy.deepcopy(two)
+    unknown.colliders[0].model = "no-such-model"
+    assert len(Colliders.add(server, unknown, client, infos).handles) == 1
 
 
 # -- the live controls ---------------------------------------------------------------------------
 
 
-def _live(world, server, total: int, paused: bool, clock_values, scene=None):
+def _live(world, server, total: int, paused: bool, clock_values, scene=None, colliders=True):
+    """Live controls on a view of ``scene`` (the ball's by default; ``colliders``: draw them)
+    and the simulator they drive; ``clock_values``: the wall times the controls read, in turn."""
     from collider_cli.views.cloth import ClothView, LiveControls
     from collider_client.sim.simulator import Simulator
 
     _, client, infos, ball_scene, _ = world
     scene = scene or ball_scene
-    view = ClothView(server, scene, rest_of(scene), client, infos)
+    view = ClothView(server, scene, rest_of(scene), *((client, infos) if colliders else ()))
     sim = Simulator(scene, client, infos)
-    controls = LiveControls(server, view, total, paused=paused, clock=iter(clock_values).__next__)
+    # paused None: LiveControls' default (running).
+    more = {} if paused is None else {"paused": paused}
+    controls = LiveControls(server, view, total, clock=iter(clock_values).__next__, **more)
     return controls, sim
 
 
@@ -294,7 +308,7 @@ def test_live_view_refreshes_at_most_every_tenth_of_a_second(world, server):
     last step always; the status gives the time per step since the last shown step; the
     colliders are drawn at the simulation's time."""
     # Wall times: start 0, then steps 1..4 at 0.05, 0.1, 0.15, 0.16 s.
-    controls, sim = _live(world, server, 4, False, [0.0, 0.05, 0.1, 0.15, 0.16])
+    controls, sim = _live(world, server, 4, None, [0.0, 0.05, 0.1, 0.15, 0.16])  # not paused
     assert controls.play.label == "pause" and controls.step.label == "step"
     first = status(0, 4, 0.0, "-", 0)
     assert controls.status.content == first
@@ -325,35 +339,35 @@ def test_live_view_refreshes_at_most_every_tenth_of_a_second(world, server):
 
 
 def test_live_view_paused_steps_one_at_a_time(world, server):
-    """Started paused: every step is shown; "step" lets exactly one more run, "play" lets it go
-    on; time spent paused is not counted in the time per step."""
+    """Started paused: every step is shown, however soon after the last; "step" lets exactly
+    one more run, "play" lets it go on; time spent paused is not counted in the time per step."""
     # Wall times: start 0; step 1 at 1 s, resumed at 101 s (paused 100 s); step 2 at 101.01 s,
-    # resumed at 101.02 s; step 3 at 101.04 s.
-    controls, sim = _live(world, server, 3, True, [0.0, 1.0, 101.0, 101.01, 101.02, 101.04])
+    # resumed at 101.02 s; step 3 at 101.03 s (0.02 s after the last shown), resumed at
+    # 101.04 s; step 4 at 101.06 s.
+    clock = [0.0, 1.0, 101.0, 101.01, 101.02, 101.03, 101.04, 101.06]
+    controls, sim = _live(world, server, 4, True, clock)
     assert controls.play.label == "play"
-    click(controls.step)  # pressed before the step: the run goes one step, then waits
-    sim.step()
-    controls.on_step(sim, 1)
-    assert controls.status.content == status(1, 3, DT, "1000.00 ms", int(sim.colliding.sum()))
-    assert_cloth_shows(server, sim.vertices, sim.colliding)
-    assert controls.play.label == "play"
-    click(controls.step)
-    sim.step()
-    controls.on_step(sim, 2)
-    assert controls.status.content == status(2, 3, 2 * DT, "10.00 ms", int(sim.colliding.sum()))
-    assert_ball_at(server, 2 * DT)
+    times = {1: "1000.00 ms", 2: "10.00 ms", 3: "10.00 ms"}
+    for i in (1, 2, 3):
+        click(controls.step)  # pressed before the step: the run goes one step, then waits
+        sim.step()
+        controls.on_step(sim, i)
+        assert controls.status.content == status(i, 4, i * DT, times[i], int(sim.colliding.sum()))
+        assert_cloth_shows(server, sim.vertices, sim.colliding)
+        assert_ball_at(server, i * DT)
+        assert controls.play.label == "play"
     click(controls.play)
     assert controls.play.label == "pause"
     sim.step()
-    controls.on_step(sim, 3)
-    assert controls.status.content == status(3, 3, 3 * DT, "20.00 ms", int(sim.colliding.sum()))
+    controls.on_step(sim, 4)
+    assert controls.status.content == status(4, 4, 4 * DT, "20.00 ms", int(sim.colliding.sum()))
     assert controls.play.label == "finished"
 
 
 def test_live_view_blocks_the_run_while_paused(world, server):
     """The simulator's thread waits in ``on_step`` while paused, until "step" or "play"; "step"
     while running pauses the run after one more step."""
-    controls, sim = _live(world, server, 5, True, [float(i) for i in range(20)])
+    controls, sim = _live(world, server, 5, True, [float(i) for i in range(20)], colliders=False)
     steps: list[int] = []
     resumed = {i: threading.Event() for i in range(1, 6)}
 
@@ -377,6 +391,38 @@ def test_live_view_blocks_the_run_while_paused(world, server):
         click(controls.play)
     assert resumed[5].wait(30)
     assert steps == [1, 2, 3, 4, 5] and controls.play.label == "finished"
+
+
+def test_live_view_pause_after_play_holds(world, server):
+    """"play" while the run is busy (nobody waiting), then "pause": the run stops at its next
+    step, whether or not "step" was pressed before; paused at the last step, the run ends."""
+    controls, sim = _live(world, server, 5, True, [float(i) for i in range(20)], colliders=False)
+
+    def held(i: int) -> None:  # step i, paused: held until "step"
+        sim.step()
+        returned = threading.Event()
+        threading.Thread(target=lambda: (controls.on_step(sim, i), returned.set()),
+                         daemon=True).start()
+        assert not returned.wait(0.3), f"step {i} went through a pause"
+        click(controls.step)
+        assert returned.wait(30)
+
+    click(controls.play)  # the run is not waiting: nobody takes this wake-up now
+    sim.step()
+    controls.on_step(sim, 1)
+    click(controls.play)  # pause
+    assert controls.play.label == "play"
+    held(2)  # and "step" ran it: the next pause must hold as well
+    click(controls.play)
+    sim.step()
+    controls.on_step(sim, 3)
+    click(controls.play)
+    held(4)
+    sim.step()
+    returned = threading.Event()
+    threading.Thread(target=lambda: (controls.on_step(sim, 5), returned.set()), daemon=True).start()
+    assert returned.wait(30)  # the last step, paused: the run ends, nothing to wait for
+    assert controls.play.label == "finished"
 
 
 def test_live_view_of_a_scene_without_colliders(world, server, tmp_path):
@@ -434,6 +480,32 @@ def test_replay_shows_every_frame_at_its_time(world, run):
         page.server.stop()
 
 
+def test_replay_times_without_the_runs_report(world, run, tmp_path):
+    """Without the run's report (a run stopped early writes none), or with one of another run
+    (another frame count) or unreadable: frame k at step k * frame_every."""
+    import shutil
+
+    from collider_cli.views.cloth import serve_replay
+
+    _, client, infos, scene, _ = world
+    prefix, frames, _ = run
+    reports = {"none": None, "other": '{"frames": 7, "steps": 30}', "unreadable": "{frames: 4",
+               "float": '{"frames": 4, "steps": 12.5}'}
+    for name, report in reports.items():
+        for suffix in (".obj", ".pc2"):
+            shutil.copy(prefix.parent / f"ball.rising{suffix}", tmp_path / f"{name}{suffix}")
+        if report is not None:
+            (tmp_path / f"{name}.report.json").write_text(report)
+        page = serve_replay(tmp_path / name, "127.0.0.1", 0, scene, client, infos)
+        try:
+            page.slider.value = 3
+            assert page.status.content == "**frame 3 / 3**, t = 0.0150 s", name
+            assert_ball_at(page.server, 15 * DT)
+            assert_cloth_shows(page.server, frames[3], None)
+        finally:
+            page.server.stop()
+
+
 def test_replay_plays_and_pauses(run):
     from collider_cli.views.cloth import serve_replay
 
@@ -465,8 +537,10 @@ def test_replay_without_its_scene(run):
     from collider_cli.views.cloth import serve_replay, triangles
 
     prefix, frames, _ = run
-    page = serve_replay(prefix, "127.0.0.1", 0)
+    port = free_port()
+    page = serve_replay(prefix, "127.0.0.1", port)
     try:
+        assert page.server.get_port() == port
         assert page.status.content == "**frame 0 / 3**"
         np.testing.assert_array_equal(node(page.server, "/cloth").faces, triangles(9, 9))
         assert page.server.scene.get_handle_by_name("/colliders/0_ball") is None
@@ -478,15 +552,32 @@ def test_replay_without_its_scene(run):
         page.server.stop()
 
 
-def test_replay_serves_until_ctrl_c(run, capsys):
-    from collider_cli.views.cloth import replay
+def test_replay_command_serves_until_ctrl_c(world, run, capsys):
+    """``collider view --replay OUT/NAME --scene FILE``, in process: it prints the URL of the
+    port asked for and serves until Ctrl-C, then stops cleanly with status 0."""
+    from collider_cli import main
 
+    _, _, _, _, root = world
     prefix, _, _ = run
-    printed = interrupt_once_printed(lambda: replay(prefix, "127.0.0.1", 0), "(Ctrl-C to stop)")
-    (line,) = [line for line in printed.splitlines() if line.startswith("replaying")]
-    assert re.fullmatch(rf"replaying 4 frames of {re.escape(str(prefix))} at "
-                        r"http://127\.0\.0\.1:\d+/  \(Ctrl-C to stop\)", line), line
+    port = free_port()
+    status = []
+    printed = interrupt_once_printed(
+        lambda: status.append(main(["view", "--replay", str(prefix), "--scene",
+                                    str(root / "ball.rising.toml"), "--models",
+                                    str(root / "models"), "--port", str(port)])),
+        "(Ctrl-C to stop)")
+    assert (f"replaying 4 frames of {prefix} at http://127.0.0.1:{port}/  (Ctrl-C to stop)\n"
+            in printed)
+    assert status == [0]
     assert capsys.readouterr().err.endswith("view stopped\n")
+
+
+def free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
 
 
 def test_replay_reads_the_pc2_frames(run):
@@ -498,6 +589,20 @@ def test_replay_reads_the_pc2_frames(run):
     assert read.shape == (4, 81, 3) and read.dtype == np.float32
     np.testing.assert_array_equal(read, read_pc2(prefix.parent / "ball.rising.pc2"))
     np.testing.assert_array_equal(read[3], frames[3])
+    assert not read.flags.writeable  # the view cannot change the run's output
+
+
+def test_pc2_frames_of_any_size(tmp_path):
+    from collider_cli.views.cloth import _pc2_frames
+
+    one = np.array([[[1.0, 2.0, 3.0]], [[4.0, 5.0, 6.0]]], np.float32)  # 2 frames of 1 point
+    _pc2(tmp_path / "one.pc2", 1, 2, one.tobytes())
+    np.testing.assert_array_equal(_pc2_frames(tmp_path / "one.pc2"), one)
+    for name, points, samples, shape in (("empty", 81, 0, (0, 81, 3)), ("none", 0, 2, (0, 0, 3)),
+                                         ("negative", -4, 2, (0, 0, 3))):
+        _pc2(tmp_path / f"{name}.pc2", points, samples)
+        read = _pc2_frames(tmp_path / f"{name}.pc2")
+        assert read.shape == shape and read.dtype == np.float32, name
 
 
 def _pc2(path, points: int, samples: int, data: bytes = b"", magic: bytes = b"POINTCACHE2\0"):
@@ -558,6 +663,10 @@ def test_replay_needs_a_cloth_grid_without_its_scene(run, tmp_path):
         assert str(err.value) == (f"{tmp_path / (name + '.obj')}: not a cloth grid written by "
                                   "`collider simulate`")
     (tmp_path / "grid.obj").write_text("# a 3 x 2 grid\nv 0 0 0\nf 1 2 5 4\nf 2 3 6 5\n")
+    from collider_cli.views.cloth import _grid_from_obj
+
+    size = _grid_from_obj(tmp_path / "grid.obj", 6)
+    assert size == (3, 2) and all(type(v) is int for v in size)
     _pc2(tmp_path / "grid.pc2", 6, 1, frame.tobytes())
     page = serve_replay(tmp_path / "grid", "127.0.0.1", 0)
     try:

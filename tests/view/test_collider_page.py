@@ -10,6 +10,8 @@ click ray). Collider frame throughout.
 
 from __future__ import annotations
 
+import socket
+
 import numpy as np
 import pytest
 
@@ -45,24 +47,31 @@ def brick():
     return _cm_collider(trimesh.creation.box(extents=(10.0, 10.0, 10.0)), "brick")
 
 
-def _serve(collider, mesh, **options):
+def _serve(collider, mesh, port: int = 0, **options):
     from collider_cli.views.collider import serve_collider_view
 
-    page = serve_collider_view(collider, mesh, host="127.0.0.1", port=0, show_progress=False,
-                               **options)
+    page = serve_collider_view(collider, mesh, host="127.0.0.1", port=port, **options)
     # What the page showed before anyone touched it.
     first = {"status": page.status.content, "probe_out": page.probe_out.content,
              "surface": glb_mesh(page.server, "/surface")}
     return page, first
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture
 def ball_page(ball):
-    """The ball's page with its mesh (error colours), 16^3 grid, +y up."""
+    """The ball's page with its mesh (error colours), 16^3 grid, +y up. One per test (a few
+    tenths of a second): mutation testing runs a mutant against the tests that build the page
+    in them, not those that found one built."""
     mesh, collider = ball
-    page, first = _serve(collider, mesh, resolution=16, up="+y")
+    page, first = _serve(collider, mesh, resolution=16, up="+y", show_progress=False)
     yield page, first
     page.server.stop()
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
 
 
 def diverging(error_mm: np.ndarray, clip_mm: float) -> np.ndarray:
@@ -142,8 +151,8 @@ def test_collider_grid_and_its_limits(ball, capsys):
     assert grid.values[0, 0, 0] == pytest.approx(
         float(collider.query(corner[None], ["distance"]).distance[0]))
     assert capsys.readouterr().err == ""
-    collider_grid(collider, 8, show_progress=True)
-    assert "ball grid" in capsys.readouterr().err  # the progress bar, named
+    collider_grid(collider, 8)
+    assert "ball grid" in capsys.readouterr().err  # by default, the progress bar, named
     for bad in (7, 513, 0):
         with pytest.raises(ValueError, match=rf"^--resolution must be between 8 and 512, got {bad}$"):
             collider_grid(collider, bad)
@@ -189,6 +198,29 @@ def first_hit(mesh, origin, direction) -> np.ndarray:
     return origin + s[hits].min() * direction
 
 
+def test_sphere_trace_stops_at_the_first_step_within_tolerance(brick):
+    """Marching at 60 degrees to the cube's top face: each step halves the distance (by hand:
+    d_k = 0.9 / 2^k from 0.9 cm above it), and the march stops at the first point closer than
+    1e-5 of the domain's size (12 cm): d_13 = 1.1e-4 cm < 1.2e-4 cm < d_12."""
+    import warnings
+
+    from collider_cli.views.collider import sphere_trace
+
+    _, collider = brick
+    origin = np.array([-4.0, 0.0, 5.9])  # inside the domain, above the top face (z = 5)
+    direction = np.array([np.sin(np.pi / 3), 0.0, -0.5])
+    travelled = 0.9 * (2 - 2.0 ** -12)  # d_0 + ... + d_12
+    expected = origin + travelled * direction
+    assert expected[2] - 5.0 == pytest.approx(0.9 / 2 ** 13)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # an axis-parallel ray divides by zero quietly
+        np.testing.assert_allclose(sphere_trace(collider, origin, direction), expected, atol=1e-5)
+        # 14 distance queries: d_0 .. d_13.
+        np.testing.assert_allclose(sphere_trace(collider, origin, direction, max_steps=14),
+                                   expected, atol=1e-5)
+        assert sphere_trace(collider, origin, direction, max_steps=13) is None
+
+
 def test_sphere_trace_stops_within_its_tolerance(ball):
     """On a curved surface the march stops within 1e-5 of the domain's size before it."""
     from collider_cli.views.collider import sphere_trace
@@ -223,6 +255,10 @@ def test_probe_text(brick):
     assert fields["normal"].dtype == np.float64 and fields["contact"].dtype == np.float64
     text, _ = probe_text(collider, np.array([0.0, 0.0, 6.0]), eps=0.25)
     assert text.endswith("collides **False** (eps 2.5 mm)")
+    # 2 mm above the face: outside the default eps (1 mm), inside 2.5 mm.
+    text, fields = probe_text(collider, np.array([0.0, 0.0, 5.2]), eps=0.25)
+    assert fields["collides"] is True and text.endswith("collides **True** (eps 2.5 mm)")
+    np.testing.assert_allclose(fields["contact"], [0.0, 0.0, 5.25], atol=1e-6)
 
 
 # -- the page ------------------------------------------------------------------------------------
@@ -245,7 +281,8 @@ def test_page_title_label_controls_and_camera(ball, ball_page):
     assert page.probe_point.hint == "collider frame, cm; or click the surface"
     assert page.probe_button.label == "query probe"
     assert first["probe_out"] == "click the surface or type a point"
-    assert page.show_wire.label == "exact mesh wireframe"
+    assert page.show_wire.label == "exact mesh wireframe" and page.show_wire.value is False
+    assert node(server, "/exact_mesh").visible is False
     # The domain box (collider frame), and the camera framing it with +y up.
     lo, hi = collider.domain_min, collider.domain_max
     np.testing.assert_allclose([lo, hi], [[-12.0] * 3, [12.0] * 3])
@@ -376,11 +413,15 @@ def test_click_the_surface_probes_where_the_ray_hits(ball, ball_page):
     np.testing.assert_array_equal(node(page.server, "/probe/points").points, before)
 
 
-def test_page_without_mesh_is_plain(ball):
-    """Without the exact mesh: one plain colour, no error figures, no colour bar, no wireframe."""
+def test_page_without_mesh_is_plain(ball, capsys):
+    """Without the exact mesh: one plain colour, no error figures, no colour bar, no wireframe.
+    On the address and port asked for, quietly (a loopback address)."""
     _, collider = ball
-    page, first = _serve(collider, None, resolution=8)
+    port = free_port()
+    page, first = _serve(collider, None, port=port, resolution=8, show_progress=False)
     try:
+        assert (page.server.get_host(), page.server.get_port()) == ("127.0.0.1", port)
+        assert capsys.readouterr().err == ""  # no warning, no progress bar
         verts, faces = expected_surface(collider, 8, 0.0)
         assert first["status"] == f"surface at level 0 mm: {len(faces):,} triangles"
         colours = first["surface"].visual.vertex_colors
@@ -395,12 +436,13 @@ def test_page_without_mesh_is_plain(ball):
         page.server.stop()
 
 
-def test_page_with_a_given_colour_scale(ball):
+def test_page_with_a_given_colour_scale(ball, capsys):
     from collider_cli.views.collider import colour_bar_html
 
     mesh, collider = ball
     page, first = _serve(collider, mesh, resolution=8, clip_mm=0.5)
     try:
+        assert "ball grid" in capsys.readouterr().err  # by default, the grid's progress
         verts, _ = expected_surface(collider, 8, 0.0)
         np.testing.assert_array_equal(first["surface"].visual.vertex_colors[:, :3],
                                       diverging(exact_error_mm(mesh, verts, 0.0), 0.5))

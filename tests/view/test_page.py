@@ -41,6 +41,37 @@ def test_start_server_on_loopback(server, capsys):
     assert "warning" not in capsys.readouterr().err
 
 
+def test_start_server_where_asked_and_quiet_when_browsers_come_and_go(capsys):
+    """On the port asked for (127.0.0.1 unless told), the documented default port being 8080;
+    a browser connecting and leaving prints nothing (stdout carries the URL for scripts)."""
+    import inspect
+
+    import viser
+    from websockets.sync.client import connect
+
+    from collider_cli.views.page import start_server
+
+    assert inspect.signature(start_server).parameters["port"].default == 8080
+    port = free_port()
+    server = start_server(port=port)
+    try:
+        assert (server.get_host(), server.get_port()) == ("127.0.0.1", port)
+        capsys.readouterr()
+        # As viser's web client connects: its version as the websocket subprotocol.
+        with connect(f"ws://127.0.0.1:{port}", subprotocols=[f"viser-v{viser.__version__}"],
+                     open_timeout=30) as browser:
+            assert browser.recv(timeout=30)  # the page's first message
+    finally:
+        server.stop()
+    assert "Connection" not in capsys.readouterr().out
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
 @pytest.mark.parametrize("host", ["0.0.0.0", "::"])
 def test_start_server_beyond_this_machine_warns(host, capsys):
     """Listening on every interface works, warns once on stderr naming the address and port,

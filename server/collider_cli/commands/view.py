@@ -101,7 +101,8 @@ def run_replay(args: argparse.Namespace) -> int:
     from collider_client import Client
     from collider_client.sim.scene import SCENES_DIR, load_scene, resolve_scene
 
-    from ..views.cloth import replay
+    from ..views.cloth import serve_replay
+    from ..views.page import url_of, wait_until_interrupted
 
     prefix = args.replay
     if prefix.suffix in (".obj", ".pc2"):
@@ -115,7 +116,9 @@ def run_replay(args: argparse.Namespace) -> int:
         if scene is not None and scene.colliders:
             client = Client(models=args.models, device=args.device)
             infos = {m.name: m for m in client.list_models()}
-        replay(prefix, args.host, args.port, scene, client, infos)
+        page = serve_replay(prefix, args.host, args.port, scene, client, infos)
+        wait_until_interrupted(page.server, f"replaying {len(page.frames)} frames of {prefix} at "
+                                            f"{url_of(page.server)}  (Ctrl-C to stop)")
     finally:
         if client is not None:
             client.close()

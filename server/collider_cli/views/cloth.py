@@ -1,5 +1,5 @@
 """The browser view of a cloth run: live (``collider simulate --view``) or replayed from its
-OBJ + PC2 output (``collider view --replay out/SCENE``).
+OBJ + PC2 output (``collider view --replay out/SCENE``: :func:`serve_replay`).
 
 Built on viser (optional extra ``[view]``; imported only here, when a view is asked for): one
 process serves the page and its web client (shipped inside the viser wheel, nothing is fetched),
@@ -25,7 +25,7 @@ from collider_client.sim.motion import pose_function
 from collider_client.sim.scene import Scene
 from collider_server.making.surface import distance_grid, level_surface
 
-from .page import look_at_box, start_server, url_of, wait_until_interrupted
+from .page import look_at_box, start_server
 
 CLOTH_COLOR = (70, 130, 200)
 COLLIDER_COLOR = (200, 200, 190)
@@ -214,14 +214,6 @@ class ReplayPage:
     slider: object  # the frame shown
     play: object  # play / pause
     status: object  # markdown: the frame and its time
-
-
-def replay(out_prefix: Path, host: str, port: int, scene: Scene | None = None, client=None,
-           infos=None) -> None:
-    """Serve a view of a finished run (:func:`serve_replay`) until Ctrl-C."""
-    page = serve_replay(out_prefix, host, port, scene, client, infos)
-    wait_until_interrupted(page.server, f"replaying {len(page.frames)} frames of {out_prefix} at "
-                                        f"{url_of(page.server)}  (Ctrl-C to stop)")
 
 
 def serve_replay(out_prefix: Path, host: str, port: int, scene: Scene | None = None, client=None,
