@@ -1,12 +1,10 @@
-"""The browser views' geometry and controls without a browser: the level surface of a collider,
-its error colours, the probe and the click ray, the live controls' play / pause / step, and the
-command's errors. Sphere of radius 0.1 m (exact ``mesh`` collider), collider frame = world frame.
+"""The browser views' geometry without a browser: the level surface of a collider, its error
+colours, the probe and the click ray, and the command's errors. Sphere of radius 0.1 m (exact
+``mesh`` collider), collider frame = world frame. The pages themselves: test_page.py,
+test_collider_page.py, test_cloth_page.py (in process) and test_browser.py (in Chromium).
 """
 
 from __future__ import annotations
-
-import threading
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -67,50 +65,6 @@ def test_probe_and_click_ray(sphere):
     assert "0.5" in text and "collides **True**" in text
 
 
-class _Handle(SimpleNamespace):
-    """A viser GUI handle's surface the controls use (label, disabled, content, on_click): the
-    clicks come from the test instead of a browser."""
-
-    def on_click(self, fn):
-        self.click = fn
-
-
-def _controls(total: int, paused: bool):
-    from collider_cli.views.cloth import LiveControls
-
-    shown = []
-    view = SimpleNamespace(show=lambda v, t, c: shown.append(t))
-    gui = SimpleNamespace(add_button=lambda label: _Handle(label=label),
-                          add_markdown=lambda text: _Handle(content=text))
-    controls = LiveControls(SimpleNamespace(gui=gui), view, total, refresh_s=1e9, paused=paused)
-    return controls, shown
-
-
-def test_live_controls_pause_step_and_play():
-    controls, shown = _controls(total=10, paused=True)
-    sim = SimpleNamespace(vertices=np.zeros((4, 3)), t=0.0, colliding=np.array([1, 0, 0, 1], bool))
-    done = threading.Event()
-    finished = []
-
-    def run():  # the simulator's loop, in its own thread as in `collider simulate --view`
-        for i in range(1, 11):
-            sim.t = i * 0.1
-            controls.on_step(sim, i)
-            finished.append(i)
-        done.set()
-
-    worker = threading.Thread(target=run, daemon=True)
-    worker.start()
-    # Started paused: the loop waits after step 1 until "step" (one more step) or "play".
-    controls.step.click(None)
-    controls.step.click(None)
-    controls.play.click(None)  # play: the run goes to the end
-    assert done.wait(timeout=60)
-    assert finished == list(range(1, 11))
-    assert "step 10 / 10" in controls.status.content and "colliding vertices: 2" in controls.status.content
-    assert controls.play.label == "finished"
-
-
 def test_view_command_errors(capsys):
     from collider_cli import main
 
@@ -120,28 +74,6 @@ def test_view_command_errors(capsys):
     pytest.importorskip("viser")
     assert main(["view", "--replay", "no/such/run"]) == 2
     assert "no/such/run.obj: no such file" in capsys.readouterr().err
-
-
-def test_view_address_warning(capsys):
-    from collider_cli.net import is_loopback
-    from collider_cli.views.page import start_server
-
-    assert is_loopback("127.0.0.1") and is_loopback("::1") and is_loopback("localhost")
-    assert not is_loopback("0.0.0.0") and not is_loopback("192.168.1.2")
-    pytest.importorskip("viser")
-    server = start_server("127.0.0.1", _free_port())
-    try:
-        assert "warning" not in capsys.readouterr().err
-    finally:
-        server.stop()
-
-
-def _free_port() -> int:
-    import socket
-
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 @pytest.mark.parametrize("flags, up", [([], "+y"), (["--fit-size", "0.3"], "+y"),

@@ -89,11 +89,11 @@ def run_collider_view(args: argparse.Namespace) -> int:
             print(f"collider view: warning: {args.mesh} is not the mesh {collider.info.name} was "
                   "made from (sha256 differs)", file=sys.stderr)
     up = args.up or view_up(stored)
-    server = serve_collider_view(collider, mesh, host=args.host, port=args.port,
-                                 resolution=args.resolution, up=up, clip_mm=args.clip_mm,
-                                 show_progress=not args.quiet)
-    wait_until_interrupted(server, f"view of {collider.info.name} at {url_of(server)}  "
-                                   "(Ctrl-C to stop)")
+    page = serve_collider_view(collider, mesh, host=args.host, port=args.port,
+                               resolution=args.resolution, up=up, clip_mm=args.clip_mm,
+                               show_progress=not args.quiet)
+    wait_until_interrupted(page.server, f"view of {collider.info.name} at {url_of(page.server)}  "
+                                        "(Ctrl-C to stop)")
     return 0
 
 
@@ -110,7 +110,8 @@ def run_replay(args: argparse.Namespace) -> int:
     from collider_client import Client
     from collider_client.sim.scene import SCENES_DIR, load_scene, resolve_scene
 
-    from ..views.cloth import replay
+    from ..views.cloth import serve_replay
+    from ..views.page import url_of, wait_until_interrupted
 
     prefix = args.replay
     if prefix.suffix in (".obj", ".pc2"):
@@ -124,7 +125,9 @@ def run_replay(args: argparse.Namespace) -> int:
         if scene is not None and scene.colliders:
             client = Client(models=args.models, device=args.device)
             infos = {m.name: m for m in client.list_models()}
-        replay(prefix, args.host, args.port, scene, client, infos)
+        page = serve_replay(prefix, args.host, args.port, scene, client, infos)
+        wait_until_interrupted(page.server, f"replaying {len(page.frames)} frames of {prefix} at "
+                                            f"{url_of(page.server)}  (Ctrl-C to stop)")
     finally:
         if client is not None:
             client.close()

@@ -1,5 +1,5 @@
 """The browser view of a cloth run: live (``collider simulate --view``) or replayed from its
-OBJ + PC2 output (``collider view --replay out/SCENE``).
+OBJ + PC2 output (``collider view --replay out/SCENE``: :func:`serve_replay`).
 
 Built on viser (optional extra ``[view]``; imported only here, when a view is asked for): one
 process serves the page and its web client (shipped inside the viser wheel, nothing is fetched),
@@ -11,6 +11,7 @@ by its pose at the shown time).
 
 from __future__ import annotations
 
+import json
 import threading
 import time
 from dataclasses import dataclass
@@ -24,7 +25,7 @@ from collider_client.sim.motion import pose_function
 from collider_client.sim.scene import Scene
 from collider_server.making.surface import distance_grid, level_surface
 
-from .page import look_at_box, start_server, url_of, wait_until_interrupted
+from .page import look_at_box, start_server
 
 CLOTH_COLOR = (70, 130, 200)
 COLLIDER_COLOR = (200, 200, 190)
@@ -133,19 +134,20 @@ class LiveControls:
 
     :meth:`on_step` is the simulator's per-step callback (``run_scene(on_step=...)``): it
     refreshes the view at most every ``refresh_s`` seconds of wall time (and on every step while
-    paused, and at the last step) and blocks while the run is paused.
+    paused, and at the last step) and blocks while the run is paused. ``clock``: wall time in
+    seconds (``time.perf_counter``; a test passes its own).
     """
 
     def __init__(self, server, view: ClothView, total_steps: int, refresh_s: float = 0.1,
-                 paused: bool = False):
-        self.view, self.total, self.refresh_s = view, total_steps, refresh_s
+                 paused: bool = False, clock=time.perf_counter):
+        self.view, self.total, self.refresh_s, self.clock = view, total_steps, refresh_s, clock
         self._running = threading.Event()
         if not paused:
             self._running.set()
         self._step_once = False
         self._wake = threading.Event()  # set by "play" and "step": the paused run looks again
         self._last_step = 0
-        self._last_time = self._shown = time.perf_counter()
+        self._last_time = self._shown = clock()
         gui = server.gui
         self.play = gui.add_button("pause" if not paused else "play")
         self.step = gui.add_button("step")
@@ -176,7 +178,7 @@ class LiveControls:
 
     def on_step(self, sim, i: int) -> None:
         paused = not self._running.is_set()
-        now = time.perf_counter()
+        now = self.clock()
         if now - self._shown >= self.refresh_s or i == self.total or paused:
             ms = 1e3 * (now - self._last_time) / max(i - self._last_step, 1)
             colliding = sim.colliding
@@ -189,7 +191,7 @@ class LiveControls:
         if i < self.total and not self._running.is_set():
             self._wait_if_paused()
             # Time spent paused is not a step's time.
-            self._last_step, self._last_time = i, time.perf_counter()
+            self._last_step, self._last_time = i, self.clock()
 
     def _wait_if_paused(self) -> None:
         while not self._running.is_set():
@@ -200,11 +202,28 @@ class LiveControls:
                 return
 
 
-def replay(out_prefix: Path, host: str, port: int, scene: Scene | None = None, client=None,
-           infos=None) -> None:
-    """Serve a view of a finished run: ``out_prefix``.obj (first frame, quads) and .pc2 (every
-    frame), with a frame slider and play/pause; the scene's colliders when ``scene`` is given."""
-    obj, pc2 = out_prefix.with_suffix(".obj"), out_prefix.with_suffix(".pc2")
+@dataclass
+class ReplayPage:
+    """The replay of a finished run: its started viser server, the cloth view and the controls
+    on its page (viser GUI handles: a click in the browser calls their callbacks, and so can a
+    test)."""
+
+    server: object
+    view: ClothView
+    frames: np.ndarray  # (frames, W*H, 3) float32, metres, world frame
+    slider: object  # the frame shown
+    play: object  # play / pause
+    status: object  # markdown: the frame and its time
+
+
+def serve_replay(out_prefix: Path, host: str, port: int, scene: Scene | None = None, client=None,
+                 infos=None) -> ReplayPage:
+    """The started view of a finished run: ``out_prefix``.obj (first frame, quads) and .pc2
+    (every frame), with a frame slider and play/pause; the scene's colliders when ``scene`` is
+    given (placed at each frame's time)."""
+    # The prefix's name plus a suffix, not with_suffix: a scene named "a.b" writes a.b.obj.
+    obj, pc2, report = (out_prefix.parent / f"{out_prefix.name}{suffix}"
+                        for suffix in (".obj", ".pc2", ".report.json"))
     for path in (obj, pc2):
         if not path.is_file():
             raise FileNotFoundError(f"{path}: no such file (run `collider simulate` first; "
@@ -212,8 +231,7 @@ def replay(out_prefix: Path, host: str, port: int, scene: Scene | None = None, c
     frames = _pc2_frames(pc2)
     if len(frames) == 0:
         raise ValueError(f"{pc2}: holds no frames")
-    # Frame k was written at step k * frame_every (the last one may be the run's final step).
-    interval_s = scene.dt_s * scene.frame_every if scene is not None else None
+    times = _frame_times(scene, len(frames), report) if scene is not None else None
     if scene is None:
         width, height = _grid_from_obj(obj, frames.shape[1])
         scene = _bare_scene(width, height)
@@ -227,9 +245,9 @@ def replay(out_prefix: Path, host: str, port: int, scene: Scene | None = None, c
 
     def show(_=None):
         k = int(slider.value)
-        t = k * interval_s if interval_s else 0.0
+        t = float(times[k]) if times is not None else 0.0
         view.show(frames[k], t, None)
-        when = f", t = {t:.4f} s" if interval_s else ""
+        when = f", t = {t:.4f} s" if times is not None else ""
         status.content = f"**frame {k} / {len(frames) - 1}**{when}"
 
     def toggle(_):
@@ -251,8 +269,22 @@ def replay(out_prefix: Path, host: str, port: int, scene: Scene | None = None, c
             time.sleep(1.0 / 30)  # playback pace: 30 frames per second of wall time
 
     threading.Thread(target=player, daemon=True).start()
-    wait_until_interrupted(server, f"replaying {len(frames)} frames of {out_prefix} at "
-                                   f"{url_of(server)}  (Ctrl-C to stop)")
+    return ReplayPage(server, view, frames, slider, play, status)
+
+
+def _frame_times(scene: Scene, count: int, report: Path) -> np.ndarray:
+    """(count,) seconds at which a run of ``scene`` wrote its frames: frame k at step
+    k * frame_every, the last one at the run's last step, which the run's report gives (a run
+    of --steps that are no multiple of frame_every). A report of another run (another frame
+    count: one stopped early, or an older one) is not used."""
+    steps = np.arange(count) * scene.frame_every
+    try:
+        done = json.loads(report.read_text())
+    except (OSError, ValueError):  # no report: a run stopped early ends on a whole frame
+        done = {}
+    if done.get("frames") == count and isinstance(done.get("steps"), int):
+        steps[-1] = done["steps"]
+    return steps * scene.dt_s
 
 
 def _pc2_frames(path: Path) -> np.ndarray:
@@ -266,8 +298,12 @@ def _pc2_frames(path: Path) -> np.ndarray:
     if len(header) < 32 or header[:12] != PC2_MAGIC:
         raise ValueError(f"{path}: not a PC2 file")
     _, _, points, _, _, samples = struct.unpack("<12siiffi", header)
-    if samples == 0 or points == 0:
+    if samples <= 0 or points <= 0:
         return np.zeros((0, max(points, 0), 3), np.float32)
+    size, needed = path.stat().st_size, 32 + samples * points * 12
+    if size < needed:
+        raise ValueError(f"{path}: cut short: its header says {samples} frames of {points} "
+                         f"points ({needed} bytes), the file has {size} bytes")
     return np.memmap(path, dtype="<f4", mode="r", offset=32, shape=(samples, points, 3))
 
 

@@ -12,12 +12,14 @@ Everything is shown in the **collider frame and units** (identity pose):
   ``contact`` and ``collides``.
 
 The grid and the colours are plain functions (:func:`collider_grid`, :func:`level_surface`,
-:func:`error_colors`), testable without a browser; :func:`serve_collider_view` builds the scene.
+:func:`error_colors`), testable without a browser; :func:`serve_collider_view` builds the scene and
+returns its :class:`ColliderPage` (the server and the controls a user drives).
 """
 
 from __future__ import annotations
 
 import threading
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -113,11 +115,28 @@ def probe_text(collider: Collider, point: np.ndarray, eps: float) -> tuple[str, 
     return text, fields
 
 
+@dataclass
+class ColliderPage:
+    """The view of one collider: its started viser server and the controls on its page (viser
+    GUI handles: a click in the browser calls their callbacks, and so can a test)."""
+
+    server: object
+    title: object  # markdown: the collider, its units and the grid
+    level: object  # slider, mm: the level set shown
+    eps_button: object  # sets the level to eps
+    status: object  # markdown: what the surface is
+    bar: object | None  # html: the error colour bar (with a mesh)
+    show_wire: object | None  # checkbox: the exact mesh's wireframe (with a mesh)
+    probe_point: object  # vector3, collider frame and units
+    probe_button: object
+    probe_out: object  # markdown: the probe's answer
+
+
 def serve_collider_view(collider: Collider, mesh: Mesh | None, *, host: str, port: int,
                         resolution: int, up: str = "+z", clip_mm: float | None = None,
-                        show_progress: bool = True):
-    """Build the view of ``collider`` (``mesh`` placed in its frame, or None) and return the
-    started viser server; the caller serves until Ctrl-C."""
+                        show_progress: bool = True) -> ColliderPage:
+    """Build the view of ``collider`` (``mesh`` placed in its frame, or None) and return its
+    page, its server started; the caller serves until Ctrl-C."""
     grid = collider_grid(collider, resolution, show_progress)
     sdf = ExactSDF(mesh) if mesh is not None else None
     info = collider.info
@@ -130,7 +149,7 @@ def serve_collider_view(collider: Collider, mesh: Mesh | None, *, host: str, por
     scene, gui = server.scene, server.gui
     scene.add_line_segments("/domain", box_segments(lo, hi), BOX_COLOR,
                             thickness=1.5, thickness_units="screen")
-    gui.add_markdown(f"**{info.name}**: {info.kind} collider, {info.units} "
+    title = gui.add_markdown(f"**{info.name}**: {info.kind} collider, {info.units} "
                      f"({info.meters_per_unit:g} m per unit), collider frame; "
                      f"grid {resolution}^3 over the domain box")
     level = gui.add_slider("level (mm)", -10.0 * eps * mm, 10.0 * eps * mm, 0.05 * eps * mm, 0.0,
@@ -139,7 +158,7 @@ def serve_collider_view(collider: Collider, mesh: Mesh | None, *, host: str, por
     eps_button = gui.add_button(f"level = eps ({eps * mm:g} mm)")
     status = gui.add_markdown("")
     bar = gui.add_html("") if sdf is not None else None
-    wire = None
+    show_wire = None
     if mesh is not None:
         show_wire = gui.add_checkbox("exact mesh wireframe", False)
         wire = scene.add_mesh_simple("/exact_mesh", mesh.vertices.astype(np.float32),
@@ -206,4 +225,5 @@ def serve_collider_view(collider: Collider, mesh: Mesh | None, *, host: str, por
         probe(hit)
 
     draw_surface()
-    return server
+    return ColliderPage(server, title, level, eps_button, status, bar, show_wire, probe_point,
+                        probe_button, probe_out)

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import sys
 import threading
+import time
 
 import numpy as np
 
@@ -26,13 +27,14 @@ def require_viser():
 
 
 def start_server(host: str = "127.0.0.1", port: int = DEFAULT_PORT, label: str = "neural-collider"):
-    """A started ``viser.ViserServer`` on ``host:port``; warns on stderr when ``host`` is not a
+    """A started ``viser.ViserServer`` on ``host:port`` (viser takes the next free port when
+    ``port`` is taken: ``server.get_port()`` says which); warns on stderr when ``host`` is not a
     loopback address (the view has no authentication: anyone who reaches the port sees it)."""
     viser = require_viser()
-    if not is_loopback(host):
-        print(f"warning: the view listens on {host}: anyone who can reach port {port} can see "
-              "and drive it (no authentication)", file=sys.stderr)
     server = viser.ViserServer(host=host, port=port, label=label, verbose=False)
+    if not is_loopback(host):
+        print(f"warning: the view listens on {host}: anyone who can reach port "
+              f"{server.get_port()} can see and drive it (no authentication)", file=sys.stderr)
     server.scene.set_up_direction("+z")
     return server
 
@@ -55,9 +57,15 @@ def wait_until_interrupted(server, message: str) -> None:
     if threading.current_thread() is threading.main_thread():
         signal.signal(signal.SIGINT, stop)
         signal.signal(signal.SIGTERM, stop)
-    print(message, flush=True)
     try:
-        threading.Event().wait()
+        # Inside the try: a signal right after the message (a script that waits for it, then
+        # sends Ctrl-C) still stops the server. Short sleeps, not Event.wait(): Python runs a
+        # handler between bytecodes, so a signal that lands just before a blocking call waits
+        # for that call's end; and a KeyboardInterrupt raised inside Condition.wait's lock
+        # bookkeeping can leave it deadlocked.
+        print(message, flush=True)
+        while True:
+            time.sleep(0.2)
     except KeyboardInterrupt:
         pass
     finally:
