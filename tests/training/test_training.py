@@ -186,6 +186,24 @@ def test_train_then_eval_through_the_cli(sphere_mesh, tmp_path):
     assert accuracy["training_seconds"] > 0
 
 
+def test_train_with_a_budget_shows_steps_and_validation_and_says_what_the_budget_bought(sphere_mesh, tmp_path):
+    """No --steps: the run lasts its budget; the bar (stderr) shows the step count and the
+    current validation error, the closing line (stdout) the steps the budget bought."""
+    mesh_file = tmp_path / "ball.obj"
+    trimesh.Trimesh(sphere_mesh.vertices, sphere_mesh.faces).export(mesh_file)
+    result = run_cli("train", str(mesh_file), "--name", "ball", "--preset", "fast", "--samples", "5000",
+                     "--batch-size", "256", "--max-minutes", "0.05", "--models", str(tmp_path / "models"),
+                     "--checkpoint", str(tmp_path / "ball.ckpt.safetensors"), "--threads", "1")
+    assert result.returncode == 0, result.stderr
+    closing = result.stdout.splitlines()[0]
+    assert closing.startswith(f"wrote {tmp_path / 'models' / 'ball.safetensors'} (") and \
+        "the 0.05-minute budget bought " in closing and "best mean error in the +-1 mm band" in closing, closing
+    steps = int(closing.split("bought ")[1].split(" steps")[0].replace(",", ""))
+    assert steps > 20
+    bar = result.stderr.split("train ball")[-1]
+    assert "val±1mm 0." in bar and f"step {steps:,} (" in bar, result.stderr[-800:]
+
+
 def read_only_folder(tmp_path):
     """A folder no file can be created in, even by root (chmod is enough for other users)."""
     import os
