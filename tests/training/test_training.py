@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 import trimesh
 
-from collider_server.engine.meshes import Mesh
-from collider_server.making.evaluation import evaluate_collider
+from collider_server.engine.meshes import ExactSDF, Mesh
+from collider_server.making.evaluation import evaluate_collider, point_sets
 from collider_server.making.training import TrainConfig, train_neural
 
 SMALL = {"fourier_features": 16, "hidden_layers": 2, "hidden_width": 64, "fourier_scale": 1.0}
@@ -159,6 +159,33 @@ def test_evaluation_of_the_exact_kind_is_exact(sphere_mesh):
         assert report[key]["sign_errors_percent"] == 0.0
         assert report[key]["contact_p99_mm"] < 1e-3
     assert report["band_1mm"]["normal_p99_deg"] < 0.05  # float32 normals
+
+
+def test_evaluation_reports_the_points_near_holes_apart(analytic_shape):
+    """A sphere with its north cap cut off (a hole of ~31 mm radius) as the truth, measured with
+    the exact collider of the closed sphere: the two differ only near the hole, where the winding
+    number is ambiguous, so the figures without those points ("w clear") lose the large errors."""
+    from collider_server.making.bake import bake_collider
+    from collider_server.making.evaluation import CLEAR_WINDING, format_report
+
+    sphere = analytic_shape("sphere").mesh
+    centroids = sphere.vertices[sphere.faces].mean(axis=1)
+    open_mesh = Mesh(sphere.vertices, sphere.faces[centroids[:, 2] < 0.095], "open-sphere")
+    closed = bake_collider(sphere, "mesh", "closed", show_progress=False)
+    report = evaluate_collider(closed, open_mesh, points=4000, reconstruction=False, show_progress=False)
+    box = report["box"]
+    winding = ExactSDF(open_mesh).winding_number(point_sets(closed, open_mesh, 4000, 1234)["box"])
+    ambiguous = (winding >= CLEAR_WINDING[0]) & (winding <= CLEAR_WINDING[1])
+    assert box["ambiguous_winding_percent"] == pytest.approx(100 * ambiguous.mean()) and ambiguous.any()
+    assert box["clear_winding"]["points"] == 4000 - ambiguous.sum()
+    assert box["distance_max_mm"] > 10.0 and box["clear_winding"]["distance_max_mm"] < 0.3 * box["distance_max_mm"]
+    assert box["clear_winding"]["sign_errors_percent"] == 0
+    text = format_report("closed", "mesh", report)
+    assert "  w clear " in text and f"box {box['ambiguous_winding_percent']:.2f} %" in text
+    # A closed mesh has no hole: no "w clear" rows, 0 % ambiguous.
+    whole = evaluate_collider(closed, sphere, points=2000, reconstruction=False, show_progress=False)
+    assert whole["box"]["ambiguous_winding_percent"] == 0.0
+    assert "w clear" not in format_report("closed", "mesh", whole)
 
 
 def run_cli(*args, cwd=None):
