@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 import trimesh
 
-from collider_server.engine.meshes import Mesh
-from collider_server.making.evaluation import evaluate_collider
+from collider_server.engine.meshes import ExactSDF, Mesh
+from collider_server.making.evaluation import evaluate_collider, point_sets
 from collider_server.making.training import TrainConfig, train_neural
 
 SMALL = {"fourier_features": 16, "hidden_layers": 2, "hidden_width": 64, "fourier_scale": 1.0}
@@ -161,6 +161,33 @@ def test_evaluation_of_the_exact_kind_is_exact(sphere_mesh):
     assert report["band_1mm"]["normal_p99_deg"] < 0.05  # float32 normals
 
 
+def test_evaluation_reports_the_points_near_holes_apart(analytic_shape):
+    """A sphere with its north cap cut off (a hole of ~31 mm radius) as the truth, measured with
+    the exact collider of the closed sphere: the two differ only near the hole, where the winding
+    number is ambiguous, so the figures without those points ("w clear") lose the large errors."""
+    from collider_server.making.bake import bake_collider
+    from collider_server.making.evaluation import CLEAR_WINDING, format_report
+
+    sphere = analytic_shape("sphere").mesh
+    centroids = sphere.vertices[sphere.faces].mean(axis=1)
+    open_mesh = Mesh(sphere.vertices, sphere.faces[centroids[:, 2] < 0.095], "open-sphere")
+    closed = bake_collider(sphere, "mesh", "closed", show_progress=False)
+    report = evaluate_collider(closed, open_mesh, points=4000, reconstruction=False, show_progress=False)
+    box = report["box"]
+    winding = ExactSDF(open_mesh).winding_number(point_sets(closed, open_mesh, 4000, 1234)["box"])
+    ambiguous = (winding >= CLEAR_WINDING[0]) & (winding <= CLEAR_WINDING[1])
+    assert box["ambiguous_winding_percent"] == pytest.approx(100 * ambiguous.mean()) and ambiguous.any()
+    assert box["clear_winding"]["points"] == 4000 - ambiguous.sum()
+    assert box["distance_max_mm"] > 10.0 and box["clear_winding"]["distance_max_mm"] < 0.3 * box["distance_max_mm"]
+    assert box["clear_winding"]["sign_errors_percent"] == 0
+    text = format_report("closed", "mesh", report)
+    assert "  w clear " in text and f"box {box['ambiguous_winding_percent']:.2f} %" in text
+    # A closed mesh has no hole: no "w clear" rows, 0 % ambiguous.
+    whole = evaluate_collider(closed, sphere, points=2000, reconstruction=False, show_progress=False)
+    assert whole["box"]["ambiguous_winding_percent"] == 0.0
+    assert "w clear" not in format_report("closed", "mesh", whole)
+
+
 def run_cli(*args, cwd=None):
     return subprocess.run([sys.executable, "-m", "collider_cli", *args], capture_output=True,
                           text=True, cwd=cwd, timeout=300)
@@ -184,6 +211,24 @@ def test_train_then_eval_through_the_cli(sphere_mesh, tmp_path):
     accuracy = json.loads(info.stdout)["accuracy"]
     assert accuracy["band_1mm"]["points"] == 2000
     assert accuracy["training_seconds"] > 0
+
+
+def test_train_with_a_budget_shows_steps_and_validation_and_says_what_the_budget_bought(sphere_mesh, tmp_path):
+    """No --steps: the run lasts its budget; the bar (stderr) shows the step count and the
+    current validation error, the closing line (stdout) the steps the budget bought."""
+    mesh_file = tmp_path / "ball.obj"
+    trimesh.Trimesh(sphere_mesh.vertices, sphere_mesh.faces).export(mesh_file)
+    result = run_cli("train", str(mesh_file), "--name", "ball", "--preset", "fast", "--samples", "5000",
+                     "--batch-size", "256", "--max-minutes", "0.05", "--models", str(tmp_path / "models"),
+                     "--checkpoint", str(tmp_path / "ball.ckpt.safetensors"), "--threads", "1")
+    assert result.returncode == 0, result.stderr
+    closing = result.stdout.splitlines()[0]
+    assert closing.startswith(f"wrote {tmp_path / 'models' / 'ball.safetensors'} (") and \
+        "the 0.05-minute budget bought " in closing and "best mean error in the +-1 mm band" in closing, closing
+    steps = int(closing.split("bought ")[1].split(" steps")[0].replace(",", ""))
+    assert steps > 20
+    bar = result.stderr.split("train ball")[-1]
+    assert "val±1mm 0." in bar and f"step {steps:,} (" in bar, result.stderr[-800:]
 
 
 def read_only_folder(tmp_path):

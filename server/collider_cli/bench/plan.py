@@ -275,8 +275,7 @@ def _cached(candidate: Candidate, mesh: Mesh, transform, units, meters_per_unit,
         from collider_server.making.training import TrainConfig, train_neural
 
         minutes = candidate.settings["train_minutes"]
-        config = TrainConfig(preset=candidate.settings["preset"], max_minutes=minutes,
-                             steps=1_000_000, samples=500_000)
+        config = TrainConfig(preset=candidate.settings["preset"], max_minutes=minutes, samples=500_000)
         collider = train_neural(mesh, candidate.name, config, units=units, meters_per_unit=meters_per_unit,
                                 transform=transform, device="cpu", show_progress=show_progress).collider
     collider.info.source["transform"] = np.asarray(transform).tolist()

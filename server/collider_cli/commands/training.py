@@ -21,7 +21,7 @@ from .options import (
 
 def register(subparsers) -> None:
     from collider_server.engine.kinds.neural import PRESETS
-    from collider_server.making.training import TrainConfig
+    from collider_server.making.training import DEFAULT_STEPS, TrainConfig
 
     defaults = TrainConfig()
     train = subparsers.add_parser("train", help="train a neural collider from a mesh")
@@ -31,15 +31,17 @@ def register(subparsers) -> None:
                        help="network (default %(default)s: a feature grid + tiny MLP, the fastest to train "
                             "and to query; paper-bunny / paper-dragon reproduce the paper; docs/neural.md)")
     train.add_argument("--samples", type=int, default=defaults.samples, help="cached training samples")
-    train.add_argument("--steps", type=int, default=defaults.steps)
+    train.add_argument("--steps", type=int, default=None,
+                       help="cap on optimiser steps (default: none with --max-minutes, which then runs to the "
+                            f"end of its budget; {DEFAULT_STEPS:,} without)")
     train.add_argument("--batch-size", type=int, default=defaults.batch_size)
     train.add_argument("--learning-rate", type=float, default=defaults.learning_rate,
                        help="initial Adam learning rate (default: the preset's, 1e-2 grid / 1e-3 paper)")
     train.add_argument("--normal-weight", type=float, default=defaults.normal_weight,
                        help="weight of the 1 - cos(normal) term (default: the preset's, 0.1 grid / 0.05 paper; 0: pure L1)")
     train.add_argument("--max-minutes", type=float, default=None,
-                       help="time budget: the learning-rate schedule, progress bar and validations follow it; "
-                            "keeps the best weights")
+                       help="time budget of the training (after the exact-SDF samples): the learning-rate "
+                            "schedule, validations, progress bar and stop follow the clock; keeps the best weights")
     train.add_argument("--seed", type=int, default=defaults.seed)
     train.add_argument("--threads", type=int, default=None, help="CPU threads for torch")
     add_placement_arguments(train)
@@ -107,8 +109,7 @@ def run_train(args) -> int:
     path = save_collider(result.collider, repository.path(args.name))
     history = checkpoint.with_name(checkpoint.name + ".history.json")
     history.write_text(json.dumps(result.history, indent=1))
-    print(f"wrote {path} ({path.stat().st_size:,} bytes): {result.steps} steps in "
-          f"{result.seconds / 60:.1f} min, best mean error in the +-1 mm band {result.best_validation_mm:.4f} mm")
+    print(f"wrote {path} ({path.stat().st_size:,} bytes): {result.summary()}")
     print(f"checkpoint {checkpoint} (resumable; its history beside it)")
     print(sign_check_line(result.collider, mesh, check))
     print("next: " + command("eval", args.name, "--mesh", args.mesh, *models_options(args), *placement_options(args)))

@@ -72,8 +72,6 @@ class ExactSDF:
         Returns ``(distance (n,) float64, closest (n, 3) float64, face (n,) int64)``, the same
         units and frame; distance is negative inside.
         """
-        import igl
-
         points = np.ascontiguousarray(points, dtype=np.float64)
         n = len(points)
         distance = np.empty(n)
@@ -82,12 +80,19 @@ class ExactSDF:
         for start in range(0, n, chunk_points):
             chunk = points[start : start + chunk_points]
             sq, idx, c = self._tree.squared_distance(self._vertices, self._faces, chunk)
-            winding = igl.fast_winding_number(self._vertices, self._faces, chunk)
-            sign = np.where(winding > 0.5, -1.0, 1.0)
+            sign = np.where(self.winding_number(chunk) > 0.5, -1.0, 1.0)
             distance[start : start + len(chunk)] = sign * np.sqrt(np.maximum(sq, 0.0))
             closest[start : start + len(chunk)] = c
             face[start : start + len(chunk)] = idx
         return distance, closest, face
+
+    def winding_number(self, points: np.ndarray) -> np.ndarray:
+        """(n,) float64 generalised winding number of the surface around each point (libigl's
+        fast approximation): about 1 inside a closed surface, 0 outside; in between near a hole,
+        where inside and outside are not defined and the sign (inside above 0.5) is a guess."""
+        import igl
+
+        return igl.fast_winding_number(self._vertices, self._faces, np.ascontiguousarray(points, dtype=np.float64))
 
     def signed_distance(self, points: np.ndarray) -> np.ndarray:
         """(n,) float64 signed distance, negative inside."""

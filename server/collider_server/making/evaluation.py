@@ -8,6 +8,11 @@ degrees whatever the collider's units (converted with ``meters_per_unit``).
 Per set: distance error mean / p99 / max; sign errors among points with |d| > 0.2 mm (percent);
 normal angle error mean / p99 against the exact gradient (direction to the closest point);
 contact error, the distance of the computed contact point to the true offset surface d = eps.
+The same figures again for the points where the mesh's winding number is clear (below 0.1 or
+above 0.9, ``clear_winding``), and the share of the others (``ambiguous_winding_percent``): near a
+hole (the bunny's open base) inside and outside are not defined, the truth's sign is the winding
+number's guess (inside above 0.5) and its distance jumps from -d to +d across the hole, where no
+continuous collider can follow it (docs/accuracy.md, "Holes").
 Plus: marching-cubes reconstruction vs the mesh (Chamfer-L1, mm), file size, query time.
 """
 
@@ -25,6 +30,8 @@ from .sampling import band_sets, box_points, surface_points
 from .surface import distance_grid, level_surface
 
 SIGN_THRESHOLD_M = 0.2e-3
+#: Winding numbers between these are "ambiguous": the point is near a hole of the surface.
+CLEAR_WINDING = (0.1, 0.9)
 
 
 def point_sets(collider: Collider, mesh: Mesh, points: int, seed: int) -> dict[str, np.ndarray]:
@@ -35,7 +42,8 @@ def point_sets(collider: Collider, mesh: Mesh, points: int, seed: int) -> dict[s
 
 
 def error_figures(collider: Collider, sdf: ExactSDF, points: np.ndarray) -> dict:
-    """Distance, sign, normal and contact errors of ``collider`` at ``points`` (collider frame)."""
+    """Distance, sign, normal and contact errors of ``collider`` at ``points`` (collider frame),
+    for all of them and, under ``clear_winding``, for those where the winding number is clear."""
     to_mm = 1000.0 * collider.info.meters_per_unit
     eps = collider.info.default_eps
     truth, closest, face = sdf.query(points)
@@ -43,21 +51,31 @@ def error_figures(collider: Collider, sdf: ExactSDF, points: np.ndarray) -> dict
     result = collider.query(points, ["distance", "normal", "contact"], eps=eps)
     error = np.abs(result.distance.astype(np.float64) - truth) * to_mm
     decided = np.abs(truth) * to_mm > SIGN_THRESHOLD_M * 1000.0
-    sign_wrong = (result.distance[decided] < 0) != (truth[decided] < 0)
+    sign_wrong = (result.distance < 0) != (truth < 0)
     cosine = np.clip(np.einsum("ij,ij->i", result.normal.astype(np.float64), true_normal), -1.0, 1.0)
     angle = np.degrees(np.arccos(cosine))
     contact_error = np.abs(sdf.signed_distance(result.contact.astype(np.float64)) - eps) * to_mm
-    return {
-        "points": int(len(points)),
-        "distance_mean_mm": float(error.mean()),
-        "distance_p99_mm": float(np.percentile(error, 99)),
-        "distance_max_mm": float(error.max()),
-        "sign_errors_percent": float(100.0 * sign_wrong.mean()) if decided.any() else 0.0,
-        "normal_mean_deg": float(angle.mean()),
-        "normal_p99_deg": float(np.percentile(angle, 99)),
-        "contact_mean_mm": float(contact_error.mean()),
-        "contact_p99_mm": float(np.percentile(contact_error, 99)),
-    }
+    winding = sdf.winding_number(points)
+    clear = (winding < CLEAR_WINDING[0]) | (winding > CLEAR_WINDING[1])
+
+    def figures(keep: np.ndarray) -> dict:
+        if not keep.any():
+            return {"points": 0}
+        signed = keep & decided
+        return {
+            "points": int(keep.sum()),
+            "distance_mean_mm": float(error[keep].mean()),
+            "distance_p99_mm": float(np.percentile(error[keep], 99)),
+            "distance_max_mm": float(error[keep].max()),
+            "sign_errors_percent": float(100.0 * sign_wrong[signed].mean()) if signed.any() else 0.0,
+            "normal_mean_deg": float(angle[keep].mean()),
+            "normal_p99_deg": float(np.percentile(angle[keep], 99)),
+            "contact_mean_mm": float(contact_error[keep].mean()),
+            "contact_p99_mm": float(np.percentile(contact_error[keep], 99)),
+        }
+
+    return {**figures(np.ones(len(points), dtype=bool)), "clear_winding": figures(clear),
+            "ambiguous_winding_percent": float(100.0 * (1.0 - clear.mean())) if len(points) else 0.0}
 
 
 def reconstruction_chamfer_mm(collider: Collider, mesh: Mesh, resolution: int = 128,
@@ -143,20 +161,28 @@ def penetration(frames, colliders) -> dict:
 
 
 def format_report(name: str, kind: str, report: dict) -> str:
-    """A plain-text table of :func:`evaluate_collider`'s figures."""
+    """A plain-text table of :func:`evaluate_collider`'s figures: each set, then the same set
+    without the points of ambiguous winding number ("w clear"), when it has any."""
     header = ("set", "dist mean", "p99", "max", "sign err", "normal mean", "p99", "contact mean", "p99")
-    rows = [f"{name} ({kind})",
-            "{:<10} {:>10} {:>8} {:>8} {:>9} {:>12} {:>7} {:>13} {:>8}".format(*header),
-            "{:<10} {:>10} {:>8} {:>8} {:>9} {:>12} {:>7} {:>13} {:>8}".format(
-                "", "mm", "mm", "mm", "%", "deg", "deg", "mm", "mm")]
+    line = "{:<10} {:>10} {:>8} {:>8} {:>9} {:>12} {:>7} {:>13} {:>8}"
+    rows = [f"{name} ({kind})", line.format(*header), line.format("", "mm", "mm", "mm", "%", "deg", "deg", "mm", "mm")]
+    numbers = "{:<10} {:>10.4f} {:>8.4f} {:>8.4f} {:>9.3f} {:>12.2f} {:>7.2f} {:>13.4f} {:>8.4f}"
+    ambiguous = []
     for key in ("band_1mm", "band_10mm", "box"):
         if key not in report:
             continue
-        r = report[key]
-        rows.append("{:<10} {:>10.4f} {:>8.4f} {:>8.4f} {:>9.3f} {:>12.2f} {:>7.2f} {:>13.4f} {:>8.4f}".format(
-            key.replace("band_", "+-"), r["distance_mean_mm"], r["distance_p99_mm"], r["distance_max_mm"],
-            r["sign_errors_percent"], r["normal_mean_deg"], r["normal_p99_deg"], r["contact_mean_mm"],
-            r["contact_p99_mm"]))
+        label = key.replace("band_", "+-")
+        for row_label, r in ((label, report[key]), ("  w clear", report[key].get("clear_winding"))):
+            if r is None or not r.get("points") or (row_label != label and not report[key]["ambiguous_winding_percent"]):
+                continue
+            rows.append(numbers.format(row_label, r["distance_mean_mm"], r["distance_p99_mm"], r["distance_max_mm"],
+                                       r["sign_errors_percent"], r["normal_mean_deg"], r["normal_p99_deg"],
+                                       r["contact_mean_mm"], r["contact_p99_mm"]))
+        if report[key].get("ambiguous_winding_percent"):
+            ambiguous.append(f"{label} {report[key]['ambiguous_winding_percent']:.2f} %")
+    if ambiguous:
+        rows.append(f"w clear: without the points near holes, where the mesh's winding number is between "
+                    f"{CLEAR_WINDING[0]} and {CLEAR_WINDING[1]} ({', '.join(ambiguous)} of the points)")
     if "chamfer_l1_mm" in report:
         rows.append(f"reconstruction Chamfer-L1: {report['chamfer_l1_mm']:.4f} mm (marching cubes 128^3)")
     rows.append(f"query (distance+normal+contact): {report['query_seconds_per_million']:.2f} s per 1M points on {report['device']}")

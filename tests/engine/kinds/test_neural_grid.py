@@ -111,13 +111,16 @@ def test_fused_kernels_match_the_torch_reference(smooth):
 
 
 @needs_numba
-@pytest.mark.parametrize("smooth", [True, False])
-def test_fused_network_query_matches_the_torch_reference(smooth):
-    """The query fast path (the whole network in one kernel) against the torch analytic path
-    and autograd, points inside and outside the [-1, 1] box; distance only too."""
-    network = random_network(seed=12, smooth=smooth, hidden_layers=3)
+@pytest.mark.parametrize("smooth, features, n", [(True, 2, 3000), (False, 2, 3000), (True, 3, 3000),
+                                                 (True, 2, 1), (True, 2, 65)])
+def test_fused_network_query_matches_the_torch_reference(smooth, features, n):
+    """The query fast path (the whole network in one kernel: points sorted into buckets, blocks
+    of 64) against the torch analytic path and autograd, points inside and outside the [-1, 1]
+    box, in random order, a partial last block, the two-feature fast path and the general one;
+    distance only too."""
+    network = random_network(seed=12, smooth=smooth, hidden_layers=3, features=features)
     network.fused = False
-    x = points(3000, 13, pad=0.05)
+    x = points(n, 13, pad=0.05)
     xr = x.clone().requires_grad_(True)
     reference = network(xr)
     (autograd,) = torch.autograd.grad(reference.sum(), xr)

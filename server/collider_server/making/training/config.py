@@ -16,6 +16,8 @@ NORMAL_WEIGHTS = {"fourier": 0.05, "grid": 0.1}
 #: With a time budget, validations per run (plus one at the end): the best weights are chosen
 #: among these whatever the speed of the machine.
 VALIDATIONS_PER_BUDGET = 30
+#: Steps of a run given neither a time budget nor a step count.
+DEFAULT_STEPS = 20_000
 
 
 @dataclass
@@ -24,6 +26,9 @@ class TrainConfig:
 
     margin_m / tight_margin_m : near-surface noise widths in metres (converted with
     ``meters_per_unit``); None for margin_m means 5 % of the largest side clamped to 5..10 mm.
+    steps / max_minutes : a cap on optimiser steps and a time budget in minutes; the run ends at
+    whichever comes first. With a budget and no steps given there is no step cap (the run uses
+    the whole budget); with neither, DEFAULT_STEPS.
     """
 
     preset: str = DEFAULT_PRESET
@@ -34,7 +39,7 @@ class TrainConfig:
     tight_margin_m: float = 0.0015
     padding: float = 0.1
     batch_size: int = 8192
-    steps: int = 20_000
+    steps: int | None = None
     learning_rate: float | None = None  # None: the preset's (LEARNING_RATES)
     final_learning_rate: float | None = None
     normal_weight: float | None = None  # None: the preset's (NORMAL_WEIGHTS)
@@ -64,6 +69,12 @@ class TrainConfig:
         return (first if self.learning_rate is None else self.learning_rate,
                 last if self.final_learning_rate is None else self.final_learning_rate)
 
+    def step_cap(self) -> int | None:
+        """The step count the run stops at, or None when only the clock ends it."""
+        if self.steps is None and self.max_minutes is None:
+            return DEFAULT_STEPS
+        return self.steps
+
     def resolved_normal_weight(self) -> float:
         return NORMAL_WEIGHTS[self._encoding()] if self.normal_weight is None else self.normal_weight
 
@@ -72,7 +83,7 @@ class TrainConfig:
             raise ValueError(f"samples must be >= 1000, got {self.samples}")
         if not 0 <= self.near_fraction <= 1 or not 0 <= self.tight_fraction <= 1:
             raise ValueError("near_fraction and tight_fraction must be in [0, 1]")
-        if self.steps < 1 or self.batch_size < 1:
+        if (self.steps is not None and self.steps < 1) or self.batch_size < 1:
             raise ValueError("steps and batch_size must be >= 1")
         if self.max_minutes is not None and not (math.isfinite(self.max_minutes) and self.max_minutes > 0):
             raise ValueError(f"max_minutes must be a finite number > 0 (None: no limit), got {self.max_minutes}")

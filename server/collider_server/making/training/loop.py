@@ -29,11 +29,37 @@ from .schedule import RunClock, cosine_learning_rate, make_optimizer, set_traini
 
 @dataclass
 class TrainResult:
+    """A finished run: the collider (best validated weights), the best +-1 mm validation error
+    (mm), the steps and seconds of training (a resumed run's whole, not this process's), the
+    validations, the settings, and when the best weights were validated (step, seconds)."""
+
     collider: NeuralCollider
     best_validation_mm: float
     steps: int
     seconds: float
     history: list = field(default_factory=list)
+    config: TrainConfig = field(default_factory=TrainConfig)
+    best_step: int = 0
+    best_seconds: float = 0.0
+
+    def summary(self) -> str:
+        """What the run's budget bought, in one line: steps, samples and rate, why it stopped,
+        and the best weights' validation error and when they were reached."""
+        minutes = self.seconds / 60.0
+        rate = self.steps / self.seconds if self.seconds > 0 else 0.0
+        samples = self.steps * self.config.batch_size
+        shown = f"{samples / 1e6:,.1f}M" if samples >= 1e6 else f"{samples:,}"
+        bought = f"{self.steps:,} steps ({shown} samples, {rate:.0f} steps/s)"
+        budget, cap = self.config.max_minutes, self.config.step_cap()
+        if budget is None:
+            head = f"{bought} in {minutes:.1f} min"
+        elif cap is not None and self.steps >= cap and minutes < budget:
+            head = f"{bought}: the step cap, reached after {minutes:.1f} of the {budget:g} minutes"
+        else:
+            head = f"the {budget:g}-minute budget bought {bought}"
+        return (f"{head}; best mean error in the +-1 mm band {self.best_validation_mm:.4f} mm "
+                f"(the best of {len(self.history)} validations: step {self.best_step:,}, "
+                f"{self.best_seconds / 60:.1f} min)")
 
 
 def train_neural(mesh: Mesh, name: str, config: TrainConfig, *, units: str = "m",
@@ -83,8 +109,9 @@ def train_neural(mesh: Mesh, name: str, config: TrainConfig, *, units: str = "m"
 
     generator = torch.Generator(device="cpu").manual_seed(config.seed + state["step"])
     to_mm = 1000.0 * meters_per_unit
-    started = time.monotonic() - state["seconds"]
-    clock = RunClock(config, time.monotonic())
+    now = time.monotonic()
+    started = now - state["seconds"]  # a resumed run's clock goes on where it was saved
+    clock = RunClock(config, started, now)
     analytic = hasattr(network, "value_and_gradient")
 
     def evaluate() -> dict:
@@ -94,9 +121,15 @@ def train_neural(mesh: Mesh, name: str, config: TrainConfig, *, units: str = "m"
         network.train()
         return errors
 
-    with clock.progress_bar(f"train {name}", state["step"], show_progress) as bar:
-        last_loss = float("nan")
-        while state["step"] < config.steps:
+    def status(rate: float, errors: dict | None, lr: float) -> str:
+        shown = "val±1mm -" if errors is None else f"val±1mm {errors['1mm']:.4f}mm best {state['best_mm']:.4f}mm"
+        return f"step {state['step']:,} ({rate:.0f}/s) {shown} lr {lr:.1e}"
+
+    with clock.progress_bar(f"train {name}", state["step"], now, show_progress) as bar:
+        last_loss, errors, lr = float("nan"), None, first_lr
+        session = (time.monotonic(), state["step"])  # this process's start, for the step rate
+        finished = clock.finished(state["step"], time.monotonic())  # a resumed run may be done
+        while not finished:
             step = state["step"]
             now = time.monotonic()
             lr = cosine_learning_rate(clock.fraction(step, now), first_lr, last_lr)
@@ -127,31 +160,30 @@ def train_neural(mesh: Mesh, name: str, config: TrainConfig, *, units: str = "m"
             last_loss = float(loss.detach())
             state["step"] = step + 1
             now = time.monotonic()
-            clock.advance(bar, now)
-            done = state["step"] >= config.steps
-            out_of_time = clock.out_of_time(now)
-            if clock.validation_due(state["step"], now) or done or out_of_time:
+            finished = clock.finished(state["step"], now)  # the last step is always validated
+            validating = finished or clock.validation_due(state["step"], now)
+            if validating:
                 errors = evaluate()
                 state["history"].append({"step": state["step"], "loss": last_loss, **errors,
                                          "seconds": time.monotonic() - started})
                 if errors["1mm"] < state["best_mm"]:
                     state["best_mm"] = errors["1mm"]
+                    state["best_step"], state["best_seconds"] = state["step"], time.monotonic() - started
                     best_weights = {k: v.detach().cpu().clone() for k, v in network.state_dict().items()}
                     if checkpoint is not None:
                         save_tensors_atomically({k: v.contiguous() for k, v in best_weights.items()},
                                                 checkpoint.with_name(checkpoint.name + ".best"))
-                bar.set_postfix_str(f"step {state['step']} loss {last_loss:.2e} val±1mm {errors['1mm']:.4f}mm "
-                                    f"val±10mm {errors['10mm']:.4f}mm best {state['best_mm']:.4f}mm lr {lr:.1e}")
                 state["seconds"] = time.monotonic() - started
                 if checkpoint is not None:
                     save_checkpoint(checkpoint, network, optimizer, state)
                 clock.validated(time.monotonic())
-            if out_of_time:
-                break
+            if clock.advance(bar, now) or validating:
+                rate = (state["step"] - session[1]) / max(now - session[0], 1e-9)
+                bar.set_postfix_str(status(rate, errors, lr), refresh=False)
 
     if best_weights is not None:
         network.load_state_dict(best_weights)
-    seconds = time.monotonic() - started
+    seconds = state["seconds"] = time.monotonic() - started
     info = ColliderInfo(
         name=name, kind="neural", domain_min=lo.tolist(), domain_max=hi.tolist(), units=units,
         meters_per_unit=meters_per_unit, source=mesh_source(mesh, transform),
@@ -164,7 +196,8 @@ def train_neural(mesh: Mesh, name: str, config: TrainConfig, *, units: str = "m"
         },
     )
     collider = NeuralCollider(info, network.cpu(), device="cpu")
-    return TrainResult(collider, state["best_mm"], state["step"], seconds, state["history"])
+    return TrainResult(collider, state["best_mm"], state["step"], seconds, state["history"], config,
+                       state.get("best_step", 0), state.get("best_seconds", 0.0))
 
 
 def _device_name(device: str) -> str:

@@ -48,26 +48,35 @@ def cosine_learning_rate(fraction: float, first: float, last: float) -> float:
 class RunClock:
     """Where a run is, by steps or, with ``max_minutes``, by the clock (whichever ends first):
     the learning-rate schedule, the progress bar (seconds of the budget, not a step count that a
-    time-bounded run never reaches) and the validation times follow it. Times are
-    ``time.monotonic()`` values passed in, so the logic is testable without waiting."""
+    time-bounded run never reaches), the validation times and the stop follow it. A budget with
+    no step count has no step cap: the run trains until the clock ends. Times are
+    ``time.monotonic()`` values passed in, so the logic is testable without waiting; ``start``
+    is when the run's training began (earlier than now for a resumed run, so its budget and
+    schedule go on where they were)."""
 
-    def __init__(self, config: TrainConfig, start: float):
-        self.steps = config.steps
+    def __init__(self, config: TrainConfig, start: float, now: float | None = None):
+        self.steps = config.step_cap()
         self.validate_every = config.validate_every
         self.budget_s = None if config.max_minutes is None else 60.0 * config.max_minutes
         self.start = start
-        self.last_validation = start
+        self.last_validation = start if now is None else now
         self.shown = 0
 
     def fraction(self, step: int, now: float) -> float:
-        """Share of the run done: steps, or the budget's time when that is further."""
-        done = step / self.steps
+        """Share of the run done: steps or the budget's time, whichever is further."""
+        done = 0.0 if self.steps is None else step / self.steps
         if self.budget_s is not None:
             done = max(done, (now - self.start) / self.budget_s)
         return min(done, 1.0)
 
     def out_of_time(self, now: float) -> bool:
         return self.budget_s is not None and now - self.start >= self.budget_s
+
+    def out_of_steps(self, step: int) -> bool:
+        return self.steps is not None and step >= self.steps
+
+    def finished(self, step: int, now: float) -> bool:
+        return self.out_of_steps(step) or self.out_of_time(now)
 
     def validation_due(self, step: int, now: float) -> bool:
         """Every ``validate_every`` steps; with a budget, every 1/VALIDATIONS_PER_BUDGET of it
@@ -79,34 +88,42 @@ class RunClock:
     def validated(self, now: float) -> None:
         self.last_validation = now
 
-    def progress_bar(self, desc: str, step: int, enabled: bool):
-        """A bar in steps, or in seconds of the budget when the run has one."""
+    def progress_bar(self, desc: str, step: int, now: float, enabled: bool):
+        """A bar in steps, or in seconds of the budget when the run has one; a resumed run's bar
+        starts where the run is."""
         if self.budget_s is None:
             bar = progress(self.steps, desc, "step", enabled)
             self.shown = step
-            return _started(bar, step)
-        return progress(int(round(self.budget_s)), desc, "s", enabled)
+        else:
+            bar = progress(int(round(self.budget_s)), desc, "s", enabled)
+            self.shown = int(min(max(now - self.start, 0.0), self.budget_s))
+        return _started(bar, self.shown)
 
-    def advance(self, bar, now: float) -> None:
-        """Move ``bar`` to the run's position (one step, or the seconds elapsed)."""
+    def advance(self, bar, now: float) -> bool:
+        """Move ``bar`` to the run's position (one step, or the seconds elapsed); whether it
+        moved."""
         if self.budget_s is None:
             bar.update(1)
-            return
+            self.shown += 1
+            return True
         elapsed = int(min(now - self.start, self.budget_s))
         if elapsed > self.shown:
             bar.update(elapsed - self.shown)
             self.shown = elapsed
+            return True
+        return False
 
 
 class _started:
-    """``progress(...)`` entered already advanced by ``step`` (a resumed run)."""
+    """``progress(...)`` entered already advanced by ``done`` (a resumed run)."""
 
-    def __init__(self, bar, step: int):
-        self._bar, self._step = bar, step
+    def __init__(self, bar, done: int):
+        self._bar, self._done = bar, done
 
     def __enter__(self):
         handle = self._bar.__enter__()
-        handle.update(self._step)
+        if self._done:
+            handle.update(self._done)
         return handle
 
     def __exit__(self, *exc):
