@@ -222,7 +222,7 @@ def test_train_with_a_budget_shows_steps_and_validation_and_says_what_the_budget
                      "--batch-size", "256", "--max-minutes", "0.05", "--models", str(tmp_path / "models"),
                      "--checkpoint", str(tmp_path / "ball.ckpt.safetensors"), "--threads", "1")
     assert result.returncode == 0, result.stderr
-    closing = result.stdout.splitlines()[0]
+    closing = next(line for line in result.stdout.splitlines() if line.startswith("wrote "))
     assert closing.startswith(f"wrote {tmp_path / 'models' / 'ball.safetensors'} (") and \
         "the 0.05-minute budget bought " in closing and "best mean error in the +-1 mm band" in closing, closing
     steps = int(closing.split("bought ")[1].split(" steps")[0].replace(",", ""))
