@@ -115,7 +115,7 @@ class ExactSDF:
             self._pseudo = _pseudo_normals(self._vertices, self._faces, self._face_normals)
         edge_normals, vertex_normals = self._pseudo
         tri = self._vertices[self._faces[face]]
-        bary = _barycentric(closest, tri)
+        bary = barycentric(closest, tri)
         tol = 1e-6
         normals = self._face_normals[face].copy()
         corner = np.argmax(bary, axis=1)
@@ -132,7 +132,7 @@ class ExactSDF:
         return normals
 
 
-def _barycentric(points: np.ndarray, tri: np.ndarray) -> np.ndarray:
+def barycentric(points: np.ndarray, tri: np.ndarray) -> np.ndarray:
     """(m, 3) barycentric coordinates of ``points`` (m, 3) in triangles ``tri`` (m, 3, 3);
     degenerate triangles give (1, 0, 0)."""
     a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
