@@ -395,12 +395,12 @@ def test_run_scene_refuses_before_the_run(tmp_path, models_dir, monkeypatch):
     path.write_text(FALL + "[effects.collisions]\n[[colliders]]\nmodel = 'teapot'\n")
     scene = load_scene(path)
     with cc.Client(models=models_dir, device="cpu") as client:
-        with pytest.raises(ValueError, match=r"colliders\[\]\.model \['teapot'\] not found; "
-                                             r"available models: \['box', 'sphere'\]$"):
+        with pytest.raises(ValueError, match=r"colliders\[0\]\.model: no model named 'teapot' "
+                                             r"\(available: \['box', 'sphere'\]\)$"):
             run_scene(scene, client, tmp_path / "out", show_progress=False)
     (tmp_path / "empty").mkdir()
     with cc.Client(models=tmp_path / "empty", device="cpu") as client:
-        with pytest.raises(ValueError, match=r"\['teapot'\] not found; available models: none$"):
+        with pytest.raises(ValueError, match=r"no model named 'teapot' \(available: none\)$"):
             run_scene(scene, client, tmp_path / "out", show_progress=False)
     with pytest.raises(ValueError, match="the scene has colliders; a client is needed"):
         run_scene(scene, None, tmp_path / "out", show_progress=False)
@@ -672,7 +672,7 @@ def test_start_live_view_paused_and_the_view_closed_when_the_run_fails(tmp_path,
     # The run refused after the view opened (a model the repository lacks): the view is stopped.
     teapot = tmp_path / "teapot.toml"
     teapot.write_text(FALL + "[effects.collisions]\n[[colliders]]\nmodel = 'teapot'\n")
-    with pytest.raises(ValueError, match=r"\['teapot'\] not found"):
+    with pytest.raises(ValueError, match=r"colliders\[0\]\.model: no model named 'teapot'"):
         simulate(teapot, "--models", models_dir, "--device", "cpu", "--view", "--port", free_port(),
                  "--no-preview", "--quiet", "--output", tmp_path / "out")
     assert started[1:] == ["stopped"]

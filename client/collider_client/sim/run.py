@@ -15,7 +15,7 @@ from collider_contract import transform_points
 from .cloth import quad_faces
 from .motion import pose_function
 from .output import PC2Frames, PC2Writer, write_obj, write_preview
-from .scene import Scene
+from .scene import Scene, check_models
 from .simulator import RunReport, Simulator
 
 
@@ -95,10 +95,7 @@ def run_scene(scene: Scene, client, out_dir: Path, *, show_progress: bool = True
     infos = None
     if client is not None and scene.colliders:
         infos = {m.name: m for m in client.list_models()}
-        missing = sorted({c.model for c in scene.colliders} - set(infos))
-        if missing:
-            raise ValueError(f"{scene.path}: colliders[].model {missing} not found; available "
-                             f"models: {sorted(infos) or 'none'}")
+        check_models(scene, infos)
     total = scene.steps if steps is None else steps
     check_resources(scene, total)
     sim = Simulator(scene, client, infos)
