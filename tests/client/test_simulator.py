@@ -100,11 +100,11 @@ def test_drop_on_sphere_stays_outside(tmp_path, models_dir):
 
     from collider_client.sim.motion import pose_function
     from collider_server.engine.meshes import ExactSDF, Mesh
-    from collider_server.making.evaluation import penetration
+    from collider_server.making.evaluation import exact_distance, penetration
 
     sphere = trimesh.creation.icosphere(subdivisions=5, radius=SPHERE_RADIUS_M)
     exact = ExactSDF(Mesh(np.asarray(sphere.vertices), np.asarray(sphere.faces)))
-    check = penetration(frames, [("sphere", exact, pose_function(scene.colliders[0]))])
+    check = penetration(frames, [("sphere", exact_distance(exact), pose_function(scene.colliders[0]))])
     assert check["max_depth_m"] < 1e-3 and check["frames"] == 13
     assert check["min_distance_m"] < 2.5e-3  # it rests on the sphere, about eps away
     # Outputs: OBJ (quads), PC2 (every frame), PNG, report.
@@ -771,9 +771,9 @@ def test_exact_penetration_measures_each_placed_collider_at_each_frame():
     metres, world frame."""
     pytest.importorskip("collider_server", reason="the engine (server extras) is not installed")
     from collider_client.sim.motion import pose_function
-    from collider_server.making.evaluation import penetration
+    from collider_server.making.evaluation import exact_distance, penetration
 
-    box = _box_exact(0.2)
+    box = exact_distance(_box_exact(0.2))
     colliders = [("box", box, pose_function(_spec("box", (1.0, 0.0, 0.0), velocity=(0.0, 0.0, 1.0)))),
                  ("box", box, pose_function(_spec("box", (5.0, 0.0, 0.0))))]
     frames = [
@@ -794,7 +794,7 @@ def test_exact_penetration_measures_each_placed_collider_at_each_frame():
     scaled = np.diag([0.1, 0.1, 0.1, 1.0])
     scaled[:3, 3] = (1.0, 0.0, 0.0)
     check = penetration([(0.0, np.array([[1.0, 0.0, 0.05]]))],
-                        [("box", _box_exact(2.0), lambda t: scaled)])
+                        [("box", exact_distance(_box_exact(2.0)), lambda t: scaled)])
     assert check["max_depth_m"] == pytest.approx(0.05, abs=1e-6)
 
 

@@ -77,7 +77,8 @@ def run_scene(scene: Scene, client, out_dir: Path, *, show_progress: bool = True
     """Simulate ``scene`` (``steps`` overrides its step count), writing into ``out_dir``:
     ``NAME.obj``, ``NAME.pc2``, ``NAME.png`` and ``NAME.report.json``.
 
-    collider_points : model name -> (m, 3) surface points in the collider frame, drawn in the
+    collider_points : model name -> (m, 3) surface points in the collider frame, or a function
+        of the simulation time (seconds) giving them (an animated collider), drawn in the
         preview (optional)
     on_step : called as ``on_step(sim, i)`` after step ``i`` (1-based), e.g. by the live viewer
         (``collider simulate --view``), which may block there to pause the run
@@ -148,8 +149,9 @@ def run_scene(scene: Scene, client, out_dir: Path, *, show_progress: bool = True
             pts = (collider_points or {}).get(spec.model)
             if pts is not None:
                 for i in chosen:
-                    pose = pose_function(spec)(frames[i][0])
-                    shown[i].append(transform_points(pose, pts))
+                    t = frames[i][0]
+                    pose = pose_function(spec)(t)
+                    shown[i].append(transform_points(pose, pts(t) if callable(pts) else pts))
         write_preview(out_dir / f"{stem}.png", {i: frames[i][1] for i in chosen}, c.width,
                       c.height, {i: frames[i][0] for i in chosen}, f"{scene.name}", shown)
     (out_dir / f"{stem}.report.json").write_text(json.dumps(report.to_dict(), indent=2,

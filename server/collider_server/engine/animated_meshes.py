@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 from collider_contract import Timeline
 
-from .meshes import ExactSDF, Mesh
+from .meshes import ExactSDF, Mesh, edge_index
 
 
 @dataclass(frozen=True)
@@ -122,6 +122,7 @@ class ExactAtTimes:
     def __init__(self, animation: AnimatedMesh, keep: int = 4):
         self.animation = animation
         self.keep = keep
+        self._edges = edge_index(np.asarray(animation.faces, dtype=np.int64))  # the same every frame
         self._cache: OrderedDict = OrderedDict()
         self._lock = threading.Lock()
         self.builds = 0
@@ -141,7 +142,7 @@ class ExactAtTimes:
         started = time.perf_counter()
         frames = self.animation.frames
         exact = ExactSDF(Mesh(interpolate(frames[k], frames[k + 1], u), self.animation.faces,
-                              self.animation.name))
+                              self.animation.name), self._edges)
         spent = time.perf_counter() - started
         with self._lock:
             self.builds += 1
