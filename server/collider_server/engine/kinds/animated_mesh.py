@@ -22,6 +22,7 @@ class AnimatedMeshCollider(Collider):
     kind = "mesh"
     chunk_points = 200_000
     clamps_to_domain = False
+    gradient_in_one_pass = True
 
     def __init__(self, info: ColliderInfo, animation: AnimatedMesh):
         super().__init__(info)
