@@ -5,11 +5,13 @@ points (``collides`` from a query, or ``distance < eps``).
 
 - :func:`project_to_contacts` moves colliding points onto their contact points;
 - :func:`respond_velocities` removes the normal velocity into the collider (times ``1 +
-  restitution``) and applies Coulomb friction to the tangential part, relative to the collider's
-  own velocity (moving colliders);
-- :func:`collider_velocity` is that velocity, from two successive poses;
+  restitution``) and applies Coulomb friction to the tangential part, relative to the velocity
+  of the collider's surface (moving and animated colliders);
+- :func:`collider_velocity` is a rigidly moving collider's velocity, from two successive poses;
 - :class:`CollisionHook` puts them together with the SDK: positions and velocities in, responded
-  positions and velocities out. It is what an adapter for another simulator calls.
+  positions and velocities out. It asks each collider at its animation time with its pose's
+  velocity, and uses the surface ``velocity`` the service answers. It is what an adapter for
+  another simulator calls.
 """
 
 from __future__ import annotations
@@ -20,7 +22,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from collider_contract import ModelInfo, transform_points
+from collider_contract import ModelInfo, SceneCollider, Timeline, transform_points
 
 __all__ = [
     "project_to_contacts",
@@ -28,6 +30,7 @@ __all__ = [
     "collider_velocity",
     "world_box",
     "ColliderPlacement",
+    "animation_time",
     "CollisionHook",
     "HookStats",
     "TunnellingError",
@@ -118,14 +121,20 @@ def _unit_rows(vectors: np.ndarray) -> np.ndarray:
 
 @dataclass
 class ColliderPlacement:
-    """A collider in a simulation: a model name and its pose over time.
+    """A collider in a simulation: a model name, its pose over time and, for an animated model,
+    how the simulation's time maps to the animation's.
 
     pose_at : function of time (s) -> (4, 4) collider -> world; or a fixed (4, 4) pose (array or
         nested lists) for a static collider; or None for the identity
+    time_offset_s : an animated model is asked at the simulation time plus this (seconds)
+    loop : None: the model's own loop or clamp; True / False: loop or clamp it here whatever it
+        was baked with (:class:`~collider_contract.Timeline`)
     """
 
     model: str
     pose_at: Callable[[float], np.ndarray] | np.ndarray | None = None
+    time_offset_s: float = 0.0
+    loop: bool | None = None
 
     def __post_init__(self):
         if self.pose_at is not None and not callable(self.pose_at):
@@ -137,9 +146,41 @@ class ColliderPlacement:
             self.static = True
         else:
             self.static = self.pose_at is None
+        offset = self.time_offset_s
+        if isinstance(offset, bool) or not isinstance(offset, (int, float)) or not np.isfinite(offset):
+            raise ValueError(f"ColliderPlacement({self.model!r}): time_offset_s must be a finite "
+                             f"number of seconds, got {offset!r}")
+        if self.loop is not None and not isinstance(self.loop, bool):
+            raise ValueError(f"ColliderPlacement({self.model!r}): loop must be None, True or "
+                             f"False, got {self.loop!r}")
 
     def pose(self, t: float) -> np.ndarray:
         return np.eye(4) if self.pose_at is None else np.asarray(self.pose_at(t), dtype=np.float64)
+
+    def pose_velocity(self, t: float, dt: float) -> np.ndarray | None:
+        """The pose's time derivative at ``t`` (4x4; 1/s and m/s), the backward difference over
+        ``dt``; None for a static collider."""
+        if self.static:
+            return None
+        return (self.pose(t) - self.pose(t - dt)) / dt
+
+
+def animation_time(placement: ColliderPlacement, timeline: Timeline | None,
+                   t: float) -> tuple[float | None, bool]:
+    """When ``placement``'s model is asked at simulation time ``t``: ``(time, held)``, the
+    animation's time in seconds (None: a static model) and whether an end frame is held there
+    (clamped beyond the ends: the surface's own velocity is zero). ``timeline`` is the model's
+    (``ModelInfo.timeline``), the placement's ``loop`` overrides its loop."""
+    if timeline is None:
+        return None, False
+    raw = t + placement.time_offset_s
+    own = timeline.with_loop(placement.loop)
+    local, held = own.local_time(raw), own.held(raw)
+    if held and timeline.loop and local >= own.duration_s:
+        # Clamped here but looping in the model, which starts over at its duration: ask it a
+        # hair before (1e-12 of the animation: far below any length that matters).
+        local = own.duration_s * (1.0 - 1e-12)
+    return local, held
 
 
 class TunnellingError(ValueError):
@@ -170,19 +211,24 @@ class CollisionHook:
     colliders : :class:`ColliderPlacement` list
     eps : collision offset, metres (points closer than eps to a surface are pushed out to eps)
     friction : Coulomb coefficient; ``None`` = no velocity response: colliding points take the
-        collider's velocity (inelastic and sticky), which needs no normals from the service
+        velocity of the collider's surface (inelastic and sticky), which needs no normals
     restitution : 0..1, used with friction
     cull : send only the points inside a collider's inflated box (True); False sends every point
         (for benchmarks that show what culling saves)
-    only_colliding : ask for ``contact`` and ``normal`` of the colliding points only (the
-        service then does the gradient work for those alone; the response never uses the
-        others'). False asks for them at every point sent (for benchmarks that show the saving)
+    only_colliding : ask for ``contact``, ``normal`` and ``velocity`` of the colliding points
+        only (the service then does the gradient work for those alone; the response never uses
+        the others'). False asks for them at every point sent (for benchmarks that show the
+        saving)
     check_step : raise :class:`TunnellingError` when a point near a collider moves ``eps`` or
         more relative to it in one step (the limit below which nothing tunnels; see
         :meth:`substeps`)
 
     Call :meth:`apply` after each integration step (or substep). Only points inside a collider's
-    inflated world box are sent, and only the fields the response needs are asked for.
+    inflated world box are sent, and only the fields the response needs are asked for: the
+    surface ``velocity`` when a collider moves or is animated. Each collider is asked at its
+    animation time (:func:`animation_time`) with its pose's velocity (the backward difference of
+    its pose over the step); the service answers the velocity of the surface at each contact,
+    its frame's motion plus its own deformation, and the response is relative to it.
     """
 
     def __init__(self, client, colliders: Sequence[ColliderPlacement], eps: float = 1e-3,
@@ -207,27 +253,45 @@ class CollisionHook:
         if missing:
             raise ValueError(f"unknown model(s) {missing}; available: {sorted(infos)}")
         self.infos = infos
-        # distance gives the penetration; contact moves them out; normal only when velocities are
-        # corrected along it; collides (one byte a point) decides who collides, exactly as the
-        # service decided whose contact and normal to compute.
-        self.fields = ["distance", "contact", "collides"] + (["normal"] if friction is not None else [])
+        #: Per collider, its model's timeline (None: static).
+        self.timelines = [infos[c.model].timeline for c in self.colliders]
+        for placement, timeline in zip(self.colliders, self.timelines):
+            if timeline is None and (placement.time_offset_s or placement.loop is not None):
+                raise ValueError(f"ColliderPlacement({placement.model!r}): time_offset_s and "
+                                 "loop apply to animated models; this one is static")
+        #: Whether a collider moves or deforms: its surface's velocity is asked for, and a point
+        #: caught part-way through a step is checked again at the step's later checks.
+        self.moving = any(not c.static or line is not None
+                          for c, line in zip(self.colliders, self.timelines))
+        moving = self.moving
+        # distance gives the penetration; contact moves them out; collides (one byte a point)
+        # decides who collides, exactly as the service decided whose contact and normal to
+        # compute; velocity (a moving or animated collider) is what a contact moves with; normal
+        # only when velocities are corrected along it.
+        self.fields = (["distance", "contact", "collides"] + (["velocity"] if moving else [])
+                       + (["normal"] if friction is not None else []))
         self.stats = HookStats(fields=list(self.fields))
 
     #: Most collision substeps of one step (see :meth:`substeps`); beyond, TunnellingError.
     max_substeps = 64
 
     def collider_moves(self, poses: list, t: float, dt: float) -> list[float]:
-        """Per collider, the largest displacement (m) of any point of its domain box over the
-        step from ``t - dt`` to ``t`` (a rigid motion moves a box's points at most as far as its
-        corners); 0 for static colliders."""
+        """Per collider, the largest displacement (m) of any point of its surface over the step
+        from ``t - dt`` to ``t``: its domain box's corners under the two poses (a rigid motion
+        moves a box's points at most as far as its corners), plus, animated, its fastest
+        surface point's own travel (``max_surface_speed`` times the pose's scale and ``dt``);
+        0 for static colliders."""
         moves = []
-        for placement, pose in zip(self.colliders, poses):
-            if placement.static:
-                moves.append(0.0)
-                continue
-            corners = self.infos[placement.model].domain_corners()
-            moved = transform_points(pose, corners) - transform_points(placement.pose(t - dt), corners)
-            moves.append(float(np.linalg.norm(moved, axis=1).max()))
+        for placement, pose, timeline in zip(self.colliders, poses, self.timelines):
+            move = 0.0
+            if not placement.static:
+                corners = self.infos[placement.model].domain_corners()
+                moved = transform_points(pose, corners) - transform_points(placement.pose(t - dt), corners)
+                move = float(np.linalg.norm(moved, axis=1).max())
+            if timeline is not None:
+                scale = float(np.cbrt(abs(np.linalg.det(pose[:3, :3]))))
+                move += timeline.max_surface_speed * scale * dt
+            moves.append(move)
         return moves
 
     def substeps(self, velocities: np.ndarray, index: np.ndarray, moves: list[float], t: float,
@@ -236,9 +300,10 @@ class CollisionHook:
         tunnels: ``floor(relative displacement / eps) + 1``.
 
         Why eps: a point at least eps outside (where every point is after a step: colliding
-        ones are moved to eps) that moves less than eps cannot reach the far side of anything,
-        however thin, without first landing within eps, where it is caught. The relative
-        displacement is bounded by the point's own plus the collider's (:meth:`collider_moves`).
+        ones are moved to eps) that moves less than eps relative to the surface cannot reach the
+        far side of anything, however thin, without first landing within eps, where it is
+        caught. The relative displacement is bounded by the point's own plus the collider's
+        (:meth:`collider_moves`: its frame's motion and its surface's deformation).
         Raises :class:`TunnellingError` beyond :attr:`max_substeps`."""
         speed = np.linalg.norm(np.asarray(velocities, dtype=np.float64)[index], axis=1)
         own = float(speed.max(initial=0.0)) * dt
@@ -250,24 +315,28 @@ class CollisionHook:
             raise TunnellingError(
                 f"at t = {t:.6g} s a point near a collider moved {1e3 * (own + box):.3g} mm "
                 f"relative to it in one step ({1e3 * own:.3g} mm itself at {own / dt:.3g} m/s, "
-                f"{1e3 * box:.3g} mm the collider): more than {self.max_substeps} x eps = "
-                f"{1e3 * self.eps:.3g} mm, it could pass through a thin feature unseen. Keep "
-                "speed x dt below eps: lower dt or raise eps")
+                f"{1e3 * box:.3g} mm the collider's surface): more than {self.max_substeps} x "
+                f"eps = {1e3 * self.eps:.3g} mm, it could pass through a thin feature unseen. "
+                "Keep speed x dt below eps: lower dt or raise eps")
         return count
 
     def apply(self, positions: np.ndarray, velocities: np.ndarray, t: float, dt: float
               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Respond to contacts at time ``t`` (the poses at ``t``; ``dt`` for collider velocity).
+        """Respond to contacts at time ``t`` (seconds: the poses and animation times at ``t``;
+        ``dt`` for the colliders' velocities).
 
         positions : (n, 3) float, metres, world frame, after the step; velocities : (n, 3) float,
             m/s, the step's (positions moved by about velocities * dt during it)
         Returns ``(positions, velocities, mask)`` with new arrays for the first two and ``mask``
         (n,) bool of the points that were in contact.
 
-        A step in which a point moves ``eps`` or more relative to a collider is checked at
-        :meth:`substeps` times along the paths (``check_step``); a point caught part-way is
-        responded there and moves on with its responded velocity for the rest of the step, so
-        it cannot pass through a feature thinner than its step.
+        A step in which a point moves ``eps`` or more relative to a collider's surface is
+        checked at :meth:`substeps` times along the paths (``check_step``), each at its own
+        time; a point caught part-way is responded there and moves on with its responded
+        velocity, so it cannot pass through a feature thinner than its step. When a collider
+        moves or deforms, a caught point is checked again at the later times (a surface that
+        keeps pushing keeps it outside), so a surface moving faster than eps per step does not
+        leave it inside either.
         """
         started = time.perf_counter()
         positions = np.asarray(positions)
@@ -286,20 +355,22 @@ class CollisionHook:
         count = self.substeps(velocities, index, moves, t, dt) if self.check_step else 1
         positions = np.array(positions, copy=True)
         velocities = np.array(velocities, dtype=np.float64, copy=True)
-        end_positions = positions.copy()
+        since = np.zeros(n)  # seconds into the step at which each point's velocity was last set
         query_s = 0.0
         for j in range(1, count + 1):
             back = 1.0 - j / count  # fraction of the step after this check
             t_j = t - back * dt
             poses_j = poses if j == count else [c.pose(t_j) for c in self.colliders]
-            points = end_positions[index] - back * velocities[index] * dt
-            hit, q = self._respond(points, index, positions, velocities, poses_j, t_j, dt,
+            # Where each point is at t_j on its path (positions hold where it ends the step).
+            points = positions[index] - back * velocities[index] * dt
+            hit, q = self._respond(points, index, positions, velocities, since, poses_j, t_j, dt,
                                    (1.0 - back) * dt, back * dt)
             query_s += q
             mask[index[hit]] = True  # _respond wrote their positions and velocities
-            index = index[~hit]
-            if not len(index):
-                break
+            if not self.moving:  # a still surface cannot catch up with a responded point
+                index = index[~hit]
+                if not len(index):
+                    break
         self.stats.colliding_last = int(mask.sum())
         self.stats.colliding_max = max(self.stats.colliding_max, self.stats.colliding_last)
         self.stats.response_s += (time.perf_counter() - started) - query_s
@@ -325,23 +396,32 @@ class CollisionHook:
                                & (np.minimum(positions, start) <= hi), axis=1)
         return near
 
-    def _respond(self, points, index, positions, velocities, poses, t: float, dt: float,
+    def _query(self, points, poses, t: float, dt: float):
+        """The SDK call at ``t``: each collider at its animation time with its pose's velocity.
+        Returns ``(result, which collider per point or None, held per collider)``."""
+        times = [animation_time(c, line, t) for c, line in zip(self.colliders, self.timelines)]
+        rates = [c.pose_velocity(t, dt) for c in self.colliders]
+        if len(self.colliders) == 1:
+            placement = self.colliders[0]
+            result = self.client.query(
+                placement.model, points, fields=self.fields, pose=poses[0], eps=self.eps,
+                only_colliding=self.only_colliding, time=times[0][0], pose_velocity=rates[0])
+            return result, None, [times[0][1]]
+        result = self.client.scene_query(
+            [SceneCollider(c.model, p, at, rate) for c, p, (at, _), rate in
+             zip(self.colliders, poses, times, rates)],
+            points, fields=self.fields, eps=self.eps, only_colliding=self.only_colliding)
+        return result, np.asarray(result.collider), [held for _, held in times]
+
+    def _respond(self, points, index, positions, velocities, since, poses, t: float, dt: float,
                  travelled_s: float, remaining_s: float):
         """Query ``points`` (the rows ``index`` at time ``t``, ``travelled_s`` into the step and
         ``remaining_s`` before its end), and for those within eps write the contact, moved on
         with the responded velocity for ``remaining_s``, and that velocity into ``positions`` /
-        ``velocities`` (in place).
+        ``velocities`` (in place; ``since`` records when).
         Returns ``(hit (len(index),) bool, seconds spent in the query)``."""
         q0 = time.perf_counter()
-        if len(self.colliders) == 1:
-            result = self.client.query(self.colliders[0].model, points, fields=self.fields,
-                                       pose=poses[0], eps=self.eps, only_colliding=self.only_colliding)
-            which = None
-        else:
-            result = self.client.scene_query(
-                [(c.model, p) for c, p in zip(self.colliders, poses)], points,
-                fields=self.fields, eps=self.eps, only_colliding=self.only_colliding)
-            which = np.asarray(result.collider)
+        result, which, held = self._query(points, poses, t, dt)
         spent = time.perf_counter() - q0
         self.stats.query_s += spent
         self.stats.queries += 1
@@ -351,16 +431,17 @@ class CollisionHook:
         if not len(local_index):
             return hit, spent
         self.stats.deepest_m = min(self.stats.deepest_m, float(np.min(result.distance[local_index])))
-        contact = np.asarray(result.contact)[local_index]
-        # Collider velocity at the contact points, per collider (zero for static ones).
-        v_col = np.zeros((len(local_index), 3))
-        for k, (placement, pose) in enumerate(zip(self.colliders, poses)):
-            if placement.static:
-                continue
-            rows = slice(None) if which is None else (which[local_index] == k)
-            previous = placement.pose(t - dt)
-            if not np.array_equal(previous, pose):
-                v_col[rows] = collider_velocity(previous, pose, contact[rows], dt)
+        contact = np.asarray(result.contact, dtype=np.float64)[local_index]
+        # The surface's velocity at the contacts (world frame, m/s): the service's answer.
+        if result.velocity is not None:
+            v_col = np.asarray(result.velocity, dtype=np.float64)[local_index]
+        else:
+            v_col = np.zeros((len(local_index), 3))
+        for k, placement in enumerate(self.colliders):
+            if held[k]:  # an end frame held here (a scene's clamp on a looping model): frame only
+                rows = slice(None) if which is None else (which[local_index] == k)
+                v_col[rows] = 0.0 if placement.static else collider_velocity(
+                    placement.pose(t - dt), poses[k], contact[rows], dt)
         rows = index[local_index]
         v_before = velocities[rows]
         if self.friction is None:
@@ -370,12 +451,13 @@ class CollisionHook:
             v_after = respond_velocities(v_before, normal, np.ones(len(local_index), bool),
                                          self.friction, self.restitution, v_col)
         velocities[rows] = v_after
-        # The step already moved the point along the surface with its old velocity; the response
-        # changed that velocity, so take the tangential part of the change back from this step's
-        # displacement too: a contact that sticks does not creep (it slid g sin(theta) dt^2 per
-        # step on a slope). The normal part is the projection's job.
+        # The step already moved the point along the surface with its old velocity since that
+        # was set; the response changed the velocity, so take the tangential part of the
+        # change back from that stretch too: a contact that sticks does not creep (it slid
+        # g sin(theta) dt^2 per step on a slope). The normal part is the projection's job.
         normal = _unit_rows(contact - points[local_index])
-        change = (v_after - v_before) * travelled_s
+        change = (v_after - v_before) * (travelled_s - since[rows])[:, None]
         change -= np.einsum("ij,ij->i", change, normal)[:, None] * normal
         positions[rows] = contact + change + v_after * remaining_s
+        since[rows] = travelled_s
         return hit, spent

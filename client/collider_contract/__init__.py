@@ -11,9 +11,11 @@ the same by construction:
 - :mod:`.answers`: the eps policy, the assembly of the fields, the scene rule, and the functions
   that answer a model query or a scene query given a way to evaluate a collider;
 - :mod:`.results`: what an answer and a model description are;
+- :mod:`.animation`: how an animated collider runs in time (frames, rate, loop or clamp);
 - :mod:`.errors`: :class:`QueryError`, every refusal's status, problem code and message.
 """
 
+from .animation import Timeline
 from .answers import (DEFAULT_EPS_METERS, Evaluate, Evaluation, answer_model_query,
                       answer_scene_query, check_finite, default_eps, finish, finish_scene,
                       nearest_collider, prepare, require_time, resolve_eps)
@@ -27,7 +29,7 @@ from .wire import WireError
 __all__ = [
     "DEFAULT_EPS_METERS", "FIELDS", "GRADIENT_FIELDS", "IDENTITY", "MAX_COORDINATE_M", "MAX_SCALE",
     "TITLES", "Evaluate", "Evaluation", "ModelInfo", "ModelQuery", "Pose", "PoseError", "QueryError",
-    "QueryResult", "Placed", "SceneCollider", "SceneQuery", "WireError", "answer_model_query",
+    "QueryResult", "Placed", "SceneCollider", "SceneQuery", "Timeline", "WireError", "answer_model_query",
     "answer_scene_query", "as_pose", "check_finite", "check_eps", "check_fields", "check_points",
     "check_pose_velocity", "check_time", "default_eps",
     "finish", "finish_scene", "nearest_collider", "prepare", "require_time", "resolve_eps", "transform_points", "unknown_model",

@@ -10,6 +10,7 @@ from typing import Any
 import numpy as np
 
 from . import wire
+from .animation import Timeline
 from .pose import box_corners
 from .queries import FIELDS
 
@@ -78,7 +79,8 @@ class ModelInfo:
         defined (outside it distances are a conservative extension)
     meters_per_unit : metres in one collider unit; bytes : size of the model file
     animation : empty for a static model; an animated one's ``frames``, ``frame_rate_hz``,
-        ``duration_s`` and ``loop`` (its queries must give a time)
+        ``duration_s``, ``loop`` and ``max_surface_speed`` (:mod:`.animation`; its queries must
+        give a time)
     """
 
     name: str
@@ -101,6 +103,11 @@ class ModelInfo:
     def animated(self) -> bool:
         """Whether the model changes in time: its queries must give a time."""
         return bool(self.animation)
+
+    @property
+    def timeline(self) -> Timeline | None:
+        """The animation's :class:`~.animation.Timeline`, or None for a static model."""
+        return Timeline.from_dict(self.animation) if self.animation else None
 
     def domain_corners(self) -> np.ndarray:
         """(8, 3) float64: the corners of the domain box, collider frame and units."""

@@ -17,6 +17,7 @@ import sys
 
 COMMAND_MODULES = [
     "collider_cli.commands.models",
+    "collider_cli.commands.animate",
     "collider_cli.commands.training",
     "collider_cli.commands.simulate",
     "collider_cli.commands.serve",

@@ -30,14 +30,30 @@ def _bake(kind_shape: str, root: Path) -> None:
     save_collider(collider, root / f"{kind_shape}.safetensors")
 
 
+def _bake_pulse(root: Path) -> None:
+    """The project's pulsing sphere (radius 0.1 m +-20 %, centre moving +-0.1 m along x, 13
+    frames at 12 fps, looping) as ``pulse`` (exact, animated) and ``pulse-voxel`` (5 keyframe
+    grids of 24^3)."""
+    from collider_server.engine.modelfile import save_collider
+    from collider_server.making.animations import pulsing_sphere
+    from collider_server.making.bake import bake_animated_collider
+
+    animation, _ = pulsing_sphere()
+    save_collider(bake_animated_collider(animation, "mesh", "pulse"), root / "pulse.safetensors")
+    save_collider(bake_animated_collider(animation, "voxel", "pulse-voxel", resolution=24, keyframes=5,
+                                         show_progress=False), root / "pulse-voxel.safetensors")
+
+
 @pytest.fixture(scope="session")
 def models_dir(tmp_path_factory) -> Path:
     """A model repository with ``sphere`` (radius 0.1 m at the origin) and ``box``
-    (0.2 x 0.1 x 0.05 m at the origin), voxel colliders, metres."""
+    (0.2 x 0.1 x 0.05 m at the origin), voxel colliders, and the animated ``pulse`` (exact) and
+    ``pulse-voxel`` (keyframe grids) of the pulsing sphere; metres."""
     pytest.importorskip("collider_server", reason="the engine (server extras) is not installed")
     root = tmp_path_factory.mktemp("models")
     _bake("sphere", root)
     _bake("box", root)
+    _bake_pulse(root)
     return root
 
 

@@ -163,12 +163,19 @@ def test_scene_fields_are_the_nearest_colliders_own(backend, request, points, fi
 def test_list_models_same(embedded, remote):
     a = {m.name: m for m in embedded.list_models()}
     b = {m.name: m for m in remote.list_models()}
-    assert sorted(a) == sorted(b) == ["box", "sphere"]
+    assert sorted(a) == sorted(b) == ["box", "pulse", "pulse-voxel", "sphere"]
     for name in a:
-        assert a[name].kind == b[name].kind == "voxel"
+        assert a[name].kind == b[name].kind == ("mesh" if name == "pulse" else "voxel")
         np.testing.assert_allclose(a[name].domain_min, b[name].domain_min)
         np.testing.assert_allclose(a[name].domain_max, b[name].domain_max)
         assert a[name].bytes == b[name].bytes > 0
+        # The animation, over the wire as in process: frames, rate, duration, loop, speed bound.
+        assert a[name].animation == b[name].animation
+        assert a[name].animated == (name in ("pulse", "pulse-voxel"))
+    assert b["pulse"].animation == {"frames": 13, "frame_rate_hz": 12.0, "duration_s": 1.0,
+                                    "loop": True, "max_surface_speed": a["pulse"].animation["max_surface_speed"]}
+    assert b["pulse-voxel"].timeline.frames == 5 and b["pulse-voxel"].timeline.duration_s == 1.0
+    assert b["pulse"].source["cache_sha256"] == a["pulse"].source["cache_sha256"]
 
 
 @pytest.mark.parametrize("backend", ["embedded", "remote"])

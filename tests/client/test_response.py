@@ -322,8 +322,8 @@ def test_substeps_refusal_messages_give_the_numbers():
         hook.substeps(np.array([[56.7, 0.0, 0.0]]), np.array([0]), [0.0797], 0.25, 1e-3)
     assert str(caught.value) == (
         "at t = 0.25 s a point near a collider moved 136 mm relative to it in one step (56.7 mm "
-        "itself at 56.7 m/s, 79.7 mm the collider): more than 64 x eps = 1.99 mm, it could pass "
-        "through a thin feature unseen. Keep speed x dt below eps: lower dt or raise eps")
+        "itself at 56.7 m/s, 79.7 mm the collider's surface): more than 64 x eps = 1.99 mm, it could "
+        "pass through a thin feature unseen. Keep speed x dt below eps: lower dt or raise eps")
     with pytest.raises(TunnellingError, match=r"^at t = 0.5 s a point near a collider has a "
                                               r"non-finite velocity$"):
         hook.substeps(np.array([[np.nan, 0.0, 0.0]]), np.array([0]), [0.0], 0.5, 1e-3)
@@ -469,12 +469,15 @@ def test_hook_sends_its_eps_fields_and_only_colliding(exact_client, two, only_co
     assert n == 2 + two
     if two:
         assert method == "scene_query"
-        assert [m for m, _ in sent_colliders] == ["floor", "floor"]
-        np.testing.assert_array_equal(sent_colliders[0][1], np.eye(4))
-        np.testing.assert_array_equal(sent_colliders[1][1], far)
+        assert [c.model for c in sent_colliders] == ["floor", "floor"]
+        np.testing.assert_array_equal(sent_colliders[0].pose, np.eye(4))
+        np.testing.assert_array_equal(sent_colliders[1].pose, far)
+        # Static floors: no time, no pose velocity.
+        assert [(c.time, c.pose_velocity) for c in sent_colliders] == [(None, None)] * 2
     else:
         assert (method, sent_colliders) == ("query", "floor")
         np.testing.assert_array_equal(sent_options.pop("pose"), np.eye(4))
+        options.update(time=None, pose_velocity=None)
     assert sent_options == options
 
 
@@ -496,8 +499,9 @@ def test_a_plate_moving_past_a_resting_point_in_one_step_is_caught(exact_client)
     """The 0.2 mm plate falls 0.2 m in one step (20 m/s, dt = 10 ms) past a point at z = -5 cm
     that ends the step outside the plate's box: only its move brings the point into the check.
     eps = 5 mm: 41 checks; the 10th finds the plate's underside at z = -0.2 x 10/41 m - 0.2 mm,
-    within eps; the point is pushed under it and carried down with it (sticky): it ends eps
-    below the underside at the step's end, at 20 m/s downwards."""
+    within eps; the point is pushed under it and carried down with it (sticky), checked again
+    at the 31 later checks (the plate moves): it ends eps below the underside at the step's end,
+    at 20 m/s downwards."""
     eps, dt, t = 5e-3, 1e-2, 1e-2
     plate = ColliderPlacement("plate", lambda time: _translation(0.0, 0.0, -20.0 * time))
     hook = CollisionHook(exact_client, [plate], eps=eps)
@@ -505,7 +509,7 @@ def test_a_plate_moving_past_a_resting_point_in_one_step_is_caught(exact_client)
     z_point = -0.05
     assert z_point - (-0.2 + info.domain_max[2]) > eps  # outside the plate's box at t
     pos, vel, mask = hook.apply(np.array([[0.01, 0.02, z_point]]), np.zeros((1, 3)), t, dt)
-    assert mask.all() and hook.stats.queries == 10
+    assert mask.all() and hook.stats.queries == 41
     np.testing.assert_allclose(pos, [[0.01, 0.02, -0.2 - 2e-4 - eps]], atol=1e-9)
     np.testing.assert_allclose(vel, [[0.0, 0.0, -20.0]], atol=1e-9)
 

@@ -77,6 +77,24 @@ CASES = {
     "scene, times and pose velocities": ("scene", (NEAR,), {
         "colliders": [cc.SceneCollider("sphere", pose((0.02, 0, 0)), 1.0, RATE), "box"],
         "fields": ALL + ["velocity"], "time": 3.0}),
+    # animated colliders: the exact kind and keyframe grids, at times between frames and beyond
+    "animated exact, between frames": ("query", (NEAR,), {"model": "pulse", "fields": ALL + ["velocity"],
+                                                          "time": 0.37}),
+    "animated voxel, between keyframes": ("query", (NEAR,), {"model": "pulse-voxel",
+                                                             "fields": ALL + ["velocity"], "time": 0.37}),
+    "animated, looping past the end": ("query", (NEAR,), {"model": "pulse", "fields": ["distance", "velocity"],
+                                                          "time": 12.29}),
+    "animated, a negative time": ("query", (NEAR,), {"model": "pulse-voxel", "fields": ALL + ["velocity"],
+                                                     "time": -0.61}),
+    "animated, posed, moving, collide-only": ("query", (NEAR,), {
+        "model": "pulse", "fields": ALL + ["velocity"], "time": 0.8, "pose": pose((0.02, 0, 0.01), 1.5, 20),
+        "pose_velocity": RATE, "eps": 0.01, "only_colliding": True}),
+    "scene, an animated and a static collider": ("scene", (NEAR,), {
+        "colliders": [cc.SceneCollider("pulse", pose((0.03, 0, 0)), 0.3, RATE), "box"],
+        "fields": ALL + ["velocity"]}),
+    "scene, animated colliders at the scene's time": ("scene", (NEAR,), {
+        "colliders": [{"model": "pulse"}, {"model": "pulse-voxel", "time": 0.1}],
+        "fields": ALL + ["velocity"], "time": 0.45}),
     "scene, two colliders": ("scene", (NEAR,), {"colliders": ["sphere", ("box", pose((0.05, 0, 0)))],
                                                 "fields": ALL}),
     "scene, a tie (the same collider twice)": ("scene", (NEAR,), {"colliders": ["sphere", "sphere"],
@@ -129,6 +147,11 @@ CASES = {
     "pose velocity 3x3": ("query", (NEAR[:2],), {"pose_velocity": np.eye(3)}),
     "pose velocity Inf": ("query", (NEAR[:2],), {"pose_velocity": np.full((4, 4), np.inf)}),
     "scene collider time NaN": ("scene", (NEAR[:2],), {"colliders": [{"model": "sphere", "time": float("nan")}]}),
+    "animated without a time": ("query", (NEAR[:2],), {"model": "pulse"}),
+    "animated voxel without a time": ("query", (NEAR[:2],), {"model": "pulse-voxel", "fields": ALL}),
+    "animated, time NaN": ("query", (NEAR[:2],), {"model": "pulse", "time": float("nan")}),
+    "animated, time Inf": ("query", (NEAR[:2],), {"model": "pulse", "time": float("inf")}),
+    "scene, an animated collider without a time": ("scene", (NEAR[:2],), {"colliders": ["sphere", "pulse"]}),
     "no field": ("query", (NEAR[:2],), {"fields": []}),
     # refusals: models, scenes
     "unknown model": ("query", (NEAR[:2],), {"model": "teapot"}),
@@ -237,7 +260,7 @@ def test_the_cases_cover_answers_and_every_refusal(backends):
             codes.add(result[2])
     assert kinds == {"answer", "error"}
     assert codes == {"bad-points", "bad-pose", "eps-out-of-range", "bad-eps", "unknown-field",
-                     "unknown-model", "bad-colliders", "bad-time", "bad-pose-velocity"}
+                     "unknown-model", "bad-colliders", "bad-time", "bad-pose-velocity", "missing-time"}
 
 
 @pytest.mark.parametrize("backend", [0, 1], ids=["embedded", "remote"])

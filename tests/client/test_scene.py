@@ -108,7 +108,7 @@ def test_cli_rejects_a_missing_model_before_the_run(tmp_path, models_dir):
                           "--models", str(models_dir), "--output", str(tmp_path / "out")],
                          capture_output=True, text=True)
     assert out.returncode == 2, out.stderr
-    assert "colliders[].model ['teapot'] not found" in out.stderr
+    assert "colliders[0].model: no model named 'teapot'" in out.stderr
     assert "box" in out.stderr and "sphere" in out.stderr
     assert not (tmp_path / "out" / "scene.pc2").exists()  # rejected before anything ran
 
@@ -340,7 +340,13 @@ KNOWN_EFFECTS = sorted(["gravity", "wind", "damping", "stretch", "shear", "bend"
     ("[effects.gravity]", COLLIDER + "rotation_deg = [0, 0]",
      "colliders[0].rotation_deg: must be a list of 3 numbers, got [0, 0]"),
     ("[effects.gravity]", COLLIDER + "colour = 'red'", "unknown key(s) ['colliders[0].colour']; "
-     "known here: ['model', 'motion', 'position_m', 'rotation_deg']"),
+     "known here: ['loop', 'make', 'model', 'motion', 'position_m', 'rotation_deg', 'time_offset_s']"),
+    ("[effects.gravity]", COLLIDER + "time_offset_s = 'soon'",
+     "colliders[0].time_offset_s: must be a number, got str 'soon'"),
+    ("[effects.gravity]", COLLIDER + "time_offset_s = nan",
+     "colliders[0].time_offset_s: must be finite, got nan"),
+    ("[effects.gravity]", COLLIDER + "loop = 1", "colliders[0].loop: must be true or false, got int 1"),
+    ("[effects.gravity]", COLLIDER + "make = 3", "colliders[0].make: must be a string, got int 3"),
     ("[effects.gravity]", COLLIDER + "motion = { kind = 'teleport' }",
      "colliders[0].motion.kind: must be one of ['static', 'velocity', 'keyframes'], got 'teleport'"),
     ("[effects.gravity]", COLLIDER + "motion = { velocity_m_s = [0, 0, 1] }",

@@ -100,11 +100,11 @@ def test_drop_on_sphere_stays_outside(tmp_path, models_dir):
 
     from collider_client.sim.motion import pose_function
     from collider_server.engine.meshes import ExactSDF, Mesh
-    from collider_server.making.evaluation import penetration
+    from collider_server.making.evaluation import exact_distance, penetration
 
     sphere = trimesh.creation.icosphere(subdivisions=5, radius=SPHERE_RADIUS_M)
     exact = ExactSDF(Mesh(np.asarray(sphere.vertices), np.asarray(sphere.faces)))
-    check = penetration(frames, [("sphere", exact, pose_function(scene.colliders[0]))])
+    check = penetration(frames, [("sphere", exact_distance(exact), pose_function(scene.colliders[0]))])
     assert check["max_depth_m"] < 1e-3 and check["frames"] == 13
     assert check["min_distance_m"] < 2.5e-3  # it rests on the sphere, about eps away
     # Outputs: OBJ (quads), PC2 (every frame), PNG, report.
@@ -395,12 +395,12 @@ def test_run_scene_refuses_before_the_run(tmp_path, models_dir, monkeypatch):
     path.write_text(FALL + "[effects.collisions]\n[[colliders]]\nmodel = 'teapot'\n")
     scene = load_scene(path)
     with cc.Client(models=models_dir, device="cpu") as client:
-        with pytest.raises(ValueError, match=r"colliders\[\]\.model \['teapot'\] not found; "
-                                             r"available models: \['box', 'sphere'\]$"):
+        with pytest.raises(ValueError, match=r"colliders\[0\]\.model: no model named 'teapot' "
+                                             r"\(available: \['box', 'pulse', 'pulse-voxel', 'sphere'\]\)$"):
             run_scene(scene, client, tmp_path / "out", show_progress=False)
     (tmp_path / "empty").mkdir()
     with cc.Client(models=tmp_path / "empty", device="cpu") as client:
-        with pytest.raises(ValueError, match=r"\['teapot'\] not found; available models: none$"):
+        with pytest.raises(ValueError, match=r"no model named 'teapot' \(available: none\)$"):
             run_scene(scene, client, tmp_path / "out", show_progress=False)
     with pytest.raises(ValueError, match="the scene has colliders; a client is needed"):
         run_scene(scene, None, tmp_path / "out", show_progress=False)
@@ -672,7 +672,7 @@ def test_start_live_view_paused_and_the_view_closed_when_the_run_fails(tmp_path,
     # The run refused after the view opened (a model the repository lacks): the view is stopped.
     teapot = tmp_path / "teapot.toml"
     teapot.write_text(FALL + "[effects.collisions]\n[[colliders]]\nmodel = 'teapot'\n")
-    with pytest.raises(ValueError, match=r"\['teapot'\] not found"):
+    with pytest.raises(ValueError, match=r"colliders\[0\]\.model: no model named 'teapot'"):
         simulate(teapot, "--models", models_dir, "--device", "cpu", "--view", "--port", free_port(),
                  "--no-preview", "--quiet", "--output", tmp_path / "out")
     assert started[1:] == ["stopped"]
@@ -771,9 +771,9 @@ def test_exact_penetration_measures_each_placed_collider_at_each_frame():
     metres, world frame."""
     pytest.importorskip("collider_server", reason="the engine (server extras) is not installed")
     from collider_client.sim.motion import pose_function
-    from collider_server.making.evaluation import penetration
+    from collider_server.making.evaluation import exact_distance, penetration
 
-    box = _box_exact(0.2)
+    box = exact_distance(_box_exact(0.2))
     colliders = [("box", box, pose_function(_spec("box", (1.0, 0.0, 0.0), velocity=(0.0, 0.0, 1.0)))),
                  ("box", box, pose_function(_spec("box", (5.0, 0.0, 0.0))))]
     frames = [
@@ -794,7 +794,7 @@ def test_exact_penetration_measures_each_placed_collider_at_each_frame():
     scaled = np.diag([0.1, 0.1, 0.1, 1.0])
     scaled[:3, 3] = (1.0, 0.0, 0.0)
     check = penetration([(0.0, np.array([[1.0, 0.0, 0.05]]))],
-                        [("box", _box_exact(2.0), lambda t: scaled)])
+                        [("box", exact_distance(_box_exact(2.0)), lambda t: scaled)])
     assert check["max_depth_m"] == pytest.approx(0.05, abs=1e-6)
 
 

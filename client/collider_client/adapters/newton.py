@@ -8,8 +8,8 @@ cloth as usual; call :meth:`NewtonCollider.apply` on the state after each subste
         state_0.clear_forces()
         solver.step(state_0, state_1, control, None, dt)
         state_0, state_1 = state_1, state_0
-        adapter.apply(state_0, t, dt)        # numpy round trip: positions, velocities
         t += dt
+        adapter.apply(state_0, t, dt)        # at Newton's time: numpy round trip
 
 The hook asks for contacts and normals of the colliding particles only (``only_colliding``, its
 default): the service skips the gradient work for the others.
@@ -39,7 +39,9 @@ class NewtonCollider:
         self.free = mass > 0.0  # zero mass = fixed by the simulator (pins): leave them alone
 
     def apply(self, state, t: float, dt: float) -> int:
-        """Respond to contacts on ``state`` (a ``newton.State``) in place at time ``t`` (s).
+        """Respond to contacts on ``state`` (a ``newton.State``) in place at time ``t`` (s):
+        Newton's simulation time, at which the hook poses its colliders and asks animated ones
+        (plus each placement's ``time_offset_s``); ``dt`` the substep just taken.
 
         Returns the number of particles that were in contact.
         """

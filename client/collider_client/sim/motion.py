@@ -1,6 +1,7 @@
-"""Where a scene's colliders are and how they move: :class:`ColliderSpec` (a model, its placement
-and its :class:`Motion`) and :func:`pose_function`, its pose at any time (4x4, collider frame ->
-world frame, metres and seconds)."""
+"""Where a scene's colliders are and how they move: :class:`ColliderSpec` (a model, its placement,
+its :class:`Motion` and, animated, how the scene's time maps to its animation's) and
+:func:`pose_function`, its pose at any time (4x4, collider frame -> world frame, metres and
+seconds)."""
 
 from __future__ import annotations
 
@@ -25,10 +26,17 @@ class Motion:
 
 @dataclass
 class ColliderSpec:
+    """A scene's collider: its model, placement and motion; for an animated model, the offset
+    added to the simulation time (seconds) and a loop override (None: the model's own), and
+    the command that makes the model when it is not shipped (said when it is missing)."""
+
     model: str
     position_m: np.ndarray
     rotation_deg: np.ndarray  # extrinsic x, then y, then z (degrees), collider -> world
     motion: Motion
+    time_offset_s: float = 0.0
+    loop: bool | None = None
+    make: str | None = None
 
 
 def euler_matrix(rotation_deg: np.ndarray) -> np.ndarray:

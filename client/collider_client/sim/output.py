@@ -16,10 +16,12 @@ import numpy as np
 PC2_MAGIC = b"POINTCACHE2\0"
 
 
-def write_obj(path: Path, vertices: np.ndarray, faces: np.ndarray, name: str = "cloth") -> None:
-    """OBJ with ``vertices`` (n, 3) metres and 0-based ``faces`` (F, k) written 1-based."""
+def write_obj(path: Path, vertices: np.ndarray, faces: np.ndarray, name: str = "cloth",
+              comment: str = "neural-collider cloth, metres, world frame") -> None:
+    """OBJ with ``vertices`` (n, 3) and 0-based ``faces`` (F, k) written 1-based, in the vertex
+    order given (a PC2 cache of the same vertices indexes them in that order)."""
     with open(path, "w") as f:
-        f.write(f"# neural-collider cloth, metres, world frame\no {name}\n")
+        f.write(f"# {comment}\no {name}\n")
         np.savetxt(f, vertices, fmt="v %.7g %.7g %.7g")
         np.savetxt(f, faces + 1, fmt="f" + " %d" * faces.shape[1])
 
@@ -55,13 +57,38 @@ class PC2Writer:
         self.close()
 
 
+PC2_HEADER = struct.Struct("<12siiffi")
+
+
 def read_pc2(path: Path) -> np.ndarray:
-    """(frames, n, 3) float32 from a PC2 file (for tests and the exact check)."""
-    data = Path(path).read_bytes()
-    magic, version, points, _start, _rate, samples = struct.unpack("<12siiffi", data[:32])
-    if magic != PC2_MAGIC:
-        raise ValueError(f"{path}: not a PC2 file")
-    return np.frombuffer(data[32:], dtype="<f4").reshape(samples, points, 3)
+    """(frames, n, 3) float32 from a PC2 file, memory-mapped. A file that is not a PC2 cache, or
+    holds fewer bytes than its header promises (a truncated copy), or more, is a ValueError
+    naming the file and what is wrong; finiteness is the reader's to check."""
+    path = Path(path)
+    if path.is_dir():
+        raise ValueError(f"{path}: is a directory, not a PC2 file")
+    if not path.is_file():
+        raise ValueError(f"{path}: no such PC2 file")
+    size = path.stat().st_size
+    with open(path, "rb") as fh:
+        head = fh.read(PC2_HEADER.size)
+    if len(head) < PC2_HEADER.size or not head.startswith(PC2_MAGIC):
+        raise ValueError(f"{path}: not a PC2 file (no POINTCACHE2 header)")
+    _magic, version, points, _start, _rate, samples = PC2_HEADER.unpack(head)
+    if version != 1 or points < 1 or samples < 0:
+        raise ValueError(f"{path}: PC2 header is malformed (version {version}, {points} points, "
+                         f"{samples} samples)")
+    expected = PC2_HEADER.size + samples * points * 12
+    if size != expected:
+        held = (size - PC2_HEADER.size) / (points * 12)
+        what = "truncated" if size < expected else "longer than its header says"
+        raise ValueError(f"{path}: {what}: the header promises {samples} frames of {points} "
+                         f"points ({expected:,} bytes), the file has {size:,} bytes "
+                         f"({held:.4g} frames)")
+    if samples == 0:
+        return np.zeros((0, points, 3), dtype=np.float32)
+    return np.memmap(path, dtype="<f4", mode="r", offset=PC2_HEADER.size,
+                     shape=(samples, points, 3))
 
 
 class PC2Frames:

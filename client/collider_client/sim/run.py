@@ -18,7 +18,7 @@ from collider_contract import transform_points
 from .cloth import quad_faces
 from .motion import pose_function
 from .output import PC2Frames, PC2Writer, write_obj, write_preview
-from .scene import Scene
+from .scene import Scene, check_models
 from .simulator import RunReport, Simulator
 
 
@@ -156,7 +156,8 @@ def run_scene(scene: Scene, client, out_dir: Path, *, show_progress: bool = True
     Raises :class:`RunInterrupted` (a KeyboardInterrupt) on Ctrl-C, after writing the outputs
     of the steps that ran (the report's ``interrupted`` set).
 
-    collider_points : model name -> (m, 3) surface points in the collider frame, drawn in the
+    collider_points : model name -> (m, 3) surface points in the collider frame, or a function
+        of the simulation time (seconds) giving them (an animated collider), drawn in the
         preview (optional)
     on_step : called as ``on_step(sim, i)`` after step ``i`` (1-based), e.g. by the live viewer
         (``collider simulate --view``), which may block there to pause the run
@@ -174,10 +175,7 @@ def run_scene(scene: Scene, client, out_dir: Path, *, show_progress: bool = True
     infos = None
     if client is not None and scene.colliders:
         infos = {m.name: m for m in client.list_models()}
-        missing = sorted({c.model for c in scene.colliders} - set(infos))
-        if missing:
-            raise ValueError(f"{scene.path}: colliders[].model {missing} not found; available "
-                             f"models: {sorted(infos) or 'none'}")
+        check_models(scene, infos)
     total = scene.steps if steps is None else steps
     check_resources(scene, total)
     sim = Simulator(scene, client, infos)
@@ -249,8 +247,9 @@ def run_scene(scene: Scene, client, out_dir: Path, *, show_progress: bool = True
             pts = (collider_points or {}).get(spec.model)
             if pts is not None:
                 for i in chosen:
-                    pose = pose_function(spec)(frames[i][0])
-                    shown[i].append(transform_points(pose, pts))
+                    t = frames[i][0]
+                    pose = pose_function(spec)(t)
+                    shown[i].append(transform_points(pose, pts(t) if callable(pts) else pts))
         write_preview(out_dir / f"{stem}.png", {i: frames[i][1] for i in chosen}, c.width,
                       c.height, {i: frames[i][0] for i in chosen}, f"{scene.name}", shown)
     (out_dir / f"{stem}.report.json").write_text(json.dumps(report.to_dict(), indent=2,

@@ -2,7 +2,10 @@
 
 Units are in the key names (``_m``, ``_s``, ``_kg_m2``, ``_deg``). Frames: the world frame has
 gravity along -z by default; a collider's ``position_m``/``rotation_deg`` place its frame in the
-world (collider -> world). Only the tables under ``[effects]`` that a file declares are simulated.
+world (collider -> world). An animated collider is asked at the simulation time plus its
+``time_offset_s``, looping or clamping as its model was baked unless ``loop`` says otherwise;
+``make`` is the command that makes a model the repository does not ship. Only the tables under
+``[effects]`` that a file declares are simulated.
 Every error names the file and the key (:mod:`.tables`); colliders' placement and motion are
 :mod:`.motion`'s.
 """
@@ -130,8 +133,11 @@ def load_scene(path: str | Path) -> Scene:
         position = t.vector("position_m", default=[0.0, 0.0, 0.0])
         rotation = t.vector("rotation_deg", default=[0.0, 0.0, 0.0])
         motion = _motion(t.table("motion"))
+        time_offset = t.number("time_offset_s", default=0.0)
+        loop = t.boolean("loop")
+        make = t.string("make")
         t.done()
-        colliders.append(ColliderSpec(model, position, rotation, motion))
+        colliders.append(ColliderSpec(model, position, rotation, motion, float(time_offset), loop, make))
 
     effects_table = root.table("effects", required=True)
     effects: dict[str, dict[str, Any]] = {}
@@ -146,6 +152,25 @@ def load_scene(path: str | Path) -> Scene:
     scene = Scene(path, name, duration_s, dt_s, frame_every, preview, cloth, colliders, effects)
     _check_consistency(scene)
     return scene
+
+
+def check_models(scene: Scene, infos: dict) -> None:
+    """Refuse, naming the file and key, colliders whose model is not among ``infos`` (name ->
+    ModelInfo; the collider's ``make`` says how to make it) and animation keys on a static
+    model."""
+    missing = [i for i, spec in enumerate(scene.colliders) if spec.model not in infos]
+    if missing:
+        spec = scene.colliders[missing[0]]
+        hint = (f"; make it with: {spec.make}" if spec.make else "")
+        raise SceneError(f"{scene.path}: colliders[{missing[0]}].model: no model named "
+                         f"{spec.model!r} (available: {sorted(infos) or 'none'}){hint}")
+    for i, spec in enumerate(scene.colliders):
+        if infos[spec.model].animated:
+            continue
+        for key, given in (("time_offset_s", spec.time_offset_s != 0.0), ("loop", spec.loop is not None)):
+            if given:
+                raise SceneError(f"{scene.path}: colliders[{i}].{key}: model {spec.model!r} is "
+                                 "not animated (the key applies to animated models)")
 
 
 def _motion(t: Table | None) -> Motion:

@@ -76,6 +76,14 @@ class Table:
             self.fail(name, f"must be one of {list(choices)}, got {value!r}")
         return value
 
+    def boolean(self, name, default=None, required=False):
+        value = self.get(name, default, required)
+        if value is None:
+            return None
+        if not isinstance(value, bool):
+            self.fail(name, f"must be true or false, got {type(value).__name__} {value!r}")
+        return value
+
     def table(self, name, required=False) -> "Table | None":
         value = self.get(name, None, required)
         if value is None:

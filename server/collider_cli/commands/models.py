@@ -23,12 +23,33 @@ from .options import (
 
 
 def register(subparsers) -> None:
-    bake = subparsers.add_parser("bake", help="make a voxel, mesh or kdtree collider from a mesh")
-    bake.add_argument("mesh", help="mesh file (OBJ, PLY, STL, OFF, GLB)")
+    bake = subparsers.add_parser(
+        "bake", help="make a voxel, mesh or kdtree collider from a mesh (or an animated one)",
+        description="Make a collider from MESH. With --animation, an animated collider of MESH's "
+                    "frames: kind mesh (exact at any time) or voxel (one grid per keyframe); "
+                    "between frames the surface is the linear interpolation of the vertices.")
+    bake.add_argument("mesh", help="mesh file (OBJ, PLY, STL, OFF, GLB; an OBJ with --animation)")
     bake.add_argument("--kind", choices=["voxel", "mesh", "kdtree"], default="voxel")
     bake.add_argument("--name", required=True, help="model name (file NAME.safetensors)")
-    bake.add_argument("--resolution", type=int, default=256, help="voxel samples per axis (8..1024)")
+    bake.add_argument("--resolution", type=int, default=None,
+                      help="voxel samples per axis (8..1024; default 256, 128 with --animation)")
     bake.add_argument("--padding", type=float, default=0.1, help="domain padding, fraction of the largest side")
+    animation = bake.add_argument_group(
+        "animation", "frame k is at k / FPS seconds; the animation lasts (frames - 1) / FPS")
+    animation.add_argument("--animation", default=None, metavar="CACHE",
+                           help="MESH's frames: a PC2 vertex cache (FILE.pc2, as `collider simulate` "
+                                "and Blender write), or a quoted pattern of OBJ files with MESH's "
+                                "faces ('frames/*.obj', ordered by the number in their names)")
+    animation.add_argument("--fps", type=float, default=None,
+                           help="frames per second of --animation (required with it)")
+    ends = animation.add_mutually_exclusive_group()
+    ends.add_argument("--loop", dest="loop", action="store_true", default=False,
+                      help="beyond the ends the time wraps around (the last frame should be the first)")
+    ends.add_argument("--clamp", dest="loop", action="store_false",
+                      help="beyond the ends the first or last frame is held (the default)")
+    animation.add_argument("--keyframes", type=int, default=None,
+                           help="voxel: grids evenly spaced from the first frame to the last "
+                                "(default: one per frame)")
     add_placement_arguments(bake)
     add_models_argument(bake, "where the model is written")
     add_device_argument(bake)
@@ -70,23 +91,31 @@ def run_bake(args) -> int:
 
     check_name(args.name)
     budget = budget_from_args(args)
+    if args.animation is None and (args.fps is not None or args.keyframes is not None or args.loop):
+        raise ValueError("--fps, --keyframes and --loop/--clamp need --animation")
     if budget is not None:  # an error budget: bake picks the kind (commands.budget)
+        if args.animation is not None:
+            raise ValueError("--max-error picks among static colliders; bake an --animation with "
+                             "--kind mesh or voxel")
         from .budget import run_budget_bake
 
         return run_budget_bake(args, budget)
     if args.cache is not None:
         raise ValueError("--cache is where the budget bake (--max-error) keeps what it measures; a plain "
                          "bake keeps nothing but the model")
-    check_bake_settings(args.kind, args.resolution, args.padding)  # before the mesh check and the estimate
+    if args.animation is not None:
+        return run_bake_animation(args)
+    resolution = args.resolution or 256
+    check_bake_settings(args.kind, resolution, args.padding)  # before the mesh check and the estimate
     placement = placement_from_args(args)
     mesh, transform = placement.apply(load_mesh(args.mesh))
     repository = ModelRepository(args.models)
     repository.check_writable()  # before the bake, not after
     check = print_mesh_check(mesh)
     if args.kind == "voxel":
-        print(bake_estimate(mesh, args.resolution), file=sys.stderr, flush=True)
+        print(bake_estimate(mesh, resolution), file=sys.stderr, flush=True)
     collider = bake_collider(
-        mesh, args.kind, args.name, resolution=args.resolution, padding=args.padding,
+        mesh, args.kind, args.name, resolution=resolution, padding=args.padding,
         units=placement.units, meters_per_unit=placement.meters_per_unit,
         device=args.device, show_progress=not args.quiet,
     )
@@ -119,6 +148,42 @@ def bake_estimate(mesh, resolution: int) -> str:
     per_point = (time.perf_counter() - started) / len(probe)
     return (f"bake voxel {resolution}^3: {resolution ** 3:,} exact distances, about "
             f"{format_duration(resolution ** 3 * per_point)} ({per_point * 1e6:.1f} us per point measured here)")
+
+
+def run_bake_animation(args) -> int:
+    """``collider bake MESH --animation CACHE --fps F``: an animated mesh or voxel collider."""
+    from collider_server.engine.modelfile import save_collider
+    from collider_server.engine.repository import ModelRepository
+    from collider_server.making.animation_files import check_frame_rate, load_animation
+    from collider_server.making.bake import ANIMATED_KINDS, bake_animated_collider
+
+    if args.kind not in ANIMATED_KINDS:
+        raise ValueError(f"--kind {args.kind} cannot be animated; use one of {list(ANIMATED_KINDS)}")
+    if args.fps is None:
+        raise ValueError("--animation needs --fps (frames per second: a vertex cache does not say)")
+    check_frame_rate(args.fps)
+    if args.kind == "mesh" and (args.keyframes is not None or args.resolution is not None):
+        raise ValueError("--keyframes and --resolution are voxel settings (kind mesh is exact)")
+    placement = placement_from_args(args)
+    animation, transform = placement.apply_to_animation(
+        load_animation(args.mesh, args.animation, args.fps, args.loop))
+    collider = bake_animated_collider(
+        animation, args.kind, args.name, resolution=args.resolution or 128,
+        keyframes=args.keyframes, padding=args.padding, units=placement.units,
+        meters_per_unit=placement.meters_per_unit, device=args.device,
+        show_progress=not args.quiet)
+    collider.info.source["transform"] = transform.tolist()
+    path = save_collider(collider, ModelRepository(args.models).path(args.name))
+    print(f"wrote {path} ({path.stat().st_size:,} bytes, kind {args.kind}, animated: "
+          f"{describe_animation(collider.info.animation)})")
+    return 0
+
+
+def describe_animation(animation: dict) -> str:
+    """One line: frames, rate, duration and what happens beyond the ends."""
+    ends = "loops (the time wraps around)" if animation["loop"] else "clamps (holds the end frames)"
+    return (f"{animation['frames']} frames at {animation['frame_rate_hz']:g} fps, "
+            f"{animation['duration_s']:g} s, {ends}")
 
 
 def load_points(args) -> np.ndarray:
@@ -196,7 +261,8 @@ def run_info(args) -> int:
         for name in names:
             size = repo.path(name).stat().st_size
             try:
-                kind = read_info(repo.path(name)).kind
+                listed = read_info(repo.path(name))
+                kind = listed.kind + (", animated" if listed.animation else "")
             except ValueError as exc:  # one damaged file must not hide the others
                 kind = f"unreadable: {getattr(exc, 'problem', exc)}"
             print(f"  {name:<20} {size:>12,} bytes  {kind}")
@@ -217,10 +283,18 @@ def run_info(args) -> int:
     print(f"  kind        {info.kind}{'  (approximate)' if info.approximate else ''}")
     print(f"  units       {info.units} ({info.meters_per_unit} m per unit), collider frame")
     print(f"  domain      {np.round(info.domain_min, 6).tolist()} .. {np.round(info.domain_max, 6).tolist()}")
+    if info.animation:
+        print(f"  animation   {describe_animation(info.animation)}; surface speed at most "
+              f"{info.animation.get('max_surface_speed', 0.0):.4g} {info.units}/s")
+    else:
+        print("  animation   none (static)")
     source = info.source
     if source:
         print(f"  source      {source.get('mesh')} sha256 {str(source.get('sha256', ''))[:16]} "
               f"({source.get('faces', '?')} faces)" + (f", {source['path']}" if source.get("path") else ""))
+        if source.get("cache"):
+            print(f"  cache       {source['cache']} sha256 {str(source.get('cache_sha256', ''))[:16]} "
+                  f"({source.get('frames', '?')} frames at {source.get('frame_rate_hz', '?')} fps)")
     print_source_check(source, info.accuracy)
     for key, value in info.settings.items():
         print(f"  {key:<11} {value}")

@@ -33,6 +33,10 @@ def register(subparsers) -> None:
     p.add_argument("--check-mesh", action="append", default=[], metavar="MODEL=MESH",
                    help="also measure penetration of every output frame against the exact SDF of "
                         "MESH (collider frame) for collider MODEL; repeatable")
+    p.add_argument("--check-animation", action="append", default=[], metavar="MODEL=CACHE",
+                   help="with --check-mesh for an animated MODEL: its vertex cache (the PC2 or "
+                        "'frames/*.obj' it was baked from): each frame is measured against the "
+                        "exact interpolated mesh at that frame's time; repeatable")
     view = p.add_argument_group("live view (extra [view]: pip install 'neural-collider[view]')")
     view.add_argument("--view", action="store_true",
                       help="show the run live in the browser (play / pause / step); the view "
@@ -71,12 +75,8 @@ def run_simulate(args: argparse.Namespace) -> int:
         from ..views.page import require_viser
 
         require_viser()
-    checks = {}
-    for item in args.check_mesh:
-        model, sep, mesh = item.partition("=")
-        if not sep or not model or not mesh:
-            raise ValueError(f"--check-mesh wants MODEL=MESH, got {item!r}")
-        checks[model] = Path(mesh)
+    checks = model_files(args.check_mesh, "--check-mesh", "MESH")
+    caches = model_files(args.check_animation, "--check-animation", "CACHE")
     # Checked before the run, not reported after it.
     unused = sorted(set(checks) - {c.model for c in scene.colliders})
     if unused:
@@ -85,6 +85,10 @@ def run_simulate(args: argparse.Namespace) -> int:
     for model, mesh_path in checks.items():
         if not mesh_path.is_file():
             raise FileNotFoundError(f"--check-mesh {model}={mesh_path}: no such file")
+    lone = sorted(set(caches) - set(checks))
+    if lone:
+        raise ValueError(f"--check-animation {lone[0]}=...: give its mesh too (--check-mesh "
+                         f"{lone[0]}=MESH)")
     client = None
     if scene.colliders:
         if args.server:
@@ -94,9 +98,11 @@ def run_simulate(args: argparse.Namespace) -> int:
 
             threads = args.threads or max(1, (os.cpu_count() or 2) - 1)
             client = Client(models=args.models, device=args.device, threads=threads)
-    placed = placed_meshes(client, checks) if checks else {}
-    # The exact meshes also show the colliders in the PNG (a few thousand surface vertices).
-    shown = {model: surface_sample(mesh.vertices) for model, mesh in placed.items()}
+    placed = placed_meshes(client, checks, caches) if checks else {}
+    # The exact meshes also show the colliders in the PNG (a few thousand surface vertices, an
+    # animated one's at each panel's time).
+    shown = {model: shown_points(mesh, spec) for model, mesh in placed.items()
+             for spec in scene.colliders if spec.model == model}
     server = None
     try:
         on_step = None
@@ -124,12 +130,11 @@ def run_simulate(args: argparse.Namespace) -> int:
         import json
 
         from collider_client.sim.motion import pose_function
-        from collider_server.engine.meshes import ExactSDF
         from collider_server.making.evaluation import penetration
 
-        exact = {model: ExactSDF(mesh) for model, mesh in placed.items()}
-        report.exact_check = penetration(frames, [(spec.model, exact[spec.model], pose_function(spec))
-                                                  for spec in scene.colliders if spec.model in exact])
+        report.exact_check = penetration(frames, [(spec.model, exact_check(placed[spec.model], spec),
+                                                   pose_function(spec))
+                                                  for spec in scene.colliders if spec.model in placed])
         (args.output / f"{scene.path.stem}.report.json").write_text(
             json.dumps(report.to_dict(), indent=2, default=float))
     print(report.text())
@@ -148,15 +153,31 @@ def written_line(args, scene) -> str:
     return f"wrote {args.output / (stem + '.obj')}, {written}"
 
 
-def placed_meshes(client, checks: dict[str, Path]) -> dict:
+def model_files(items: list[str], option: str, what: str) -> dict[str, Path]:
+    """``MODEL=PATH`` options as {model: path}; a malformed one is a ValueError."""
+    files = {}
+    for item in items:
+        model, sep, path = item.partition("=")
+        if not sep or not model or not path:
+            raise ValueError(f"{option} wants MODEL={what}, got {item!r}")
+        files[model] = Path(path)
+    return files
+
+
+def placed_meshes(client, checks: dict[str, Path], caches: dict[str, Path] | None = None) -> dict:
     """Each ``--check-mesh`` file (model name -> path), placed as its model was made (the
     model's ``source.transform``: --scale / --fit-size / --z-up), so that it lies in the collider
-    frame like the model: model name -> :class:`~collider_server.engine.meshes.Mesh`."""
+    frame like the model: model name -> :class:`~collider_server.engine.meshes.Mesh`, or for an
+    animated model (its ``--check-animation`` cache) an
+    :class:`~collider_server.engine.animated_meshes.AnimatedMesh` run at its source's frame rate
+    and the model's loop."""
     import numpy as np
 
     from collider_client import ColliderError
+    from collider_server.making.animation_files import load_animation
     from collider_server.making.mesh_files import load_mesh
 
+    caches = caches or {}
     try:
         infos = {m.name: m for m in client.list_models()}
     except ColliderError as exc:  # a server that is down: one line
@@ -164,11 +185,56 @@ def placed_meshes(client, checks: dict[str, Path]) -> dict:
         raise ValueError(str(exc)) from None
     placed = {}
     for model, path in checks.items():
-        mesh = load_mesh(path)
-        transform = np.asarray(infos[model].source.get("transform", np.eye(4)), dtype=np.float64) \
-            if model in infos else np.eye(4)
+        info = infos.get(model)
+        transform = np.asarray(info.source.get("transform", np.eye(4)), dtype=np.float64) \
+            if info is not None else np.eye(4)
+        if info is not None and info.animated:
+            if model not in caches:
+                raise ValueError(f"--check-mesh {model}: the model is animated; give its vertex "
+                                 f"cache too (--check-animation {model}=CACHE)")
+            mesh = load_animation(path, caches[model], info.source.get("frame_rate_hz", info.timeline.frame_rate_hz),
+                                  info.timeline.loop)
+        elif model in caches:
+            raise ValueError(f"--check-animation {model}: the model is not animated")
+        else:
+            mesh = load_mesh(path)
         placed[model] = mesh if np.allclose(transform, np.eye(4)) else mesh.transformed(transform)
     return placed
+
+
+def exact_check(mesh, spec):
+    """``distance(points, t)`` of the exact (placed) ``mesh`` for scene collider ``spec`` at
+    simulation time ``t``: an animated one at the animation time the collision hook asks
+    (``collider_client.response.animation_time``: the spec's time offset and loop)."""
+    from collider_client.response import ColliderPlacement, animation_time
+    from collider_server.engine.animated_meshes import AnimatedMesh, ExactAtTimes
+    from collider_server.engine.meshes import ExactSDF
+    from collider_server.making.evaluation import exact_distance
+
+    if not isinstance(mesh, AnimatedMesh):
+        return exact_distance(ExactSDF(mesh))
+    placement = ColliderPlacement(spec.model, None, spec.time_offset_s, spec.loop)
+    line = mesh.timeline
+    # The hook's time, run by the scene's loop rule (held ends, not the model's wrap).
+    scene_line = line.with_loop(spec.loop)
+    return exact_distance(ExactAtTimes(AnimatedMesh(mesh.frames, mesh.faces, scene_line, mesh.name)),
+                          lambda t: animation_time(placement, line, t)[0])
+
+
+def shown_points(mesh, spec, count: int = 4000):
+    """Surface points of the placed exact ``mesh`` for the PNG: (m, 3), collider frame; for an
+    animated one a function of the simulation time (seconds)."""
+    from collider_server.engine.animated_meshes import AnimatedMesh
+
+    if not isinstance(mesh, AnimatedMesh):
+        return surface_sample(mesh.vertices, count)
+    import numpy as np
+
+    from collider_client.response import ColliderPlacement, animation_time
+
+    pick = np.random.default_rng(0).choice(mesh.vertex_count, min(count, mesh.vertex_count), replace=False)
+    placement = ColliderPlacement(spec.model, None, spec.time_offset_s, spec.loop)
+    return lambda t: mesh.vertices_at(animation_time(placement, mesh.timeline, t)[0])[pick]
 
 
 def surface_sample(vertices, count: int = 4000):

@@ -99,6 +99,11 @@ class Collider(abc.ABC):
     chunk_points: ClassVar[int] = 262_144
     #: Whether points outside the domain box get the conservative clamped answer.
     clamps_to_domain: ClassVar[bool] = True
+    #: Whether a collide-only query evaluates distance and gradient in one pass over all points
+    #: (a kind whose gradient costs little beside its distance: the exact mesh kinds, whose
+    #: distance builds a fast winding number tree per call) instead of a distance pass, then a
+    #: gradient pass over the colliding points.
+    gradient_in_one_pass: ClassVar[bool] = False
 
     def __init__(self, info: ColliderInfo):
         self.info = info
@@ -207,6 +212,15 @@ class Collider(abc.ABC):
                 rows = slice(None)
                 d, g, v = self._evaluate_anywhere(chunk, want_gradient, time)
                 distance[start:stop] = d
+            elif self.gradient_in_one_pass:
+                d, g, v = self._evaluate_anywhere(chunk, True, time)
+                distance[start:stop] = d
+                normal[start:stop] = 0.0
+                rows = np.flatnonzero(d < gradient_below[start:stop])
+                if not len(rows):
+                    continue
+                g = g[rows]
+                v = None if v is None else v[rows]
             else:
                 # Collide-only: distances of all, then the gradient pass over those below the bar.
                 d, _, _ = self._evaluate_anywhere(chunk, False, time)

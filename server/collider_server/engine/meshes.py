@@ -49,10 +49,13 @@ class ExactSDF:
     takes the sign from the fast winding number (inside where it exceeds 0.5).
     """
 
-    def __init__(self, mesh: Mesh):
+    def __init__(self, mesh: Mesh, edges: np.ndarray | None = None):
+        """``edges``: :func:`edge_index` of the mesh's faces when the caller has it (a deforming
+        mesh keeps its topology: the index is computed once for every frame)."""
         import igl
 
         self.mesh = mesh
+        self._edges = edges
         self._vertices = np.ascontiguousarray(mesh.vertices, dtype=np.float64)
         self._faces = np.ascontiguousarray(mesh.faces, dtype=np.int64)
         self._tree = igl.AABB()
@@ -108,7 +111,8 @@ class ExactSDF:
         on_surface = length <= tiny
         direction = offset / np.where(on_surface, 1.0, length)[:, None]
         direction *= np.where(distance < 0, -1.0, 1.0)[:, None]
-        direction[on_surface] = self.surface_normals(closest[on_surface], face[on_surface])
+        if on_surface.any():
+            direction[on_surface] = self.surface_normals(closest[on_surface], face[on_surface])
         return direction
 
     def surface_normals(self, closest: np.ndarray, face: np.ndarray) -> np.ndarray:
@@ -117,10 +121,12 @@ class ExactSDF:
         vertex normal at a vertex. A face normal alone at a concave crease points into the
         neighbouring face's solid: pushing a point there along it would move it inside."""
         if self._pseudo is None:
-            self._pseudo = _pseudo_normals(self._vertices, self._faces, self._face_normals)
+            if self._edges is None:
+                self._edges = edge_index(self._faces)
+            self._pseudo = _pseudo_normals(self._vertices, self._faces, self._face_normals, self._edges)
         edge_normals, vertex_normals = self._pseudo
         tri = self._vertices[self._faces[face]]
-        bary = _barycentric(closest, tri)
+        bary = barycentric(closest, tri)
         tol = 1e-6
         normals = self._face_normals[face].copy()
         corner = np.argmax(bary, axis=1)
@@ -137,7 +143,7 @@ class ExactSDF:
         return normals
 
 
-def _barycentric(points: np.ndarray, tri: np.ndarray) -> np.ndarray:
+def barycentric(points: np.ndarray, tri: np.ndarray) -> np.ndarray:
     """(m, 3) barycentric coordinates of ``points`` (m, 3) in triangles ``tri`` (m, 3, 3);
     degenerate triangles give (1, 0, 0)."""
     a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
@@ -152,15 +158,23 @@ def _barycentric(points: np.ndarray, tri: np.ndarray) -> np.ndarray:
     return np.stack([1.0 - v - w, v, w], axis=1)
 
 
-def _pseudo_normals(vertices: np.ndarray, faces: np.ndarray, face_normals: np.ndarray):
-    """Unit edge normals (f, 3, 3), per face and per corner the normal of the edge opposite that
-    corner (the normalised sum of the normals of the faces sharing it), and unit angle-weighted
-    vertex normals (v, 3) (Baerentzen and Aanaes 2005)."""
+def edge_index(faces: np.ndarray) -> np.ndarray:
+    """(f, 3) int: per face and corner, the index of the edge opposite that corner among the
+    mesh's distinct edges (two faces sharing an edge get the same index). Topology only."""
     # Edge opposite corner k joins corners k+1 and k+2; key it by its sorted vertex pair.
     pairs = np.stack([faces[:, [1, 2]], faces[:, [2, 0]], faces[:, [0, 1]]], axis=1)  # (f, 3, 2)
     keys = np.sort(pairs.reshape(-1, 2), axis=1)
     _, inverse = np.unique(keys, axis=0, return_inverse=True)
-    inverse = inverse.reshape(-1)
+    return inverse.reshape(len(faces), 3)
+
+
+def _pseudo_normals(vertices: np.ndarray, faces: np.ndarray, face_normals: np.ndarray,
+                    edges: np.ndarray):
+    """Unit edge normals (f, 3, 3), per face and per corner the normal of the edge opposite that
+    corner (the normalised sum of the normals of the faces sharing it, ``edges`` its
+    :func:`edge_index`), and unit angle-weighted vertex normals (v, 3) (Baerentzen and Aanaes
+    2005)."""
+    inverse = edges.reshape(-1)
     sums = np.zeros((int(inverse.max()) + 1 if len(inverse) else 0, 3))
     np.add.at(sums, inverse, np.repeat(face_normals, 3, axis=0))
     edge = sums[inverse].reshape(len(faces), 3, 3)

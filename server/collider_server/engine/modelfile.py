@@ -110,14 +110,16 @@ def load_collider(path: str | Path, device: str | None = None) -> Collider:
     from safetensors.numpy import load_file
 
     from .devices import resolve_device
-    from .kinds import KINDS
+    from .kinds import kind_class
 
     path = Path(path)
     # A bad device is the caller's mistake, not the file's: say so before reading the file.
     device = resolve_device(device) if device is not None else None
     metadata, info = _read_header(path)
-    if info.kind not in KINDS:
-        raise ModelFileError(path, f"unknown collider kind {info.kind!r}; known kinds are {sorted(KINDS)}")
+    try:
+        cls = kind_class(info)
+    except ValueError as exc:
+        raise ModelFileError(path, str(exc)) from None
     try:
         tensors = load_file(str(path))
     except Exception as exc:
@@ -125,6 +127,6 @@ def load_collider(path: str | Path, device: str | None = None) -> Collider:
     if content_hash(metadata["collider"], tensors) != metadata.get("content_sha256"):
         raise ModelFileError(path, "content hash mismatch: the file was modified or damaged")
     try:
-        return KINDS[info.kind].from_tensors(info, tensors, device)
+        return cls.from_tensors(info, tensors, device)
     except ValueError as exc:
         raise ModelFileError(path, str(exc)) from None

@@ -1,4 +1,5 @@
-"""Make a collider from a mesh: ``voxel`` (baked grid), ``mesh`` (exact) or ``kdtree``.
+"""Make a collider from a mesh: ``voxel`` (baked grid), ``mesh`` (exact) or ``kdtree``; or from
+an animated mesh: ``mesh`` (exact at any time) or ``voxel`` (keyframe grids).
 (``neural`` colliders are trained, see :mod:`collider_server.making.training`.)"""
 
 from __future__ import annotations
@@ -6,16 +7,21 @@ from __future__ import annotations
 import numpy as np
 
 from ..engine.collider import Collider, ColliderInfo
-from ..engine.kinds import KDTreeCollider, MeshCollider, VoxelCollider
+from ..engine.animated_meshes import AnimatedMesh
+from ..engine.kinds import (AnimatedMeshCollider, AnimatedVoxelCollider, KDTreeCollider, MeshCollider,
+                            VoxelCollider)
 from ..engine.kinds.voxel import MAX_RESOLUTION, MIN_RESOLUTION
+from collider_contract import Timeline
+
 from ..engine.meshes import ExactSDF, Mesh
 from .progress import progress
 
 BAKED_KINDS = ("voxel", "mesh", "kdtree")
 
 
-def padded_box(mesh: Mesh, padding: float) -> tuple[np.ndarray, np.ndarray]:
-    """The mesh's bounding box grown by ``padding`` times its largest side on every face."""
+def padded_box(mesh: Mesh | AnimatedMesh, padding: float) -> tuple[np.ndarray, np.ndarray]:
+    """The mesh's bounding box (an animation's: over every frame) grown by ``padding`` times its
+    largest side on every face."""
     lo, hi = mesh.bounds
     margin = padding * float((hi - lo).max())
     return lo - margin, hi + margin
@@ -39,7 +45,7 @@ def check_resolution(resolution: int) -> None:
 
 
 def bake_grid(sdf: ExactSDF, lo, hi, resolution: int, chunk_points: int = 262_144,
-              show_progress: bool = True) -> np.ndarray:
+              show_progress: bool = True, desc: str | None = None) -> np.ndarray:
     """Exact signed distances at the grid corners: (R, R, R) float32, indexed [x, y, z]."""
     check_resolution(resolution)
     axes = [np.linspace(lo[i], hi[i], resolution) for i in range(3)]
@@ -48,7 +54,7 @@ def bake_grid(sdf: ExactSDF, lo, hi, resolution: int, chunk_points: int = 262_14
     # Walk the grid in x-slabs so no (R^3, 3) coordinate array is ever built.
     slab = max(1, chunk_points // (resolution * resolution))
     yz = np.stack(np.meshgrid(axes[1], axes[2], indexing="ij"), axis=-1).reshape(-1, 2)
-    with progress(total=total, desc=f"bake {resolution}^3", unit="pt", enabled=show_progress) as bar:
+    with progress(total=total, desc=desc or f"bake {resolution}^3", unit="pt", enabled=show_progress) as bar:
         for i0 in range(0, resolution, slab):
             xs = axes[0][i0 : i0 + slab]
             points = np.empty((len(xs) * len(yz), 3))
@@ -93,3 +99,55 @@ def bake_collider(mesh: Mesh, kind: str, name: str, *, resolution: int = 256, pa
     info.settings["resolution"] = resolution
     grid = bake_grid(ExactSDF(mesh), lo, hi, resolution, show_progress=show_progress)
     return VoxelCollider(info, grid, device)
+
+
+ANIMATED_KINDS = ("mesh", "voxel")
+
+
+def animation_source(animation: AnimatedMesh, transform: np.ndarray | None = None) -> dict:
+    """Metadata of an animated source (``ColliderInfo.source``): the mesh's, and the vertex
+    cache's file name and sha256, its frame count and rate."""
+    return {**mesh_source(animation.frame(0), transform), "cache": animation.cache,
+            "cache_sha256": animation.cache_sha256, "frames": int(animation.timeline.frames),
+            "frame_rate_hz": float(animation.timeline.frame_rate_hz)}
+
+
+def bake_animated_collider(animation: AnimatedMesh, kind: str, name: str, *, resolution: int = 128,
+                           keyframes: int | None = None, padding: float = 0.1, units: str = "m",
+                           meters_per_unit: float = 1.0, device: str | None = None,
+                           show_progress: bool = True) -> Collider:
+    """An animated ``kind`` collider named ``name`` from ``animation`` (its units and frame).
+
+    kind : "mesh" (the frames themselves: exact at any time) or "voxel" (keyframe grids)
+    resolution : voxel samples per axis; keyframes : voxel grids, evenly spaced over the
+        animation from its first frame to its last (None: one per frame)
+    padding : fraction of the largest side added around the box of every frame (the domain)
+    """
+    if kind not in ANIMATED_KINDS:
+        raise ValueError(f"cannot animate kind {kind!r}; animated kinds are {list(ANIMATED_KINDS)}")
+    if not (np.isfinite(padding) and padding >= 0):
+        raise ValueError(f"padding must be a finite number >= 0 (fraction of the largest side), got {padding}")
+    timeline = animation.timeline
+    lo, hi = padded_box(animation, padding)
+    info = ColliderInfo(
+        name=name, kind=kind, domain_min=lo.tolist(), domain_max=hi.tolist(), units=units,
+        meters_per_unit=meters_per_unit, source=animation_source(animation),
+        settings={"padding": padding}, animation=timeline.to_dict())
+    if kind == "mesh":
+        return AnimatedMeshCollider(info, animation)
+    keyframes = timeline.frames if keyframes is None else keyframes
+    if isinstance(keyframes, bool) or not isinstance(keyframes, int) or keyframes < 2:
+        raise ValueError(f"--keyframes must be an integer >= 2, got {keyframes!r}")
+    if not MIN_RESOLUTION <= resolution <= MAX_RESOLUTION:
+        raise ValueError(f"resolution must be in {MIN_RESOLUTION}..{MAX_RESOLUTION}, got {resolution}")
+    info.settings.update(resolution=resolution, keyframes=keyframes)
+    # The keyframes' own timeline: the same duration, loop and speed bound, K frames.
+    keyed = Timeline(keyframes, (keyframes - 1) / timeline.duration_s, timeline.loop,
+                     timeline.max_surface_speed)
+    info.animation = keyed.to_dict()
+    grids = np.empty((keyframes, resolution, resolution, resolution), dtype=np.float32)
+    for i, position in enumerate(np.linspace(0.0, timeline.frames - 1, keyframes)):
+        grids[i] = bake_grid(ExactSDF(animation.at_frame(float(position))), lo, hi, resolution,
+                             show_progress=show_progress,
+                             desc=f"bake keyframe {i + 1}/{keyframes} {resolution}^3")
+    return AnimatedVoxelCollider(info, grids, device)

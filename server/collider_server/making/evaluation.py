@@ -134,10 +134,11 @@ def evaluate_collider(collider: Collider, mesh: Mesh, points: int = 100_000, see
 
 
 def penetration(frames, colliders) -> dict:
-    """How deep simulated points went into exact meshes: for ``frames``, a sequence of ``(t
+    """How deep simulated points went into exact surfaces: for ``frames``, a sequence of ``(t
     seconds, (n, 3) points, world frame, metres)``, and ``colliders``, a list of ``(name,
-    ExactSDF in the collider frame, pose_at: t -> (4, 4) collider -> world)``, each point taken
-    into each collider's frame at its frame's time.
+    distance, pose_at)``: ``distance(points, t)`` the exact signed distance at collider-frame
+    points at simulation time ``t`` (collider units; :func:`exact_distance`), ``pose_at: t ->
+    (4, 4)`` collider -> world; each point taken into each collider's frame at its frame's time.
 
     Returns ``{"max_depth_m": ..., "min_distance_m": ..., "frames": ..., "by_model": {name:
     depth_m}}``: the deepest penetration (>= 0, metres) over all, and per collider name;
@@ -147,17 +148,26 @@ def penetration(frames, colliders) -> dict:
 
     by_model: dict[str, float] = {}
     closest = float("inf")
-    for name, sdf, pose_at in colliders:
+    for name, distance_at, pose_at in colliders:
         worst = 0.0
         for t, points in frames:
             pose = as_pose(pose_at(t))
-            distance = sdf.signed_distance(pose.to_local(points)) * pose.scale  # world units
+            distance = distance_at(pose.to_local(points), t) * pose.scale  # world units
             if len(distance):
                 worst = max(worst, float(-distance.min()))
                 closest = min(closest, float(distance.min()))
         by_model[name] = max(by_model.get(name, 0.0), worst)
     return {"max_depth_m": max(by_model.values(), default=0.0), "min_distance_m": closest,
             "frames": len(frames), "by_model": by_model}
+
+
+def exact_distance(exact, time_at=None):
+    """``distance(points, t)`` for :func:`penetration`: an :class:`ExactSDF` (a still mesh), or
+    an :class:`~collider_server.engine.animated_meshes.ExactAtTimes` (a deforming one) asked at
+    ``time_at(t)``, the animation's time at simulation time ``t`` (seconds)."""
+    if time_at is None:
+        return lambda points, t: exact.signed_distance(points)
+    return lambda points, t: exact.at(time_at(t))[0].signed_distance(points)
 
 
 def format_report(name: str, kind: str, report: dict) -> str:

@@ -1,7 +1,7 @@
 """Mesh placement: how a mesh file's coordinates become a collider's frame and units.
 
-One definition for every command that reads a mesh (``bake``, ``train``, ``eval``, ``bench``,
-``view``, ``simulate --check-mesh``): an optional Y-up to Z-up rotation (the paper's frame), then a
+One definition for every command that reads a mesh or an animation (``bake``, ``train``,
+``eval``, ``bench``, ``view``, ``simulate --check-mesh``): an optional Y-up to Z-up rotation (the paper's frame), then a
 uniform scale (``scale``, or ``fit_size``: the scale that makes the largest side that long), then
 the unit the scaled coordinates are in. The argparse side is
 :mod:`collider_cli.commands.options`.
@@ -14,6 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..engine.animated_meshes import AnimatedMesh
 from ..engine.meshes import Mesh
 
 #: Rotation taking a Y-up mesh to Z-up (x stays, y becomes z, z becomes -y).
@@ -88,3 +89,11 @@ class MeshPlacement:
         if np.allclose(transform, np.eye(4)):
             return mesh, np.eye(4)
         return mesh.transformed(transform), transform
+
+    def apply_to_animation(self, animation: AnimatedMesh) -> tuple[AnimatedMesh, np.ndarray]:
+        """Every frame of ``animation`` placed by one transform (``fit_size`` measures the first
+        frame), and that transform."""
+        transform = self.transform(animation.frame(0))
+        if np.allclose(transform, np.eye(4)):
+            return animation, np.eye(4)
+        return animation.transformed(transform), transform

@@ -16,6 +16,7 @@ class MeshCollider(Collider):
     kind = "mesh"
     chunk_points = 200_000
     clamps_to_domain = False
+    gradient_in_one_pass = True
 
     def __init__(self, info: ColliderInfo, mesh: Mesh):
         super().__init__(info)

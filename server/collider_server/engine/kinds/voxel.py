@@ -45,6 +45,13 @@ class VoxelCollider(Collider):
         return tuple(self._shape)
 
     def evaluate(self, local, want_gradient):
+        index, t = self._cells(local)
+        distance, gradient = self._trilinear(self._grid, index, t, want_gradient)
+        return distance, gradient
+
+    def _cells(self, local):
+        """The cell of each collider-frame point: the flat index of its lowest corner and its
+        position in the cell, (m, 3) in [0, 1] (torch tensors on the grid's device)."""
         torch = self._torch
         dev = self._device
         # Grid coordinates in float64 (exact for far-away domains), then float32 on the device.
@@ -54,8 +61,13 @@ class VoxelCollider(Collider):
         base = torch.minimum(coords.floor().clamp_min(0).long(), upper)
         t = (coords - base).clamp(0.0, 1.0)
         sx, sy, sz = self._strides
-        index = base[:, 0] * sx + base[:, 1] * sy + base[:, 2] * sz
-        g = self._grid
+        return base[:, 0] * sx + base[:, 1] * sy + base[:, 2] * sz, t
+
+    def _trilinear(self, g, index, t, want_gradient):
+        """The trilinear interpolant of the flat grid ``g`` in the cells :meth:`_cells` found:
+        ``(distance (m,), gradient (m, 3) or None)``, float64 numpy, collider units."""
+        torch = self._torch
+        sx, sy, sz = self._strides
         # Corner values c{ijk}, i/j/k = offset along x/y/z.
         c000, c001 = g[index], g[index + sz]
         c010, c011 = g[index + sy], g[index + sy + sz]

@@ -1,0 +1,80 @@
+"""``collider animate NAME``: write one of the project's generated animations (OBJ + PC2), and
+optionally bake it into animated colliders (:mod:`collider_server.making.animations`)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from .options import add_device_argument, add_models_argument, add_quiet_argument
+
+
+def register(subparsers) -> None:
+    from collider_server.making.animations import GENERATED
+
+    listed = "; ".join(f"{name}: {what}" for name, what in GENERATED.items())
+    p = subparsers.add_parser(
+        "animate", help="write a generated animation (OBJ + PC2) and bake it",
+        description=f"Write NAME.obj and NAME.pc2 (metres, z up) into --output. {listed}. "
+                    "With --bake, also bake them into the model repository (kind mesh: model "
+                    "NAME; kind voxel: model NAME-voxel).")
+    p.add_argument("name", choices=sorted(GENERATED), help="which animation")
+    p.add_argument("--output", type=Path, default=Path("out/animations"),
+                   help="folder of NAME.obj and NAME.pc2 (default out/animations)")
+    p.add_argument("--mesh", type=Path, default=Path("examples/meshes/stanford-bunny.obj"),
+                   help="twisting-bunny: the bunny OBJ (default %(default)s)")
+    p.add_argument("--bake", default=None, metavar="KINDS",
+                   help="also bake: mesh, voxel or mesh,voxel")
+    p.add_argument("--resolution", type=int, default=128, help="voxel samples per axis (default 128)")
+    p.add_argument("--keyframes", type=int, default=None,
+                   help="voxel grids over the animation (default: one per frame)")
+    add_models_argument(p, "where --bake writes")
+    add_device_argument(p)
+    add_quiet_argument(p)
+    p.set_defaults(func=run_animate)
+
+
+def make_animation(name: str, mesh: Path):
+    """The generated animation ``name`` (:data:`~collider_server.making.animations.GENERATED`)."""
+    from collider_server.making import animations
+    from collider_server.making.animation_files import read_obj
+
+    if name == "arm":
+        return animations.bending_arm()
+    if name == "pulsing-sphere":
+        return animations.pulsing_sphere()[0]
+    return animations.twisting_bunny(read_obj(mesh))
+
+
+def run_animate(args) -> int:
+    from collider_server.engine.modelfile import save_collider
+    from collider_server.engine.repository import ModelRepository
+    from collider_server.making.animation_files import load_animation, write_animation
+    from collider_server.making.bake import ANIMATED_KINDS, bake_animated_collider
+
+    kinds = [] if args.bake is None else [k.strip() for k in args.bake.split(",") if k.strip()]
+    unknown = sorted(set(kinds) - set(ANIMATED_KINDS))
+    if unknown or (args.bake is not None and not kinds):
+        raise ValueError(f"--bake takes some of {list(ANIMATED_KINDS)}, got {args.bake!r}")
+    repository = ModelRepository(args.models)
+    if kinds:
+        repository.check_writable()
+    animation = make_animation(args.name, args.mesh)
+    timeline = animation.timeline
+    obj, pc2 = write_animation(animation, args.output, args.name)
+    print(f"wrote {obj} and {pc2}: {timeline.frames} frames at {timeline.frame_rate_hz:g} fps "
+          f"({timeline.duration_s:g} s, looping), {animation.vertex_count:,} vertices, metres")
+    # Baked from the files just written, as `collider bake` would: the model records them.
+    written = load_animation(obj, pc2, timeline.frame_rate_hz, timeline.loop)
+    for kind in kinds:
+        name = args.name if kind == "mesh" else f"{args.name}-voxel"
+        collider = bake_animated_collider(written, kind, name, resolution=args.resolution,
+                                          keyframes=args.keyframes, device=args.device,
+                                          show_progress=not args.quiet)
+        path = save_collider(collider, repository.path(name))
+        print(f"wrote {path} ({path.stat().st_size:,} bytes, kind {kind}, animated); the same as: "
+              f"collider bake {obj} --animation {pc2} --fps {timeline.frame_rate_hz:g} --loop "
+              f"--kind {kind} --name {name}"
+              + (f" --resolution {args.resolution}" + (f" --keyframes {args.keyframes}"
+                                                       if args.keyframes else "")
+                 if kind == "voxel" else ""))
+    return 0
