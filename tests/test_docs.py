@@ -1,0 +1,159 @@
+"""Every command in the README, docs/ and models/README.md runs on a fresh clone: no documented
+command uses a folder outside the repository (`../shared` exists only beside this project's CI),
+every `collider` command parses, every file it reads is in the repository (or written by a
+command before it on the same page), the fast ones run for real, and the README's curl and
+Python snippets get real answers from a real server."""
+
+from __future__ import annotations
+
+import os
+import re
+import shlex
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+PAGES = sorted([ROOT / "README.md", ROOT / "models" / "README.md", ROOT / "docker" / "README.md",
+                *(ROOT / "docs").glob("*.md")])
+#: Subcommands that answer in about a second and write nothing: run for real.
+FAST = {"info", "query"}
+#: Options whose value is a file the command reads.
+INPUT_OPTIONS = {"mesh", "points", "pose", "config", "bench"}
+
+
+def blocks(page: Path, languages=("bash", "sh", "console", "")) -> list[str]:
+    """The fenced code blocks of ``page`` in ``languages`` ('' = no language given)."""
+    return [body for language, body in re.findall(r"```([a-z]*)\n(.*?)```", page.read_text(), re.S)
+            if language in languages]
+
+
+def commands(page: Path) -> list[str]:
+    """Shell commands of the page's shell blocks, continuation lines joined, comments kept."""
+    out = []
+    for block in blocks(page):
+        for line in block.replace("\\\n", " ").splitlines():
+            line = line.strip()
+            if line and not line.startswith("#"):
+                out.append(line)
+    return out
+
+
+def collider_commands(page: Path) -> list[list[str]]:
+    """The argv (after ``collider``) of every ``collider ...`` command on the page."""
+    out = []
+    for line in commands(page):
+        for part in re.split(r"&&|;|\|", line):
+            try:
+                argv = shlex.split(part, comments=True)
+            except ValueError:
+                continue
+            if argv and argv[0] == "collider":
+                out.append(argv[1:])
+    return out
+
+
+def all_pages_commands():
+    return [(page.relative_to(ROOT).as_posix(), argv) for page in PAGES for argv in collider_commands(page)]
+
+
+def test_the_pages_document_commands():
+    """The checks below see the pages' commands (a broken extractor would pass them all)."""
+    found = all_pages_commands()
+    assert len(found) >= 20
+    assert ("README.md", ["info"]) in found
+
+
+def test_no_documented_command_uses_a_folder_outside_the_repository():
+    wrong = [f"{page.relative_to(ROOT)}: {line}" for page in PAGES for line in commands(page)
+             if "../shared" in line or "/work/" in line]
+    assert wrong == []
+
+
+@pytest.mark.parametrize("page", PAGES, ids=lambda p: p.relative_to(ROOT).as_posix())
+def test_every_collider_command_parses_and_names_files_that_exist(page):
+    from collider_cli import build_parser
+
+    parser = build_parser()
+    made: set[str] = set()  # files and model names written by earlier commands on the page
+    problems = []
+    for argv in collider_commands(page):
+        if "--help" in argv or "-h" in argv:
+            continue
+        try:
+            args = parser.parse_args(argv)
+        except SystemExit:
+            problems.append(f"does not parse: collider {shlex.join(argv)}")
+            continue
+        for path in _inputs(args):
+            if not (ROOT / path).exists() and path not in made and str(Path(path).with_suffix("")) not in made:
+                problems.append(f"collider {shlex.join(argv)}: {path} is not in the repository")
+        model = getattr(args, "model", None)
+        if model and args.command in ("query", "info", "eval", "view") and model not in made \
+                and not (ROOT / "models" / f"{model}.safetensors").is_file() and not Path(model).suffix:
+            problems.append(f"collider {shlex.join(argv)}: no model {model!r} in models/ nor made before")
+        made |= _outputs(args)
+    assert problems == []
+
+
+def _inputs(args) -> list[str]:
+    # (eval's --points is a count, query's a file: files are the options argparse makes Paths)
+    paths = [str(value) for name in INPUT_OPTIONS if (value := getattr(args, name, None)) is not None
+             and (isinstance(value, Path) or name == "mesh")]
+    if args.command in ("bake", "train", "bench"):
+        paths.append(args.mesh)
+    paths += [item.partition("=")[2] for item in getattr(args, "check_mesh", None) or []]
+    if args.command == "simulate" and (args.scene.endswith(".toml") or "/" in args.scene):
+        paths.append(args.scene)
+    return paths
+
+
+def _outputs(args) -> set[str]:
+    made = {args.name} if getattr(args, "name", None) else set()
+    if args.command == "simulate":
+        from collider_client.sim.scene import load_scene, resolve_scene
+
+        stem = load_scene(resolve_scene(args.scene)).path.stem
+        made |= {str(args.output / stem), str(args.output / f"{stem}.pc2"), str(args.output / f"{stem}.obj")}
+    return made
+
+
+FAST_COMMANDS = [(page, argv) for page, argv in all_pages_commands()
+                 if argv and argv[0] in FAST and "--models" not in argv]
+
+
+@pytest.mark.parametrize("page, argv", FAST_COMMANDS, ids=[f"{p}: {' '.join(a)}" for p, a in FAST_COMMANDS])
+def test_the_fast_commands_run(page, argv):
+    """Run as a user would, from the repository's root, on the shipped models."""
+    env = {k: v for k, v in os.environ.items() if k != "COLLIDER_MODELS"}
+    out = subprocess.run([sys.executable, "-m", "collider_cli", *argv], cwd=ROOT, env=env,
+                         capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert "Traceback" not in out.stderr and out.stdout.strip()
+
+
+def test_the_readme_service_snippets_answer(tmp_path):
+    """The README's curl command and Python snippet, against a real server (its port instead of
+    8000: the documented one may be taken here)."""
+    import json
+
+    from collider_cli.launch import ServerThread
+
+    readme = ROOT / "README.md"
+    curl = [c for c in commands(readme) if c.startswith("curl")]
+    python = blocks(readme, ("python",))
+    assert curl and python
+    with ServerThread(models=ROOT / "models", device="cpu") as server:
+        for command in curl:
+            command = command.replace("localhost:8000", f"127.0.0.1:{server.port}")
+            out = subprocess.run(command, shell=True, capture_output=True, text=True, timeout=60)
+            assert out.returncode == 0, out.stderr
+            answer = json.loads(out.stdout)
+            assert {"distance", "model"} <= set(answer), answer
+        for code in python:
+            script = tmp_path / "snippet.py"
+            script.write_text(code.replace("http://127.0.0.1:8000", server.url))
+            out = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=120)
+            assert out.returncode == 0, out.stderr
