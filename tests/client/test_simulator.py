@@ -456,17 +456,19 @@ def test_simulate_options_defaults_and_help(capsys, monkeypatch):
     parser = simulate_parser()
     defaults = dict(command="simulate", scene="drop", server=None, token=None, models=None,
                     device=None, threads=None, output=Path("out"), steps=None, no_preview=False,
-                    quiet=False, check_mesh=[], view=False, host="127.0.0.1", port=8080,
-                    paused=False, func=run_simulate)
+                    quiet=False, check_mesh=[], check_animation=[], view=False, host="127.0.0.1",
+                    port=8080, paused=False, func=run_simulate)
     assert vars(parser.parse_args(["simulate", "drop"])) == defaults
     given = parser.parse_args([
         "simulate", "drop", "--server", "http://h:1", "--token", "t", "--models", "m",
         "--device", "cpu", "--threads", "3", "--output", "o", "--steps", "7", "--no-preview",
-        "--quiet", "--check-mesh", "a=b", "--check-mesh", "c=d", "--view", "--host", "0.0.0.0",
+        "--quiet", "--check-mesh", "a=b", "--check-mesh", "c=d", "--check-animation", "a=e.pc2",
+        "--view", "--host", "0.0.0.0",
         "--port", "9000", "--paused"])
     assert vars(given) == dict(defaults, server="http://h:1", token="t", models=Path("m"),
                                device="cpu", threads=3, output=Path("o"), steps=7, no_preview=True,
-                               quiet=True, check_mesh=["a=b", "c=d"], view=True, host="0.0.0.0",
+                               quiet=True, check_mesh=["a=b", "c=d"], check_animation=["a=e.pc2"],
+                               view=True, host="0.0.0.0",
                                port=9000, paused=True)
     # The help: what the command writes, the shipped scenes, each default as parsed above.
     monkeypatch.setenv("COLUMNS", "1000")
@@ -482,6 +484,7 @@ def test_simulate_options_defaults_and_help(capsys, monkeypatch):
             "server)",
             "--check-mesh MODEL=MESH also measure penetration of every output frame against the "
             "exact SDF of MESH (collider frame) for collider MODEL; repeatable",
+            "--check-animation MODEL=CACHE with --check-mesh for an animated MODEL: its vertex cache",
             "live view (extra [view]: pip install 'neural-collider[view]'):",
             "--view show the run live in the browser (play / pause / step); the view stays up "
             "after the run until Ctrl-C",
