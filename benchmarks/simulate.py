@@ -118,7 +118,7 @@ def main(argv=None) -> int:
         backends.append(("remote", args.server))
     start = None
     if args.start is not None:
-        from collider_client.sim.output import read_pc2
+        from collider_contract.point_cache import read_pc2
 
         start = np.array(read_pc2(args.start)[-1])
     rows = []

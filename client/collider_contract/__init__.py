@@ -12,6 +12,7 @@ the same by construction:
   that answer a model query or a scene query given a way to evaluate a collider;
 - :mod:`.results`: what an answer and a model description are;
 - :mod:`.animation`: how an animated collider runs in time (frames, rate, loop or clamp);
+- :mod:`.point_cache`: the files animations travel in (OBJ + PC2 vertex cache);
 - :mod:`.errors`: :class:`QueryError`, every refusal's status, problem code and message.
 """
 

@@ -84,7 +84,7 @@ def test_a_run_stopped_by_a_signal_leaves_its_png_and_its_report_marked_interrup
     assert report["interrupted"] is True and report["steps_planned"] == 3000 and 0 < report["steps"] < 3000
     assert stdout.startswith(f"INTERRUPTED      after {report['steps']:,} of 3,000 steps")
     assert (out / "drape_bunny_quick.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
-    from collider_client.sim.output import read_pc2
+    from collider_contract.point_cache import read_pc2
 
     frames = read_pc2(out / "drape_bunny_quick.pc2")
     assert len(frames) == report["frames"] == report["steps"] // 50 + 2 - (report["steps"] % 50 == 0)

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 import collider_client as cc
-from collider_client.sim.output import read_pc2
+from collider_contract.point_cache import read_pc2
 from collider_client.sim.run import run_scene
 from collider_client.sim.scene import load_scene
 from collider_client.sim.simulator import Simulator
@@ -230,34 +230,15 @@ def test_check_mesh_places_the_mesh_as_the_model_was_made(tmp_path, monkeypatch)
 # -- what a run writes: OBJ, PC2, the PNG preview ------------------------------------------------
 
 
-def test_write_obj_writes_metres_and_one_based_faces(tmp_path):
-    from collider_client.sim.output import write_obj
-
-    vertices = np.array([[0.0, 0.0, 0.0], [0.01, 0.0, 0.0], [0.0, 0.01, 0.0], [0.01, 0.01, 0.5]])
-    write_obj(tmp_path / "a.obj", vertices, np.array([[0, 1, 3, 2]]))
-    lines = (tmp_path / "a.obj").read_text().splitlines()
-    assert lines[1] == "o cloth"  # the default object name
-    assert lines[2:] == ["v 0 0 0", "v 0.01 0 0", "v 0 0.01 0", "v 0.01 0.01 0.5", "f 1 2 4 3"]
-
-
-def test_pc2_header_frames_and_bad_frames(tmp_path):
-    """The 32-byte header Blender reads: magic, version 1, points, start frame 0, sample rate 1
-    (one sample a frame), samples; then float32 x, y, z per point per frame."""
-    import struct
-
-    from collider_client.sim.output import PC2Frames, PC2Writer, read_pc2
+def test_pc2_frames_reads_each_written_frame_with_its_time(tmp_path):
+    from collider_client.sim.output import PC2Frames
+    from collider_contract.point_cache import PC2Writer
 
     path = tmp_path / "a.pc2"
     frames = [np.arange(6, dtype=np.float64).reshape(2, 3) * k / 3 for k in range(3)]
     with PC2Writer(path, 2) as pc2:
         for f in frames:
-            pc2.write(f)  # float64 in, float32 on disk
-        with pytest.raises(ValueError, match=r"frame must be \(2, 3\), got \(3, 3\)"):
-            pc2.write(np.zeros((3, 3)))
-    data = path.read_bytes()
-    assert len(data) == 32 + 3 * 2 * 3 * 4
-    assert struct.unpack("<12siiffi", data[:32]) == (b"POINTCACHE2\0", 1, 2, 0.0, 1.0, 3)
-    np.testing.assert_array_equal(read_pc2(path), np.array(frames, dtype=np.float32))
+            pc2.write(f)
     stored = PC2Frames(path, [0.0, 0.1, 0.2], 2)
     assert stored[-3][0] == 0.0 and stored[2][0] == 0.2  # first and last, both ways
     np.testing.assert_array_equal(stored[-3][1], frames[0].astype(np.float32))

@@ -9,7 +9,7 @@ import struct
 import numpy as np
 import pytest
 
-from collider_client.sim.output import PC2Writer
+from collider_contract.point_cache import PC2Writer
 
 from .test_cli_models import assert_user_error, run
 
@@ -64,7 +64,7 @@ def test_animate_bake_info_and_query(capsys, tmp_path, arm_files):
 
 
 def test_an_obj_sequence_is_an_animation(capsys, tmp_path, arm_files):
-    from collider_client.sim.output import read_pc2, write_obj
+    from collider_contract.point_cache import read_pc2, write_obj
     from collider_server.making.animation_files import read_obj
 
     obj, pc2 = arm_files
@@ -87,7 +87,7 @@ def test_an_obj_sequence_is_an_animation(capsys, tmp_path, arm_files):
 def malformed(tmp_path, arm_files, case):
     """(argv after the command, the message) for one malformed animation."""
     obj, pc2 = arm_files
-    from collider_client.sim.output import read_pc2
+    from collider_contract.point_cache import read_pc2
 
     frames = np.array(read_pc2(pc2))
     base = ["bake", obj, "--kind", "mesh", "--name", "x", "--models", tmp_path, "--quiet"]
@@ -129,7 +129,7 @@ def malformed(tmp_path, arm_files, case):
     if case == "no frames match":
         return base + ["--animation", str(tmp_path / "none" / "*.obj"), "--fps", 24], "*.obj: no files match"
     if case == "faces differ":
-        from collider_client.sim.output import write_obj
+        from collider_contract.point_cache import write_obj
 
         folder = tmp_path / "seq"
         folder.mkdir()

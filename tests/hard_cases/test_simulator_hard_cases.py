@@ -528,7 +528,8 @@ def test_a_huge_cloth_is_estimated_warned_about_and_refused_where_it_cannot_fit(
 
 
 def test_frames_are_streamed_to_the_pc2_file(tmp_path):
-    from collider_client.sim.output import PC2Frames, read_pc2
+    from collider_contract.point_cache import read_pc2
+    from collider_client.sim.output import PC2Frames
     from collider_client.sim.run import run_scene
 
     scene = load_scene(write_scene(tmp_path, "[effects.gravity]", duration=0.05))

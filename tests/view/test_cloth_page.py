@@ -581,7 +581,7 @@ def free_port() -> int:
 
 def test_replay_reads_the_pc2_frames(run):
     from collider_cli.views.cloth import _pc2_frames
-    from collider_client.sim.output import read_pc2
+    from collider_contract.point_cache import read_pc2
 
     prefix, frames, _ = run
     read = _pc2_frames(prefix.parent / "ball.rising.pc2")

@@ -17,7 +17,8 @@ from collider_contract import transform_points
 
 from .cloth import quad_faces
 from .motion import pose_function
-from .output import PC2Frames, PC2Writer, write_obj, write_preview
+from collider_contract.point_cache import PC2Writer, write_obj
+from .output import PC2Frames, write_preview
 from .scene import Scene, check_models
 from .simulator import RunReport, Simulator
 

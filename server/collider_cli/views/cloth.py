@@ -291,7 +291,7 @@ def _pc2_frames(path: Path) -> np.ndarray:
     """(frames, n, 3) float32 of a PC2 file, memory-mapped (a long run's cache can be GBs)."""
     import struct
 
-    from collider_client.sim.output import PC2_MAGIC
+    from collider_contract.point_cache import PC2_MAGIC
 
     with open(path, "rb") as fh:
         header = fh.read(32)

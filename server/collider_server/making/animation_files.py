@@ -18,7 +18,7 @@ import re
 from pathlib import Path
 
 import numpy as np
-from collider_client.sim.output import read_pc2
+from collider_contract.point_cache import read_pc2
 from collider_contract import Timeline
 
 from ..engine.animated_meshes import AnimatedMesh, max_surface_speed
@@ -185,7 +185,7 @@ def write_animation(animation: AnimatedMesh, folder: str | Path, name: str) -> t
     """``folder/NAME.obj`` (the first frame, every vertex in order) and ``folder/NAME.pc2``
     (every frame, float32): what :func:`load_animation` reads back, Blender's Mesh Cache too.
     The frame rate is not in the files (a PC2 counts scene frames): give it when baking."""
-    from collider_client.sim.output import PC2Writer, write_obj
+    from collider_contract.point_cache import PC2Writer, write_obj
 
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
