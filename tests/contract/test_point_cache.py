@@ -92,3 +92,14 @@ def test_a_malformed_cache_is_refused_naming_the_file_and_the_fault(tmp_path, ca
     with pytest.raises(ValueError) as info:
         read_pc2(path)
     assert str(info.value) == message.format(path=path)
+
+
+def test_a_single_frame_of_a_single_point_reads_back_read_only(tmp_path):
+    path = _write(tmp_path / "one.pc2", np.array([[[0.5, -1.0, 2.0]]]))
+    read = read_pc2(path)
+    assert read.shape == (1, 1, 3) and read.dtype == np.float32
+    np.testing.assert_array_equal(read, [[[0.5, -1.0, 2.0]]])
+    assert not read.flags.writeable  # a reader never changes the cache
+    empty = tmp_path / "empty.pc2"
+    PC2Writer(empty, 1).close()
+    assert read_pc2(empty).dtype == np.float32

@@ -75,3 +75,39 @@ def test_a_malformed_wire_form_is_refused():
         Timeline.from_dict({"frames": 3, "frame_rate_hz": 2.0})
     with pytest.raises(ValueError, match="animation must be a map"):
         Timeline.from_dict([3, 2.0])
+
+
+def test_the_smallest_animation_and_any_positive_rate_are_accepted():
+    line = Timeline(2, 0.5)  # two frames two seconds apart
+    assert line.duration_s == 2.0 and line.locate(1.0) == (0, 0.5, 0.5)
+
+
+@pytest.mark.parametrize("frames, rate, speed, message", [
+    (2.5, 1.0, 0.0, "an animation needs at least 2 frames, got 2.5"),
+    (2, "24", 0.0, "the frame rate must be a finite number of frames per second > 0, got '24'"),
+    (2, 1.0, "1", "max_surface_speed must be a finite number >= 0, got '1'"),
+])
+def test_numbers_of_the_wrong_type_are_refused_as_values(frames, rate, speed, message):
+    with pytest.raises(ValueError) as info:
+        Timeline(frames, rate, max_surface_speed=speed)
+    assert str(info.value) == message
+
+
+def test_a_clamped_end_under_a_second_is_held_at_the_last_frame():
+    line = Timeline(3, 4.0)  # frames at 0, 0.25, 0.5 s
+    assert line.locate(0.7) == (1, 1.0, 0.0)
+
+
+def test_the_last_instant_before_the_end_stays_in_the_last_segment():
+    """A time just below the duration whose position in frames rounds up to the last frame."""
+    line = Timeline(4, 13.0)
+    t = 0.23076923076923075  # the float below 3 / 13
+    assert t < line.duration_s and t * 13.0 >= 3.0
+    assert line.locate(t) == (2, 1.0, 13.0)
+
+
+def test_from_dict_defaults_and_refusals():
+    assert Timeline.from_dict({"frames": 3, "frame_rate_hz": 2, "loop": True}).max_surface_speed == 0.0
+    with pytest.raises(ValueError) as info:
+        Timeline.from_dict([3, 2, True])
+    assert str(info.value) == "animation must be a map, got list"
