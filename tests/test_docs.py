@@ -157,3 +157,11 @@ def test_the_readme_service_snippets_answer(tmp_path):
             script.write_text(code.replace("http://127.0.0.1:8000", server.url))
             out = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=120)
             assert out.returncode == 0, out.stderr
+
+
+def test_ci_runs_the_readmes_test_command():
+    """CI (.ci/run) runs the README's test command, so the README's promise is what CI checks."""
+    readme_test = [c.split("#")[0].strip() for c in commands(ROOT / "README.md") if "pytest" in c]
+    ci = [line.strip() for line in (ROOT / ".ci" / "run").read_text().splitlines()
+          if "pytest" in line and not line.lstrip().startswith("#")]
+    assert readme_test and readme_test == ci
