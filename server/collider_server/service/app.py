@@ -16,6 +16,7 @@ from .batching import DeviceWorkers
 from .answers import answer_batch
 from .connections import ConnectionGuard
 from .fastpath import QueryFastPath, check_equivalent
+from .heap import settle_heap
 from .metrics import RequestObserver, ServiceMetrics
 from .openapi import add_security, query_body, scene_body
 from .openapi import router as docs_router
@@ -72,7 +73,8 @@ def create_app(settings: ServiceSettings | None = None) -> FastAPI:
                                  settings.warmup)
         state = ServiceState(settings, metrics, workers, registry)
         app.state.collider = state
-        loading = asyncio.create_task(registry.load_all())
+        # What is alive once the models are loaded lives as long as the process (.heap).
+        loading = asyncio.create_task(registry.load_all(before_ready=settle_heap))
         try:
             yield
         finally:

@@ -62,15 +62,16 @@ class ModelRegistry:
     def get(self, name: str) -> LoadedModel | None:
         return self.models.get(name)
 
-    async def load_all(self) -> None:
-        """Load every model of the repository, then become ready. A model that fails to load
-        is logged and listed in ``errors``; the others are served."""
+    async def load_all(self, before_ready: Callable[[], object] = lambda: None) -> None:
+        """Load every model of the repository, call ``before_ready()``, then become ready. A
+        model that fails to load is logged and listed in ``errors``; the others are served."""
         for name in self.repository.names():
             try:
                 await self.load(name)
             except Exception as exc:  # a broken file must not keep the others from serving
                 self.errors[name] = str(exc)
                 log.error("model %s not loaded: %s", name, exc)
+        before_ready()
         self.ready = True
         log.info("ready: %d model(s) loaded (%s)", len(self.models), ", ".join(self.models) or "none")
 
