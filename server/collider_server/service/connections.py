@@ -51,13 +51,17 @@ class ConnectionGuard:
         self.max_connections = max_connections
         self.header_timeout_s = header_timeout_s
         self.open = 0
-        self._closed = metrics.connections_closed
+        self._closed = {reason: metrics.connections_closed.labels(reason)
+                        for reason in (HEADER_TIMEOUT, TOO_MANY_CONNECTIONS)}
         metrics.connections_open.set_function(lambda: self.open)
-        #: The answer to a connection beyond the bound, made once: under a flood of new
-        #: connections each refusal should cost as little as possible.
+        # The answers are made once: thousands of connections refused or timed out together
+        # should each cost the event loop as little as possible.
         self.refusal = raw_problem(Problem(
             503, TOO_MANY_CONNECTIONS, f"the server has max_connections={max_connections} "
             "connections open; retry shortly", {"Retry-After": "1"}))
+        self.late_headers = raw_problem(Problem(
+            408, HEADER_TIMEOUT, f"the request headers did not arrive within "
+            f"header_timeout_s={header_timeout_s:g} s"))
 
     def admit(self) -> bool:
         """Count a new connection in, unless the bound is reached."""
@@ -71,7 +75,7 @@ class ConnectionGuard:
 
     def count(self, reason: str) -> None:
         """One connection closed by a limit (``reason``: the problem's type)."""
-        self._closed.labels(reason).inc()
+        self._closed[reason].inc()
 
 
 def raw_problem(problem: Problem) -> bytes:
@@ -95,7 +99,7 @@ class GuardedProtocol(HttpToolsProtocol):
         super().__init__(*args, **kwargs)
         self._admitted = False
         self._header_timer: asyncio.TimerHandle | None = None
-        self._received = 0  # bytes of the request whose headers the timer waits for
+        self._partial = False  # part of the request whose headers the timer waits for came
 
     # -- the connection's life ---------------------------------------------------------------
 
@@ -120,14 +124,14 @@ class GuardedProtocol(HttpToolsProtocol):
     def data_received(self, data: bytes) -> None:
         if not self._admitted:
             return
-        self._received += len(data)
+        self._partial = True
         super().data_received(data)
 
     # -- the header timer --------------------------------------------------------------------
 
     def _wait_for_headers(self) -> None:
         self._stop_waiting()
-        self._received = 0
+        self._partial = False
         self._header_timer = self.loop.call_later(self.guard.header_timeout_s, self._headers_late)
 
     def _stop_waiting(self) -> None:
@@ -152,11 +156,8 @@ class GuardedProtocol(HttpToolsProtocol):
         if self.transport.is_closing():
             return
         self.guard.count(HEADER_TIMEOUT)
-        if self._received:  # part of a request came: say why it was not answered
-            timeout = self.guard.header_timeout_s
-            self.transport.write(raw_problem(Problem(
-                408, HEADER_TIMEOUT, f"the request headers did not arrive within "
-                f"header_timeout_s={timeout:g} s (after {self._received} bytes)")))
+        if self._partial:  # part of a request came: say why it was not answered
+            self.transport.write(self.guard.late_headers)
         self.transport.close()
 
     # -- the HTTP parser's own refusals --------------------------------------------------------
