@@ -1,24 +1,33 @@
-"""Query speed of neural colliders against the exact mesh, embedded, in ONE run.
+"""Query speed of neural colliders against the exact mesh, embedded, in ONE interleaved run.
 
 For 1M points (default) near the bunny's surface (uniform in the +-10 mm band, collider frame,
 metres), the time of ``Collider.query`` for distance + normal + contact and for distance only, for
 the exact ``mesh`` kind (libigl) and for each neural model given (default: the shipped ``bunny``);
-for grid networks also the pure-torch path (the reference, and what runs on CUDA) beside the fused
-CPU kernels. Prints seconds per 1M points and the ratios the issue's targets name.
+optionally the same network through another grid query kernel (``--kernel-from``, e.g. the one
+before a change) and, for grid networks, the pure-torch path (the reference, and what runs on
+CUDA). Every round times every candidate once, in turn, so that a shared machine's load falls on
+all of them alike; prints the median and the spread (min - max) in seconds per 1M points, the
+load average before and after, and the ratios the issue's targets name.
 
     python benchmarks/neural_query.py                      # shipped bunny vs mesh, 1M points
     python benchmarks/neural_query.py --model out/b.safetensors --points 200000 --threads 2
+    git show 3853465^:server/collider_server/engine/kinds/grid_kernels.py > /tmp/kernel_before.py
+    python benchmarks/neural_query.py --kernel-from /tmp/kernel_before.py --rounds 7
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import importlib.util
+import os
+import statistics
 import sys
 import time
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
-BUNNY = REPO.parent / "shared" / "data" / "meshes" / "stanford-bunny.obj"
+BUNNY = REPO / "examples" / "meshes" / "stanford-bunny.obj"
 ALL = ["distance", "normal", "contact"]
 
 
@@ -28,19 +37,38 @@ def parse_args(argv=None):
     parser.add_argument("--model", action="append", default=None, help="model name or path (default: bunny)")
     parser.add_argument("--models", type=Path, default=REPO / "models")
     parser.add_argument("--points", type=int, default=1_000_000)
-    parser.add_argument("--repeat", type=int, default=2, help="best of this many runs")
+    parser.add_argument("--rounds", type=int, default=5, help="interleaved rounds (median and spread over them)")
     parser.add_argument("--threads", type=int, default=None, help="torch and kernel threads")
-    parser.add_argument("--no-torch-path", action="store_true", help="skip the slow pure-torch timing")
+    parser.add_argument("--kernel-from", type=Path, default=None,
+                        help="a grid_kernels.py (e.g. an older commit's) whose network_query to time too")
+    parser.add_argument("--torch-path", action="store_true", help="also time the slow pure-torch path (1 round)")
     return parser.parse_args(argv)
 
 
-def best_seconds(call, repeat: int) -> float:
-    best = float("inf")
-    for _ in range(repeat):
-        started = time.perf_counter()
-        call()
-        best = min(best, time.perf_counter() - started)
-    return best
+def load_kernel(path: Path):
+    """``network_query`` of the module file at ``path`` (same signature as grid_kernels')."""
+    spec = importlib.util.spec_from_file_location("kernel_under_comparison", path)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # numba's on-disk cache imports the module by name
+    spec.loader.exec_module(module)
+    return module.network_query
+
+
+@contextlib.contextmanager
+def kernel(grid_kernels, network_query):
+    """Queries inside run ``network_query`` in place of the engine's own (None: the engine's)."""
+    own = grid_kernels.network_query
+    grid_kernels.network_query = network_query or own
+    try:
+        yield
+    finally:
+        grid_kernels.network_query = own
+
+
+def timed(call) -> float:
+    started = time.perf_counter()
+    call()
+    return time.perf_counter() - started
 
 
 def main(argv=None) -> int:
@@ -57,40 +85,65 @@ def main(argv=None) -> int:
     if args.threads:
         torch.set_num_threads(args.threads)
         grid_kernels.set_threads(args.threads)
+    other_kernel = load_kernel(args.kernel_from) if args.kernel_from else None
     mesh = load_mesh(args.mesh)
     repo = ModelRepository(args.models)
-    rows = []
-    exact = bake_collider(mesh, "mesh", "exact", show_progress=False)
+    # candidates: (label, collider, kernel or None, points)
+    candidates = []
     for name in args.model or ["bunny"]:
         collider = load_collider(repo.resolve(name), "cpu")
         transform = collider.info.source.get("transform")
         placed = mesh.transformed(transform) if transform is not None else mesh
         points = surface_band_points(placed, args.points, 1e-2 / collider.info.meters_per_unit, seed=1)
-        collider.query(points[:1000], ALL)  # warm-up (kernel compilation is cached on disk)
         label = f"neural {collider.info.name}"
-        full = best_seconds(lambda: collider.query(points, ALL), args.repeat)
-        only = best_seconds(lambda: collider.query(points, ["distance"]), args.repeat)
-        rows.append((label, full, only))
-        network = collider.network
-        if hasattr(network, "fused") and not args.no_torch_path:
-            network.fused = False
-            rows.append((label + " (pure torch)", best_seconds(lambda: collider.query(points, ALL), 1),
-                         best_seconds(lambda: collider.query(points, ["distance"]), 1)))
-            network.fused = True
-        if transform is not None:  # the exact mesh in the model's frame, where the points are
-            exact = bake_collider(placed, "mesh", "exact", show_progress=False)
-        rows.append(("mesh (exact, libigl)", best_seconds(lambda: exact.query(points, ALL), 1),
-                     best_seconds(lambda: exact.query(points, ["distance"]), 1)))
+        candidates.append((label, collider, None, points))
+        if other_kernel is not None:
+            candidates.append((label + f" ({args.kernel_from.name})", collider, other_kernel, points))
+        # the exact mesh in the model's frame, where the points are
+        candidates.append((f"mesh (exact, libigl) for {collider.info.name}",
+                           bake_collider(placed, "mesh", "exact", show_progress=False), None, points))
+    for _, collider, query_kernel, points in candidates:  # warm-up: kernel compilation is cached on disk
+        with kernel(grid_kernels, query_kernel):
+            collider.query(points[:1000], ALL)
+
+    load_before = os.getloadavg()
+    times = {label: ([], []) for label, *_ in candidates}
+    for _ in range(args.rounds):
+        for label, collider, query_kernel, points in candidates:
+            with kernel(grid_kernels, query_kernel):
+                times[label][0].append(timed(lambda: collider.query(points, ALL)))
+                times[label][1].append(timed(lambda: collider.query(points, ["distance"])))
+    load_after = os.getloadavg()
+    if args.torch_path:
+        for label, collider, query_kernel, points in candidates:
+            if query_kernel is None and getattr(collider, "network", None) is not None \
+                    and hasattr(collider.network, "fused"):
+                collider.network.fused = False
+                times[label + " (pure torch, 1 round)"] = ([timed(lambda: collider.query(points, ALL))],
+                                                          [timed(lambda: collider.query(points, ["distance"]))])
+                collider.network.fused = True
+
     scale = 1e6 / args.points
-    print(f"{args.points:,} points in the +-10 mm band, embedded Collider.query, torch threads "
-          f"{torch.get_num_threads()}; seconds per 1M points")
-    print(f"{'collider':<36} {'d+n+c':>8} {'d only':>8} {'d+n+c / d':>10}")
-    for label, full, only in rows:
-        print(f"{label:<36} {full * scale:>8.3f} {only * scale:>8.3f} {full / only:>10.2f}")
-    neural = [r for r in rows if r[0].startswith("neural") and "torch" not in r[0]]
-    exact_rows = [r for r in rows if r[0].startswith("mesh")]
-    for (label, full, _), (_, mesh_full, _) in zip(neural, exact_rows):
-        print(f"{label}: exact mesh / neural (d+n+c) = {mesh_full / full:.2f}x")
+    print(f"{args.points:,} points in the +-10 mm band, embedded Collider.query, {args.rounds} interleaved "
+          f"rounds, torch threads {torch.get_num_threads()}; load average (1, 5, 15 min) "
+          f"{'/'.join(f'{v:.2f}' for v in load_before)} before, {'/'.join(f'{v:.2f}' for v in load_after)} after")
+    print("seconds per 1M points: median (min - max)")
+    print(f"{'collider':<52} {'d+n+c':>22} {'d only':>22}")
+
+    def cell(values):
+        return f"{statistics.median(values) * scale:.3f} ({min(values) * scale:.3f}-{max(values) * scale:.3f})"
+
+    for label, (full, only) in times.items():
+        print(f"{label:<52} {cell(full):>22} {cell(only):>22}")
+    medians = {label: statistics.median(full) for label, (full, _) in times.items()}
+    for label, _, query_kernel, _ in candidates:
+        if label.startswith("neural") and query_kernel is None:
+            name = label.split(" ", 1)[1]
+            exact = medians[f"mesh (exact, libigl) for {name}"]
+            print(f"{label}: exact mesh / neural (d+n+c, medians) = {exact / medians[label]:.2f}x")
+            if other_kernel is not None:
+                before = medians[label + f" ({args.kernel_from.name})"]
+                print(f"{label}: {args.kernel_from.name} / engine kernel (d+n+c, medians) = {before / medians[label]:.2f}x")
     return 0
 
 

@@ -266,7 +266,11 @@ class Collider(abc.ABC):
 
     def _unit_normals(self, gradient: np.ndarray, local: np.ndarray) -> np.ndarray:
         # Where the gradient vanishes (the medial axis, e.g. a sphere's centre) fall back on the
-        # direction from the domain centre, then +z, so a normal is always a unit vector.
+        # direction from the domain centre, then +z, so a normal is always a unit vector. The
+        # fallback is built only when some gradient vanishes (it cost 10 % of a 1M-point query).
+        length = np.linalg.norm(gradient, axis=1, keepdims=True)
+        if (length >= 1e-20).all():
+            return gradient / length
         centre = 0.5 * (self.domain_min + self.domain_max)
         fallback = unit_vectors(local - centre, np.tile([0.0, 0.0, 1.0], (len(local), 1)))
         return unit_vectors(gradient, fallback)
