@@ -361,6 +361,13 @@ def place_labels(ax, labels: list[tuple[str, float, float, float]],
         return (cx - r, cy - r, cx + r, cy + r)
 
     taken = [box(x, y, d) for _, x, y, d in labels] + [box(x, y, d) for x, y, d in obstacles]
+    centres = [ax.transData.transform((x, y)) for _, x, y, _ in labels]
+
+    def nearest_is_own(b, xy) -> bool:
+        """Whether the marker nearest the label's centre is its own (a reader pairs them so)."""
+        centre = np.array([(b.x0 + b.x1) / 2, (b.y0 + b.y1) / 2])
+        nearest = min(centres, key=lambda c: np.hypot(*(centre - c)))
+        return np.allclose(nearest, ax.transData.transform(xy), atol=1.0)
     frame = ax.get_window_extent(renderer)
     annotations = []
     for text, x, y, diameter in sorted(labels, key=lambda item: item[1]):
@@ -383,6 +390,12 @@ def place_labels(ax, labels: list[tuple[str, float, float, float]],
             chosen = ax.annotate(text, (x, y), textcoords="offset points", xytext=(0, -diameter / 2 - 3),
                                  ha="center", va="top", fontsize=8, zorder=5)
         b = text_box(chosen, renderer)
+        if chosen.arrow_patch is None and not nearest_is_own(b, (x, y)):  # beside another marker: tie it
+            chosen.remove()
+            chosen = ax.annotate(text, (x, y), textcoords="offset points", xytext=chosen.xyann,
+                                 ha=chosen.get_ha(), va=chosen.get_va(), fontsize=8, zorder=5,
+                                 arrowprops={"arrowstyle": "-", "color": "grey", "linewidth": 0.6})
+            b = text_box(chosen, renderer)
         taken.append((b.x0, b.y0, b.x1, b.y1))
         annotations.append(chosen)
     return annotations
