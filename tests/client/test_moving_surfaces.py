@@ -172,3 +172,18 @@ def test_a_surface_that_speeds_up_within_a_step_does_not_leave_a_point_inside(cl
         each=lambda t, p: gaps.append(p[0, 2] - 10.0 * t * t))
     assert min(gaps) >= EPS * (1 - 1e-6), gaps
     assert hook.stats.colliding_last == 1
+
+
+def test_the_duration_probe_asks_an_animated_collider_at_a_time(tmp_path):
+    """`collider simulate`'s duration estimate probes the first collider as the hook asks; an
+    animated one refuses a query without a time, so the probe gives it the first frame's."""
+    from collider_client.sim.run import query_cost_per_point
+    from collider_client.sim.scene import load_scene, resolve_scene
+    from tests.conftest import REPO_ROOT
+
+    scene = load_scene(resolve_scene("cloth_on_arm"))
+    with cc.Client(models=REPO_ROOT / "models") as arm_client:
+        assert {m.name: m for m in arm_client.list_models()}["arm"].animated
+        hook = CollisionHook(arm_client, [ColliderPlacement("arm")], friction=0.3)
+        per_point = query_cost_per_point(arm_client, scene, hook)
+    assert per_point is not None and 0 < per_point < 1e-3
