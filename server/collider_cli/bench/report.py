@@ -343,12 +343,13 @@ LABEL_SPOTS = ((0, -1, "center", "top"), (0, 1, "center", "bottom"), (1, 0, "lef
 
 
 def place_labels(ax, labels: list[tuple[str, float, float, float]],
-                 obstacles: list[tuple[float, float, float]] = ()) -> list:
+                 obstacles: list[tuple[float, float, float, str]] = ()) -> list:
     """Annotate each ``(text, x, y, marker diameter in points)`` near its marker: the first
     spot of :data:`LABEL_SPOTS`, on growing rings around the marker, where the label's rendered
-    box lies inside the axes and overlaps no marker (``obstacles`` too: ``(x, y, diameter)``)
-    and no label placed before; with a thin leader line when it had to move off the first ring
-    (clustered colliders would otherwise print over each other, or beside another marker).
+    box lies inside the axes and overlaps no marker (``obstacles`` too: ``(x, y, diameter, text)``,
+    a second marker of the label ``text`` names) and no label placed before; with a thin leader
+    line when it had to move off the first ring or when the marker nearest it is another
+    label's (clustered colliders would otherwise print over each other, or beside another marker).
     Call it once the figure's layout is final: it works in display coordinates. Returns the
     annotations."""
     fig = ax.figure
@@ -360,14 +361,14 @@ def place_labels(ax, labels: list[tuple[str, float, float, float]],
         r = diameter * pixels_per_point / 2
         return (cx - r, cy - r, cx + r, cy + r)
 
-    taken = [box(x, y, d) for _, x, y, d in labels] + [box(x, y, d) for x, y, d in obstacles]
-    centres = [ax.transData.transform((x, y)) for _, x, y, _ in labels]
+    taken = [box(x, y, d) for _, x, y, d in labels] + [box(x, y, d) for x, y, d, _ in obstacles]
+    owners = [(ax.transData.transform((x, y)), text) for text, x, y, _ in labels]
+    owners += [(ax.transData.transform((x, y)), text) for x, y, _, text in obstacles]
 
-    def nearest_is_own(b, xy) -> bool:
-        """Whether the marker nearest the label's centre is its own (a reader pairs them so)."""
+    def nearest_is_own(b, text) -> bool:
+        """Whether the marker nearest the label's centre is one of its own (a reader pairs them so)."""
         centre = np.array([(b.x0 + b.x1) / 2, (b.y0 + b.y1) / 2])
-        nearest = min(centres, key=lambda c: np.hypot(*(centre - c)))
-        return np.allclose(nearest, ax.transData.transform(xy), atol=1.0)
+        return min(owners, key=lambda o: np.hypot(*(centre - o[0])))[1] == text
     frame = ax.get_window_extent(renderer)
     annotations = []
     for text, x, y, diameter in sorted(labels, key=lambda item: item[1]):
@@ -390,7 +391,7 @@ def place_labels(ax, labels: list[tuple[str, float, float, float]],
             chosen = ax.annotate(text, (x, y), textcoords="offset points", xytext=(0, -diameter / 2 - 3),
                                  ha="center", va="top", fontsize=8, zorder=5)
         b = text_box(chosen, renderer)
-        if chosen.arrow_patch is None and not nearest_is_own(b, (x, y)):  # beside another marker: tie it
+        if chosen.arrow_patch is None and not nearest_is_own(b, text):  # beside another marker: tie it
             chosen.remove()
             chosen = ax.annotate(text, (x, y), textcoords="offset points", xytext=chosen.xyann,
                                  ha=chosen.get_ha(), va=chosen.get_va(), fontsize=8, zorder=5,
@@ -463,14 +464,15 @@ def figure(report: dict, device: str = "cpu"):
             area = 30 + 600 * np.sqrt(r["memory_bytes"] / biggest)
             ax.scatter(t, e, s=area, color=colours(i % 10), alpha=0.8, edgecolors="black", linewidths=0.6,
                        zorder=3)
+            exact = " (error 0, drawn on the floor)" if r["accuracy"]["band_1mm"][key] < floor[error] else ""
+            text = f"{r['label']}{exact}"
             served = reference_seconds_per_point(r, report, device, "served", basis)
             if served is not None:
                 ax.scatter(served * 1e6, e, s=area, facecolors="none", edgecolors=colours(i % 10),
                            linewidths=1.2, zorder=3)
                 ax.plot([t, served * 1e6], [e, e], color=colours(i % 10), linewidth=0.8, alpha=0.6)
-                served_markers.append((served * 1e6, e, np.sqrt(area)))
-            exact = " (error 0, drawn on the floor)" if r["accuracy"]["band_1mm"][key] < floor[error] else ""
-            labels.append((f"{r['label']}{exact}", t, e, np.sqrt(area)))
+                served_markers.append((served * 1e6, e, np.sqrt(area), text))
+            labels.append((text, t, e, np.sqrt(area)))
         names = front(report, device, error)
         if names:
             xs, ys = zip(*(points[n] for n in names))
