@@ -79,3 +79,25 @@ def test_the_check_round_trips_through_a_dict_and_is_skipped_above_its_face_limi
 ])
 def test_the_shared_meshes(load_shared_mesh, name, summary):
     assert check_mesh(load_shared_mesh(name)).summary() == summary
+
+
+def test_an_animation_is_checked_for_crossing_faces_in_every_frame():
+    """Two boxes apart at rest that pass through each other in frame 2 of 4: the rest pose alone
+    says nothing crosses; the animation's check names the frame (a bending arm may fold into
+    itself so)."""
+    from collider_contract.animation import Timeline
+    from collider_server.engine.animated_meshes import AnimatedMesh
+    from collider_server.making.mesh_check import check_animation
+
+    rest = join(box(), box((3.0, 0.0, 0.0)))
+    frames = np.stack([rest.vertices] * 4)
+    moving = np.arange(8, 16)
+    for k, x in enumerate((3.0, 2.0, 0.5, 2.0)):
+        frames[k, moving] = box((x, 0.3, 0.2)).vertices
+    animation = AnimatedMesh(frames, rest.faces, Timeline(4, 4.0))
+    check = check_animation(animation)
+    assert check.pieces == 2 and check.watertight and check.intersecting_pairs > 0
+    assert check.intersections_note == "the most in frame 2; every frame checked"
+    assert f"{check.intersecting_pairs} pairs of faces that cross each other (the most in frame 2" in check.summary()
+    still = check_animation(AnimatedMesh(np.stack([rest.vertices] * 3), rest.faces, Timeline(3, 4.0)))
+    assert still.intersecting_pairs == 0 and still.summary().endswith("no self-intersections (every frame checked)")

@@ -156,6 +156,7 @@ def run_bake_animation(args) -> int:
     from collider_server.engine.repository import ModelRepository
     from collider_server.making.animation_files import check_frame_rate, load_animation
     from collider_server.making.bake import ANIMATED_KINDS, bake_animated_collider
+    from collider_server.making.mesh_check import check_animation
 
     if args.kind not in ANIMATED_KINDS:
         raise ValueError(f"--kind {args.kind} cannot be animated; use one of {list(ANIMATED_KINDS)}")
@@ -167,13 +168,19 @@ def run_bake_animation(args) -> int:
     placement = placement_from_args(args)
     animation, transform = placement.apply_to_animation(
         load_animation(args.mesh, args.animation, args.fps, args.loop))
+    repository = ModelRepository(args.models)
+    repository.check_writable()  # before the bake, not after
+    check = check_animation(animation)
+    for line in check.lines():
+        print(line)
     collider = bake_animated_collider(
         animation, args.kind, args.name, resolution=args.resolution or 128,
         keyframes=args.keyframes, padding=args.padding, units=placement.units,
         meters_per_unit=placement.meters_per_unit, device=args.device,
         show_progress=not args.quiet)
     collider.info.source["transform"] = transform.tolist()
-    path = save_collider(collider, ModelRepository(args.models).path(args.name))
+    collider.info.source["check"] = check.to_dict()
+    path = save_collider(collider, repository.path(args.name))
     print(f"wrote {path} ({path.stat().st_size:,} bytes, kind {args.kind}, animated: "
           f"{describe_animation(collider.info.animation)})")
     return 0
