@@ -22,12 +22,8 @@ import argparse
 import asyncio
 import contextlib
 import json
-import os
 import re
 import shutil
-import signal
-import socket
-import subprocess
 import sys
 import tempfile
 import time
@@ -38,54 +34,9 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from loadtest import Simulator, simulate  # noqa: E402
-from service_common import REPO, free_port, machine_note, percentiles_ms, serve  # noqa: E402
+from service_common import REPO, free_port, machine_note, nginx, nginx_config, percentiles_ms, serve  # noqa: E402
 
-TEMPLATE = REPO / "docker" / "nginx" / "collider.conf.template"
 POLICIES = ("round-robin", "by-model")
-
-
-def nginx_config(policy: str, listen_port: int, replicas: list[int], root: Path) -> Path:
-    """The shared template rendered as the nginx image renders it, inside a minimal nginx.conf."""
-    text = TEMPLATE.read_text()
-    if policy == "round-robin":
-        text, removed = re.subn(r"^\s*hash \$collider_model consistent;\n", "", text, flags=re.M)
-        assert removed == 1, "the template's hash line moved: update benchmarks/routing.py"
-    servers = " ".join(f"server 127.0.0.1:{p} max_fails=1 fail_timeout=10s;" for p in replicas)
-    values = {"NGINX_LISTEN": f"127.0.0.1:{listen_port}", "COLLIDER_UPSTREAMS": servers}
-    text = re.sub(r"\$\{(\w+)\}", lambda m: values.get(m.group(1), m.group(0)), text)
-    (root / "collider.conf").write_text(text)
-    user = "user root root;" if os.geteuid() == 0 else ""
-    temp = "\n".join(f"    {kind}_temp_path {root}/{kind};"
-                     for kind in ("client_body", "proxy", "fastcgi", "uwsgi", "scgi"))
-    conf = root / "nginx.conf"
-    conf.write_text(f"{user}\nworker_processes 1;\ndaemon off;\npid {root}/nginx.pid;\n"
-                    f"events {{ worker_connections 1024; }}\n"
-                    f"http {{\n{temp}\n    access_log off;\n    include {root}/collider.conf;\n}}\n")
-    return conf
-
-
-@contextlib.contextmanager
-def nginx(conf: Path, port: int):
-    binary = shutil.which("nginx") or "/usr/sbin/nginx"
-    error_log = conf.parent / "error.log"
-    process = subprocess.Popen([binary, "-p", str(conf.parent), "-e", str(error_log), "-c", str(conf)])
-    try:
-        end = time.monotonic() + 30
-        while True:  # until it accepts connections
-            try:
-                socket.create_connection(("127.0.0.1", port), timeout=1).close()
-                break
-            except OSError:
-                if process.poll() is not None or time.monotonic() > end:
-                    raise RuntimeError(f"nginx did not start: {error_log.read_text()}")
-                time.sleep(0.05)
-        yield
-    finally:
-        process.send_signal(signal.SIGQUIT)
-        try:
-            process.wait(30)
-        except subprocess.TimeoutExpired:
-            process.kill()
 
 
 def batch_metrics(port: int) -> dict[str, dict[str, float]]:

@@ -13,9 +13,13 @@ import asyncio
 import contextlib
 import dataclasses
 import os
+import re
 import shutil
+import signal
 import socket
+import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -56,7 +60,7 @@ class LeanConnection:
         if not status_line:
             raise ConnectionError("server closed the connection")
         status = int(status_line.split()[1])
-        length = 0
+        length, closing = 0, False
         while True:
             line = await self.reader.readline()
             if line in (b"\r\n", b""):
@@ -64,7 +68,13 @@ class LeanConnection:
             name, _, value = line.partition(b":")
             if name.strip().lower() == b"content-length":
                 length = int(value)
-        return status, await self.reader.readexactly(length)
+            elif name.strip().lower() == b"connection":
+                closing = value.strip().lower() == b"close"
+        data = await self.reader.readexactly(length)
+        if closing:  # e.g. nginx after keepalive_requests (1,000) on one connection: the next opens anew
+            await self.close()
+            self.reader = self.writer = None
+        return status, data
 
     async def close(self) -> None:
         if self.writer is not None:
@@ -167,3 +177,55 @@ def bunny_points(collider, n: int, seed: int) -> np.ndarray:
 def machine_note() -> str:
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
     return f"{os.cpu_count()} CPU cores, load average {load:.1f} at start"
+
+
+NGINX_TEMPLATE = REPO / "docker" / "nginx" / "collider.conf.template"
+
+
+def nginx_config(policy: str, listen_port: int, replicas: list[int], root: Path,
+                 worker_connections: int = 1024) -> Path:
+    """docker/nginx/collider.conf.template rendered as the nginx image renders it, inside a
+    minimal nginx.conf of one worker (``worker_connections``: the image's default is 1024).
+    policy: "by-model" (the template) or "round-robin" (its ``hash`` line removed)."""
+    text = NGINX_TEMPLATE.read_text()
+    if policy == "round-robin":
+        text, removed = re.subn(r"^\s*hash \$collider_model consistent;\n", "", text, flags=re.M)
+        assert removed == 1, "the template's hash line moved: update benchmarks/service_common.py"
+    servers = " ".join(f"server 127.0.0.1:{p} max_fails=1 fail_timeout=10s;" for p in replicas)
+    values = {"NGINX_LISTEN": f"127.0.0.1:{listen_port}", "COLLIDER_UPSTREAMS": servers}
+    text = re.sub(r"\$\{(\w+)\}", lambda m: values.get(m.group(1), m.group(0)), text)
+    (root / "collider.conf").write_text(text)
+    user = "user root root;" if os.geteuid() == 0 else ""
+    temp = "\n".join(f"    {kind}_temp_path {root}/{kind};"
+                     for kind in ("client_body", "proxy", "fastcgi", "uwsgi", "scgi"))
+    conf = root / "nginx.conf"
+    conf.write_text(f"{user}\nworker_processes 1;\nworker_rlimit_nofile {4 * worker_connections};\n"
+                    f"daemon off;\npid {root}/nginx.pid;\n"
+                    f"events {{ worker_connections {worker_connections}; }}\n"
+                    f"http {{\n{temp}\n    access_log off;\n    include {root}/collider.conf;\n}}\n")
+    return conf
+
+
+@contextlib.contextmanager
+def nginx(conf: Path, port: int):
+    """Run nginx with ``conf`` until the block ends (then a graceful stop); yields its PID."""
+    binary = shutil.which("nginx") or "/usr/sbin/nginx"
+    error_log = conf.parent / "error.log"
+    process = subprocess.Popen([binary, "-p", str(conf.parent), "-e", str(error_log), "-c", str(conf)])
+    try:
+        end = time.monotonic() + 30
+        while True:  # until it accepts connections
+            try:
+                socket.create_connection(("127.0.0.1", port), timeout=1).close()
+                break
+            except OSError:
+                if process.poll() is not None or time.monotonic() > end:
+                    raise RuntimeError(f"nginx did not start: {error_log.read_text()}")
+                time.sleep(0.05)
+        yield process.pid
+    finally:
+        process.send_signal(signal.SIGQUIT)
+        try:
+            process.wait(30)
+        except subprocess.TimeoutExpired:
+            process.kill()

@@ -14,6 +14,12 @@ Measured, in one run, in alternating slices without and with the attack:
 
     python benchmarks/slow_connections.py                       # ~3 minutes; out/slow_connections.json
     python benchmarks/slow_connections.py --connections 3000 --header-timeout-s 5 --pairs 4
+    python benchmarks/slow_connections.py --behind-nginx        # the attack and the client through nginx
+
+``--behind-nginx`` puts a real nginx in front, configured with the deployment's own file
+(docker/nginx/collider.conf.template, whose ``client_header_timeout`` then closes the slow
+connections instead of the service), one worker with room for the attack; the normal client
+goes through nginx in both slices, so the ratio compares like with like.
 
 The attacker is a separate process (its own event loop and open-files limit, raised to fit),
 neither niced nor pinned: it shares the cores with the server, and its CPU seconds are reported;
@@ -24,6 +30,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import contextlib
 import json
 import os
 import resource
@@ -41,7 +48,10 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from service_common import (  # noqa: E402
     LeanConnection,
+    free_port,
     machine_note,
+    nginx,
+    nginx_config,
     percentiles_ms,
     query_body,
     serve,
@@ -233,6 +243,15 @@ def run_attack_slice(port: int, body: bytes, args, sampler: "FdSampler") -> tupl
     return latencies, {**result, "fds_before": before, "fds_back_after_s": fds_back_after_s}
 
 
+def nginx_header_timeout_s() -> float:
+    """The deployment's nginx ``client_header_timeout`` (seconds)."""
+    import re
+
+    from service_common import NGINX_TEMPLATE
+
+    return float(re.search(r"client_header_timeout (\d+)s;", NGINX_TEMPLATE.read_text()).group(1))
+
+
 def make_models(root: Path) -> None:
     import trimesh
 
@@ -254,7 +273,10 @@ def main(argv=None) -> int:
                         help="the server's bound (default: the server's own, 4096)")
     parser.add_argument("--pairs", type=int, default=4, help="quiet/attack slice pairs")
     parser.add_argument("--slice-s", type=float, default=12.0, help="seconds of queries a slice")
-    parser.add_argument("--output", type=Path, default=Path("out/slow_connections.json"))
+    parser.add_argument("--behind-nginx", action="store_true",
+                        help="attack and query through nginx with the deployment's configuration")
+    parser.add_argument("--output", type=Path, default=None,
+                        help="default out/slow_connections.json (out/slow_connections_nginx.json behind nginx)")
     parser.add_argument("--attack", action="store_true", help=argparse.SUPPRESS)
     parser.add_argument("--port", type=int, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
@@ -273,44 +295,52 @@ def main(argv=None) -> int:
         flags += ["--max-connections", str(args.max_connections)]
     report = {"machine": machine_note(), "connections": args.connections,
               "header_timeout_s": args.header_timeout_s, "slices": []}
-    with tempfile.TemporaryDirectory() as tmp:
+    report["behind"] = "nginx" if args.behind_nginx else "the service alone"
+    with tempfile.TemporaryDirectory() as tmp, contextlib.ExitStack() as stack:
         make_models(Path(tmp))
-        with serve(Path(tmp), *flags) as port:
-            from service_common import SERVER_PIDS
+        port = server_port = stack.enter_context(serve(Path(tmp), *flags))
+        if args.behind_nginx:  # two descriptors per proxied connection, the attack's and the client's
+            port = free_port()
+            root = Path(tmp) / "nginx"
+            root.mkdir()
+            stack.enter_context(nginx(nginx_config("by-model", port, [server_port], root,
+                                                   worker_connections=2 * args.connections + 256), port))
+        from service_common import SERVER_PIDS
 
-            sampler = FdSampler(SERVER_PIDS[port])
-            sampler.start()
-            measure(port, body, 2.0)  # warm up
-            for pair in range(args.pairs):
-                # Alternate which goes first, so that a drift in the machine's load is shared.
-                for mode in (("quiet", "attack") if pair % 2 == 0 else ("attack", "quiet")):
-                    started = time.monotonic()
-                    if mode == "quiet":
-                        latencies, attacked = measure(port, body, args.slice_s), None
-                    else:
-                        latencies, attacked = run_attack_slice(port, body, args, sampler)
-                    fds = [n for t, n in sampler.samples if t >= started]
-                    entry = {"pair": pair, "mode": mode, "queries": len(latencies),
-                             **percentiles_ms(latencies),
-                             "mean_ms": 1e3 * float(np.mean(latencies)),
-                             "max_ms": 1e3 * max(latencies), "server_fds_max": max(fds),
-                             "server_fds_min": min(fds)}
-                    if attacked:
-                        entry["attack"] = attacked
-                    report["slices"].append(entry)
-                    print(f"pair {pair} {mode:6s}: {len(latencies)} queries, p50 "
-                          f"{entry['p50_ms']:.2f} ms, p99 {entry['p99_ms']:.2f} ms, max "
-                          f"{entry['max_ms']:.0f} ms, server fds "
-                          f"{min(fds)}-{max(fds)}" + (
-                              f"; attack: {attacked['closed_by_server']} closed by the server, "
-                              f"{attacked['never_closed_within_60_s']} never, longest lived "
-                              f"{attacked['max_lifetime_s']:.2f} s, answers "
-                              f"{attacked['answers']}, attacker's CPU "
-                              f"{attacked['attacker_cpu_s']:.1f} s; fds back "
-                              f"{attacked['fds_back_after_s']:.1f}"
-                              " s after the attack stopped" if attacked else ""), flush=True)
-            sampler.stop.set()
-            quiet_fds = min(n for t, n in sampler.samples[:20])
+        sampler = FdSampler(SERVER_PIDS[server_port])
+        front = "nginx" if args.behind_nginx else "the server"
+        sampler.start()
+        measure(port, body, 2.0)  # warm up
+        for pair in range(args.pairs):
+            # Alternate which goes first, so that a drift in the machine's load is shared.
+            for mode in (("quiet", "attack") if pair % 2 == 0 else ("attack", "quiet")):
+                started = time.monotonic()
+                if mode == "quiet":
+                    latencies, attacked = measure(port, body, args.slice_s), None
+                else:
+                    latencies, attacked = run_attack_slice(port, body, args, sampler)
+                fds = [n for t, n in sampler.samples if t >= started]
+                entry = {"pair": pair, "mode": mode, "queries": len(latencies),
+                         **percentiles_ms(latencies),
+                         "mean_ms": 1e3 * float(np.mean(latencies)),
+                         "max_ms": 1e3 * max(latencies), "server_fds_max": max(fds),
+                         "server_fds_min": min(fds)}
+                if attacked:
+                    entry["attack"] = attacked
+                report["slices"].append(entry)
+                print(f"pair {pair} {mode:6s}: {len(latencies)} queries, p50 "
+                      f"{entry['p50_ms']:.2f} ms, p99 {entry['p99_ms']:.2f} ms, max "
+                      f"{entry['max_ms']:.0f} ms, server fds "
+                      f"{min(fds)}-{max(fds)}" + (
+                          f"; attack: {attacked['closed_by_server']} closed by {front}, "
+                          f"{attacked['never_closed_within_60_s']} never, longest lived "
+                          f"{attacked['max_lifetime_s']:.2f} s, answers "
+                          f"{attacked['answers']}, attacker's CPU "
+                          f"{attacked['attacker_cpu_s']:.1f} s; fds back "
+                          f"{attacked['fds_back_after_s']:.1f}"
+                          " s after the attack stopped" if attacked else ""), flush=True)
+        sampler.stop.set()
+        quiet_fds = min(n for t, n in sampler.samples[:20])
     quiet = [s for s in report["slices"] if s["mode"] == "quiet"]
     attacked = [s for s in report["slices"] if s["mode"] == "attack"]
     ratios = [a["p50_ms"] / q["p50_ms"] for a, q in zip(attacked, quiet)]
@@ -335,8 +365,9 @@ def main(argv=None) -> int:
         "load_average_start_end": [load_start[0], os.getloadavg()[0]],
     }
     summary = report["summary"]
-    print(f"\nlongest-lived attacking connection {longest:.2f} s (header_timeout_s "
-          f"{args.header_timeout_s:g}); server descriptors {quiet_fds} quiet, "
+    timeout = (f"nginx's client_header_timeout {nginx_header_timeout_s():g} s" if args.behind_nginx
+               else f"header_timeout_s {args.header_timeout_s:g}")
+    print(f"\nlongest-lived attacking connection {longest:.2f} s ({timeout}); server descriptors {quiet_fds} quiet, "
           f"{summary['server_fds_peak_under_attack']} at most under attack, back within "
           f"{summary['fds_back_after_s_max']:.1f} s after it")
     print(f"query p50 under attack / quiet: median {summary['p50_ratio_attack_over_quiet']['median']:.2f}x "
@@ -344,6 +375,8 @@ def main(argv=None) -> int:
           f"{summary['p99_ratio_attack_over_quiet']['median']:.2f}x, mean "
           f"{summary['mean_ratio_attack_over_quiet']['median']:.2f}x; load average "
           f"{load_start[0]:.1f} -> {os.getloadavg()[0]:.1f}")
+    if args.output is None:
+        args.output = Path("out/slow_connections_nginx.json" if args.behind_nginx else "out/slow_connections.json")
     args.output.parent.mkdir(parents=True, exist_ok=True)
     args.output.write_text(json.dumps(report, indent=1))
     print(f"wrote {args.output}")

@@ -14,7 +14,7 @@ import httpx
 import numpy as np
 import pytest
 
-from .conftest import SPHERE_RADIUS_M, Nginx, Replica, bake_sphere, nginx_binary
+from .conftest import NGINX_TEMPLATE, SPHERE_RADIUS_M, Nginx, Replica, bake_sphere, nginx_binary
 
 pytestmark = [
     pytest.mark.slow,
@@ -176,3 +176,40 @@ def test_routing_benchmark_runs_both_policies(repo, tmp_path):
         assert r["queries"] > 0 and set(r["status"]) == {"200"} and r["mean_batch_points"] >= 64
     assert all(len(replicas) == 1 for replicas in policies["by-model"]["replicas_of_model"].values())
     assert "| by-model |" in result.stdout
+
+
+def test_slow_clients_are_closed_by_nginx_and_never_reach_a_replica(repo, tmp_path):
+    """The deployment's nginx holds slow connections itself: 30 that send half a request line, or
+    nothing, are closed by nginx within its client_header_timeout (10 s, as the service's own
+    header_timeout_s) although the replica behind would wait 120 s; the replica never has more
+    than nginx's few keep-alive connections open, and a normal query meanwhile is answered."""
+    import re
+    import socket
+    import time
+
+    replica = Replica(repo, "--header-timeout-s", "120").wait_ready()
+    front = Nginx(tmp_path, [replica.address])
+    try:
+        timeout_s = float(re.search(r"client_header_timeout (\d+)s;", NGINX_TEMPLATE.read_text()).group(1))
+        assert timeout_s == 10
+        slow = []
+        for i in range(30):
+            sock = socket.create_connection(("127.0.0.1", front.port), timeout=timeout_s + 5)
+            if i % 2:
+                sock.sendall(b"POST /v1/models/m00/query HTTP/1.1\r\nHost: x\r\nContent-Le")
+            slow.append(sock)
+        opened = time.monotonic()
+        with httpx.Client(timeout=30) as client:
+            query(client, front.url, "m00", 0)
+        metrics = httpx.get(f"{replica.url}/metrics", timeout=10).text
+        open_now = float(re.search(r"^collider_connections_open (\S+)$", metrics, re.M).group(1))
+        assert open_now <= 3  # nginx's upstream keep-alive and this scrape, not the 30
+        lifetimes = []
+        for sock in slow:
+            assert sock.recv(4096) == b""  # closed without an answer (nginx's header timeout)
+            lifetimes.append(time.monotonic() - opened)
+            sock.close()
+        assert timeout_s - 0.5 < min(lifetimes) and max(lifetimes) < timeout_s + 3, lifetimes
+    finally:
+        front.stop()
+        replica.kill()
