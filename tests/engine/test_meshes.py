@@ -122,6 +122,24 @@ def test_exact_sdf_sign_on_an_open_mesh(analytic_shape):
     np.testing.assert_array_equal(np.sign(distance[clear]), np.sign(truth[clear]))
 
 
+def test_the_winding_number_hierarchy_is_built_once_and_answers_as_libigl_per_call(analytic_shape):
+    """The kept hierarchy gives libigl's per-call fast winding number to the last bit (near the
+    open sphere's hole too, where it is far from 0 and 1), and later calls reuse it."""
+    import igl
+
+    sphere = analytic_shape("sphere").mesh
+    keep = sphere.vertices[sphere.faces].mean(axis=1)[:, 2] < 0.095
+    exact = ExactSDF(Mesh(sphere.vertices, sphere.faces[keep], "open-sphere"))
+    points = np.random.default_rng(3).uniform(-0.15, 0.15, (2000, 3))
+    first = exact.winding_number(points)
+    hierarchy = exact._winding
+    np.testing.assert_array_equal(first, igl.fast_winding_number(exact.mesh.vertices.astype(np.float64),
+                                                                 exact.mesh.faces.astype(np.int64), points))
+    assert ((first > 0.1) & (first < 0.9)).any()  # the hole's neighbourhood is in the sample
+    np.testing.assert_array_equal(exact.winding_number(points[::-1]), first[::-1])
+    assert exact._winding is hierarchy
+
+
 def test_exact_gradient_is_unit_and_outward(analytic_shape):
     sphere = analytic_shape("sphere")
     exact = ExactSDF(sphere.mesh)

@@ -9,6 +9,8 @@ model making's job (:mod:`collider_server.making.mesh_files`).
 
 from __future__ import annotations
 
+import threading
+
 from dataclasses import dataclass
 
 import numpy as np
@@ -67,6 +69,8 @@ class ExactSDF:
         lengths = np.linalg.norm(normals, axis=1, keepdims=True)
         self._face_normals = normals / np.where(lengths > 0, lengths, 1.0)
         self._pseudo = None  # edge and vertex pseudo-normals, built on first use
+        self._winding = None  # the winding number's hierarchy, built on first use
+        self._winding_lock = threading.Lock()
 
     def query(self, points: np.ndarray, chunk_points: int = 200_000):
         """Signed distance, closest point and closest face for (n, 3) float64 points, mesh
@@ -92,10 +96,18 @@ class ExactSDF:
     def winding_number(self, points: np.ndarray) -> np.ndarray:
         """(n,) float64 generalised winding number of the surface around each point (libigl's
         fast approximation): about 1 inside a closed surface, 0 outside; in between near a hole,
-        where inside and outside are not defined and the sign (inside above 0.5) is a guess."""
+        where inside and outside are not defined and the sign (inside above 0.5) is a guess.
+
+        Its hierarchy is built on the first call and kept: ``igl.fast_winding_number(V, F, Q)``
+        rebuilt it on every call (0.12 s for the bunny's 69k faces, 20x the query of a cloth's
+        2,500 points) and gives the same numbers (order 2, accuracy 2)."""
         import igl
 
-        return igl.fast_winding_number(self._vertices, self._faces, np.ascontiguousarray(points, dtype=np.float64))
+        with self._winding_lock:
+            if self._winding is None:
+                self._winding = igl.FastWindingNumberBVH()
+                self._winding.init(self._vertices, self._faces, 2)
+        return self._winding.winding_number(np.ascontiguousarray(points, dtype=np.float64), 2.0)
 
     def signed_distance(self, points: np.ndarray) -> np.ndarray:
         """(n,) float64 signed distance, negative inside."""
