@@ -74,7 +74,8 @@ def band_points(vertices, faces, n, band, seed):
 
 @pytest.fixture(scope="module")
 def bunny(tmp_path_factory):
-    """The twisting bunny (35,947 vertices, 25 frames at 12 fps) through its files."""
+    """The twisting bunny (35,947 vertices and one per closed hole, 25 frames at 12 fps) through
+    its files."""
     from tests.conftest import REPO_ROOT
 
     from collider_server.making.animation_files import read_obj
@@ -84,6 +85,37 @@ def bunny(tmp_path_factory):
                     folder, "bunny")
     animation = load_animation(folder / "bunny.obj", folder / "bunny.pc2", 12.0, loop=True)
     return animation, bake_animated_collider(animation, "mesh", "bunny")
+
+
+def test_closing_holes_makes_a_box_with_a_missing_side_watertight_and_its_inside_exact():
+    """Two triangles of a box's side removed: :func:`animations.closed` adds one vertex and a fan
+    of four faces wound as their neighbours; the winding number is then 1 inside and 0 outside
+    (not 0.5 near where the side was)."""
+    import trimesh
+
+    from collider_server.engine.meshes import ExactSDF, Mesh
+    from collider_server.making.mesh_check import check_mesh
+
+    box = trimesh.creation.box(extents=(0.2, 0.2, 0.2))
+    faces = np.asarray(box.faces)
+    side = np.all(np.asarray(box.vertices)[faces][:, :, 0] > 0.09, axis=1)  # the +x side
+    open_box = Mesh(np.asarray(box.vertices), faces[~side], "open")
+    assert check_mesh(open_box).holes == 1
+    shut = animations.closed(open_box)
+    assert len(shut.vertices) == 9 and len(shut.faces) == 14
+    assert check_mesh(shut).watertight and check_mesh(shut).intersecting_pairs == 0
+    np.testing.assert_allclose(shut.vertices[-1], [0.1, 0.0, 0.0], atol=1e-12)
+    points = np.array([[0.09, 0.0, 0.0], [0.11, 0.0, 0.0], [0.0, 0.0, 0.0], [0.3, 0.0, 0.0]])
+    np.testing.assert_allclose(ExactSDF(shut).winding_number(points), [1, 0, 1, 0], atol=1e-3)
+
+
+@pytest.mark.slow
+def test_the_twisting_bunny_is_closed_in_every_frame(bunny):
+    """The scan's five holes (its open base) closed: watertight, one piece, in every frame."""
+    from collider_server.making.mesh_check import check_animation
+
+    check = check_animation(bunny[0])
+    assert check.watertight and check.pieces == 1 and check.holes == 0
 
 
 @pytest.mark.parametrize("which, times, per_band", [
