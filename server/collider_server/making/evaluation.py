@@ -110,12 +110,13 @@ def error_figures(collider: Collider, sdf: ExactSDF, points: np.ndarray, time: f
 
 def animated_error_figures(collider: Collider, animation: AnimatedMesh, times, points: int, seed: int,
                            sets: tuple[str, ...] = ("band_1mm", "band_10mm", "box"),
-                           on_time=lambda: None) -> dict:
+                           on_time=lambda: None, exact: ExactAtTimes | None = None) -> dict:
     """:func:`error_figures` of an animated ``collider`` at ``times`` (seconds) against the
     exact interpolated surface of ``animation`` (its frame and units) at each: ``points`` per
     set per time (:func:`~.sampling.animated_band_sets`; ``box``: uniform in the collider's
-    domain), the errors of every time pooled per set. ``on_time()`` is called after each time."""
-    exact = ExactAtTimes(animation, keep=1)
+    domain), the errors of every time pooled per set. ``on_time()`` is called after each time;
+    ``exact``: the truth's trees, kept across calls that measure several colliders."""
+    exact = exact or ExactAtTimes(animation, keep=1)
     errors: dict[str, list] = {name: [] for name in sets}
     for i, (t, bands) in enumerate(animated_band_sets(animation, times, points, seed,
                                                       collider.info.meters_per_unit)):
