@@ -40,7 +40,7 @@ from collider_server.engine.collider import Collider
 from collider_server.making.progress import format_duration, progress
 
 from .plan import Candidate, Plan
-from .run import BenchConfig, default_devices, default_threads, machine_info, say, time_all, _load_average
+from .run import BenchConfig, default_devices, default_threads, load_average, machine_info, say, time_all
 from .timing import ANIMATED_MODES
 
 REFERENCE_MODE = "distance+normal+contact+velocity"
@@ -218,7 +218,7 @@ def run_animated_bench(animation: AnimatedMesh, transform: np.ndarray, config: B
     config.check()
     plan_config.check()
     started = time.perf_counter()
-    load_at_start = _load_average()
+    load_at_start = load_average()
     torch.set_num_threads(config.threads or default_threads())
     devices = config.devices or default_devices()
     plan = plan_animated(animation, plan_config)

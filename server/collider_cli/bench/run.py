@@ -98,7 +98,7 @@ def run_bench(mesh: Mesh, transform: np.ndarray, config: BenchConfig, *, units: 
 
     config.check()
     started = time.perf_counter()
-    load_at_start = _load_average()
+    load_at_start = load_average()
     torch.set_num_threads(config.threads or default_threads())
     devices = config.devices or default_devices()
     plan = plan_candidates(mesh, transform, config.plan, models_root)
@@ -332,7 +332,7 @@ def _synchronize(device: str) -> None:
         torch.cuda.synchronize(device)
 
 
-def _load_average() -> float | None:
+def load_average() -> float | None:
     return os.getloadavg()[0] if hasattr(os, "getloadavg") else None
 
 
@@ -359,5 +359,5 @@ def machine_info(load_at_start: float | None) -> dict:
     gpu = torch.cuda.get_device_name(0) if torch.cuda.is_available() else None
     return {"cpu": cpu, "cores": os.cpu_count(), "torch_threads": torch.get_num_threads(), "gpu": gpu,
             "platform": platform.platform(), "python": platform.python_version(), "versions": versions,
-            "load_average_start": load_at_start, "load_average_end": _load_average(),
+            "load_average_start": load_at_start, "load_average_end": load_average(),
             "date": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
