@@ -187,6 +187,7 @@ def run_bench_command(args) -> int:
 def run_animated(args, config, cache: Path) -> dict:
     """The animated bench of ``args.mesh`` and ``--animation`` (placed as every command does)."""
     from collider_server.making.animation_files import check_frame_rate, load_animation
+    from collider_server.making.mesh_check import check_animation
 
     from ..bench.animated import run_animated_bench
     from .options import placement_from_args
@@ -198,7 +199,9 @@ def run_animated(args, config, cache: Path) -> dict:
     placement = placement_from_args(args)
     animation, transform = placement.apply_to_animation(
         load_animation(args.mesh, args.animation, args.fps, args.loop))
-    check = print_mesh_check(animation.frame(0), file=sys.stderr)
+    check = check_animation(animation)  # the first frame's topology, every frame's crossings
+    for line in check.lines():
+        print(line, file=sys.stderr)
     report = run_animated_bench(animation, transform, config, plan, units=placement.units,
                                 meters_per_unit=placement.meters_per_unit, cache=cache,
                                 mesh_path=str(args.mesh), cache_path=str(args.animation),
