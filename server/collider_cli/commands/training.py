@@ -150,16 +150,11 @@ def run_eval(args) -> int:
         raise ValueError(f"--times must be a positive number of random times, got {args.times}")
     stored = np.asarray(collider.info.source.get("transform", np.eye(4)), dtype=np.float64)
     placement = placement_from_args(args)
-    if collider.animated:
-        raw = load_animated_source(collider.info, args)
-        transform = stored if placement is None else placement.transform(raw.frame(0))
-        placed = raw if np.allclose(transform, np.eye(4)) else raw.transformed(transform)
-        differs = source_differences(collider.info, raw, transform, args.mesh, args.animation)
-    else:
-        raw = load_mesh(args.mesh)
-        transform = stored if placement is None else placement.transform(raw)
-        placed = raw if np.allclose(transform, np.eye(4)) else raw.transformed(transform)
-        differs = source_differences(collider.info, raw, transform, args.mesh)
+    raw = load_animated_source(collider.info, args) if collider.animated else load_mesh(args.mesh)
+    transform = stored if placement is None else placement.transform(
+        raw.frame(0) if collider.animated else raw)  # an animation is placed by its first frame
+    placed = raw if np.allclose(transform, np.eye(4)) else raw.transformed(transform)
+    differs = source_differences(collider.info, raw, transform, args.mesh, args.animation)
     if differs:
         # On stderr, so that stdout stays the report alone.
         storing = "not stored" if not args.store_anyway else "stored anyway (--store-anyway)"
