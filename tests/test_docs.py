@@ -21,7 +21,7 @@ PAGES = sorted([ROOT / "README.md", ROOT / "models" / "README.md", ROOT / "docke
 #: Subcommands that answer in about a second and write nothing: run for real.
 FAST = {"info", "query"}
 #: Options whose value is a file the command reads.
-INPUT_OPTIONS = {"mesh", "points", "pose", "config", "bench"}
+INPUT_OPTIONS = {"mesh", "points", "pose", "config", "bench", "animation"}
 
 
 def blocks(page: Path, languages=("bash", "sh", "console", "")) -> list[str]:
@@ -101,7 +101,7 @@ def test_every_collider_command_parses_and_names_files_that_exist(page):
 def _inputs(args) -> list[str]:
     # (eval's --points is a count, query's a file: files are the options argparse makes Paths)
     paths = [str(value) for name in INPUT_OPTIONS if (value := getattr(args, name, None)) is not None
-             and (isinstance(value, Path) or name == "mesh")]
+             and (isinstance(value, Path) or name in ("mesh", "animation"))]
     if args.command in ("bake", "train", "bench"):
         paths.append(args.mesh)
     paths += [item.partition("=")[2] for item in getattr(args, "check_mesh", None) or []]
@@ -112,6 +112,8 @@ def _inputs(args) -> list[str]:
 
 def _outputs(args) -> set[str]:
     made = {args.name} if getattr(args, "name", None) else set()
+    if args.command == "animate":
+        made |= {str(args.output / f"{args.name}.obj"), str(args.output / f"{args.name}.pc2")}
     if args.command == "simulate":
         from collider_client.sim.scene import load_scene, resolve_scene
 

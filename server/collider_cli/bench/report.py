@@ -19,6 +19,12 @@ from pathlib import Path
 import numpy as np
 
 REFERENCE_MODE = "distance+normal+contact"
+
+
+def reference_mode(report: dict) -> str:
+    """The mode a report ranks by: :data:`REFERENCE_MODE`, or what the run says (an animated
+    bench adds the velocity)."""
+    return report.get("reference_mode", REFERENCE_MODE)
 ERROR_KEYS = {"distance": "distance_mean_mm", "normal": "normal_mean_deg"}
 #: Reference times closer than this (relative) are equal for the front and the budget picker: on
 #: the shared 2-core machine the ratio of two colliders' CPU times moved by up to 30 % between
@@ -37,7 +43,7 @@ def timing(row: dict, *, path: str, device: str, mode: str, points: int) -> dict
 def reference_timing(row: dict, report: dict, device: str = "cpu", path: str = "embedded") -> dict | None:
     """The cell of the largest measured ``distance+normal+contact`` call (None: not measured)."""
     size = max(report["config"]["sizes"])
-    return timing(row, path=path, device=device, mode=REFERENCE_MODE, points=size)
+    return timing(row, path=path, device=device, mode=reference_mode(report), points=size)
 
 
 #: Where a basis reads a cell's figure, spread and stability.
@@ -196,8 +202,11 @@ def _digits(value: float) -> int:
 def accuracy_table(report: dict) -> str:
     """Errors against the exact SDF in the +-1 mm and +-10 mm bands, build cost and memory."""
     n = report["config"]["accuracy_points"]
-    out = [f"Errors against the exact SDF on {n:,} points per band (mm, deg); sign errors among "
-           "points with abs(d) > 0.2 mm.", "",
+    animation = report.get("animation")
+    against = ("the exact SDF" if animation is None else
+               f"the exact interpolated mesh at {len(animation['times_s'])} random times (above), pooled,")
+    out = [f"Errors against {against} on {n:,} points per band (mm, deg); sign errors among "
+           "points with abs(d) > 0.2 mm; memory: what the collider holds.", "",
            "| collider | +-1 mm: distance mean / p99 / max | sign | normal mean / p99 | "
            "+-10 mm: distance mean / p99 / max | normal mean | build | file | memory |",
            "|---|---|---|---|---|---|---|---|---|"]
@@ -229,7 +238,7 @@ def ratio_table(report: dict, device: str = "cpu") -> str:
     rows = {r["name"]: r for r in report["colliders"]}
     base = reference_seconds_per_point(rows["mesh"], report, device) if "mesh" in rows else None
     size = max(report["config"]["sizes"])
-    out = [f"Reference time: {REFERENCE_MODE} on {size_label(size)} points per call, embedded, {device}: "
+    out = [f"Reference time: {reference_mode(report)} on {size_label(size)} points per call, embedded, {device}: "
            "median wall seconds per 1M points (+- spread), the process CPU seconds it cost, the time "
            "relative to `mesh` (exact; below 1 = faster), and the +-1 mm band mean errors.", "",
            "| collider | s per 1M points | CPU s per 1M points | time / mesh | distance mean (mm) | normal mean (deg) |",
@@ -264,7 +273,8 @@ def summary(report: dict) -> str:
         f"{_load(m['load_average_start'])} at start, {_load(m['load_average_end'])} at the end; "
         f"{report['seconds'] / 60:.1f} min in all"
         + (f"; {timing_info['rounds']} timing rounds" if timing_info.get("rounds") else "") + ".", "",
-        *_mesh_lines(report), time_tables(report), "", accuracy_table(report), "", ratio_table(report), "",
+        *_mesh_lines(report), *_animation_lines(report), time_tables(report), "", accuracy_table(report), "",
+        ratio_table(report), "",
     ]
     for device in report["config"]["devices"]:
         parts.append(front_text(report, device))
@@ -276,6 +286,18 @@ def summary(report: dict) -> str:
     if report["skipped"]:
         parts += ["", "Not measured:"] + [f"- {s['name']}: {s['reason']}" for s in report["skipped"]]
     return "\n".join(parts) + "\n"
+
+
+def _animation_lines(report: dict) -> list[str]:
+    """An animated bench's animation, its random times and the time its queries were timed at."""
+    a = report.get("animation")
+    if not a:
+        return []
+    times = ", ".join(f"{t:.4f}" for t in a["times_s"])
+    return [f"Animated: {a['frames']} frames at {a['frame_rate_hz']:g} fps ({a['cache']}), {a['duration_s']:g} s, "
+            f"{'looping' if a['loop'] else 'clamped'}. Errors at {len(a['times_s'])} random times drawn uniformly "
+            f"over [0, {a['duration_s']:g}) s (between frames): {times} s; every query timed at "
+            f"t = {a['timing_time_s']:.4f} s.", ""]
 
 
 def _mesh_lines(report: dict) -> list[str]:
@@ -482,7 +504,7 @@ def figure(report: dict, device: str = "cpu"):
             ax.set_title("Pareto front not called: unstable timings (see bench.md)", fontsize=9, color="crimson")
         ax.set_xscale("log")
         ax.set_yscale("log")
-        ax.set_xlabel(f"distance + normal + contact: {'CPU ' if basis == 'cpu' else ''}microseconds per point "
+        ax.set_xlabel(f"{reference_mode(report).replace('+', ' + ')}: {'CPU ' if basis == 'cpu' else ''}µs per point "
                       f"({size_label(size)} points per call, {device})")
         ax.set_ylabel("mean distance error, +-1 mm band (mm)" if error == "distance"
                       else "mean normal angle error, +-1 mm band (degrees)")
@@ -501,7 +523,9 @@ def figure(report: dict, device: str = "cpu"):
     fig.legend(handles=handles, loc="lower center", ncol=min(6, len(handles)), fontsize=8, frameon=False)
     m = report["machine"]
     where = m["gpu"] if device.startswith("cuda") else f"{m['cpu']}, {m['cores']} cores"
-    fig.suptitle(f"{report['mesh']['name']}: what accuracy costs in time on {where} "
+    animated = ("" if not report.get("animation") else
+                f", animated: errors at {len(report['animation']['times_s'])} random times")
+    fig.suptitle(f"{report['mesh']['name']}: what accuracy costs in time on {where}{animated} "
                  f"(marker area ~ memory, largest {biggest / 1e6:.1f} MB)", fontsize=11)
     fig.tight_layout(rect=(0, 0.08, 1, 0.95))
     fig.canvas.draw()  # the final layout: labels are placed in display coordinates

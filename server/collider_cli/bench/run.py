@@ -98,7 +98,7 @@ def run_bench(mesh: Mesh, transform: np.ndarray, config: BenchConfig, *, units: 
 
     config.check()
     started = time.perf_counter()
-    load_at_start = _load_average()
+    load_at_start = load_average()
     torch.set_num_threads(config.threads or default_threads())
     devices = config.devices or default_devices()
     plan = plan_candidates(mesh, transform, config.plan, models_root)
@@ -191,10 +191,14 @@ def _devices_of(candidate: Candidate, devices) -> list[str]:
 
 
 def time_all(candidates: list[Candidate], colliders: dict, devices, points: np.ndarray, config: BenchConfig,
-             cache: Path, rows: dict, show_progress: bool) -> dict:
+             cache: Path, rows: dict, show_progress: bool, modes: dict = MODES,
+             reference_mode: str = REFERENCE_MODE, at: float | None = None) -> dict:
     """Time every cell of every candidate in interleaved rounds (:mod:`.timing`): embedded, and
     behind one real ``collider serve`` per device when served is asked for. Appends each cell's
-    figures to its row (also when interrupted); returns the run's timing summary."""
+    figures to its row (also when interrupted); returns the run's timing summary.
+
+    modes : the query modes timed (name -> fields); reference_mode : the one ranked by
+    at : seconds, when animated colliders are asked (every call at this one time)"""
     from contextlib import ExitStack
 
     policy = config.timing
@@ -217,7 +221,7 @@ def time_all(candidates: list[Candidate], colliders: dict, devices, points: np.n
         # (twins side by side, so a load burst hits both).
         warm: dict[tuple, float] = {}
         for device in devices:
-            for mode, fields in MODES.items():
+            for mode, fields in modes.items():
                 for size in config.sizes:
                     chunk = points[:size]
                     for candidate in candidates:
@@ -227,9 +231,9 @@ def time_all(candidates: list[Candidate], colliders: dict, devices, points: np.n
                             if path == "served" and device not in clients:
                                 continue
                             call, clocks = _query_call(path, embedded.get((candidate.name, device)),
-                                                       clients.get(device), candidate.name, device, fields)
+                                                       clients.get(device), candidate.name, device, fields, at)
                             timing = Timing(path, device, mode, size,
-                                            reference=(mode == REFERENCE_MODE and size == biggest
+                                            reference=(mode == reference_mode and size == biggest
                                                        and path == "embedded"))
                             cells.append(Cell(candidate.name, timing, functools.partial(call, chunk), clocks))
                             key = (candidate.name, path, device, mode)
@@ -276,18 +280,18 @@ def _load_on(candidate: Candidate, device: str):
     return load_collider(candidate.path, device)
 
 
-def _query_call(path: str, collider, client, name: str, device: str, fields):
-    """``(call(points), cpu clocks)`` of one (collider, path, device, fields)."""
+def _query_call(path: str, collider, client, name: str, device: str, fields, at: float | None = None):
+    """``(call(points), cpu clocks)`` of one (collider, path, device, fields), at ``at`` seconds."""
     if path == "embedded":
         def call(chunk):
-            result = collider.query(chunk, fields)
+            result = collider.query(chunk, fields, time=at)
             if device != "cpu":
                 _synchronize(device)
             return result
 
         return call, (process_cpu_clock(),)
-    return (lambda chunk: client.query(name, chunk, fields=fields)), (process_cpu_clock(),
-                                                                     client.server_cpu_clock)
+    return (lambda chunk: client.query(name, chunk, fields=fields, time=at)), (process_cpu_clock(),
+                                                                              client.server_cpu_clock)
 
 
 @contextlib.contextmanager
@@ -328,7 +332,7 @@ def _synchronize(device: str) -> None:
         torch.cuda.synchronize(device)
 
 
-def _load_average() -> float | None:
+def load_average() -> float | None:
     return os.getloadavg()[0] if hasattr(os, "getloadavg") else None
 
 
@@ -355,5 +359,5 @@ def machine_info(load_at_start: float | None) -> dict:
     gpu = torch.cuda.get_device_name(0) if torch.cuda.is_available() else None
     return {"cpu": cpu, "cores": os.cpu_count(), "torch_threads": torch.get_num_threads(), "gpu": gpu,
             "platform": platform.platform(), "python": platform.python_version(), "versions": versions,
-            "load_average_start": load_at_start, "load_average_end": _load_average(),
+            "load_average_start": load_at_start, "load_average_end": load_average(),
             "date": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}

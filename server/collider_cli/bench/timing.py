@@ -33,6 +33,11 @@ MODES: dict[str, tuple[str, ...]] = {
     "distance": ("distance",),
     "distance+normal+contact": ("distance", "normal", "contact"),
 }
+#: The same for animated colliders: the surface's velocity beside the contact, at one time.
+ANIMATED_MODES: dict[str, tuple[str, ...]] = {
+    "distance": ("distance",),
+    "distance+normal+contact+velocity": ("distance", "normal", "contact", "velocity"),
+}
 
 
 @dataclass(frozen=True)

@@ -74,6 +74,23 @@ def register(subparsers) -> None:
                             "as `collider serve` computes with)")
     bench.add_argument("--seed", type=int, default=0)
     add_models_argument(bench, "searched for trained neural models of MESH")
+    animated = bench.add_argument_group(
+        "animated colliders", "with --animation, MESH (an OBJ) and its frames are benched: the animated "
+        "mesh kind (exact) and voxel keyframe grids at each --resolutions and --keyframes, errors at "
+        "--times random times between frames, queries (distance, and distance+normal+contact+velocity) "
+        "at one random time; --quick: voxel 16 and 32, 5 keyframes and every frame, 4 times")
+    animated.add_argument("--animation", default=None, metavar="CACHE",
+                          help="MESH's frames: a PC2 vertex cache or a quoted pattern of OBJ files "
+                               "(as `collider bake --animation`)")
+    animated.add_argument("--fps", type=float, default=None, help="frames per second of --animation")
+    ends = animated.add_mutually_exclusive_group()
+    ends.add_argument("--loop", dest="loop", action="store_true", default=False,
+                      help="beyond the ends the time wraps around")
+    ends.add_argument("--clamp", dest="loop", action="store_false", help="the end frames are held (default)")
+    animated.add_argument("--keyframes", default=None,
+                          help="voxel keyframe counts, 'all' = one per frame (default 5,13,all)")
+    animated.add_argument("--times", type=int, default=None,
+                          help="random times the errors are measured at (default 8)")
     bench.add_argument("--output", type=Path, default=None,
                        help="folder of the results: bench.json, bench.md, bench-DEVICE.png (default out/bench-MESH)")
     add_cache_argument(bench)
@@ -112,6 +129,30 @@ def bench_config(args):
         paths=("embedded",) if args.no_served else base.paths)
 
 
+def animated_plan_config(args):
+    """The :class:`~collider_cli.bench.animated.AnimatedPlanConfig` of ``--animation``'s options."""
+    from ..bench.animated import QUICK_PLAN, AnimatedPlanConfig
+    from ..bench.budget import size_bytes
+
+    if args.train_minutes is not None or args.presets is not None:
+        raise ValueError("--train-minutes and --presets are for neural colliders, which are not animated "
+                         "(yet); with --animation the kinds are mesh and voxel")
+    plan = QUICK_PLAN if args.quick else AnimatedPlanConfig()
+    if args.kinds is not None:
+        plan = dataclasses.replace(plan, kinds=tuple(k.strip() for k in args.kinds.split(",") if k.strip()))
+    if args.resolutions is not None:
+        plan = dataclasses.replace(plan, resolutions=_ints(args.resolutions))
+    if args.keyframes is not None:
+        counts = [k.strip() for k in args.keyframes.split(",") if k.strip()]
+        plan = dataclasses.replace(plan, keyframes=tuple(None if k == "all" else _ints(k)[0] for k in counts))
+    if args.max_memory is not None:
+        plan = dataclasses.replace(plan, max_memory_bytes=size_bytes(args.max_memory))
+    if args.times is not None:
+        plan = dataclasses.replace(plan, times=args.times)
+    plan.check()
+    return plan
+
+
 def run_bench_command(args) -> int:
     from ..bench import run_bench
     from ..bench.report import summary, write_outputs
@@ -119,14 +160,19 @@ def run_bench_command(args) -> int:
     config = bench_config(args)
     config.check()
     _check_device(config.devices)
-    mesh, transform, units, meters_per_unit = load_placed_mesh(args)
-    check = print_mesh_check(mesh, file=sys.stderr)
     output = args.output or Path("out") / f"bench-{Path(args.mesh).stem}"
     cache = cache_dir(args)
-    report = run_bench(mesh, transform, config, units=units, meters_per_unit=meters_per_unit,
-                       models_root=args.models, cache=cache, mesh_path=str(args.mesh),
-                       show_progress=not args.quiet)
-    report["mesh"]["check"] = check.to_dict()
+    if args.animation is not None:
+        report = run_animated(args, config, cache)
+    elif (args.fps, args.keyframes, args.times) != (None, None, None) or args.loop:
+        raise ValueError("--fps, --loop/--clamp, --keyframes and --times need --animation")
+    else:
+        mesh, transform, units, meters_per_unit = load_placed_mesh(args)
+        check = print_mesh_check(mesh, file=sys.stderr)
+        report = run_bench(mesh, transform, config, units=units, meters_per_unit=meters_per_unit,
+                           models_root=args.models, cache=cache, mesh_path=str(args.mesh),
+                           show_progress=not args.quiet)
+        report["mesh"]["check"] = check.to_dict()
     add_hints(report, args)
     paths = write_outputs(report, output)
     print(summary(report))
@@ -136,6 +182,32 @@ def run_bench_command(args) -> int:
     if report.get("interrupted"):
         raise KeyboardInterrupt  # the exit status of an interrupted run, its figures written
     return 0
+
+
+def run_animated(args, config, cache: Path) -> dict:
+    """The animated bench of ``args.mesh`` and ``--animation`` (placed as every command does)."""
+    from collider_server.making.animation_files import check_frame_rate, load_animation
+    from collider_server.making.mesh_check import check_animation
+
+    from ..bench.animated import run_animated_bench
+    from .options import placement_from_args
+
+    plan = animated_plan_config(args)
+    if args.fps is None:
+        raise ValueError("--animation needs --fps (frames per second: a vertex cache does not say)")
+    check_frame_rate(args.fps)
+    placement = placement_from_args(args)
+    animation, transform = placement.apply_to_animation(
+        load_animation(args.mesh, args.animation, args.fps, args.loop))
+    check = check_animation(animation)  # the first frame's topology, every frame's crossings
+    for line in check.lines():
+        print(line, file=sys.stderr)
+    report = run_animated_bench(animation, transform, config, plan, units=placement.units,
+                                meters_per_unit=placement.meters_per_unit, cache=cache,
+                                mesh_path=str(args.mesh), cache_path=str(args.animation),
+                                show_progress=not args.quiet)
+    report["mesh"]["check"] = check.to_dict()
+    return report
 
 
 def add_hints(report: dict, args) -> None:

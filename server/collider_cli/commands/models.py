@@ -183,6 +183,10 @@ def run_bake_animation(args) -> int:
     path = save_collider(collider, repository.path(args.name))
     print(f"wrote {path} ({path.stat().st_size:,} bytes, kind {args.kind}, animated: "
           f"{describe_animation(collider.info.animation)})")
+    from .hints import command, models_options
+
+    print("next: " + command("eval", args.name, "--mesh", args.mesh, "--animation", args.animation,
+                             *models_options(args)))
     return 0
 
 
@@ -339,6 +343,10 @@ def eval_hint(info, path, args) -> str:
 
     from .hints import command, models_options
 
+    if info.animation:
+        return (f"`collider eval {info.name} --mesh OBJ --animation CACHE` measures it at random times "
+                f"against the frames it was made from ({info.source.get('mesh', '?')}.obj and "
+                f"{info.source.get('cache', '?')})")
     mesh = info.source.get("path")
     if mesh and Path(mesh).is_file() and file_sha256(Path(mesh)) == info.source.get("sha256"):
         model = args.model if Path(args.model).name != args.model or args.model.endswith(".safetensors") else info.name

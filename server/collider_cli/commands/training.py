@@ -54,10 +54,19 @@ def register(subparsers) -> None:
     add_quiet_argument(train)
     train.set_defaults(func=run_train)
 
-    evaluate = subparsers.add_parser("eval", help="measure a collider against the exact mesh SDF")
+    evaluate = subparsers.add_parser(
+        "eval", help="measure a collider against the exact mesh SDF",
+        description="Measure MODEL against the exact signed distance of the mesh it was made from: "
+                    "distance, sign, normal and contact errors in the +-1 mm and +-10 mm bands "
+                    "around the surface and in its domain box. An animated model is measured at "
+                    "--times random times drawn uniformly over its animation (between its "
+                    "frames), against the exact interpolated mesh at each time: give the frames "
+                    "it was made from, --mesh OBJ --animation CACHE.")
     evaluate.add_argument("model", help="model name or .safetensors path (any kind)")
-    evaluate.add_argument("--mesh", required=True, help="the mesh it was made from (its original file)")
-    evaluate.add_argument("--points", type=int, default=100_000, help="points per band")
+    evaluate.add_argument("--mesh", required=True, help="the mesh it was made from (its original file; "
+                                                         "an animated model: its OBJ)")
+    evaluate.add_argument("--points", type=int, default=100_000,
+                          help="points per band (an animated model: over all its times)")
     evaluate.add_argument("--seed", type=int, default=1234)
     evaluate.add_argument("--no-reconstruction", action="store_true", help="skip marching cubes")
     evaluate.add_argument("--no-save", action="store_true", help="do not write the figures into the model")
@@ -65,6 +74,14 @@ def register(subparsers) -> None:
                           help="write the figures into the model even when --mesh or the placement "
                                "is not the model's source (otherwise refused, exit 2)")
     evaluate.add_argument("--report", type=Path, default=None, help="also write the figures as JSON here")
+    animated = evaluate.add_argument_group("animated models")
+    animated.add_argument("--animation", default=None, metavar="CACHE",
+                          help="the vertex cache (PC2, or a quoted pattern of OBJ files) the model was "
+                               "made from, as given to `collider bake --animation`")
+    animated.add_argument("--fps", type=float, default=None,
+                          help="frames per second of --animation (default: the rate the model was made at)")
+    animated.add_argument("--times", type=int, default=None,
+                          help="random times the model is measured at (default 16)")
     add_models_argument(evaluate)
     add_device_argument(evaluate)
     add_quiet_argument(evaluate)
@@ -119,26 +136,36 @@ def run_train(args) -> int:
 def run_eval(args) -> int:
     from collider_server.engine.modelfile import save_collider
     from collider_server.engine.repository import ModelRepository
-    from collider_server.making.evaluation import evaluate_collider, format_report
+    from collider_server.making.evaluation import evaluate_animated_collider, evaluate_collider, format_report
     from collider_server.making.mesh_files import load_mesh
 
     repo = ModelRepository(args.models)
     path = repo.resolve(args.model)
     collider = repo.load(args.model, args.device)
     check_units(collider.info, args)
-    raw = load_mesh(args.mesh)
+    if not collider.animated and (args.animation, args.fps, args.times) != (None, None, None):
+        raise ValueError(f"{collider.info.name} is static: --animation, --fps and --times are for animated "
+                         "models (measure it with --mesh alone)")
+    if args.times is not None and args.times < 1:
+        raise ValueError(f"--times must be a positive number of random times, got {args.times}")
     stored = np.asarray(collider.info.source.get("transform", np.eye(4)), dtype=np.float64)
     placement = placement_from_args(args)
-    transform = stored if placement is None else placement.transform(raw)
-    mesh = raw if np.allclose(transform, np.eye(4)) else raw.transformed(transform)
-    differs = source_differences(collider.info, raw, transform, args.mesh)
+    raw = load_animated_source(collider.info, args) if collider.animated else load_mesh(args.mesh)
+    transform = stored if placement is None else placement.transform(
+        raw.frame(0) if collider.animated else raw)  # an animation is placed by its first frame
+    placed = raw if np.allclose(transform, np.eye(4)) else raw.transformed(transform)
+    differs = source_differences(collider.info, raw, transform, args.mesh, args.animation)
     if differs:
         # On stderr, so that stdout stays the report alone.
         storing = "not stored" if not args.store_anyway else "stored anyway (--store-anyway)"
         print(f"collider eval: warning: {'; '.join(differs)}: figures {storing}", file=sys.stderr)
-    report = evaluate_collider(collider, mesh, points=args.points, seed=args.seed,
-                               reconstruction=not args.no_reconstruction, path=path,
-                               show_progress=not args.quiet)
+    if collider.animated:
+        report = evaluate_animated_collider(collider, placed, points=args.points, times=args.times or 16,
+                                            seed=args.seed, path=path, show_progress=not args.quiet)
+    else:
+        report = evaluate_collider(collider, placed, points=args.points, seed=args.seed,
+                                   reconstruction=not args.no_reconstruction, path=path,
+                                   show_progress=not args.quiet)
     print(format_report(collider.info.name, collider.info.kind, report))
     if args.report is not None:
         args.report.write_text(json.dumps(report, indent=2))
@@ -167,14 +194,49 @@ def check_units(info, args) -> None:
                          f"(`{command('info', info.name, *models_options(args))}` shows it)")
 
 
-def source_differences(info, mesh, transform: np.ndarray, mesh_arg: str) -> list[str]:
-    """Why ``mesh`` placed by ``transform`` is not the source the model ``info`` was made from
-    (file content by sha256, then placement); empty when it is, or when the model records none."""
+def load_animated_source(info, args):
+    """The frames the animated model ``info`` is measured against: ``--mesh`` OBJ and
+    ``--animation`` CACHE at ``--fps`` (default: the rate the model was made at), in the file's
+    frame; ValueError in one line when they are missing or cannot be the model's animation (another
+    frame count or duration)."""
+    from collider_contract import Timeline
+    from collider_server.making.animation_files import load_animation
+
+    source = info.source
+    rate = source.get("frame_rate_hz")
+    made_from = (f"{info.name} was made from {source.get('mesh', '?')}.obj and {source.get('cache', '?')}, "
+                 f"{source.get('frames', '?')} frames at {'?' if rate is None else f'{rate:g}'} fps")
+    if args.animation is None:
+        raise ValueError(f"{info.name} is animated: give the frames it was made from, --mesh OBJ "
+                         f"--animation CACHE ({made_from})")
+    fps = args.fps if args.fps is not None else source.get("frame_rate_hz")
+    if fps is None:
+        raise ValueError(f"{info.name} does not record its frame rate: give --fps")
+    timeline = Timeline.from_dict(info.animation)
+    animation = load_animation(args.mesh, args.animation, fps, timeline.loop)
+    frames = animation.timeline.frames
+    if source.get("frames") is not None and frames != source["frames"]:
+        raise ValueError(f"{args.animation}: {frames} frames, but {made_from}")
+    duration = animation.timeline.duration_s
+    if not np.isclose(duration, timeline.duration_s, rtol=1e-9, atol=0.0):
+        raise ValueError(f"{args.animation} at {fps:g} fps lasts {duration:g} s, but {info.name}'s animation "
+                         f"lasts {timeline.duration_s:g} s ({made_from})")
+    return animation
+
+
+def source_differences(info, mesh, transform: np.ndarray, mesh_arg: str, cache_arg: str | None = None) -> list[str]:
+    """Why ``mesh`` (or an animated mesh, its vertex cache given as ``cache_arg``) placed by
+    ``transform`` is not the source the model ``info`` was made from (file contents by sha256,
+    then placement); empty when it is, or when the model records none."""
     differs = []
     sha = info.source.get("sha256")
     if sha and mesh.sha256 and sha != mesh.sha256:
         differs.append(f"{mesh_arg} is not the mesh {info.name} was made from "
                        f"(sha256 {mesh.sha256[:12]}, model's source {sha[:12]})")
+    sha = info.source.get("cache_sha256")
+    if cache_arg is not None and sha and mesh.cache_sha256 and sha != mesh.cache_sha256:
+        differs.append(f"{cache_arg} is not the vertex cache {info.name} was made from "
+                       f"(sha256 {mesh.cache_sha256[:12]}, model's source {sha[:12]})")
     stored = np.asarray(info.source.get("transform", np.eye(4)), dtype=np.float64)
     if not np.allclose(transform, stored, rtol=1e-9, atol=1e-12):
         differs.append(f"the mesh placement differs from {info.name}'s (transform "

@@ -14,6 +14,11 @@ hole (the bunny's open base) inside and outside are not defined, the truth's sig
 number's guess (inside above 0.5) and its distance jumps from -d to +d across the hole, where no
 continuous collider can follow it (docs/accuracy.md, "Holes").
 Plus: marching-cubes reconstruction vs the mesh (Chamfer-L1, mm), file size, query time.
+
+An animated collider (:func:`evaluate_animated_collider`) is measured the same way at random
+times drawn uniformly over its animation (so between its frames, where keyframe grids are
+interpolated), each time against the exact interpolated mesh at that time
+(:class:`~collider_server.engine.animated_meshes.ExactAtTimes`), the points of every time pooled.
 """
 
 from __future__ import annotations
@@ -23,10 +28,11 @@ from pathlib import Path
 
 import numpy as np
 
+from ..engine.animated_meshes import AnimatedMesh, ExactAtTimes
 from ..engine.collider import Collider
 from ..engine.meshes import ExactSDF, Mesh
 from .progress import progress
-from .sampling import band_sets, box_points, surface_points
+from .sampling import animated_band_sets, band_sets, box_points, random_times, surface_points
 from .surface import distance_grid, level_surface
 
 SIGN_THRESHOLD_M = 0.2e-3
@@ -41,41 +47,85 @@ def point_sets(collider: Collider, mesh: Mesh, points: int, seed: int) -> dict[s
     return sets
 
 
-def error_figures(collider: Collider, sdf: ExactSDF, points: np.ndarray) -> dict:
-    """Distance, sign, normal and contact errors of ``collider`` at ``points`` (collider frame),
-    for all of them and, under ``clear_winding``, for those where the winding number is clear."""
+def point_errors(collider: Collider, sdf: ExactSDF, points: np.ndarray,
+                 time: float | None = None) -> dict[str, np.ndarray]:
+    """Per point of ``points`` (collider frame), ``collider`` asked at ``time`` seconds (an
+    animated one; ``sdf`` the exact SDF of its surface at that time) against ``sdf``: distance
+    error (mm), whether the true sign is decided (|d| > 0.2 mm) and the sign wrong, normal angle
+    error (deg), contact error (mm) and whether the winding number is clear."""
     to_mm = 1000.0 * collider.info.meters_per_unit
     eps = collider.info.default_eps
     truth, closest, face = sdf.query(points)
     true_normal = sdf.gradient(points, truth, closest, face)
-    result = collider.query(points, ["distance", "normal", "contact"], eps=eps)
-    error = np.abs(result.distance.astype(np.float64) - truth) * to_mm
-    decided = np.abs(truth) * to_mm > SIGN_THRESHOLD_M * 1000.0
-    sign_wrong = (result.distance < 0) != (truth < 0)
+    result = collider.query(points, ["distance", "normal", "contact"], eps=eps, time=time)
     cosine = np.clip(np.einsum("ij,ij->i", result.normal.astype(np.float64), true_normal), -1.0, 1.0)
-    angle = np.degrees(np.arccos(cosine))
-    contact_error = np.abs(sdf.signed_distance(result.contact.astype(np.float64)) - eps) * to_mm
     winding = sdf.winding_number(points)
-    clear = (winding < CLEAR_WINDING[0]) | (winding > CLEAR_WINDING[1])
+    return {
+        "distance": np.abs(result.distance.astype(np.float64) - truth) * to_mm,
+        "decided": np.abs(truth) * to_mm > SIGN_THRESHOLD_M * 1000.0,
+        "sign_wrong": (result.distance < 0) != (truth < 0),
+        "normal": np.degrees(np.arccos(cosine)),
+        "contact": np.abs(sdf.signed_distance(result.contact.astype(np.float64)) - eps) * to_mm,
+        "clear": (winding < CLEAR_WINDING[0]) | (winding > CLEAR_WINDING[1]),
+    }
+
+
+def pooled(errors: list[dict[str, np.ndarray]]) -> dict[str, np.ndarray]:
+    """Several :func:`point_errors` as one (the points of every time together)."""
+    return {key: np.concatenate([e[key] for e in errors]) for key in errors[0]}
+
+
+def summarize(errors: dict[str, np.ndarray]) -> dict:
+    """The figures of :func:`point_errors`: for all points and, under ``clear_winding``, for
+    those where the winding number is clear."""
+    clear = errors["clear"]
 
     def figures(keep: np.ndarray) -> dict:
         if not keep.any():
             return {"points": 0}
-        signed = keep & decided
+        signed = keep & errors["decided"]
+        distance, angle, contact = errors["distance"][keep], errors["normal"][keep], errors["contact"][keep]
         return {
             "points": int(keep.sum()),
-            "distance_mean_mm": float(error[keep].mean()),
-            "distance_p99_mm": float(np.percentile(error[keep], 99)),
-            "distance_max_mm": float(error[keep].max()),
-            "sign_errors_percent": float(100.0 * sign_wrong[signed].mean()) if signed.any() else 0.0,
-            "normal_mean_deg": float(angle[keep].mean()),
-            "normal_p99_deg": float(np.percentile(angle[keep], 99)),
-            "contact_mean_mm": float(contact_error[keep].mean()),
-            "contact_p99_mm": float(np.percentile(contact_error[keep], 99)),
+            "distance_mean_mm": float(distance.mean()),
+            "distance_p99_mm": float(np.percentile(distance, 99)),
+            "distance_max_mm": float(distance.max()),
+            "sign_errors_percent": float(100.0 * errors["sign_wrong"][signed].mean()) if signed.any() else 0.0,
+            "normal_mean_deg": float(angle.mean()),
+            "normal_p99_deg": float(np.percentile(angle, 99)),
+            "contact_mean_mm": float(contact.mean()),
+            "contact_p99_mm": float(np.percentile(contact, 99)),
         }
 
-    return {**figures(np.ones(len(points), dtype=bool)), "clear_winding": figures(clear),
-            "ambiguous_winding_percent": float(100.0 * (1.0 - clear.mean())) if len(points) else 0.0}
+    return {**figures(np.ones(len(clear), dtype=bool)), "clear_winding": figures(clear),
+            "ambiguous_winding_percent": float(100.0 * (1.0 - clear.mean())) if len(clear) else 0.0}
+
+
+def error_figures(collider: Collider, sdf: ExactSDF, points: np.ndarray, time: float | None = None) -> dict:
+    """Distance, sign, normal and contact errors of ``collider`` at ``points`` (collider frame,
+    at ``time`` seconds for an animated one), for all of them and, under ``clear_winding``, for
+    those where the winding number is clear."""
+    return summarize(point_errors(collider, sdf, points, time))
+
+
+def animated_error_figures(collider: Collider, animation: AnimatedMesh, times, points: int, seed: int,
+                           sets: tuple[str, ...] = ("band_1mm", "band_10mm", "box"),
+                           on_time=lambda: None, exact: ExactAtTimes | None = None) -> dict:
+    """:func:`error_figures` of an animated ``collider`` at ``times`` (seconds) against the
+    exact interpolated surface of ``animation`` (its frame and units) at each: ``points`` per
+    set per time (:func:`~.sampling.animated_band_sets`; ``box``: uniform in the collider's
+    domain), the errors of every time pooled per set. ``on_time()`` is called after each time;
+    ``exact``: the truth's trees, kept across calls that measure several colliders."""
+    exact = exact or ExactAtTimes(animation, keep=1)
+    errors: dict[str, list] = {name: [] for name in sets}
+    for i, (t, bands) in enumerate(animated_band_sets(animation, times, points, seed,
+                                                      collider.info.meters_per_unit)):
+        bands["box"] = box_points(collider.domain_min, collider.domain_max, points, seed + 7 + 10 * i)
+        sdf = exact.at(t)[0]
+        for name in sets:
+            errors[name].append(point_errors(collider, sdf, bands[name], t))
+        on_time()
+    return {name: summarize(pooled(found)) for name, found in errors.items()}
 
 
 def reconstruction_chamfer_mm(collider: Collider, mesh: Mesh, resolution: int = 128,
@@ -96,12 +146,14 @@ def reconstruction_chamfer_mm(collider: Collider, mesh: Mesh, resolution: int = 
     return float(0.5 * (recon_to_mesh.mean() + mesh_to_recon.mean()) * to_mm)
 
 
-def query_seconds_per_million(collider: Collider, points: np.ndarray, repeats: int = 2) -> float:
-    """Best wall time of a distance + normal + contact query, scaled to 1M points."""
+def query_seconds_per_million(collider: Collider, points: np.ndarray, repeats: int = 2,
+                              at: float | None = None) -> float:
+    """Best wall time of a distance + normal + contact query (at ``at`` seconds: an animated
+    collider), scaled to 1M points."""
     best = float("inf")
     for _ in range(repeats):
         started = time.perf_counter()
-        collider.query(points, ["distance", "normal", "contact"])
+        collider.query(points, ["distance", "normal", "contact"], time=at)
         best = min(best, time.perf_counter() - started)
     return best * 1e6 / len(points)
 
@@ -126,11 +178,40 @@ def evaluate_collider(collider: Collider, mesh: Mesh, points: int = 100_000, see
         if reconstruction:
             report["chamfer_l1_mm"] = reconstruction_chamfer_mm(collider, mesh, seed=seed)
             bar.update(1)
-    report["file_bytes"] = int(path.stat().st_size) if path is not None else None
-    report["training_seconds"] = collider.info.settings.get("training", {}).get("seconds")
-    report["device"] = collider.device
-    report["evaluated"] = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
-    return report
+    return {**report, **_about(collider, path)}
+
+
+def evaluate_animated_collider(collider: Collider, animation: AnimatedMesh, points: int = 100_000,
+                               times: int = 16, seed: int = 1234, path: Path | None = None,
+                               show_progress: bool = True) -> dict:
+    """The figures of :func:`evaluate_collider` for an animated ``collider`` at ``times`` random
+    times (:func:`~.sampling.random_times`: uniform over the animation, between its frames)
+    against the exact interpolated surface of ``animation`` (the frames it was made from, in the
+    collider's frame and units), ``points`` per set split evenly over the times, pooled. No
+    reconstruction; the query time is measured at the first time. Adds ``times_s`` (the times,
+    seconds), ``duration_s`` and ``points_per_time``."""
+    if isinstance(points, bool) or not isinstance(points, (int, np.integer)) or points < 1:
+        raise ValueError(f"points (per set) must be a positive integer, got {points!r}")
+    at = random_times(animation.timeline, times, seed)
+    per_time = -(-points // times)
+    with progress(times + 1, f"eval {collider.info.name}", "time", show_progress) as bar:
+        report = animated_error_figures(collider, animation, at, per_time, seed,
+                                        on_time=lambda: bar.update(1))
+        probe = animation.mesh_at(float(at[0]))
+        report["query_seconds_per_million"] = query_seconds_per_million(
+            collider, band_sets(probe, min(per_time, 50_000), seed, collider.info.meters_per_unit)["band_1mm"],
+            at=float(at[0]))
+        bar.update(1)
+    return {**report, "times_s": at.tolist(), "duration_s": animation.timeline.duration_s,
+            "points_per_time": per_time, "seed": seed, **_about(collider, path)}
+
+
+def _about(collider: Collider, path: Path | None) -> dict:
+    """What every evaluation report says of the collider beside its errors."""
+    return {"file_bytes": int(path.stat().st_size) if path is not None else None,
+            "training_seconds": collider.info.settings.get("training", {}).get("seconds"),
+            "device": collider.device,
+            "evaluated": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
 
 
 def penetration(frames, colliders) -> dict:
@@ -170,12 +251,23 @@ def exact_distance(exact, time_at=None):
     return lambda points, t: exact.at(time_at(t))[0].signed_distance(points)
 
 
+def times_lines(report: dict) -> list[str]:
+    """An animated evaluation's times: how many, over which range, and each one."""
+    times = report.get("times_s")
+    if not times:
+        return []
+    shown = ", ".join(f"{t:.4f}" for t in times[:8]) + (", ..." if len(times) > 8 else "")
+    return [f"at {len(times)} random times in [0, {report['duration_s']:g}) s, uniform (seed {report['seed']}; "
+            f"between frames), {report['points_per_time']:,} points per set at each, pooled, against the "
+            f"exact interpolated mesh at that time", f"times (s): {shown}"]
+
+
 def format_report(name: str, kind: str, report: dict) -> str:
     """A plain-text table of :func:`evaluate_collider`'s figures: each set, then the same set
     without the points of ambiguous winding number ("w clear"), when it has any."""
     header = ("set", "dist mean", "p99", "max", "sign err", "normal mean", "p99", "contact mean", "p99")
     line = "{:<10} {:>10} {:>8} {:>8} {:>9} {:>12} {:>7} {:>13} {:>8}"
-    rows = [f"{name} ({kind})", line.format(*header), line.format("", "mm", "mm", "mm", "%", "deg", "deg", "mm", "mm")]
+    rows = [f"{name} ({kind})", *times_lines(report), line.format(*header), line.format("", "mm", "mm", "mm", "%", "deg", "deg", "mm", "mm")]
     numbers = "{:<10} {:>10.4f} {:>8.4f} {:>8.4f} {:>9.3f} {:>12.2f} {:>7.2f} {:>13.4f} {:>8.4f}"
     ambiguous = []
     for key in ("band_1mm", "band_10mm", "box"):
@@ -195,7 +287,9 @@ def format_report(name: str, kind: str, report: dict) -> str:
                     f"{CLEAR_WINDING[0]} and {CLEAR_WINDING[1]} ({', '.join(ambiguous)} of the points)")
     if "chamfer_l1_mm" in report:
         rows.append(f"reconstruction Chamfer-L1: {report['chamfer_l1_mm']:.4f} mm (marching cubes 128^3)")
-    rows.append(f"query (distance+normal+contact): {report['query_seconds_per_million']:.2f} s per 1M points on {report['device']}")
+    at = f" at t = {report['times_s'][0]:.4f} s" if report.get("times_s") else ""
+    rows.append(f"query (distance+normal+contact){at}: {report['query_seconds_per_million']:.2f} s per 1M points "
+                f"on {report['device']}")
     if report.get("file_bytes") is not None:
         rows.append(f"model file: {report['file_bytes']:,} bytes")
     if report.get("training_seconds") is not None:

@@ -48,6 +48,25 @@ def band_sets(mesh: Mesh, n: int, seed: int, meters_per_unit: float,
             for i, (name, band) in enumerate(BANDS_M.items())}
 
 
+def random_times(timeline, n: int, seed: int) -> np.ndarray:
+    """``n`` times (seconds, ascending) drawn uniformly over ``[0, duration_s)`` of ``timeline``
+    (a :class:`~collider_contract.Timeline`): they fall between its frames (a keyframe is hit
+    with probability zero), which is where keyframe grids are interpolated and err most."""
+    if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1:
+        raise ValueError(f"the number of random times must be a positive integer, got {n!r}")
+    return np.sort(np.random.default_rng(seed).uniform(0.0, timeline.duration_s, int(n)))
+
+
+def animated_band_sets(animation, times, n: int, seed: int,
+                       meters_per_unit: float) -> list[tuple[float, dict[str, np.ndarray]]]:
+    """:func:`band_sets` of an animated mesh at each of ``times`` (seconds): ``[(t, {band:
+    points}), ...]``, ``n`` points per band per time, around the exact interpolated surface
+    ``animation.mesh_at(t)`` (the truth at ``t``), time ``i`` drawn from ``seed + 10 i``;
+    (n, 3) float64, the animation's units and frame."""
+    return [(float(t), band_sets(animation.mesh_at(float(t)), n, seed + 10 * i, meters_per_unit))
+            for i, t in enumerate(times)]
+
+
 def box_points(lo, hi, n: int, seed: int) -> np.ndarray:
     """``n`` points uniform in the box ``[lo, hi]``: (n, 3)."""
     rng = np.random.default_rng(seed)

@@ -1,0 +1,80 @@
+"""``collider bench MESH --animation CACHE --fps F --quick`` on the shipped bending arm, as a user
+runs it: the exact animated kind and voxel keyframe sets measured at random times between frames,
+timed in interleaved rounds at one time (distance + normal + contact + velocity), embedded and
+served; its table, JSON and plot. Structure and plausible accuracy are asserted, never timings."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from .test_bench import collider, collider_here
+
+ROOT = Path(__file__).resolve().parents[2]
+ARM = ["examples/animations/arm.obj", "--animation", "examples/animations/arm.pc2", "--fps", "24", "--loop"]
+
+
+@pytest.fixture(scope="module")
+def arm_bench(tmp_path_factory):
+    out = tmp_path_factory.mktemp("bench-arm")
+    result = collider("bench", *(str(ROOT / a) if a.startswith("examples/") else a for a in ARM), "--quick",
+                      "--quiet", "--output", out / "result", "--cache", out / "cache")
+    assert result.returncode == 0, result.stdout + result.stderr
+    return out / "result", json.loads((out / "result" / "bench.json").read_text()), result.stdout
+
+
+@pytest.mark.slow
+def test_quick_bench_of_the_arm_writes_its_table_at_random_times(arm_bench):
+    folder, report, stdout = arm_bench
+    rows = {r["name"]: r for r in report["colliders"]}
+    assert list(rows) == ["mesh", "voxel-16-k25", "voxel-16-k5", "voxel-32-k25", "voxel-32-k5"]
+    animation = report["animation"]
+    assert (animation["frames"], animation["frame_rate_hz"], animation["loop"]) == (25, 24.0, True)
+    times = np.array(animation["times_s"] + [animation["timing_time_s"]])
+    assert len(times) == 5 and ((times >= 0) & (times < 1)).all()
+    assert (np.abs(times * 24 - np.round(times * 24)) > 1e-3).all(), times  # between frames
+    for row in rows.values():
+        cells = {(t["path"], t["mode"], t["points"]) for t in row["timings"]}
+        assert cells == {(p, m, n) for p in ("embedded", "served")
+                         for m in ("distance", "distance+normal+contact+velocity") for n in (10_000, 40_000)}
+        assert row["accuracy"]["band_1mm"]["points"] == 5_000
+    assert rows["mesh"]["accuracy"]["band_1mm"]["distance_max_mm"] < 1e-3  # exact at any time
+    for name, row in rows.items():
+        if name != "mesh":
+            resolution, keyframes = row["settings"]["resolution"], row["settings"]["keyframes"]
+            assert row["memory_bytes"] == keyframes * resolution**3 * 4
+    error = {n: r["accuracy"]["band_1mm"]["distance_mean_mm"] for n, r in rows.items()}
+    assert error["voxel-32-k25"] < error["voxel-16-k25"] < error["voxel-16-k5"]
+    assert error["voxel-32-k25"] < error["voxel-32-k5"]
+    markdown = (folder / "bench.md").read_text()
+    assert markdown == stdout.split("wrote ")[0].rstrip("\n") + "\n"
+    assert "Animated: 25 frames at 24 fps" in markdown and f"{animation['times_s'][0]:.4f}" in markdown
+    assert "**distance+normal+contact+velocity, embedded, cpu**" in markdown
+    assert "| voxel 32^3 x 25 (every frame) | " in markdown and "| voxel 16^3 x 5 | " in markdown
+    assert "Errors against the exact interpolated mesh at 4 random times" in markdown
+    assert "Reference time: distance+normal+contact+velocity on 40k points" in markdown
+    assert (folder / "bench-cpu.png").stat().st_size > 20_000
+
+
+@pytest.mark.parametrize("extra, message", [
+    (["--presets", "grid"], "--train-minutes and --presets are for neural colliders"),
+    (["--keyframes", "5,1"], "--keyframes must be integers >= 2 or 'all', got [5, 1]"),
+    (["--kinds", "kdtree"], "--kinds with --animation must name some of ['mesh', 'voxel'], got ['kdtree']"),
+    (["--times", "0"], "--times must be a positive number of random times, got 0"),
+])
+def test_animated_bench_refuses_bad_settings_in_one_line(extra, message, tmp_path, capsys):
+    from collider_cli import main
+
+    code = main(["bench", *(str(ROOT / a) if a.startswith("examples/") else a for a in ARM), *extra,
+                 "--output", str(tmp_path), "--cache", str(tmp_path)])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and message in err[0], err
+
+
+def test_bench_options_of_an_animation_need_one(tmp_path, capsys):
+    code, out, err = collider_here(capsys, "bench", ROOT / "examples/meshes/spot.obj", "--fps", "24",
+                                   "--output", tmp_path, "--cache", tmp_path)
+    assert code == 2 and "--fps, --loop/--clamp, --keyframes and --times need --animation" in err
