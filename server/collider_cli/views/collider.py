@@ -86,9 +86,8 @@ class TimeGrids:
     ``computed`` counts the grids computed and ``compute_s`` the seconds they took."""
 
     def __init__(self, collider: Collider, resolution: int, step_s: float,
-                 show_progress: bool = False, budget_bytes: int = TIME_GRIDS_BYTES):
+                 budget_bytes: int = TIME_GRIDS_BYTES):
         self.collider, self.resolution, self.step_s = collider, resolution, step_s
-        self.show_progress = show_progress
         self.keep = max(2, budget_bytes // (4 * resolution ** 3))
         self._grids: OrderedDict[int, Grid] = OrderedDict()
         self._lock = threading.Lock()
@@ -101,14 +100,15 @@ class TimeGrids:
     def has(self, t: float) -> bool:
         return self.step_of(t) in self._grids
 
-    def at(self, t: float) -> Grid:
-        """The grid at the step nearest ``t`` seconds."""
+    def at(self, t: float, show_progress: bool = False) -> Grid:
+        """The grid at the step nearest ``t`` seconds (``show_progress``: a progress bar on
+        stderr while it is computed)."""
         step = self.step_of(t)
         with self._lock:
             grid = self._grids.get(step)
             if grid is None:
                 started = time.perf_counter()
-                grid = collider_grid(self.collider, self.resolution, self.show_progress,
+                grid = collider_grid(self.collider, self.resolution, show_progress,
                                      time=step * self.step_s)
                 self.computed += 1
                 self.compute_s += time.perf_counter() - started
@@ -236,8 +236,8 @@ def serve_collider_view(collider: Collider, mesh: Mesh | AnimatedMesh | None, *,
                          f"must be {'animated' if animated else 'static'} too")
     if animated:
         timeline = Timeline.from_dict(info.animation)
-        grids = TimeGrids(collider, resolution, time_step_s(collider), show_progress)
-        grid = grids.at(0.0)
+        grids = TimeGrids(collider, resolution, time_step_s(collider))
+        grid = grids.at(0.0, show_progress)  # the page's first; later ones say "computing"
         exact = ExactAtTimes(mesh) if mesh is not None else None
     else:
         grids, grid = None, collider_grid(collider, resolution, show_progress)
