@@ -140,3 +140,15 @@ def interrupt_once_printed(serve, text: str, signum: int = signal.SIGINT,
         for s, handler in saved.items():
             signal.signal(s, handler)
     return out.getvalue()
+
+
+def gui_labels(server) -> list[str]:
+    """The labels of the GUI controls, in the order sent to a browser that connects now."""
+    from viser import _messages
+
+    buffer = server._websock_server._broadcast_buffer
+    with buffer.buffer_lock:
+        messages = [m for _, m in sorted(buffer.message_from_id.items())]
+    return [m.props.label for m in messages
+            if isinstance(m, _messages._CreateGuiComponentMessage)
+            and isinstance(getattr(m.props, "label", None), str)]

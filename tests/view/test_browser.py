@@ -13,11 +13,13 @@ from __future__ import annotations
 
 import os
 import queue
+import re
 import signal
 import socket
 import subprocess
 import sys
 import threading
+import time
 from pathlib import Path
 
 import numpy as np
@@ -108,6 +110,13 @@ def coloured(region: np.ndarray, colour: str) -> int:
     raise ValueError(colour)
 
 
+def surface_pixels(image) -> np.ndarray:
+    """(h, w) bool: the canvas's shaded surface pixels: neither the white background nor the
+    dark lines of the domain box."""
+    region = canvas_region(image)
+    return (region.max(axis=-1) < 245) & (region.min(axis=-1) > 120)
+
+
 def save(image, name: str, tmp_path: Path) -> None:
     image.save(tmp_path / name)
     target = os.environ.get("COLLIDER_SCREENSHOTS")
@@ -149,6 +158,70 @@ def test_collider_view_in_chromium(tmp_path):
         assert errors == [], errors
         assert command.interrupt() == 0
         assert "view stopped" in "".join(command.stderr)
+    finally:
+        command.kill()
+
+
+def test_animated_view_time_slider_in_chromium(tmp_path):
+    """The shipped animated arm: the page opens at t = 0; the time slider, moved with the
+    mouse in the browser to about 0.25 s, shows that time in the panel and another picture (the
+    forearm bent up)."""
+    port = free_port()
+    animations = REPO_ROOT / "examples" / "animations"
+    command = Command(["view", "arm", "--mesh", str(animations / "arm.obj"), "--animation",
+                       str(animations / "arm.pc2"), "--resolution", "48", "--port", str(port),
+                       "--quiet"], REPO_ROOT)
+    try:
+        command.wait_for("Ctrl-C to stop")
+
+        def drawn(image) -> bool:
+            return coloured(canvas_region(image), "shape") > 0.01 * canvas_region(image)[..., 0].size
+
+        with Browser(BROWSER, tmp_path / "profile-arm") as browser:
+            browser.open(f"http://127.0.0.1:{port}/")
+            start, ok = browser.screenshot_until(drawn, timeout_s=180)
+            save(start, "view-arm-start.png", tmp_path)
+            assert ok, f"the arm is not drawn; see {tmp_path / 'view-arm-start.png'}"
+            assert "t = 0 s" in browser.evaluate("document.body.innerText")
+            # A click on the time slider's track half way along (the level
+            # slider's maximum is 10 mm, not 1 s); keys would also turn the camera.
+            track = browser.evaluate(
+                "(() => { const s = [...document.querySelectorAll('[role=slider]')]"
+                ".find(e => e.getAttribute('aria-valuemax') === '1');"
+                " if (!s) return null; const r = s.closest('.mantine-Slider-root')"
+                ".getBoundingClientRect(); return [r.left, r.top, r.width, r.height]; })()")
+            assert track, "no time slider on the page"
+            left, top, width, height = track
+            x, y = left + 0.5 * width, top + 0.5 * height
+            for kind in ("mousePressed", "mouseReleased"):
+                browser.call("Input.dispatchMouseEvent", type=kind, x=x, y=y, button="left",
+                             clickCount=1)
+            # The pointer off the panel, so that the slider's hint does not cover the picture.
+            browser.call("Input.dispatchMouseEvent", type="mouseMoved", x=100, y=700)
+            def shown_time() -> float | None:
+                """The time of the surface drawn, from the panel (None while computing)."""
+                text = browser.evaluate("document.body.innerText")
+                found = re.search(r"t = ([0-9.]+) s: frame", text)
+                return float(found.group(1)) if found and "computing" not in text else None
+
+            before = surface_pixels(start)
+            deadline = time.monotonic() + 180
+            while shown_time() in (None, 0.0) and time.monotonic() < deadline:
+                time.sleep(0.2)
+            t = shown_time()
+
+            def moved(image) -> bool:  # the arm's own pixels, not the box's lines nor shading
+                return int((surface_pixels(image) ^ before).sum()) > 2000
+
+            later, ok = browser.screenshot_until(moved, timeout_s=60)
+            save(later, "view-arm.png", tmp_path)
+            errors = list(browser.errors)
+        # Half way along a 0..1 s track, give or take the thumb's size.
+        assert t is not None and 0.4 <= t <= 0.6, t
+        changed = int((surface_pixels(later) ^ before).sum())
+        assert ok, f"the picture did not change ({changed} pixels); see {tmp_path / 'view-arm.png'}"
+        assert errors == [], errors
+        assert command.interrupt() == 0
     finally:
         command.kill()
 

@@ -15,7 +15,7 @@ import socket
 import numpy as np
 import pytest
 
-from .page_driver import click, click_canvas, glb_mesh, node, panel_label
+from .page_driver import click, click_canvas, glb_mesh, gui_labels, node, panel_label
 
 pytest.importorskip("viser", reason="the [view] extra (viser) is not installed")
 
@@ -283,6 +283,10 @@ def test_page_title_label_controls_and_camera(ball, ball_page):
     assert first["probe_out"] == "click the surface or type a point"
     assert page.show_wire.label == "exact mesh wireframe" and page.show_wire.value is False
     assert node(server, "/exact_mesh").visible is False
+    # A static collider: no time slider, no play (what a browser receives).
+    assert gui_labels(server) == ["level (mm)", "level = eps (1 mm)", "exact mesh wireframe",
+                                  "probe point", "query probe"]
+    assert (page.time, page.play, page.time_label, page.grids) == (None, None, None, None)
     # The domain box (collider frame), and the camera framing it with +y up.
     lo, hi = collider.domain_min, collider.domain_max
     np.testing.assert_allclose([lo, hi], [[-12.0] * 3, [12.0] * 3])

@@ -105,3 +105,30 @@ def test_view_up_of_the_shipped_models():
     # dragon: made with --z-up --fit-size (a scaled rotation); bunny: kept as is.
     assert view_up(repository.load("dragon", "cpu").info.source["transform"]) == "+z"
     assert view_up(repository.load("bunny", "cpu").info.source["transform"]) == "+y"
+
+
+def test_view_command_errors_on_animated_models(capsys):
+    """The exact animation of an animated model is its OBJ and vertex cache together, on the
+    model's clock; each wrong combination is refused in one line before anything is served."""
+    pytest.importorskip("viser")
+    from collider_cli import main
+    from tests.conftest import REPO_ROOT
+
+    obj, pc2 = (str(REPO_ROOT / "examples" / "animations" / f"arm.{ext}") for ext in ("obj", "pc2"))
+    models = ["--models", str(REPO_ROOT / "models")]
+    cases = [
+        (["arm", "--mesh", obj], "arm is animated: give the vertex cache it was baked from with "
+                                 "--mesh, --animation CACHE (arm was baked from arm.obj and "
+                                 "arm.pc2, 25 frames at 24 fps)"),
+        (["arm", "--animation", pc2], "--animation needs --mesh (the OBJ whose vertices it moves)"),
+        (["arm", "--mesh", obj, "--animation", pc2, "--fps", "12"],
+         f"{pc2} at 12 fps lasts 2 s, but arm lasts 1 s (arm was baked from arm.obj and arm.pc2, "
+         "25 frames at 24 fps)"),
+        (["bunny", "--mesh", obj, "--animation", pc2],
+         "bunny is static: --animation and --fps are for animated models"),
+        (["bunny", "--fps", "24"], "bunny is static: --animation and --fps are for animated models"),
+    ]
+    for argv, message in cases:
+        assert main(["view", *argv, *models]) == 2, argv
+        err = capsys.readouterr().err
+        assert message in err and "Traceback" not in err and len(err.strip().splitlines()) == 1, err

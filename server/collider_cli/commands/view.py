@@ -25,19 +25,28 @@ def register(subparsers) -> None:
                     "pip install 'neural-collider[view]'). `collider view NAME --mesh MESH`: the "
                     "collider's surface coloured by its error against the exact mesh (mm), the "
                     "mesh as a wireframe, the domain box, a level slider (eps offset surface), a "
-                    "probe. `collider view --replay out/SCENE`: replay a `collider simulate` "
+                    "probe. An animated model adds a time slider and play (its exact mesh: "
+                    "--mesh OBJ --animation CACHE, the files it was baked from). "
+                    "`collider view --replay out/SCENE`: replay a `collider simulate` "
                     "output (OBJ + PC2). Ctrl-C stops it.")
     view.add_argument("model", nargs="?", help="model name in the repository, or a .safetensors path")
     view.add_argument("--mesh", default=None,
                       help="the mesh the collider was made from: colour by error, show as wireframe "
                            "(placed as the model was made unless placement options are given)")
+    view.add_argument("--animation", default=None, metavar="CACHE",
+                      help="an animated model: the vertex cache (PC2, or a quoted pattern of OBJ "
+                           "files) of --mesh it was baked from, as given to `collider bake`")
+    view.add_argument("--fps", type=float, default=None,
+                      help="frames per second of --animation (default: the rate the model was "
+                           "baked at)")
     view.add_argument("--replay", type=Path, default=None, metavar="OUT/SCENE",
                       help="replay a run's output prefix (OBJ + PC2), e.g. out/drape_bunny")
     view.add_argument("--scene", default=None,
                       help="with --replay: the scene file or name, to show its colliders "
                            "(default: the output's name if it is a shipped scene)")
-    view.add_argument("--resolution", type=int, default=96,
-                      help="marching-cubes grid samples per axis over the domain (default 96)")
+    view.add_argument("--resolution", type=int, default=None,
+                      help="marching-cubes grid samples per axis over the domain (default 96; "
+                           "64 for an animated model, one grid per time step)")
     view.add_argument("--clip-mm", type=float, default=None,
                       help="error colour scale, +- mm (default: p95 of the surface's |error|)")
     view.add_argument("--up", default=None, choices=["+x", "+y", "+z", "-x", "-y", "-z"],
@@ -74,27 +83,72 @@ def run_collider_view(args: argparse.Namespace) -> int:
     from ..views.page import url_of, wait_until_interrupted
 
     collider = ModelRepository(args.models).load(args.model, args.device)
+    info = collider.info
+    if collider.animated and args.mesh is not None and args.animation is None:
+        raise ValueError(f"{info.name} is animated: give the vertex cache it was baked from with "
+                         f"--mesh, --animation CACHE ({made_from(info)})")
+    if not collider.animated and (args.animation, args.fps) != (None, None):
+        raise ValueError(f"{info.name} is static: --animation and --fps are for animated models")
+    if args.animation is not None and args.mesh is None:
+        raise ValueError("--animation needs --mesh (the OBJ whose vertices it moves)")
     mesh = None
-    stored = np.asarray(collider.info.source.get("transform", np.eye(4)), dtype=np.float64)
+    stored = np.asarray(info.source.get("transform", np.eye(4)), dtype=np.float64)
     if args.mesh is not None:
-        mesh = load_mesh(args.mesh)
+        mesh = load_animated_source(info, args) if collider.animated else load_mesh(args.mesh)
         placement = placement_from_args(args)
         if placement is None:  # as the model was made: its stored source transform
             if not np.allclose(stored, np.eye(4)):
                 mesh = mesh.transformed(stored)
+        elif collider.animated:
+            mesh, _ = placement.apply_to_animation(mesh)
         else:
             mesh, _ = placement.apply(mesh)
-        sha = collider.info.source.get("sha256")
-        if sha and sha != mesh.sha256:
-            print(f"collider view: warning: {args.mesh} is not the mesh {collider.info.name} was "
-                  "made from (sha256 differs)", file=sys.stderr)
+        for what, arg, key, sha in (("mesh", args.mesh, "sha256", mesh.sha256),
+                                    ("vertex cache", args.animation, "cache_sha256",
+                                     getattr(mesh, "cache_sha256", ""))):
+            made = info.source.get(key)
+            if made and sha and made != sha:
+                print(f"collider view: warning: {arg} is not the {what} {info.name} was made "
+                      "from (sha256 differs)", file=sys.stderr)
     up = args.up or view_up(stored)
+    resolution = args.resolution or (64 if collider.animated else 96)
     page = serve_collider_view(collider, mesh, host=args.host, port=args.port,
-                               resolution=args.resolution, up=up, clip_mm=args.clip_mm,
+                               resolution=resolution, up=up, clip_mm=args.clip_mm,
                                show_progress=not args.quiet)
     wait_until_interrupted(page.server, f"view of {collider.info.name} at {url_of(page.server)}  "
                                         "(Ctrl-C to stop)")
     return 0
+
+
+def made_from(info) -> str:
+    """What an animated model's source says it was baked from, for an error message."""
+    source = info.source
+    rate = source.get("frame_rate_hz")
+    return (f"{info.name} was baked from {source.get('mesh', '?')}.obj and "
+            f"{source.get('cache', '?')}, {source.get('frames', '?')} frames at "
+            f"{'?' if rate is None else f'{rate:g}'} fps")
+
+
+def load_animated_source(info, args):
+    """The exact animation of the animated model ``info``, in its file's frame: ``--mesh`` OBJ
+    and ``--animation`` CACHE at ``--fps`` (default: the rate the model was baked at), looping
+    as the model does; a one-line ValueError when it cannot be the model's animation (another
+    frame count or duration)."""
+    from collider_contract import Timeline
+    from collider_server.making.animation_files import load_animation
+
+    timeline = Timeline.from_dict(info.animation)
+    fps = args.fps if args.fps is not None else info.source.get("frame_rate_hz")
+    if fps is None:
+        raise ValueError(f"{info.name} does not record the frame rate it was baked at: give --fps")
+    animation = load_animation(args.mesh, args.animation, fps, timeline.loop)
+    frames = animation.timeline.frames
+    if info.source.get("frames") not in (None, frames):
+        raise ValueError(f"{args.animation}: {frames} frames, but {made_from(info)}")
+    if not np.isclose(animation.timeline.duration_s, timeline.duration_s, rtol=1e-9, atol=0.0):
+        raise ValueError(f"{args.animation} at {fps:g} fps lasts {animation.timeline.duration_s:g} "
+                         f"s, but {info.name} lasts {timeline.duration_s:g} s ({made_from(info)})")
+    return animation
 
 
 def view_up(transform) -> str:

@@ -9,7 +9,11 @@ Everything is shown in the **collider frame and units** (identity pose):
   one, blue inside), with a colour bar;
 - the exact mesh as a toggleable wireframe (``--mesh``) and the domain box;
 - a probe: type a point or click the surface, see ``distance``, ``normal`` (an arrow),
-  ``contact`` and ``collides``.
+  ``contact`` and ``collides``;
+- an animated collider: a **time** slider (seconds, 0 to its duration, a quarter of a frame a
+  step) and a **play** checkbox; the surface, its error against the exact mesh interpolated at
+  that time (given its frames), the wireframe and the probe (with the surface's ``velocity``) all
+  follow the time. Each time step's grid is computed once and kept (:class:`TimeGrids`).
 
 The grid and the colours are plain functions (:func:`collider_grid`, :func:`level_surface`,
 :func:`error_colors`), testable without a browser; :func:`serve_collider_view` builds the scene and
@@ -19,10 +23,14 @@ returns its :class:`ColliderPage` (the server and the controls a user drives).
 from __future__ import annotations
 
 import threading
+import time
+from collections import OrderedDict
 from dataclasses import dataclass
 
 import numpy as np
+from collider_contract import Timeline
 
+from collider_server.engine.animated_meshes import AnimatedMesh, ExactAtTimes
 from collider_server.engine.collider import Collider
 from collider_server.engine.meshes import ExactSDF, Mesh
 from collider_server.making.surface import Grid, distance_grid, level_surface
@@ -35,13 +43,80 @@ PLAIN_COLOR = (170, 190, 210)
 PROBE_COLOR = (250, 140, 0)
 
 
-def collider_grid(collider: Collider, resolution: int, show_progress: bool = True) -> Grid:
-    """``collider``'s distance on ``resolution``^3 points spanning its domain box."""
+#: Time slider steps per frame of an animated collider.
+STEPS_PER_FRAME = 4
+#: Memory the kept grids of an animated collider's time steps may take (bytes).
+TIME_GRIDS_BYTES = 512 * 2 ** 20
+
+
+def collider_grid(collider: Collider, resolution: int, show_progress: bool = True,
+                  time: float | None = None) -> Grid:
+    """``collider``'s distance on ``resolution``^3 points spanning its domain box, at ``time``
+    seconds (an animated collider; a static one ignores it)."""
     if not 8 <= resolution <= 512:
         raise ValueError(f"--resolution must be between 8 and 512, got {resolution}")
-    return distance_grid(lambda points: collider.query(points, ["distance"]).distance,
+    at = "" if time is None else f" t={time:.4g}s"
+    return distance_grid(lambda points: collider.query(points, ["distance"], time=time).distance,
                          collider.domain_min, collider.domain_max, resolution,
-                         desc=f"{collider.info.name} grid", show_progress=show_progress)
+                         desc=f"{collider.info.name} grid{at}", show_progress=show_progress)
+
+
+def time_step_s(collider: Collider) -> float:
+    """The time slider's step, seconds: a quarter of the shortest frame interval the collider
+    knows (its own frames, or the animation it was made from when that has more)."""
+    rate = max(collider.info.animation["frame_rate_hz"],
+               float(collider.info.source.get("frame_rate_hz", 0.0)))
+    return 1.0 / (STEPS_PER_FRAME * rate)
+
+
+def time_text(timeline: Timeline, t: float) -> str:
+    """Markdown: the time and where it falls among the collider's frames (frame k is at
+    k / frame_rate_hz seconds; between two frames, the fraction)."""
+    k, u, _ = timeline.locate(t)
+    ends = "loops" if timeline.loop else "clamps"
+    return (f"**t = {t:.4g} s**: frame {k + u:.2f} of 0..{timeline.frames - 1} "
+            f"({timeline.frame_rate_hz:g} fps, {timeline.duration_s:g} s, {ends})")
+
+
+class TimeGrids:
+    """An animated collider's distance grids at the time slider's steps (step ``i`` at
+    ``i * step_s`` seconds): each computed on first use and kept, the least recently used
+    dropped beyond ``budget_bytes``. Thread-safe: one grid is computed at a time.
+
+    ``computed`` counts the grids computed and ``compute_s`` the seconds they took."""
+
+    def __init__(self, collider: Collider, resolution: int, step_s: float,
+                 budget_bytes: int = TIME_GRIDS_BYTES):
+        self.collider, self.resolution, self.step_s = collider, resolution, step_s
+        self.keep = max(2, budget_bytes // (4 * resolution ** 3))
+        self._grids: OrderedDict[int, Grid] = OrderedDict()
+        self._lock = threading.Lock()
+        self.computed = 0
+        self.compute_s = 0.0
+
+    def step_of(self, t: float) -> int:
+        return int(round(t / self.step_s))
+
+    def has(self, t: float) -> bool:
+        return self.step_of(t) in self._grids
+
+    def at(self, t: float, show_progress: bool = False) -> Grid:
+        """The grid at the step nearest ``t`` seconds (``show_progress``: a progress bar on
+        stderr while it is computed)."""
+        step = self.step_of(t)
+        with self._lock:
+            grid = self._grids.get(step)
+            if grid is None:
+                started = time.perf_counter()
+                grid = collider_grid(self.collider, self.resolution, show_progress,
+                                     time=step * self.step_s)
+                self.computed += 1
+                self.compute_s += time.perf_counter() - started
+                self._grids[step] = grid
+                while len(self._grids) > self.keep:
+                    self._grids.popitem(last=False)
+            self._grids.move_to_end(step)
+            return grid
 
 
 def surface_error_mm(sdf: ExactSDF, vertices: np.ndarray, level: float,
@@ -75,9 +150,10 @@ def box_segments(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
 
 
 def sphere_trace(collider: Collider, origin: np.ndarray, direction: np.ndarray,
-                 max_steps: int = 200) -> np.ndarray | None:
+                 max_steps: int = 200, time: float | None = None) -> np.ndarray | None:
     """First point where the ray ``origin + s * direction`` (collider frame) reaches the
-    collider's surface, marching by the distance itself; None when it misses the domain."""
+    collider's surface (at ``time`` seconds, an animated collider), marching by the distance
+    itself; None when it misses the domain."""
     lo, hi = collider.domain_min, collider.domain_max
     direction = direction / np.linalg.norm(direction)
     # Start where the ray enters the domain box (slab test).
@@ -91,7 +167,7 @@ def sphere_trace(collider: Collider, origin: np.ndarray, direction: np.ndarray,
     tolerance = 1e-5 * float(np.max(hi - lo))
     for _ in range(max_steps):
         p = origin + s * direction
-        d = float(collider.query(p[None], ["distance"]).distance[0])
+        d = float(collider.query(p[None], ["distance"], time=time).distance[0])
         if d < tolerance:
             return p
         s += d
@@ -100,25 +176,36 @@ def sphere_trace(collider: Collider, origin: np.ndarray, direction: np.ndarray,
     return None
 
 
-def probe_text(collider: Collider, point: np.ndarray, eps: float) -> tuple[str, dict]:
-    """Markdown with distance / normal / contact / collides at ``point`` and the raw fields."""
-    r = collider.query(point[None], ["distance", "normal", "contact", "collides"], eps=eps)
+def probe_text(collider: Collider, point: np.ndarray, eps: float,
+               time: float | None = None) -> tuple[str, dict]:
+    """Markdown with distance / normal / contact / collides at ``point`` (collider frame and
+    units) and the raw fields; an animated collider is asked at ``time`` seconds and also says
+    the surface's ``velocity`` there (collider units per second)."""
+    names = ["distance", "normal", "contact", "collides"] + (["velocity"] if collider.animated else [])
+    r = collider.query(point[None], names, eps=eps, time=time)
     mm = 1e3 * collider.info.meters_per_unit
     fields = {"distance": float(r.distance[0]), "normal": r.normal[0].astype(float),
               "contact": r.contact[0].astype(float), "collides": bool(r.collides[0])}
     fmt = lambda v: "(" + ", ".join(f"{x:.5g}" for x in v) + ")"  # noqa: E731
-    text = (f"**probe** {fmt(point)} {collider.info.units}  \n"
+    units = collider.info.units
+    at = f" at t = {time:.4g} s" if collider.animated else ""
+    text = (f"**probe** {fmt(point)} {units}{at}  \n"
             f"distance **{fields['distance'] * mm:.4g} mm**  \n"
             f"normal {fmt(fields['normal'])}  \n"
             f"contact {fmt(fields['contact'])}  \n"
             f"collides **{fields['collides']}** (eps {eps * mm:.3g} mm)")
+    if collider.animated:
+        fields["velocity"] = r.velocity[0].astype(float)
+        speed = float(np.linalg.norm(fields["velocity"])) * mm
+        text += f"  \nvelocity {fmt(fields['velocity'])} {units}/s ({speed:.4g} mm/s)"
     return text, fields
 
 
 @dataclass
 class ColliderPage:
     """The view of one collider: its started viser server and the controls on its page (viser
-    GUI handles: a click in the browser calls their callbacks, and so can a test)."""
+    GUI handles: a click in the browser calls their callbacks, and so can a test). The time
+    controls exist for an animated collider only (None for a static one)."""
 
     server: object
     title: object  # markdown: the collider, its units and the grid
@@ -130,16 +217,31 @@ class ColliderPage:
     probe_point: object  # vector3, collider frame and units
     probe_button: object
     probe_out: object  # markdown: the probe's answer
+    time: object | None = None  # slider, seconds: the time shown
+    play: object | None = None  # checkbox: run the time slider on in real time
+    time_label: object | None = None  # markdown: the time and the frame
+    grids: TimeGrids | None = None  # the animated collider's grids per time step
 
 
-def serve_collider_view(collider: Collider, mesh: Mesh | None, *, host: str, port: int,
-                        resolution: int, up: str = "+z", clip_mm: float | None = None,
+def serve_collider_view(collider: Collider, mesh: Mesh | AnimatedMesh | None, *, host: str,
+                        port: int, resolution: int, up: str = "+z", clip_mm: float | None = None,
                         show_progress: bool = True) -> ColliderPage:
-    """Build the view of ``collider`` (``mesh`` placed in its frame, or None) and return its
-    page, its server started; the caller serves until Ctrl-C."""
-    grid = collider_grid(collider, resolution, show_progress)
-    sdf = ExactSDF(mesh) if mesh is not None else None
+    """Build the view of ``collider`` and return its page, its server started; the caller
+    serves until Ctrl-C. ``mesh``: the exact surface placed in the collider frame (an
+    :class:`AnimatedMesh` for an animated collider, run on the collider's clock), or None."""
     info = collider.info
+    animated = collider.animated
+    if animated and isinstance(mesh, Mesh) or not animated and isinstance(mesh, AnimatedMesh):
+        raise ValueError(f"{info.name} is {'animated' if animated else 'static'}: the exact mesh "
+                         f"must be {'animated' if animated else 'static'} too")
+    if animated:
+        timeline = Timeline.from_dict(info.animation)
+        grids = TimeGrids(collider, resolution, time_step_s(collider))
+        grid = grids.at(0.0, show_progress)  # the page's first; later ones say "computing"
+        exact = ExactAtTimes(mesh) if mesh is not None else None
+    else:
+        grids, grid = None, collider_grid(collider, resolution, show_progress)
+        exact = ExactSDF(mesh) if mesh is not None else None
     mm = 1e3 * info.meters_per_unit
     eps = info.default_eps
     server = start_server(host, port, label=f"collider {info.name} ({info.kind})")
@@ -152,35 +254,65 @@ def serve_collider_view(collider: Collider, mesh: Mesh | None, *, host: str, por
     title = gui.add_markdown(f"**{info.name}**: {info.kind} collider, {info.units} "
                      f"({info.meters_per_unit:g} m per unit), collider frame; "
                      f"grid {resolution}^3 over the domain box")
+    time_slider = play = time_label = None
+    if animated:
+        duration = timeline.duration_s
+        time_slider = gui.add_slider("time (s)", 0.0, duration, grids.step_s, 0.0,
+                                     hint=f"seconds, 0 to {duration:g}; a step is 1/"
+                                          f"{STEPS_PER_FRAME} of a frame")
+        play = gui.add_checkbox("play", False, hint="run the time on in real time (a time step "
+                                                    "not seen before is computed first)")
+        time_label = gui.add_markdown(time_text(timeline, 0.0))
     level = gui.add_slider("level (mm)", -10.0 * eps * mm, 10.0 * eps * mm, 0.05 * eps * mm, 0.0,
                            hint=f"show the surface distance == level; eps = {eps * mm:g} mm is "
                                 "the offset surface contacts are projected to")
     eps_button = gui.add_button(f"level = eps ({eps * mm:g} mm)")
     status = gui.add_markdown("")
-    bar = gui.add_html("") if sdf is not None else None
-    show_wire = None
+    bar = gui.add_html("") if exact is not None else None
+    show_wire = wire = None
     if mesh is not None:
         show_wire = gui.add_checkbox("exact mesh wireframe", False)
-        wire = scene.add_mesh_simple("/exact_mesh", mesh.vertices.astype(np.float32),
-                                     mesh.faces.astype(np.uint32), color=WIRE_COLOR,
-                                     wireframe=True, opacity=0.35, visible=False)
         show_wire.on_update(lambda _: setattr(wire, "visible", show_wire.value))
-    state = {"clip": clip_mm}
+    state = {"clip": clip_mm, "drawn": None, "wire_at": None, "probed": False, "player": None}
     lock = threading.Lock()
+
+    def now() -> float | None:
+        """The time shown, seconds: the slider's value on its step (a browser rounds it)."""
+        return grids.step_of(float(time_slider.value)) * grids.step_s if animated else None
+
+    def draw_wire(t: float | None) -> None:
+        nonlocal wire
+        if mesh is None or (wire is not None and state["wire_at"] == t):
+            return
+        vertices = mesh.vertices_at(t) if animated else mesh.vertices
+        wire = scene.add_mesh_simple("/exact_mesh", vertices.astype(np.float32),
+                                     mesh.faces.astype(np.uint32), color=WIRE_COLOR,
+                                     wireframe=True, opacity=0.35, visible=show_wire.value)
+        state["wire_at"] = t
 
     def draw_surface(_=None) -> None:
         import trimesh
 
-        value = float(level.value) / mm
         with lock:
-            surface = level_surface(grid, value)
+            # Callbacks from a dragged slider queue up: draw the slider's latest value once.
+            t, value = now(), float(level.value) / mm
+            if state["drawn"] == (t, value):
+                return
+            state["drawn"] = (t, value)
+            if animated:
+                time_label.content = time_text(timeline, t)
+                if not grids.has(t):
+                    status.content = f"computing the {resolution}^3 grid at t = {t:.4g} s ..."
+            draw_wire(t)
+            surface = level_surface(grids.at(t) if animated else grid, value)
             if surface is None:
                 status.content = f"no surface at level {level.value:.3g} mm in the domain"
                 return
             verts, faces = surface
             shown = trimesh.Trimesh(verts, faces, process=False)
             text = f"surface at level {level.value:.3g} mm: {len(faces):,} triangles"
-            if sdf is not None:
+            if exact is not None:
+                sdf = exact.at(t)[0] if animated else exact
                 error = surface_error_mm(sdf, verts, value, info.meters_per_unit)
                 if state["clip"] is None:  # fixed from the first surface so colours compare
                     state["clip"] = max(float(np.percentile(np.abs(error), 95)), 1e-3)
@@ -200,8 +332,9 @@ def serve_collider_view(collider: Collider, mesh: Mesh | None, *, host: str, por
     probe_out = gui.add_markdown("click the surface or type a point")
 
     def probe(point: np.ndarray) -> None:
-        text, fields = probe_text(collider, point, eps)
+        text, fields = probe_text(collider, point, eps, now())
         probe_out.content = text
+        state["probed"] = True
         arrow = float(np.max(hi - lo)) * 0.15
         scene.add_line_segments(
             "/probe/normal", np.array([[point, point + arrow * fields["normal"]]], np.float32),
@@ -217,13 +350,46 @@ def serve_collider_view(collider: Collider, mesh: Mesh | None, *, host: str, por
     @scene.on_pointer_event("click")
     def _(event) -> None:
         hit = sphere_trace(collider, np.asarray(event.ray_origin, np.float64),
-                           np.asarray(event.ray_direction, np.float64))
+                           np.asarray(event.ray_direction, np.float64), time=now())
         if hit is None:
             probe_out.content = "the click missed the collider"
             return
         probe_point.value = tuple(hit)
         probe(hit)
 
+    if animated:
+        def time_moved(_) -> None:
+            draw_surface()
+            if state["probed"]:  # a probe shown: answer it at the new time
+                probe(np.asarray(probe_point.value, np.float64))
+
+        def play_toggled(_) -> None:
+            player = state["player"]
+            if play.value and (player is None or not player.is_alive()):
+                state["player"] = threading.Thread(target=run_time, args=(time_slider, play),
+                                                   daemon=True)
+                state["player"].start()
+
+        time_slider.on_update(time_moved)
+        play.on_update(play_toggled)
+
     draw_surface()
     return ColliderPage(server, title, level, eps_button, status, bar, show_wire, probe_point,
-                        probe_button, probe_out)
+                        probe_button, probe_out, time_slider, play, time_label, grids)
+
+
+def run_time(time_slider, play) -> None:
+    """While ``play`` is checked, move ``time_slider`` on by the wall-clock seconds elapsed
+    (whole steps: at least one, at most a frame's; after its end, from 0 again). Setting the
+    slider redraws in this thread: a time step computed before keeps real time, one not
+    computed yet slows the play down to one frame per grid computed."""
+    step = float(time_slider.step)
+    steps = round(float(time_slider.max) / step) + 1  # 0 .. max
+    last = time.perf_counter()
+    while play.value:
+        time.sleep(step)
+        now = time.perf_counter()
+        moved = min(max(round((now - last) / step), 1), STEPS_PER_FRAME)
+        last = now
+        index = (round(float(time_slider.value) / step) + moved) % steps
+        time_slider.value = min(index * step, float(time_slider.max))
