@@ -20,16 +20,21 @@ from .options import (
 
 
 def register(subparsers) -> None:
-    from collider_server.engine.kinds.neural import PRESETS
+    from collider_server.engine.kinds.neural import DEFAULT_ANIMATED_PRESET, PRESETS
     from collider_server.making.training import DEFAULT_STEPS, TrainConfig
 
     defaults = TrainConfig()
-    train = subparsers.add_parser("train", help="train a neural collider from a mesh")
-    train.add_argument("mesh", help="mesh file (OBJ, PLY, STL, OFF, GLB)")
+    train = subparsers.add_parser(
+        "train", help="train a neural collider from a mesh (or an animated one)",
+        description="Train a neural collider of MESH. With --animation, one network for the whole "
+                    "animation (keyframe feature tables blended in time), trained at random times "
+                    "against the exact interpolated mesh.")
+    train.add_argument("mesh", help="mesh file (OBJ, PLY, STL, OFF, GLB; an OBJ with --animation)")
     train.add_argument("--name", required=True, help="model name (file NAME.safetensors)")
-    train.add_argument("--preset", default=defaults.preset, choices=sorted(PRESETS),
-                       help="network (default %(default)s: a feature grid + tiny MLP, the fastest to train "
-                            "and to query; paper-bunny / paper-dragon reproduce the paper; docs/neural.md)")
+    train.add_argument("--preset", default=None, choices=sorted(PRESETS),
+                       help=f"network (default {defaults.preset}, {DEFAULT_ANIMATED_PRESET} with --animation: a "
+                            "feature grid + tiny MLP, the fastest to train and to query; paper-bunny / "
+                            "paper-dragon reproduce the paper; docs/neural.md)")
     train.add_argument("--samples", type=int, default=defaults.samples, help="cached training samples")
     train.add_argument("--steps", type=int, default=None,
                        help="cap on optimiser steps (default: none with --max-minutes, which then runs to the "
@@ -44,6 +49,20 @@ def register(subparsers) -> None:
                             "schedule, validations, progress bar and stop follow the clock; keeps the best weights")
     train.add_argument("--seed", type=int, default=defaults.seed)
     train.add_argument("--threads", type=int, default=None, help="CPU threads for torch")
+    animation = train.add_argument_group(
+        "animation", "frame k is at k / FPS seconds; the animation lasts (frames - 1) / FPS")
+    animation.add_argument("--animation", default=None, metavar="CACHE",
+                           help="MESH's frames: a PC2 vertex cache, or a quoted pattern of OBJ files with "
+                                "MESH's faces (as for `collider bake --animation`)")
+    animation.add_argument("--fps", type=float, default=None, help="frames per second of --animation (required with it)")
+    ends = animation.add_mutually_exclusive_group()
+    ends.add_argument("--loop", dest="loop", action="store_true", default=False,
+                      help="beyond the ends the time wraps around (the last frame should be the first)")
+    ends.add_argument("--clamp", dest="loop", action="store_false",
+                      help="beyond the ends the first or last frame is held (the default)")
+    animation.add_argument("--keyframes", type=int, default=None,
+                           help="feature tables, evenly spaced from the first frame to the last (default: "
+                                f"the preset's, {PRESETS[DEFAULT_ANIMATED_PRESET].keyframes})")
     add_placement_arguments(train)
     add_models_argument(train, "where the model is written")
     train.add_argument("--runs", type=Path, default=None, metavar="DIR",
@@ -73,28 +92,37 @@ def register(subparsers) -> None:
 
 
 def run_train(args) -> int:
+    from collider_server.engine.kinds.neural import DEFAULT_ANIMATED_PRESET, DEFAULT_PRESET
     from collider_server.engine.modelfile import save_collider
     from collider_server.engine.repository import ModelRepository, check_name, check_writable_folder
     from collider_server.making.mesh_files import load_mesh
-    from collider_server.making.training import TrainConfig, train_neural
+    from collider_server.making.training import TrainConfig, train_animated_neural, train_neural
 
     check_name(args.name)
+    animated = args.animation is not None
+    if not animated and (args.fps is not None or args.keyframes is not None or args.loop):
+        raise ValueError("--fps, --keyframes and --loop/--clamp need --animation")
     config = TrainConfig(
-        preset=args.preset, samples=args.samples, steps=args.steps, batch_size=args.batch_size,
+        preset=args.preset or (DEFAULT_ANIMATED_PRESET if animated else DEFAULT_PRESET), samples=args.samples,
+        steps=args.steps, batch_size=args.batch_size,
         learning_rate=args.learning_rate, normal_weight=args.normal_weight,
         max_minutes=args.max_minutes, seed=args.seed, threads=args.threads,
+        architecture={} if args.keyframes is None else {"keyframes": args.keyframes},
     )
     config.check()
     placement = placement_from_args(args)
-    mesh, transform = placement.apply(load_mesh(args.mesh))
+    if animated:
+        mesh, transform = load_placed_animation(args, placement)
+    else:
+        mesh, transform = placement.apply(load_mesh(args.mesh))
     repository = ModelRepository(args.models)
     checkpoint = args.checkpoint or (args.runs or repository.root.parent / "runs") / f"{args.name}.ckpt.safetensors"
     # Both folders are proved writable now, not after the training budget is spent.
     repository.check_writable()
     check_writable_folder(checkpoint.parent, "checkpoint folder")
-    check = print_mesh_check(mesh)
+    check = None if animated else print_mesh_check(mesh)
     try:
-        result = train_neural(
+        result = (train_animated_neural if animated else train_neural)(
             mesh, args.name, config, units=placement.units,
             meters_per_unit=placement.meters_per_unit, transform=transform,
             device=args.device, checkpoint=checkpoint, show_progress=not args.quiet,
@@ -104,16 +132,33 @@ def run_train(args) -> int:
             print(f"interrupted: {checkpoint} keeps the run up to its last validation; the same command "
                   f"resumes it: `{again_with(args)}`", file=sys.stderr)
         raise
-    result.collider.info.source["check"] = check.to_dict()
+    if check is not None:
+        result.collider.info.source["check"] = check.to_dict()
     result.collider.info.source["path"] = str(Path(args.mesh).resolve())
     path = save_collider(result.collider, repository.path(args.name))
     history = checkpoint.with_name(checkpoint.name + ".history.json")
     history.write_text(json.dumps(result.history, indent=1))
     print(f"wrote {path} ({path.stat().st_size:,} bytes): {result.summary()}")
     print(f"checkpoint {checkpoint} (resumable; its history beside it)")
+    if animated:
+        from .models import describe_animation
+
+        print(f"animated: {describe_animation(result.collider.info.animation)} (keyframe tables); "
+              f"source {mesh.timeline.frames} frames at {mesh.timeline.frame_rate_hz:g} fps")
+        return 0
     print(sign_check_line(result.collider, mesh, check))
     print("next: " + command("eval", args.name, "--mesh", args.mesh, *models_options(args), *placement_options(args)))
     return 0
+
+
+def load_placed_animation(args, placement):
+    """``--animation`` of MESH at ``--fps``, placed: ``(AnimatedMesh, transform)``."""
+    from collider_server.making.animation_files import check_frame_rate, load_animation
+
+    if args.fps is None:
+        raise ValueError("--animation needs --fps (frames per second: a vertex cache does not say)")
+    check_frame_rate(args.fps)
+    return placement.apply_to_animation(load_animation(args.mesh, args.animation, args.fps, args.loop))
 
 
 def run_eval(args) -> int:
