@@ -96,7 +96,7 @@ def run_train(args) -> int:
     from collider_server.engine.modelfile import save_collider
     from collider_server.engine.repository import ModelRepository, check_name, check_writable_folder
     from collider_server.making.mesh_files import load_mesh
-    from collider_server.making.training import TrainConfig, train_animated_neural, train_neural
+    from collider_server.making.training import TrainConfig, check_preset, train_animated_neural, train_neural
 
     check_name(args.name)
     animated = args.animation is not None
@@ -109,7 +109,7 @@ def run_train(args) -> int:
         max_minutes=args.max_minutes, seed=args.seed, threads=args.threads,
         architecture={} if args.keyframes is None else {"keyframes": args.keyframes},
     )
-    config.check()
+    check_preset(config, animated)
     placement = placement_from_args(args)
     if animated:
         mesh, transform = load_placed_animation(args, placement)

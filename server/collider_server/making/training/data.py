@@ -84,8 +84,10 @@ def exact_values(sdf: ExactSDF, points: np.ndarray) -> tuple[np.ndarray, np.ndar
 
 #: Samples per distinct time of an animation's training set: each time costs an exact SDF (an
 #: AABB tree of the interpolated mesh), so times are shared by a few thousand points, and there
-#: are many of them (250 for the default million samples) at random, not at the frames.
+#: are many of them (250 for the default million samples) at random, not at the frames; at least
+#: MIN_TIMES (a small set with a few times only would fit those times and no other).
 SAMPLES_PER_TIME = 4000
+MIN_TIMES = 64
 
 
 def make_animated_training_data(animation: AnimatedMesh, config: TrainConfig, meters_per_unit: float,
@@ -97,7 +99,7 @@ def make_animated_training_data(animation: AnimatedMesh, config: TrainConfig, me
     rng = np.random.default_rng(config.seed)
     margin = config.margin_m / meters_per_unit if config.margin_m else default_margin(animation, meters_per_unit)
     box = padded_box(animation, config.padding)
-    count = max(2, config.samples // SAMPLES_PER_TIME)
+    count = max(min(MIN_TIMES, config.samples // 100), config.samples // SAMPLES_PER_TIME, 2)
     times = rng.uniform(0.0, animation.timeline.duration_s, count)
     sizes = np.full(count, config.samples // count)
     sizes[: config.samples - sizes.sum()] += 1

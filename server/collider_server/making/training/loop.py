@@ -67,16 +67,27 @@ class TrainResult:
                 f"{self.best_seconds / 60:.1f} min)")
 
 
+def check_preset(config: TrainConfig, animated: bool):
+    """``config`` checked, and its architecture, which must be a keyframe network for an
+    animation and a static one otherwise (ValueError naming the preset)."""
+    config.check()
+    arch = config.resolved_architecture()
+    if animated and not isinstance(arch, KeyframeGridArchitecture):
+        keyed = sorted(k for k, a in PRESETS.items() if isinstance(a, KeyframeGridArchitecture))
+        raise ValueError(f"preset {config.preset!r} is static; an animation takes a keyframe preset "
+                         f"({', '.join(keyed)})")
+    if not animated and isinstance(arch, KeyframeGridArchitecture):
+        raise ValueError(f"preset {config.preset!r} is for an animation (--animation); a static mesh "
+                         "takes a static preset")
+    return arch
+
+
 def train_neural(mesh: Mesh, name: str, config: TrainConfig, *, units: str = "m",
                  meters_per_unit: float = 1.0, transform: np.ndarray | None = None,
                  device: str | None = None, checkpoint: Path | None = None,
                  show_progress: bool = True) -> TrainResult:
     """Train a neural collider for ``mesh`` (its units and frame); returns the best checkpoint."""
-    config.check()
-    arch = config.resolved_architecture()
-    if isinstance(arch, KeyframeGridArchitecture):
-        raise ValueError(f"preset {config.preset!r} is for an animation (--animation); a static mesh "
-                         "takes a static preset")
+    arch = check_preset(config, animated=False)
 
     def samples():
         sdf = ExactSDF(mesh)
@@ -98,11 +109,7 @@ def train_animated_neural(animation: AnimatedMesh, name: str, config: TrainConfi
     samples at random times, the exact interpolated mesh as truth, validation at other random
     times; returns the best checkpoint as an animated collider whose ``info.animation`` is the
     keyframes' timeline (the source's frames and rate in ``info.source``)."""
-    config.check()
-    arch = config.resolved_architecture()
-    if not isinstance(arch, KeyframeGridArchitecture):
-        raise ValueError(f"preset {config.preset!r} is static; an animation takes a keyframe preset "
-                         f"({', '.join(sorted(k for k, a in PRESETS.items() if isinstance(a, KeyframeGridArchitecture)))})")
+    arch = check_preset(config, animated=True)
     timeline = animation.timeline
     duration = timeline.duration_s
 
