@@ -71,6 +71,81 @@ def accuracy(collider, animation, times: int, points: int, seed: int) -> dict:
             "normal_speed_error_p99_mm_s": float(np.percentile(speed, 99))}
 
 
+def voxel_keyframe_errors(animation, resolutions, keyframe_counts, times: int, points: int, seed: int,
+                          padding: float = 0.1) -> list[dict]:
+    """Mean / p99 distance error (mm) of the voxel keyframe collider (``collider bake --animation
+    --resolution R --keyframes K``) at the same random times and +-1 mm points as
+    :func:`accuracy`, for every R and K, and its memory (K R^3 float32), without baking it: its
+    answer at a point is the trilinear interpolation of exact distances at the 8 corners of the
+    point's cell, on the two keyframe meshes around the time, blended linearly in time, so only
+    those corners are computed (:func:`check_voxel_emulation` pins this to a baked collider)."""
+    from collider_contract import Timeline
+
+    from collider_server.engine.meshes import ExactSDF
+    from collider_server.making.bake import padded_box
+
+    lo, hi = padded_box(animation, padding)
+    rng = np.random.default_rng(seed)
+    exact = ExactAtTimes(animation, keep=1)
+    to_mm = 1000.0  # the shipped animations are in metres
+    duration, frames = animation.timeline.duration_s, animation.timeline.frames
+    keyed_sdfs: dict = {}
+    errors: dict = {(r, k): [] for r in resolutions for k in keyframe_counts}
+    for i, t in enumerate(rng.uniform(0.0, duration, times)):
+        sdf, _, _ = exact.at(float(t))
+        p = band_sets(sdf.mesh, max(1, points // times), seed + 10 * i, 1.0)["band_1mm"]
+        truth = sdf.signed_distance(p)
+        for count in keyframe_counts:
+            k, u, _ = Timeline(count, (count - 1) / duration, animation.timeline.loop).locate(float(t))
+            positions = np.linspace(0.0, frames - 1, count)
+            ends = []
+            for j in (k, k + 1):
+                if (count, j) not in keyed_sdfs:
+                    keyed_sdfs[(count, j)] = ExactSDF(animation.at_frame(float(positions[j])))
+                ends.append(keyed_sdfs[(count, j)])
+            for resolution in resolutions:
+                d = [trilinear_of_exact(e, p, lo, hi, resolution) for e in ends]
+                errors[(resolution, count)].append(np.abs(d[0] + u * (d[1] - d[0]) - truth) * to_mm)
+    return [{"resolution": r, "keyframes": k, "memory_bytes": 4 * k * r ** 3,
+             "distance_mean_mm": float(np.concatenate(e).mean()),
+             "distance_p99_mm": float(np.percentile(np.concatenate(e), 99))}
+            for (r, k), e in errors.items()]
+
+
+def trilinear_of_exact(sdf, p, lo, hi, resolution: int) -> np.ndarray:
+    """The voxel collider's distance at ``p`` (inside the box): trilinear interpolation of the
+    exact distances (stored as float32) at the corners of an R^3 grid over [lo, hi]."""
+    spacing = (hi - lo) / (resolution - 1)
+    coords = (p - lo) / spacing
+    base = np.clip(np.floor(coords), 0, resolution - 2)
+    f = np.clip(coords - base, 0.0, 1.0)
+    corners = np.array([[(c >> 2) & 1, (c >> 1) & 1, c & 1] for c in range(8)])  # x, y, z bits
+    where = lo + (base[None] + corners[:, None, :]) * spacing  # (8, n, 3)
+    values = sdf.signed_distance(where.reshape(-1, 3)).astype(np.float32).astype(np.float64).reshape(8, -1)
+    weights = np.prod(np.where(corners[:, None, :] == 1, f[None], 1.0 - f[None]), axis=2)  # (8, n)
+    return (weights * values).sum(axis=0)
+
+
+def check_voxel_emulation(animation, seed: int) -> float:
+    """Largest difference (m) between :func:`trilinear_of_exact` blended in time and a baked
+    voxel keyframe collider (R = 24, K = 5) at 2,000 points at random times."""
+    from collider_server.engine.meshes import ExactSDF
+    from collider_server.making.bake import bake_animated_collider, padded_box
+
+    baked = bake_animated_collider(animation, "voxel", "check", resolution=24, keyframes=5, show_progress=False)
+    lo, hi = padded_box(animation, 0.1)
+    rng = np.random.default_rng(seed)
+    worst = 0.0
+    positions = np.linspace(0.0, animation.timeline.frames - 1, 5)
+    for t in rng.uniform(0.0, animation.timeline.duration_s, 4):
+        p = lo + rng.random((500, 3)) * (hi - lo)
+        k, u, _ = baked.timeline.locate(float(t))
+        d = [trilinear_of_exact(ExactSDF(animation.at_frame(float(positions[j]))), p, lo, hi, 24) for j in (k, k + 1)]
+        got = baked.query(p, ["distance"], time=float(t)).distance
+        worst = max(worst, float(np.abs(d[0] + u * (d[1] - d[0]) - got).max()))
+    return worst
+
+
 def query_times(collider, static, animation, rounds: int, seed: int) -> dict:
     """Seconds per 1M points (median, min, max over ``rounds``), the animated collider with
     distance + normal + contact + velocity at one time, the static one with distance + normal +
@@ -134,6 +209,10 @@ def main() -> int:
     parser.add_argument("--variants", nargs="*", default=[], metavar="JSON",
                         help='architecture overrides of the keyframes preset to train, e.g. \'{"keyframes": 5}\'')
     parser.add_argument("--minutes", type=float, default=5.0, help="training budget per variant")
+    parser.add_argument("--voxel-resolutions", type=int, nargs="*", default=[],
+                        help="also the voxel keyframe collider's error at these resolutions")
+    parser.add_argument("--voxel-keyframes", type=int, nargs="*", default=[],
+                        help="... and keyframe counts (default: one per frame)")
     parser.add_argument("--out", type=Path, default=Path("runs/animated-neural"), help="variants and report")
     args = parser.parse_args()
     import torch
@@ -156,6 +235,15 @@ def main() -> int:
             entry["query_1M"] = query_times(collider, static, animation, args.rounds, args.seed)
         report["models"].append(entry)
         print(json.dumps(entry, indent=1), flush=True)
+    if args.voxel_resolutions:
+        report["voxel_emulation_max_difference_m"] = check_voxel_emulation(animation, args.seed)
+        print(f"voxel emulation against a baked collider: {report['voxel_emulation_max_difference_m']:.2e} m",
+              flush=True)
+        report["voxel"] = voxel_keyframe_errors(animation, args.voxel_resolutions,
+                                                args.voxel_keyframes or [animation.timeline.frames],
+                                                args.times, args.points, args.seed)
+        for row in report["voxel"]:
+            print(json.dumps(row), flush=True)
     report["load_after"] = os.getloadavg()
     (args.out / "report.json").write_text(json.dumps(report, indent=1))
     print(f"load average before {report['load_before']}, after {report['load_after']}", file=sys.stderr)

@@ -155,7 +155,7 @@ def _train(shape, info: ColliderInfo, config: TrainConfig, arch, samples, inputs
     network = build_network(arch, centre, radius).to(device)
     first_lr, last_lr = config.resolved_learning_rates()
     normal_weight = config.resolved_normal_weight()
-    optimizer = make_optimizer(network, first_lr)
+    optimizer = make_optimizer(network, first_lr, fused=isinstance(arch, KeyframeGridArchitecture))
 
     data, validation = samples()
     points = torch.from_numpy(data.points).to(device)
