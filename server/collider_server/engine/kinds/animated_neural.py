@@ -13,7 +13,6 @@ tangential part), collider units per second.
 
 from __future__ import annotations
 
-import numpy as np
 from collider_contract import Timeline
 
 from ..collider import ColliderInfo
