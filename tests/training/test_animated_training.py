@@ -108,8 +108,10 @@ def test_train_an_animation_through_the_cli(tmp_path):
     assert "source 25 frames at 24 fps" in trained.stdout
     collider = load_collider(models / "arm4d.safetensors")
     assert collider.animated and collider.architecture.keyframes == 3
+    assert "mesh: 5,056 faces, watertight" in trained.stdout  # the animation's check, as bake prints
     info = run_cli("info", "arm4d", "--models", str(models))
     assert "animation   3 frames at 2 fps, 1 s, clamps" in info.stdout, info.stdout
+    assert "mesh: 5,056 faces, watertight, 1 piece, no self-intersections (every frame checked)" in info.stdout
     query = run_cli("query", "arm4d", "0.3", "0", "0.05", "--time", "0.4", "--fields", "distance,velocity",
                     "--models", str(models))
     assert query.returncode == 0 and "velocity=" in query.stdout, query.stderr

@@ -120,7 +120,14 @@ def run_train(args) -> int:
     # Both folders are proved writable now, not after the training budget is spent.
     repository.check_writable()
     check_writable_folder(checkpoint.parent, "checkpoint folder")
-    check = None if animated else print_mesh_check(mesh)
+    if animated:
+        from collider_server.making.mesh_check import check_animation
+
+        check = check_animation(mesh)
+        for line in check.lines():
+            print(line)
+    else:
+        check = print_mesh_check(mesh)
     try:
         result = (train_animated_neural if animated else train_neural)(
             mesh, args.name, config, units=placement.units,
@@ -132,8 +139,7 @@ def run_train(args) -> int:
             print(f"interrupted: {checkpoint} keeps the run up to its last validation; the same command "
                   f"resumes it: `{again_with(args)}`", file=sys.stderr)
         raise
-    if check is not None:
-        result.collider.info.source["check"] = check.to_dict()
+    result.collider.info.source["check"] = check.to_dict()
     result.collider.info.source["path"] = str(Path(args.mesh).resolve())
     path = save_collider(result.collider, repository.path(args.name))
     history = checkpoint.with_name(checkpoint.name + ".history.json")
