@@ -11,10 +11,13 @@ import numpy as np
 from .diagnostics import print_mesh_check, sign_check_line
 from .hints import again_with, command, models_options, placement_options
 from .options import (
+    add_animation_arguments,
     add_device_argument,
     add_models_argument,
     add_placement_arguments,
     add_quiet_argument,
+    check_animation_arguments,
+    load_placed_animation,
     placement_from_args,
 )
 
@@ -49,20 +52,8 @@ def register(subparsers) -> None:
                             "schedule, validations, progress bar and stop follow the clock; keeps the best weights")
     train.add_argument("--seed", type=int, default=defaults.seed)
     train.add_argument("--threads", type=int, default=None, help="CPU threads for torch")
-    animation = train.add_argument_group(
-        "animation", "frame k is at k / FPS seconds; the animation lasts (frames - 1) / FPS")
-    animation.add_argument("--animation", default=None, metavar="CACHE",
-                           help="MESH's frames: a PC2 vertex cache, or a quoted pattern of OBJ files with "
-                                "MESH's faces (as for `collider bake --animation`)")
-    animation.add_argument("--fps", type=float, default=None, help="frames per second of --animation (required with it)")
-    ends = animation.add_mutually_exclusive_group()
-    ends.add_argument("--loop", dest="loop", action="store_true", default=False,
-                      help="beyond the ends the time wraps around (the last frame should be the first)")
-    ends.add_argument("--clamp", dest="loop", action="store_false",
-                      help="beyond the ends the first or last frame is held (the default)")
-    animation.add_argument("--keyframes", type=int, default=None,
-                           help="feature tables, evenly spaced from the first frame to the last (default: "
-                                f"the preset's, {PRESETS[DEFAULT_ANIMATED_PRESET].keyframes})")
+    add_animation_arguments(train, "feature tables, evenly spaced from the first frame to the last "
+                                   f"(default: the preset's, {PRESETS[DEFAULT_ANIMATED_PRESET].keyframes})")
     add_placement_arguments(train)
     add_models_argument(train, "where the model is written")
     train.add_argument("--runs", type=Path, default=None, metavar="DIR",
@@ -99,9 +90,8 @@ def run_train(args) -> int:
     from collider_server.making.training import TrainConfig, check_preset, train_animated_neural, train_neural
 
     check_name(args.name)
+    check_animation_arguments(args)
     animated = args.animation is not None
-    if not animated and (args.fps is not None or args.keyframes is not None or args.loop):
-        raise ValueError("--fps, --keyframes and --loop/--clamp need --animation")
     config = TrainConfig(
         preset=args.preset or (DEFAULT_ANIMATED_PRESET if animated else DEFAULT_PRESET), samples=args.samples,
         steps=args.steps, batch_size=args.batch_size,
@@ -155,16 +145,6 @@ def run_train(args) -> int:
     print(sign_check_line(result.collider, mesh, check))
     print("next: " + command("eval", args.name, "--mesh", args.mesh, *models_options(args), *placement_options(args)))
     return 0
-
-
-def load_placed_animation(args, placement):
-    """``--animation`` of MESH at ``--fps``, placed: ``(AnimatedMesh, transform)``."""
-    from collider_server.making.animation_files import check_frame_rate, load_animation
-
-    if args.fps is None:
-        raise ValueError("--animation needs --fps (frames per second: a vertex cache does not say)")
-    check_frame_rate(args.fps)
-    return placement.apply_to_animation(load_animation(args.mesh, args.animation, args.fps, args.loop))
 
 
 def run_eval(args) -> int:
