@@ -13,11 +13,14 @@ from collider_contract import FIELDS
 from .budget import add_budget_arguments, budget_from_args
 from .diagnostics import print_mesh_check, sign_check_line
 from .options import (
+    add_animation_arguments,
     add_cache_argument,
     add_device_argument,
     add_models_argument,
     add_placement_arguments,
     add_quiet_argument,
+    check_animation_arguments,
+    load_placed_animation,
     placement_from_args,
 )
 
@@ -34,22 +37,8 @@ def register(subparsers) -> None:
     bake.add_argument("--resolution", type=int, default=None,
                       help="voxel samples per axis (8..1024; default 256, 128 with --animation)")
     bake.add_argument("--padding", type=float, default=0.1, help="domain padding, fraction of the largest side")
-    animation = bake.add_argument_group(
-        "animation", "frame k is at k / FPS seconds; the animation lasts (frames - 1) / FPS")
-    animation.add_argument("--animation", default=None, metavar="CACHE",
-                           help="MESH's frames: a PC2 vertex cache (FILE.pc2, as `collider simulate` "
-                                "and Blender write), or a quoted pattern of OBJ files with MESH's "
-                                "faces ('frames/*.obj', ordered by the number in their names)")
-    animation.add_argument("--fps", type=float, default=None,
-                           help="frames per second of --animation (required with it)")
-    ends = animation.add_mutually_exclusive_group()
-    ends.add_argument("--loop", dest="loop", action="store_true", default=False,
-                      help="beyond the ends the time wraps around (the last frame should be the first)")
-    ends.add_argument("--clamp", dest="loop", action="store_false",
-                      help="beyond the ends the first or last frame is held (the default)")
-    animation.add_argument("--keyframes", type=int, default=None,
-                           help="voxel: grids evenly spaced from the first frame to the last "
-                                "(default: one per frame)")
+    add_animation_arguments(bake, "voxel: grids evenly spaced from the first frame to the last "
+                                  "(default: one per frame)")
     add_placement_arguments(bake)
     add_models_argument(bake, "where the model is written")
     add_device_argument(bake)
@@ -91,8 +80,7 @@ def run_bake(args) -> int:
 
     check_name(args.name)
     budget = budget_from_args(args)
-    if args.animation is None and (args.fps is not None or args.keyframes is not None or args.loop):
-        raise ValueError("--fps, --keyframes and --loop/--clamp need --animation")
+    check_animation_arguments(args)
     if budget is not None:  # an error budget: bake picks the kind (commands.budget)
         if args.animation is not None:
             raise ValueError("--max-error picks among static colliders; bake an --animation with "
@@ -154,20 +142,15 @@ def run_bake_animation(args) -> int:
     """``collider bake MESH --animation CACHE --fps F``: an animated mesh or voxel collider."""
     from collider_server.engine.modelfile import save_collider
     from collider_server.engine.repository import ModelRepository
-    from collider_server.making.animation_files import check_frame_rate, load_animation
     from collider_server.making.bake import ANIMATED_KINDS, bake_animated_collider
     from collider_server.making.mesh_check import check_animation
 
     if args.kind not in ANIMATED_KINDS:
         raise ValueError(f"--kind {args.kind} cannot be animated; use one of {list(ANIMATED_KINDS)}")
-    if args.fps is None:
-        raise ValueError("--animation needs --fps (frames per second: a vertex cache does not say)")
-    check_frame_rate(args.fps)
     if args.kind == "mesh" and (args.keyframes is not None or args.resolution is not None):
         raise ValueError("--keyframes and --resolution are voxel settings (kind mesh is exact)")
     placement = placement_from_args(args)
-    animation, transform = placement.apply_to_animation(
-        load_animation(args.mesh, args.animation, args.fps, args.loop))
+    animation, transform = load_placed_animation(args, placement)
     repository = ModelRepository(args.models)
     repository.check_writable()  # before the bake, not after
     check = check_animation(animation)

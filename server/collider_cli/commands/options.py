@@ -122,6 +122,45 @@ CACHE_HELP = ("cache folder of baked grids, bench-trained networks and the budge
               "its size is printed after each run, delete it to free the space")
 
 
+def add_animation_arguments(parser: argparse.ArgumentParser, keyframes_help: str) -> None:
+    """``--animation CACHE --fps F [--loop | --clamp] [--keyframes K]`` (bake and train)."""
+    animation = parser.add_argument_group(
+        "animation", "frame k is at k / FPS seconds; the animation lasts (frames - 1) / FPS")
+    animation.add_argument("--animation", default=None, metavar="CACHE",
+                           help="MESH's frames: a PC2 vertex cache (FILE.pc2, as `collider simulate` "
+                                "and Blender write), or a quoted pattern of OBJ files with MESH's "
+                                "faces ('frames/*.obj', ordered by the number in their names)")
+    animation.add_argument("--fps", type=float, default=None,
+                           help="frames per second of --animation (required with it)")
+    ends = animation.add_mutually_exclusive_group()
+    ends.add_argument("--loop", dest="loop", action="store_true", default=False,
+                      help="beyond the ends the time wraps around (the last frame should be the first)")
+    ends.add_argument("--clamp", dest="loop", action="store_false",
+                      help="beyond the ends the first or last frame is held (the default)")
+    animation.add_argument("--keyframes", type=int, default=None, help=keyframes_help)
+
+
+def check_animation_arguments(args: argparse.Namespace) -> None:
+    """The animation options need ``--animation``, and ``--animation`` needs ``--fps``
+    (ValueError naming the option)."""
+    from collider_server.making.animation_files import check_frame_rate
+
+    if args.animation is None:
+        if args.fps is not None or args.keyframes is not None or args.loop:
+            raise ValueError("--fps, --keyframes and --loop/--clamp need --animation")
+        return
+    if args.fps is None:
+        raise ValueError("--animation needs --fps (frames per second: a vertex cache does not say)")
+    check_frame_rate(args.fps)
+
+
+def load_placed_animation(args: argparse.Namespace, placement: MeshPlacement):
+    """MESH's ``--animation`` at ``--fps``, placed: ``(AnimatedMesh, transform)``."""
+    from collider_server.making.animation_files import load_animation
+
+    return placement.apply_to_animation(load_animation(args.mesh, args.animation, args.fps, args.loop))
+
+
 def default_cache_dir() -> Path:
     """``$XDG_CACHE_HOME/neural-collider``, else ``~/.cache/neural-collider`` (the XDG base
     directory rule: the user's cache, not the working folder)."""

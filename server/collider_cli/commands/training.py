@@ -11,25 +11,33 @@ import numpy as np
 from .diagnostics import print_mesh_check, sign_check_line
 from .hints import again_with, command, models_options, placement_options
 from .options import (
+    add_animation_arguments,
     add_device_argument,
     add_models_argument,
     add_placement_arguments,
     add_quiet_argument,
+    check_animation_arguments,
+    load_placed_animation,
     placement_from_args,
 )
 
 
 def register(subparsers) -> None:
-    from collider_server.engine.kinds.neural import PRESETS
+    from collider_server.engine.kinds.neural import DEFAULT_ANIMATED_PRESET, PRESETS
     from collider_server.making.training import DEFAULT_STEPS, TrainConfig
 
     defaults = TrainConfig()
-    train = subparsers.add_parser("train", help="train a neural collider from a mesh")
-    train.add_argument("mesh", help="mesh file (OBJ, PLY, STL, OFF, GLB)")
+    train = subparsers.add_parser(
+        "train", help="train a neural collider from a mesh (or an animated one)",
+        description="Train a neural collider of MESH. With --animation, one network for the whole "
+                    "animation (keyframe feature tables blended in time), trained at random times "
+                    "against the exact interpolated mesh.")
+    train.add_argument("mesh", help="mesh file (OBJ, PLY, STL, OFF, GLB; an OBJ with --animation)")
     train.add_argument("--name", required=True, help="model name (file NAME.safetensors)")
-    train.add_argument("--preset", default=defaults.preset, choices=sorted(PRESETS),
-                       help="network (default %(default)s: a feature grid + tiny MLP, the fastest to train "
-                            "and to query; paper-bunny / paper-dragon reproduce the paper; docs/neural.md)")
+    train.add_argument("--preset", default=None, choices=sorted(PRESETS),
+                       help=f"network (default {defaults.preset}, {DEFAULT_ANIMATED_PRESET} with --animation: a "
+                            "feature grid + tiny MLP, the fastest to train and to query; paper-bunny / "
+                            "paper-dragon reproduce the paper; docs/neural.md)")
     train.add_argument("--samples", type=int, default=defaults.samples, help="cached training samples")
     train.add_argument("--steps", type=int, default=None,
                        help="cap on optimiser steps (default: none with --max-minutes, which then runs to the "
@@ -44,6 +52,8 @@ def register(subparsers) -> None:
                             "schedule, validations, progress bar and stop follow the clock; keeps the best weights")
     train.add_argument("--seed", type=int, default=defaults.seed)
     train.add_argument("--threads", type=int, default=None, help="CPU threads for torch")
+    add_animation_arguments(train, "feature tables, evenly spaced from the first frame to the last "
+                                   f"(default: the preset's, {PRESETS[DEFAULT_ANIMATED_PRESET].keyframes})")
     add_placement_arguments(train)
     add_models_argument(train, "where the model is written")
     train.add_argument("--runs", type=Path, default=None, metavar="DIR",
@@ -90,28 +100,43 @@ def register(subparsers) -> None:
 
 
 def run_train(args) -> int:
+    from collider_server.engine.kinds.neural import DEFAULT_ANIMATED_PRESET, DEFAULT_PRESET
     from collider_server.engine.modelfile import save_collider
     from collider_server.engine.repository import ModelRepository, check_name, check_writable_folder
     from collider_server.making.mesh_files import load_mesh
-    from collider_server.making.training import TrainConfig, train_neural
+    from collider_server.making.training import TrainConfig, check_preset, train_animated_neural, train_neural
 
     check_name(args.name)
+    check_animation_arguments(args)
+    animated = args.animation is not None
     config = TrainConfig(
-        preset=args.preset, samples=args.samples, steps=args.steps, batch_size=args.batch_size,
+        preset=args.preset or (DEFAULT_ANIMATED_PRESET if animated else DEFAULT_PRESET), samples=args.samples,
+        steps=args.steps, batch_size=args.batch_size,
         learning_rate=args.learning_rate, normal_weight=args.normal_weight,
         max_minutes=args.max_minutes, seed=args.seed, threads=args.threads,
+        architecture={} if args.keyframes is None else {"keyframes": args.keyframes},
     )
-    config.check()
+    check_preset(config, animated)
     placement = placement_from_args(args)
-    mesh, transform = placement.apply(load_mesh(args.mesh))
+    if animated:
+        mesh, transform = load_placed_animation(args, placement)
+    else:
+        mesh, transform = placement.apply(load_mesh(args.mesh))
     repository = ModelRepository(args.models)
     checkpoint = args.checkpoint or (args.runs or repository.root.parent / "runs") / f"{args.name}.ckpt.safetensors"
     # Both folders are proved writable now, not after the training budget is spent.
     repository.check_writable()
     check_writable_folder(checkpoint.parent, "checkpoint folder")
-    check = print_mesh_check(mesh)
+    if animated:
+        from collider_server.making.mesh_check import check_animation
+
+        check = check_animation(mesh)
+        for line in check.lines():
+            print(line)
+    else:
+        check = print_mesh_check(mesh)
     try:
-        result = train_neural(
+        result = (train_animated_neural if animated else train_neural)(
             mesh, args.name, config, units=placement.units,
             meters_per_unit=placement.meters_per_unit, transform=transform,
             device=args.device, checkpoint=checkpoint, show_progress=not args.quiet,
@@ -128,6 +153,12 @@ def run_train(args) -> int:
     history.write_text(json.dumps(result.history, indent=1))
     print(f"wrote {path} ({path.stat().st_size:,} bytes): {result.summary()}")
     print(f"checkpoint {checkpoint} (resumable; its history beside it)")
+    if animated:
+        from .models import describe_animation
+
+        print(f"animated: {describe_animation(result.collider.info.animation)} (keyframe tables); "
+              f"source {mesh.timeline.frames} frames at {mesh.timeline.frame_rate_hz:g} fps")
+        return 0
     print(sign_check_line(result.collider, mesh, check))
     print("next: " + command("eval", args.name, "--mesh", args.mesh, *models_options(args), *placement_options(args)))
     return 0

@@ -127,7 +127,12 @@ def test_parameters_are_frozen_for_queries(network_collider):
 
 def test_presets_are_the_documented_ones():
     """docs/neural.md's preset table: shapes and parameter counts; ``grid`` is the default."""
-    from collider_server.engine.kinds.neural import DEFAULT_PRESET, GridArchitecture
+    from collider_server.engine.kinds.neural import (
+        DEFAULT_ANIMATED_PRESET,
+        DEFAULT_PRESET,
+        GridArchitecture,
+        KeyframeGridArchitecture,
+    )
 
     assert DEFAULT_PRESET == "grid"
     assert PRESETS["paper-bunny"] == Architecture(128, 3, 256, 3.0)
@@ -136,7 +141,13 @@ def test_presets_are_the_documented_ones():
     assert PRESETS["grid"] == GridArchitecture(levels=8, features=2, base_resolution=16, max_resolution=256,
                                                table_log2=16, hidden_layers=2, hidden_width=32, smooth=True,
                                                table_dtype="float16", surface_rows=False)
-    counts = {"grid": 791_381, "paper-bunny": 198_017, "paper-dragon": 526_977, "fast": 49_857}
+    # The animated preset: the grid's levels and MLP, 9 keyframe tables of 2^14 rows per level.
+    assert PRESETS["keyframes"] == KeyframeGridArchitecture(
+        levels=8, features=2, base_resolution=16, max_resolution=256, table_log2=14, hidden_layers=2,
+        hidden_width=32, smooth=True, table_dtype="float16", surface_rows=False, keyframes=9)
+    assert DEFAULT_ANIMATED_PRESET == "keyframes"
+    counts = {"grid": 791_381, "paper-bunny": 198_017, "paper-dragon": 526_977, "fast": 49_857,
+              "keyframes": 2_140_789}
     assert {name: arch.parameter_count() for name, arch in PRESETS.items()} == counts
 
 

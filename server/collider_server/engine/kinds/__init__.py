@@ -2,6 +2,7 @@
 a model (an animated one's when its info has an ``animation``)."""
 
 from .animated_mesh import AnimatedMeshCollider
+from .animated_neural import AnimatedNeuralCollider
 from .animated_voxel import AnimatedVoxelCollider
 from .kdtree import KDTreeCollider
 from .mesh import MeshCollider
@@ -10,7 +11,7 @@ from .voxel import VoxelCollider
 
 KINDS = {cls.kind: cls for cls in (NeuralCollider, VoxelCollider, MeshCollider, KDTreeCollider)}
 #: The kinds that can be animated, and the class of an animated model of each.
-ANIMATED_KINDS = {cls.kind: cls for cls in (AnimatedMeshCollider, AnimatedVoxelCollider)}
+ANIMATED_KINDS = {cls.kind: cls for cls in (AnimatedMeshCollider, AnimatedVoxelCollider, AnimatedNeuralCollider)}
 
 
 def kind_class(info):
@@ -26,5 +27,5 @@ def kind_class(info):
     return ANIMATED_KINDS[info.kind]
 
 
-__all__ = ["ANIMATED_KINDS", "KINDS", "AnimatedMeshCollider", "AnimatedVoxelCollider",
+__all__ = ["ANIMATED_KINDS", "KINDS", "AnimatedMeshCollider", "AnimatedNeuralCollider", "AnimatedVoxelCollider",
            "KDTreeCollider", "MeshCollider", "NeuralCollider", "VoxelCollider", "kind_class"]

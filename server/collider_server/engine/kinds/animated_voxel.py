@@ -18,6 +18,15 @@ from ..collider import ColliderInfo
 from .voxel import VoxelCollider
 
 
+def normal_velocity(gradient: np.ndarray, dfdt: np.ndarray) -> np.ndarray:
+    """The velocity (m, 3) of an SDF's surface from its gradient (m, 3) and time derivative
+    ``dfdt`` (m,) (collider units per second): the normal speed ``-df/dt`` along the unit normal,
+    no tangential part (zero where the gradient vanishes)."""
+    length = np.linalg.norm(gradient, axis=1, keepdims=True)
+    normal = gradient / np.where(length > 0, length, 1.0)
+    return -np.asarray(dfdt)[:, None] * normal
+
+
 class AnimatedVoxelCollider(VoxelCollider):
     """``tensors()["grids"]``: (K, R, R, R) float32, one grid per keyframe, [x, y, z];
     ``info.animation`` is the keyframes' :class:`~collider_contract.Timeline`."""
@@ -47,10 +56,7 @@ class AnimatedVoxelCollider(VoxelCollider):
         if not want_gradient:
             return distance, None, None
         gradient = g0 + u * (g1 - g0)
-        length = np.linalg.norm(gradient, axis=1, keepdims=True)
-        normal = gradient / np.where(length > 0, length, 1.0)
-        velocity = -((d1 - d0) * rate)[:, None] * normal
-        return distance, gradient, velocity
+        return distance, gradient, normal_velocity(gradient, (d1 - d0) * rate)
 
     def tensors(self):
         return {"grids": self._grids.reshape(-1, *self._shape).cpu().numpy()}

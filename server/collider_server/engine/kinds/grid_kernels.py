@@ -143,11 +143,15 @@ if numba is not None:
                         grad_table[row, f] += g
 
     @_jit
-    def _encode_point(u, p, q, table, resolution, offset, rows, dense, smooth, want_jacobian, feature, jac):
+    def _encode_point(u, p, q, table, dtable, resolution, offset, rows, dense, smooth, want_jacobian,
+                      feature, jac, dfeature):
         """Column ``q`` of a block's ``feature`` (L * F, block) and ``jac`` (3, L * F, block):
         the encoding of point ``p`` and its Jacobian (as in ``encode``; F = 2, the presets',
-        keeps its sums in registers)."""
+        keeps its sums in registers); when ``dtable`` has rows (the table's time derivative, an
+        animated network's), ``dfeature`` (L * F, block): the encoding of ``dtable``, the
+        features' time derivative."""
         width = table.shape[1]
+        timed = dtable.shape[0] > 0
         for level in range(resolution.shape[0]):
             r = resolution[level]
             cx, wx, dx = _axis(u[p, 0], r, smooth)
@@ -155,7 +159,7 @@ if numba is not None:
             cz, wz, dz = _axis(u[p, 2], r, smooth)
             base = level * width
             if width == 2:
-                f0 = f1 = j00 = j01 = j02 = j10 = j11 = j12 = 0.0
+                f0 = f1 = j00 = j01 = j02 = j10 = j11 = j12 = t0 = t1 = 0.0
                 for corner in range(8):
                     row, weight, gx, gy, gz = _corner(corner, cx, cy, cz, wx, wy, wz, dx, dy, dz,
                                                       r, rows[level], dense[level])
@@ -164,6 +168,9 @@ if numba is not None:
                     v1 = table[row, 1]
                     f0 += weight * v0
                     f1 += weight * v1
+                    if timed:
+                        t0 += weight * dtable[row, 0]
+                        t1 += weight * dtable[row, 1]
                     if want_jacobian:
                         j00 += gx * v0
                         j01 += gy * v0
@@ -179,9 +186,14 @@ if numba is not None:
                 jac[0, base + 1, q] = j10
                 jac[1, base + 1, q] = j11
                 jac[2, base + 1, q] = j12
+                if timed:
+                    dfeature[base, q] = t0
+                    dfeature[base + 1, q] = t1
                 continue
             for f in range(width):
                 feature[base + f, q] = 0.0
+                if timed:
+                    dfeature[base + f, q] = 0.0
                 for axis in range(3):
                     jac[axis, base + f, q] = 0.0
             for corner in range(8):
@@ -191,6 +203,8 @@ if numba is not None:
                 for f in range(width):
                     v = table[row, f]
                     feature[base + f, q] += weight * v
+                    if timed:
+                        dfeature[base + f, q] += weight * dtable[row, f]
                     if want_jacobian:
                         jac[0, base + f, q] += gx * v
                         jac[1, base + f, q] += gy * v
@@ -227,13 +241,15 @@ if numba is not None:
         return order
 
     @numba.njit(cache=True, fastmath=True, nogil=True, parallel=True)
-    def network_query(u, table, resolution, offset, rows, dense, smooth, weights, biases, w_out, b_out,
-                      scale, want_gradient, distance, gradient):
+    def network_query_timed(u, table, dtable, resolution, offset, rows, dense, smooth, weights, biases, w_out,
+                      b_out, scale, want_gradient, distance, gradient, dtime):
         """The whole network at normalised points ``u`` (n, 3), fused: encoding, ReLU MLP
         (``weights[k]`` (out, in), ``biases[k]`` (out,)), linear output ``w_out`` (in,),
         ``b_out``; ``distance`` (n,) = output * ``scale``; when ``want_gradient``, ``gradient``
         (n, 3) = d output / d u (the MLP backward through the ReLU masks, times the encoding's
-        Jacobian). Blocks of QUERY_BLOCK points: the encoding point by point (random table
+        Jacobian), and when ``dtable`` (the table's time derivative, same shape; (0, F) for a
+        static network) has rows, ``dtime`` (n,) = d distance / dt = ``scale`` * d output /
+        d features . the encoding of ``dtable``. Blocks of QUERY_BLOCK points: the encoding point by point (random table
         reads), then the MLP forward and backward for the whole block, point index innermost
         (float32 SIMD); scratch arrays are allocated once per block. Inference only."""
         n = u.shape[0]
@@ -248,14 +264,15 @@ if numba is not None:
             start = b * block
             m = min(n, start + block) - start
             feature = np.zeros((n_in, block), np.float32)
+            dfeature = np.zeros((n_in if dtable.shape[0] > 0 else 0, block), np.float32)
             jac = np.zeros((3, n_in, block), np.float32)
             act = np.zeros((depth, widest, block), np.float32)
             g = np.zeros((widest, block), np.float32)
             g_next = np.zeros((widest, block), np.float32)
             out = np.empty(block, np.float32)
             for q in range(m):
-                _encode_point(u, order[start + q], q, table, resolution, offset, rows, dense, smooth, want_gradient,
-                              feature, jac)
+                _encode_point(u, order[start + q], q, table, dtable, resolution, offset, rows, dense, smooth,
+                              want_gradient, feature, jac, dfeature)
             # MLP forward, activations kept for the backward pass.
             for k in range(depth):
                 w = weights[k]
@@ -305,3 +322,83 @@ if numba is not None:
                 gradient[p, 0] = gu0
                 gradient[p, 1] = gu1
                 gradient[p, 2] = gu2
+            if dtable.shape[0] > 0:
+                for q in range(m):
+                    gt = 0.0
+                    for i in range(n_in):
+                        gt += g[i, q] * dfeature[i, q]
+                    dtime[order[start + q]] = gt * scale
+
+    def network_query(u, table, resolution, offset, rows, dense, smooth, weights, biases, w_out, b_out,
+                      scale, want_gradient, distance, gradient):
+        """``network_query_timed`` of a static network (no time derivative)."""
+        network_query_timed(u, table, np.zeros((0, table.shape[1]), table.dtype), resolution, offset, rows,
+                            dense, smooth, weights, biases, w_out, b_out, scale, want_gradient, distance,
+                            gradient, np.zeros(0, np.float32))
+
+    @_pjit
+    def encode_keyframes(u, key, frac, tables, resolution, offset, rows, dense, smooth, want_jacobian,
+                         features, jacobian):
+        """``encode`` of keyframe tables (K, rows, F), each point at its own time: the features
+        of point p are ``(1 - frac[p])`` times those of table ``key[p]`` plus ``frac[p]`` times
+        those of table ``key[p] + 1`` (its Jacobian likewise). ``features`` (n, L, F) and, when
+        ``want_jacobian``, ``jacobian`` (n, L, F, 3) are overwritten."""
+        n = u.shape[0]
+        levels = resolution.shape[0]
+        width = tables.shape[2]
+        for p in numba.prange(n):
+            k = key[p]
+            b = frac[p]
+            a = 1.0 - b
+            for level in range(levels):
+                r = resolution[level]
+                cx, wx, dx = _axis(u[p, 0], r, smooth)
+                cy, wy, dy = _axis(u[p, 1], r, smooth)
+                cz, wz, dz = _axis(u[p, 2], r, smooth)
+                for f in range(width):
+                    features[p, level, f] = 0.0
+                    if want_jacobian:
+                        jacobian[p, level, f, 0] = 0.0
+                        jacobian[p, level, f, 1] = 0.0
+                        jacobian[p, level, f, 2] = 0.0
+                for corner in range(8):
+                    row, weight, gx, gy, gz = _corner(corner, cx, cy, cz, wx, wy, wz, dx, dy, dz, r,
+                                                      rows[level], dense[level])
+                    row += offset[level]
+                    for f in range(width):
+                        v = a * tables[k, row, f] + b * tables[k + 1, row, f]
+                        features[p, level, f] += weight * v
+                        if want_jacobian:
+                            jacobian[p, level, f, 0] += gx * v
+                            jacobian[p, level, f, 1] += gy * v
+                            jacobian[p, level, f, 2] += gz * v
+
+    @_pjit
+    def encode_keyframes_backward(u, key, frac, resolution, offset, rows, dense, smooth, grad_features,
+                                  grad_jacobian, has_jacobian, grad_tables):
+        """``encode_backward`` of ``encode_keyframes``: adds to ``grad_tables`` (K, rows, F), one
+        level per thread (a level's rows are disjoint from every other level's in every
+        keyframe table)."""
+        n = u.shape[0]
+        levels = resolution.shape[0]
+        width = grad_tables.shape[2]
+        for level in numba.prange(levels):
+            r = resolution[level]
+            for p in range(n):
+                k = key[p]
+                b = frac[p]
+                a = 1.0 - b
+                cx, wx, dx = _axis(u[p, 0], r, smooth)
+                cy, wy, dy = _axis(u[p, 1], r, smooth)
+                cz, wz, dz = _axis(u[p, 2], r, smooth)
+                for corner in range(8):
+                    row, weight, gx, gy, gz = _corner(corner, cx, cy, cz, wx, wy, wz, dx, dy, dz, r,
+                                                      rows[level], dense[level])
+                    row += offset[level]
+                    for f in range(width):
+                        g = weight * grad_features[p, level, f]
+                        if has_jacobian:
+                            g += (gx * grad_jacobian[p, level, f, 0] + gy * grad_jacobian[p, level, f, 1]
+                                  + gz * grad_jacobian[p, level, f, 2])
+                        grad_tables[k, row, f] += a * g
+                        grad_tables[k + 1, row, f] += b * g

@@ -22,6 +22,7 @@ from ..collider import Collider, ColliderInfo
 from ..devices import resolve_device
 from . import grid_kernels
 from .neural_grid import GridArchitecture, build_grid_network
+from .neural_keyframes import KeyframeGridArchitecture, build_keyframe_network
 
 
 @dataclass(frozen=True)
@@ -62,7 +63,12 @@ PRESETS: dict[str, Architecture | GridArchitecture] = {
     # Ours: narrower, trains several times faster on a CPU.
     "fast": Architecture(64, 3, 128, 3.0),
     "grid": GridArchitecture(),
+    # Ours, for an animation (``collider train --animation``): keyframe tables (docs/neural.md).
+    "keyframes": KeyframeGridArchitecture(),
 }
+
+#: The preset ``collider train --animation`` uses when none is named.
+DEFAULT_ANIMATED_PRESET = "keyframes"
 
 #: The preset ``collider train`` uses when none is named.
 DEFAULT_PRESET = "grid"
@@ -72,8 +78,9 @@ def architecture_from_dict(values: dict) -> Architecture | GridArchitecture:
     """The architecture stored in a model's ``settings["architecture"]`` (files written before
     the grid encoding have no ``encoding`` key: they are Fourier networks)."""
     values = dict(values)
-    if values.get("encoding") == "grid":
-        return GridArchitecture(**values)
+    for cls in (GridArchitecture, KeyframeGridArchitecture):
+        if values.get("encoding") == cls.ENCODING:
+            return cls(**values)
     values.pop("encoding", None)
     return Architecture(**values)
 
@@ -85,6 +92,8 @@ def architecture_dict(arch: Architecture | GridArchitecture) -> dict:
 
 def build_network(arch: Architecture | GridArchitecture, centre, radius: float):
     """The torch module for ``arch``; input collider-frame points (n, 3) float32, output (n,)."""
+    if isinstance(arch, KeyframeGridArchitecture):
+        return build_keyframe_network(arch, centre, radius)
     if isinstance(arch, GridArchitecture):
         return build_grid_network(arch, centre, radius)
     import torch
@@ -141,16 +150,8 @@ class NeuralCollider(Collider):
         torch = self._torch
         x = torch.as_tensor(local, dtype=torch.float32, device=self._device)
         if hasattr(self.network, "can_fuse") and self.network.can_fuse(x):
-            # The CPU fast path: one fused kernel for the whole network (grid_kernels), on as
-            # many threads as torch is given (the service's --compute-threads, a simulator's).
-            threads = torch.get_num_threads()
-            grid_kernels.set_threads(threads)
-            d, g = self.network.fused_query(x, want_gradient)
-            if torch.get_num_threads() != threads:
-                # numba's OpenMP pool, started by the first kernel of the process, sets the
-                # process-wide OpenMP thread count to every core, torch's included: give it back
-                # (`collider serve --compute-threads 1` computed on 2 threads after it).
-                torch.set_num_threads(threads)
+            # The CPU fast path: one fused kernel for the whole network (grid_kernels).
+            d, g = self.fused(lambda: self.network.fused_query(x, want_gradient))
             return d.double().numpy(), (g.double().numpy() if want_gradient else None)
         if not want_gradient:
             with torch.inference_mode():
@@ -164,6 +165,21 @@ class NeuralCollider(Collider):
             d = self.network(x)
             (g,) = torch.autograd.grad(d.sum(), x)
         return d.detach().double().cpu().numpy(), g.double().cpu().numpy()
+
+    def fused(self, kernel):
+        """``kernel()`` (a fused numba kernel) on as many threads as torch is given (the
+        service's --compute-threads, a simulator's)."""
+        torch = self._torch
+        threads = torch.get_num_threads()
+        grid_kernels.set_threads(threads)
+        try:
+            return kernel()
+        finally:
+            if torch.get_num_threads() != threads:
+                # numba's OpenMP pool, started by the first kernel of the process, sets the
+                # process-wide OpenMP thread count to every core, torch's included: give it back
+                # (`collider serve --compute-threads 1` computed on 2 threads after it).
+                torch.set_num_threads(threads)
 
     def tensors(self):
         tensors = {k: v.detach().cpu().numpy() for k, v in self.network.state_dict().items()}

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import ClassVar
 
 import numpy as np
 
@@ -59,6 +60,8 @@ class GridArchitecture:
     table_dtype: str = "float16"
     surface_rows: bool = False
     encoding: str = "grid"
+    #: The ``encoding`` of this class of architecture (a subclass has its own).
+    ENCODING: ClassVar[str] = "grid"
 
     def __post_init__(self):
         for name in ("levels", "features", "base_resolution", "max_resolution", "table_log2",
@@ -73,8 +76,8 @@ class GridArchitecture:
             raise ValueError(f"table_log2 must be <= 24 (16M rows per level), got {self.table_log2}")
         if self.table_dtype not in ("float16", "float32"):
             raise ValueError(f"table_dtype must be 'float16' or 'float32', got {self.table_dtype!r}")
-        if self.encoding != "grid":
-            raise ValueError(f"a GridArchitecture has encoding 'grid', got {self.encoding!r}")
+        if self.encoding != self.ENCODING:
+            raise ValueError(f"a {type(self).__name__} has encoding {self.ENCODING!r}, got {self.encoding!r}")
 
     def resolutions(self) -> list[int]:
         """Cells per side of each level, coarse to fine."""
@@ -170,6 +173,12 @@ _FusedEncoding = _LazyFusedEncoding()
 
 def build_grid_network(arch: GridArchitecture, centre, radius: float):
     """The torch module for ``arch``; input collider-frame points (n, 3) float32, output (n,)."""
+    return grid_network_class(arch)(centre, radius)
+
+
+def grid_network_class(arch: GridArchitecture):
+    """The torch module class of ``arch``: ``GridSDF(centre, radius)``, centre (3,) and radius
+    of the normalisation, collider frame and units."""
     import torch
     from torch import nn
 
@@ -181,7 +190,7 @@ def build_grid_network(arch: GridArchitecture, centre, radius: float):
     corners = np.array([[(c >> 0) & 1, (c >> 1) & 1, (c >> 2) & 1] for c in range(8)], dtype=np.int64)
 
     class GridSDF(nn.Module):
-        def __init__(self):
+        def __init__(self, centre, radius: float):
             super().__init__()
             self.register_buffer("centre", torch.as_tensor(np.asarray(centre, np.float32)))
             self.register_buffer("radius", torch.tensor(float(radius), dtype=torch.float32))
@@ -303,7 +312,14 @@ def build_grid_network(arch: GridArchitecture, centre, radius: float):
             """
             u = (x - self.centre) / self.radius
             features, jacobian = self.encode_parts(u, True)  # (n, L, F), (n, L, F, 3)
-            # MLP forward, keeping the ReLU masks.
+            distance, g = self.head(features)
+            # d distance / d x = radius * d mlp / d u * d u / d x = d mlp / d u.
+            return distance, torch.einsum("nlf,nlfd->nd", g, jacobian)
+
+        def head(self, features):
+            """The MLP on ``features`` (n, L, F): distance (n,) (the output times the radius)
+            and d output / d features (n, L, F) (the ReLU masks kept from the forward pass)."""
+            n = len(features)
             h = features.flatten(1)
             masks = []
             linears = [m for m in self.body if isinstance(m, nn.Linear)]
@@ -315,12 +331,9 @@ def build_grid_network(arch: GridArchitecture, centre, radius: float):
             out = linears[-1]
             distance = torch.nn.functional.linear(h, out.weight, out.bias).squeeze(-1) * self.radius
             # Backward through the MLP: d out / d features, (n, L * F).
-            g = out.weight.expand(len(x), -1)
+            g = out.weight.expand(n, -1)
             for linear, mask in zip(reversed(linears[:-1]), reversed(masks)):
                 g = (g * mask) @ linear.weight
-            g = g.view(len(x), arch.levels, arch.features)
-            # d distance / d x = radius * d mlp / d u * d u / d x = d mlp / d u.
-            gradient = torch.einsum("nlf,nlfd->nd", g, jacobian)
-            return distance, gradient
+            return distance, g.view(n, arch.levels, arch.features)
 
-    return GridSDF()
+    return GridSDF

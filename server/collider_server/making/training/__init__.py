@@ -20,9 +20,9 @@ and validation sets), :mod:`.schedule` (steps or the clock, optimiser, threads),
 
 from .checkpoints import read_checkpoint_state, save_tensors_atomically
 from .config import DEFAULT_STEPS, LEARNING_RATES, NORMAL_WEIGHTS, VALIDATIONS_PER_BUDGET, TrainConfig
-from .loop import TrainResult, train_neural
+from .loop import TrainResult, check_preset, train_animated_neural, train_neural
 from .schedule import RunClock, cosine_learning_rate
 
 __all__ = ["DEFAULT_STEPS", "LEARNING_RATES", "NORMAL_WEIGHTS", "VALIDATIONS_PER_BUDGET", "RunClock", "TrainConfig",
-           "TrainResult", "cosine_learning_rate", "read_checkpoint_state", "save_tensors_atomically",
-           "train_neural"]
+           "TrainResult", "check_preset", "cosine_learning_rate", "read_checkpoint_state", "save_tensors_atomically",
+           "train_animated_neural", "train_neural"]

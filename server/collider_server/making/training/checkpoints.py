@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ...engine.animated_meshes import AnimatedMesh
 from ...engine.meshes import Mesh
 from .config import TrainConfig
 
@@ -90,19 +91,23 @@ def load_checkpoint(path: Path, network, optimizer) -> dict:
 RESUMABLE_SETTINGS = frozenset({"steps", "max_minutes", "threads", "validate_every"})
 
 
-def run_identity(mesh: Mesh, config: TrainConfig, meters_per_unit: float) -> dict:
+def run_identity(mesh: Mesh | AnimatedMesh, config: TrainConfig, meters_per_unit: float) -> dict:
     """What a checkpoint must match to be resumed: the placed mesh's content (sha256 of its
-    vertices and faces, so a rescaled or rotated file differs), the settings that shape the
-    training, and the architecture."""
+    vertices and faces, so a rescaled or rotated file differs; an animation's: of every frame's
+    vertices, and its timeline), the settings that shape the training, and the architecture."""
     import hashlib
 
+    animated = isinstance(mesh, AnimatedMesh)
     digest = hashlib.sha256()
-    for array in (np.ascontiguousarray(mesh.vertices, dtype=np.float64),
+    for array in (np.ascontiguousarray(mesh.frames if animated else mesh.vertices, dtype=np.float64),
                   np.ascontiguousarray(mesh.faces, dtype=np.int64)):
         digest.update(array.tobytes())
     settings = {k: v for k, v in asdict(config).items() if k not in RESUMABLE_SETTINGS}
-    return {"mesh": mesh.name, "mesh_sha256": digest.hexdigest(), "meters_per_unit": meters_per_unit,
-            "settings": settings, "architecture": asdict(config.resolved_architecture())}
+    identity = {"mesh": mesh.name, "mesh_sha256": digest.hexdigest(), "meters_per_unit": meters_per_unit,
+                "settings": settings, "architecture": asdict(config.resolved_architecture())}
+    if animated:
+        identity["animation"] = mesh.timeline.to_dict()
+    return identity
 
 
 def identity_differences(saved: dict | None, current: dict) -> list[str]:
@@ -110,9 +115,12 @@ def identity_differences(saved: dict | None, current: dict) -> list[str]:
     if not saved:
         return ["it records no mesh, settings or architecture (written by an older version)"]
     differs = []
+    what = "animation" if "animation" in current else "mesh"
     if (saved.get("mesh_sha256"), saved.get("meters_per_unit")) != (current["mesh_sha256"], current["meters_per_unit"]):
-        differs.append(f"mesh differs (checkpoint: {saved.get('mesh')} sha256 {str(saved.get('mesh_sha256'))[:12]}, "
+        differs.append(f"{what} differs (checkpoint: {saved.get('mesh')} sha256 {str(saved.get('mesh_sha256'))[:12]}, "
                        f"this run: {current['mesh']} sha256 {current['mesh_sha256'][:12]})")
+    if saved.get("animation") != current.get("animation"):
+        differs.append(f"timeline differs (checkpoint: {saved.get('animation')}, this run: {current.get('animation')})")
     for group in ("settings", "architecture"):
         old, new = saved.get(group, {}), current[group]
         keys = sorted(k for k in set(old) | set(new) if json.dumps(old.get(k)) != json.dumps(new.get(k)))

@@ -10,10 +10,15 @@ from pathlib import Path
 
 import numpy as np
 
+from collider_contract import Timeline
+
+from ...engine.animated_meshes import AnimatedMesh
 from ...engine.collider import ColliderInfo
-from ...engine.kinds.neural import NeuralCollider, architecture_dict, build_network
+from ...engine.kinds.animated_neural import AnimatedNeuralCollider
+from ...engine.kinds.neural import PRESETS, NeuralCollider, architecture_dict, build_network
+from ...engine.kinds.neural_keyframes import KeyframeGridArchitecture, keyframe_positions
 from ...engine.meshes import ExactSDF, Mesh
-from ..bake import mesh_source, padded_box
+from ..bake import animation_source, mesh_source, padded_box
 from .checkpoints import (
     check_resumable,
     load_checkpoint,
@@ -23,7 +28,7 @@ from .checkpoints import (
     save_tensors_atomically,
 )
 from .config import TrainConfig
-from .data import make_training_data, validation_sets
+from .data import animated_validation_sets, make_animated_training_data, make_training_data, validation_sets
 from .schedule import RunClock, cosine_learning_rate, make_optimizer, set_training_threads
 
 
@@ -62,39 +67,105 @@ class TrainResult:
                 f"{self.best_seconds / 60:.1f} min)")
 
 
+def check_preset(config: TrainConfig, animated: bool):
+    """``config`` checked, and its architecture, which must be a keyframe network for an
+    animation and a static one otherwise (ValueError naming the preset)."""
+    config.check()
+    arch = config.resolved_architecture()
+    if animated and not isinstance(arch, KeyframeGridArchitecture):
+        keyed = sorted(k for k, a in PRESETS.items() if isinstance(a, KeyframeGridArchitecture))
+        raise ValueError(f"preset {config.preset!r} is static; an animation takes a keyframe preset "
+                         f"({', '.join(keyed)})")
+    if not animated and isinstance(arch, KeyframeGridArchitecture):
+        raise ValueError(f"preset {config.preset!r} is for an animation (--animation); a static mesh "
+                         "takes a static preset")
+    return arch
+
+
 def train_neural(mesh: Mesh, name: str, config: TrainConfig, *, units: str = "m",
                  meters_per_unit: float = 1.0, transform: np.ndarray | None = None,
                  device: str | None = None, checkpoint: Path | None = None,
                  show_progress: bool = True) -> TrainResult:
     """Train a neural collider for ``mesh`` (its units and frame); returns the best checkpoint."""
+    arch = check_preset(config, animated=False)
+
+    def samples():
+        sdf = ExactSDF(mesh)
+        validation = validation_sets(mesh, sdf, config.validation_points, config.seed + 100, meters_per_unit)
+        return (make_training_data(mesh, sdf, config, meters_per_unit, show_progress),
+                {k: (p, d, ()) for k, (p, d) in validation.items()})
+
+    info = ColliderInfo(name=name, kind="neural", domain_min=[], domain_max=[], units=units,
+                        meters_per_unit=meters_per_unit, source=mesh_source(mesh, transform))
+    return _train(mesh, info, config, arch, samples, lambda _: (), NeuralCollider,
+                  run_identity(mesh, config, meters_per_unit), device, checkpoint, show_progress)
+
+
+def train_animated_neural(animation: AnimatedMesh, name: str, config: TrainConfig, *, units: str = "m",
+                          meters_per_unit: float = 1.0, transform: np.ndarray | None = None,
+                          device: str | None = None, checkpoint: Path | None = None,
+                          show_progress: bool = True) -> TrainResult:
+    """Train one network for the whole of ``animation`` (its units and frame; a keyframe preset):
+    samples at random times, the exact interpolated mesh as truth, validation at other random
+    times; returns the best checkpoint as an animated collider whose ``info.animation`` is the
+    keyframes' timeline (the source's frames and rate in ``info.source``)."""
+    arch = check_preset(config, animated=True)
+    timeline = animation.timeline
+    duration = timeline.duration_s
+
+    def inputs(times):
+        """An animated network's per-sample inputs after the point: keyframe segment, fraction."""
+        import torch
+
+        key, frac = keyframe_positions(times, duration, arch.keyframes)
+        return torch.from_numpy(key), torch.from_numpy(frac)
+
+    def samples():
+        validation = animated_validation_sets(animation, config.validation_points, config.seed + 100,
+                                              meters_per_unit)
+        return (make_animated_training_data(animation, config, meters_per_unit, show_progress),
+                {k: (p, d, inputs(t)) for k, (p, d, t) in validation.items()})
+
+    # The keyframes' own timeline: the same duration, loop and speed bound, K frames.
+    keyed = Timeline(arch.keyframes, (arch.keyframes - 1) / duration, timeline.loop, timeline.max_surface_speed)
+    info = ColliderInfo(name=name, kind="neural", domain_min=[], domain_max=[], units=units,
+                        meters_per_unit=meters_per_unit, source=animation_source(animation, transform),
+                        animation=keyed.to_dict())
+    return _train(animation, info, config, arch, samples, inputs, AnimatedNeuralCollider,
+                  run_identity(animation, config, meters_per_unit), device, checkpoint, show_progress)
+
+
+def _train(shape, info: ColliderInfo, config: TrainConfig, arch, samples, inputs, collider_class, identity: dict,
+           device: str | None, checkpoint: Path | None, show_progress: bool) -> TrainResult:
+    """The loop of both: ``samples()`` makes the training data and the validation sets
+    ``{band: (points, distance, inputs)}``; ``inputs(times)`` the network's per-sample inputs
+    after the point (none for a static network)."""
     import torch
 
     from ...engine.devices import resolve_device
 
-    config.check()
+    name, meters_per_unit = info.name, info.meters_per_unit
     device = resolve_device(device)
     torch.manual_seed(config.seed)
-    arch = config.resolved_architecture()
     if config.threads is not None:
         set_training_threads(arch, config.threads)
-    lo, hi = padded_box(mesh, config.padding)
+    lo, hi = padded_box(shape, config.padding)
     centre = 0.5 * (lo + hi)
     radius = 0.5 * float((hi - lo).max())
     network = build_network(arch, centre, radius).to(device)
     first_lr, last_lr = config.resolved_learning_rates()
     normal_weight = config.resolved_normal_weight()
-    optimizer = make_optimizer(network, first_lr)
+    optimizer = make_optimizer(network, first_lr, fused=isinstance(arch, KeyframeGridArchitecture))
 
-    sdf = ExactSDF(mesh)
-    data = make_training_data(mesh, sdf, config, meters_per_unit, show_progress)
-    validation = validation_sets(mesh, sdf, config.validation_points, config.seed + 100, meters_per_unit)
+    data, validation = samples()
     points = torch.from_numpy(data.points).to(device)
+    extra = tuple(a.to(device) for a in inputs(data.times))
     target = torch.from_numpy(data.distance).to(device)
     target_gradient = torch.from_numpy(data.gradient).to(device)
     near = torch.from_numpy(data.near).to(device)
-    val = {k: (torch.from_numpy(p).to(device), torch.from_numpy(d).to(device)) for k, (p, d) in validation.items()}
+    val = {k: (torch.from_numpy(p).to(device), torch.from_numpy(d).to(device), tuple(a.to(device) for a in e))
+           for k, (p, d, e) in validation.items()}
 
-    identity = run_identity(mesh, config, meters_per_unit)
     state = {"step": 0, "seconds": 0.0, "best_mm": math.inf, "history": [], "run": identity}
     best_weights = None
     if checkpoint is not None and checkpoint.is_file():
@@ -117,7 +188,7 @@ def train_neural(mesh: Mesh, name: str, config: TrainConfig, *, units: str = "m"
     def evaluate() -> dict:
         network.eval()
         with torch.no_grad():
-            errors = {k: float((network(p) - d).abs().mean()) * to_mm for k, (p, d) in val.items()}
+            errors = {k: float((network(p, *e) - d).abs().mean()) * to_mm for k, (p, d, e) in val.items()}
         network.train()
         return errors
 
@@ -137,19 +208,20 @@ def train_neural(mesh: Mesh, name: str, config: TrainConfig, *, units: str = "m"
                 group["lr"] = lr
             index = torch.randint(0, len(points), (config.batch_size,), generator=generator).to(device)
             x = points[index]
+            x_inputs = tuple(a[index] for a in extra)
             mask = near[index]
             # The normal term lives on the near samples only; a batch without any (possible with
             # a small near_fraction) would make its mean, and the logged loss, NaN.
             want_normals = normal_weight > 0 and bool(mask.any())
             if want_normals and analytic:
                 # The analytic gradient is made of differentiable ops: one backward pass.
-                prediction, grad = network.value_and_gradient(x)
+                prediction, grad = network.value_and_gradient(x, *x_inputs)
             elif want_normals:
                 x.requires_grad_(True)
-                prediction = network(x)
+                prediction = network(x, *x_inputs)
                 (grad,) = torch.autograd.grad(prediction.sum(), x, create_graph=True)
             else:
-                prediction = network(x)
+                prediction = network(x, *x_inputs)
             loss = (prediction - target[index]).abs().mean() / radius
             if want_normals:
                 cosine = torch.nn.functional.cosine_similarity(grad[mask], target_gradient[index][mask], dim=1)
@@ -184,18 +256,15 @@ def train_neural(mesh: Mesh, name: str, config: TrainConfig, *, units: str = "m"
     if best_weights is not None:
         network.load_state_dict(best_weights)
     seconds = state["seconds"] = time.monotonic() - started
-    info = ColliderInfo(
-        name=name, kind="neural", domain_min=lo.tolist(), domain_max=hi.tolist(), units=units,
-        meters_per_unit=meters_per_unit, source=mesh_source(mesh, transform),
-        settings={
-            "architecture": architecture_dict(arch),
-            "parameters": arch.parameter_count(),
-            "training": {**asdict(config), "steps_done": state["step"], "seconds": round(seconds, 1),
-                         "device": device, "device_name": _device_name(device),
-                         "best_validation_1mm_mm": state["best_mm"]},
-        },
-    )
-    collider = NeuralCollider(info, network.cpu(), device="cpu")
+    info.domain_min, info.domain_max = lo.tolist(), hi.tolist()
+    info.settings = {
+        "architecture": architecture_dict(arch),
+        "parameters": arch.parameter_count(),
+        "training": {**asdict(config), "steps_done": state["step"], "seconds": round(seconds, 1),
+                     "device": device, "device_name": _device_name(device),
+                     "best_validation_1mm_mm": state["best_mm"]},
+    }
+    collider = collider_class(info, network.cpu(), device="cpu")
     return TrainResult(collider, state["best_mm"], state["step"], seconds, state["history"], config,
                        state.get("best_step", 0), state.get("best_seconds", 0.0))
 

@@ -26,9 +26,12 @@ def set_training_threads(arch, threads: int) -> None:
         torch.set_num_threads(threads)
 
 
-def make_optimizer(network, learning_rate: float):
+def make_optimizer(network, learning_rate: float, fused: bool = False):
     """Adam; a grid network's feature table in its own group (instant-NGP's settings: the
-    table's rows see sparse, noisy gradients, so a small eps and a short second-moment memory)."""
+    table's rows see sparse, noisy gradients, so a small eps and a short second-moment memory).
+    ``fused``: torch's fused Adam, one kernel over each tensor (the keyframe tables' millions of
+    parameters: 40 against 465 ms a step for 12M on one thread, measured; the default walks them
+    in several passes)."""
     import torch
 
     table = [p for n, p in network.named_parameters() if n == "table"]
@@ -36,7 +39,7 @@ def make_optimizer(network, learning_rate: float):
     if not table:
         return torch.optim.Adam(others, lr=learning_rate)
     return torch.optim.Adam([{"params": table}, {"params": others}], lr=learning_rate,
-                            betas=(0.9, 0.99), eps=1e-15)
+                            betas=(0.9, 0.99), eps=1e-15, fused=fused or None)
 
 
 def cosine_learning_rate(fraction: float, first: float, last: float) -> float:

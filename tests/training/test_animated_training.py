@@ -1,0 +1,138 @@
+"""Training one network for a whole animation (``collider train MESH --animation CACHE --fps F``):
+a short run on the pulsing sphere learns its distance at random times and the sign of its
+surface's normal speed; runs resume only for the same animation; the CLI writes a model that
+`collider info` and `collider query --time` use, and fails in one line. Metres, seconds."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from collider_server.engine.kinds import AnimatedNeuralCollider
+from collider_server.engine.modelfile import load_collider
+from collider_server.making.animations import pulsing_sphere
+from collider_server.making.training import TrainConfig, train_animated_neural
+from tests.conftest import REPO_ROOT
+
+ARM = REPO_ROOT / "examples" / "animations"
+SMALL = dict(levels=4, base_resolution=8, max_resolution=48, table_log2=12, hidden_width=16, keyframes=5)
+
+
+@pytest.fixture(scope="module")
+def sphere():
+    return pulsing_sphere(frames=13, fps=12.0)
+
+
+def config(**overrides) -> TrainConfig:
+    values = dict(preset="keyframes", architecture=SMALL, samples=20_000, steps=150, batch_size=2048,
+                  validate_every=50, validation_points=2000, threads=2)
+    return TrainConfig(**{**values, **overrides})
+
+
+def test_a_short_run_learns_the_pulsing_sphere_and_its_normal_speed(sphere):
+    animation, reference = sphere
+    result = train_animated_neural(animation, "pulse", config(), show_progress=False)
+    collider = result.collider
+    assert isinstance(collider, AnimatedNeuralCollider)
+    assert collider.info.animation["frames"] == 5  # the keyframe tables' timeline
+    assert collider.info.animation["duration_s"] == pytest.approx(1.0)
+    assert collider.info.source["frames"] == 13 and collider.info.source["frame_rate_hz"] == 12.0
+    assert result.best_validation_mm < 2.0
+    rng = np.random.default_rng(3)
+    errors, agree = [], []
+    for t in rng.uniform(0.0, 1.0, 6):
+        # The analytic sphere at t: points 2 mm off its surface, both sides.
+        k, u, rate = animation.timeline.locate(t)
+        centre = reference.centres[k] + u * (reference.centres[k + 1] - reference.centres[k])
+        radius = reference.radii[k] + u * (reference.radii[k + 1] - reference.radii[k])
+        directions = rng.normal(size=(500, 3))
+        directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+        offsets = rng.uniform(-0.002, 0.002, 500)
+        points = centre + (radius + offsets)[:, None] * directions
+        got = collider.query(points, ["distance", "normal", "velocity"], time=float(t))
+        errors.append(np.abs(got.distance - offsets))
+        # The surface's normal speed: the centre's velocity along the normal plus the radius's rate.
+        speed = (directions @ ((reference.centres[k + 1] - reference.centres[k]) * rate)
+                 + (reference.radii[k + 1] - reference.radii[k]) * rate)
+        learnt = np.einsum("ij,ij->i", got.velocity, got.normal)
+        fast = np.abs(speed) > 0.1  # m/s: where the sign is clear
+        agree.append(np.sign(learnt[fast]) == np.sign(speed[fast]))
+    # 150 steps of a small network: millimetre-level, and the normal speed's sign learnt.
+    assert np.concatenate(errors).mean() < 2e-3
+    assert np.concatenate(agree).mean() > 0.9
+
+
+def test_a_run_resumes_only_for_the_same_animation(sphere, tmp_path):
+    animation, _ = sphere
+    checkpoint = tmp_path / "pulse.ckpt.safetensors"
+    first = train_animated_neural(animation, "p", config(samples=4000, steps=4, validate_every=2),
+                                  checkpoint=checkpoint, show_progress=False)
+    resumed = train_animated_neural(animation, "p", config(samples=4000, steps=6, validate_every=2),
+                                    checkpoint=checkpoint, show_progress=False)
+    assert first.steps == 4 and resumed.steps == 6
+    faster, _ = pulsing_sphere(frames=13, fps=24.0)
+    with pytest.raises(ValueError, match="checkpoint of another run, not resumed: timeline differs"):
+        train_animated_neural(faster, "p", config(samples=4000, steps=8), checkpoint=checkpoint,
+                              show_progress=False)
+    bigger, _ = pulsing_sphere(frames=13, fps=12.0, radius=0.12)
+    with pytest.raises(ValueError, match="animation differs"):
+        train_animated_neural(bigger, "p", config(samples=4000, steps=8), checkpoint=checkpoint,
+                              show_progress=False)
+
+
+def test_presets_fit_their_shape(sphere):
+    from collider_server.making.training import train_neural
+
+    animation, _ = sphere
+    with pytest.raises(ValueError, match="preset 'grid' is static; an animation takes a keyframe preset"):
+        train_animated_neural(animation, "p", config(preset="grid", architecture={}), show_progress=False)
+    with pytest.raises(ValueError, match="preset 'keyframes' is for an animation"):
+        train_neural(animation.frame(0), "p", config(), show_progress=False)
+
+
+def run_cli(*args):
+    return subprocess.run([sys.executable, "-m", "collider_cli", *args], capture_output=True, text=True,
+                          timeout=300)
+
+
+def test_train_an_animation_through_the_cli(tmp_path):
+    models = tmp_path / "models"
+    common = [str(ARM / "arm.obj"), "--animation", str(ARM / "arm.pc2"), "--name", "arm4d", "--models",
+              str(models), "--samples", "4000", "--quiet"]
+    trained = run_cli("train", *common, "--fps", "24", "--steps", "3", "--keyframes", "3")
+    assert trained.returncode == 0, trained.stderr
+    assert "animated: 3 frames at 2 fps, 1 s, clamps" in trained.stdout
+    assert "source 25 frames at 24 fps" in trained.stdout
+    collider = load_collider(models / "arm4d.safetensors")
+    assert collider.animated and collider.architecture.keyframes == 3
+    assert "mesh: 5,056 faces, watertight" in trained.stdout  # the animation's check, as bake prints
+    info = run_cli("info", "arm4d", "--models", str(models))
+    assert "animation   3 frames at 2 fps, 1 s, clamps" in info.stdout, info.stdout
+    assert "mesh: 5,056 faces, watertight, 1 piece, no self-intersections (every frame checked)" in info.stdout
+    query = run_cli("query", "arm4d", "0.3", "0", "0.05", "--time", "0.4", "--fields", "distance,velocity",
+                    "--models", str(models))
+    assert query.returncode == 0 and "velocity=" in query.stdout, query.stderr
+    # The same name and checkpoint at another frame rate: refused in one line, the model kept.
+    other = run_cli("train", *common, "--fps", "25", "--steps", "3", "--keyframes", "3")
+    assert other.returncode == 2
+    lines = other.stderr.strip().splitlines()
+    assert len(lines) == 1 and "checkpoint of another run, not resumed: timeline differs" in lines[0], other.stderr
+    assert (models / "arm4d.safetensors").is_file()
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--fps", "24"], "--fps, --keyframes and --loop/--clamp need --animation"),
+    (["--keyframes", "4"], "--fps, --keyframes and --loop/--clamp need --animation"),
+    (["--preset", "keyframes"], "preset 'keyframes' is for an animation"),
+    (["--animation", str(ARM / "arm.pc2")], "--animation needs --fps"),
+    (["--animation", str(ARM / "arm.pc2"), "--fps", "24", "--preset", "grid"], "preset 'grid' is static"),
+    (["--animation", str(ARM / "arm.pc2"), "--fps", "24", "--keyframes", "1"], "keyframes must be an integer >= 2"),
+])
+def test_train_cli_refuses_mismatched_options_in_one_line(tmp_path, args, message):
+    result = run_cli("train", str(ARM / "arm.obj"), "--name", "x", "--models", str(tmp_path), "--quiet", *args)
+    assert result.returncode == 2
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("collider train: error:") and message in lines[0], result.stderr
