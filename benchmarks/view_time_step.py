@@ -15,7 +15,6 @@ own slider handler, as a browser's move calls it); median and range per step.
 import os
 import statistics
 import sys
-import tempfile
 import time
 from pathlib import Path
 
