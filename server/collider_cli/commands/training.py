@@ -23,7 +23,7 @@ from .options import (
 
 
 def register(subparsers) -> None:
-    from collider_server.engine.kinds.neural import DEFAULT_ANIMATED_PRESET, PRESETS
+    from collider_server.engine.kinds.neural import ANIMATED_PRESETS, DEFAULT_ANIMATED_PRESET, PRESETS
     from collider_server.making.training import DEFAULT_STEPS, TrainConfig
 
     defaults = TrainConfig()
@@ -34,7 +34,7 @@ def register(subparsers) -> None:
                     "against the exact interpolated mesh.")
     train.add_argument("mesh", help="mesh file (OBJ, PLY, STL, OFF, GLB; an OBJ with --animation)")
     train.add_argument("--name", required=True, help="model name (file NAME.safetensors)")
-    train.add_argument("--preset", default=None, choices=sorted(PRESETS),
+    train.add_argument("--preset", default=None, choices=sorted({**PRESETS, **ANIMATED_PRESETS}),
                        help=f"network (default {defaults.preset}, {DEFAULT_ANIMATED_PRESET} with --animation: a "
                             "feature grid + tiny MLP, the fastest to train and to query; paper-bunny / "
                             "paper-dragon reproduce the paper; docs/neural.md)")
@@ -53,7 +53,7 @@ def register(subparsers) -> None:
     train.add_argument("--seed", type=int, default=defaults.seed)
     train.add_argument("--threads", type=int, default=None, help="CPU threads for torch")
     add_animation_arguments(train, "feature tables, evenly spaced from the first frame to the last "
-                                   f"(default: the preset's, {PRESETS[DEFAULT_ANIMATED_PRESET].keyframes})")
+                                   f"(default: the preset's, {ANIMATED_PRESETS[DEFAULT_ANIMATED_PRESET].keyframes})")
     add_placement_arguments(train)
     add_models_argument(train, "where the model is written")
     train.add_argument("--runs", type=Path, default=None, metavar="DIR",

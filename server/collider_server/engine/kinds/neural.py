@@ -63,9 +63,11 @@ PRESETS: dict[str, Architecture | GridArchitecture] = {
     # Ours: narrower, trains several times faster on a CPU.
     "fast": Architecture(64, 3, 128, 3.0),
     "grid": GridArchitecture(),
-    # Ours, for an animation (``collider train --animation``): keyframe tables (docs/neural.md).
-    "keyframes": KeyframeGridArchitecture(),
 }
+
+#: The presets of an animation (``collider train --animation``), apart: a static mesh cannot use
+#: them (ours: keyframe tables, docs/neural.md).
+ANIMATED_PRESETS: dict[str, KeyframeGridArchitecture] = {"keyframes": KeyframeGridArchitecture()}
 
 #: The preset ``collider train --animation`` uses when none is named.
 DEFAULT_ANIMATED_PRESET = "keyframes"

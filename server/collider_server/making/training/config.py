@@ -6,7 +6,7 @@ from __future__ import annotations
 import math
 from dataclasses import asdict, dataclass, field
 
-from ...engine.kinds.neural import DEFAULT_PRESET, PRESETS, Architecture, GridArchitecture
+from ...engine.kinds.neural import ANIMATED_PRESETS, DEFAULT_PRESET, PRESETS, Architecture, GridArchitecture
 
 #: Adam's learning rate, initial and final (cosine decay), per kind of network: feature tables
 #: learn best at the large rate instant-NGP uses; the paper's MLP at 1e-3.
@@ -51,9 +51,10 @@ class TrainConfig:
     architecture: dict = field(default_factory=dict)
 
     def resolved_architecture(self) -> Architecture | GridArchitecture:
-        if self.preset not in PRESETS:
-            raise ValueError(f"unknown preset {self.preset!r}; choose one of {sorted(PRESETS)}")
-        preset = PRESETS[self.preset]
+        presets = {**PRESETS, **ANIMATED_PRESETS}
+        if self.preset not in presets:
+            raise ValueError(f"unknown preset {self.preset!r}; choose one of {sorted(presets)}")
+        preset = presets[self.preset]
         try:
             return type(preset)(**{**asdict(preset), **self.architecture})
         except TypeError as exc:  # an override the preset's kind of network does not have
@@ -61,7 +62,7 @@ class TrainConfig:
                              f"{self.preset!r}: {exc}") from None
 
     def _encoding(self) -> str:
-        return "grid" if isinstance(PRESETS.get(self.preset), GridArchitecture) else "fourier"
+        return "grid" if isinstance({**PRESETS, **ANIMATED_PRESETS}.get(self.preset), GridArchitecture) else "fourier"
 
     def resolved_learning_rates(self) -> tuple[float, float]:
         """(initial, final) learning rate: the given ones, else the preset kind's defaults."""

@@ -15,7 +15,7 @@ from collider_contract import Timeline
 from ...engine.animated_meshes import AnimatedMesh
 from ...engine.collider import ColliderInfo
 from ...engine.kinds.animated_neural import AnimatedNeuralCollider
-from ...engine.kinds.neural import PRESETS, NeuralCollider, architecture_dict, build_network
+from ...engine.kinds.neural import ANIMATED_PRESETS, NeuralCollider, architecture_dict, build_network
 from ...engine.kinds.neural_keyframes import KeyframeGridArchitecture, keyframe_positions
 from ...engine.meshes import ExactSDF, Mesh
 from ..bake import animation_source, mesh_source, padded_box
@@ -73,9 +73,8 @@ def check_preset(config: TrainConfig, animated: bool):
     config.check()
     arch = config.resolved_architecture()
     if animated and not isinstance(arch, KeyframeGridArchitecture):
-        keyed = sorted(k for k, a in PRESETS.items() if isinstance(a, KeyframeGridArchitecture))
         raise ValueError(f"preset {config.preset!r} is static; an animation takes a keyframe preset "
-                         f"({', '.join(keyed)})")
+                         f"({', '.join(sorted(ANIMATED_PRESETS))})")
     if not animated and isinstance(arch, KeyframeGridArchitecture):
         raise ValueError(f"preset {config.preset!r} is for an animation (--animation); a static mesh "
                          "takes a static preset")
