@@ -111,7 +111,7 @@ def run_collider_view(args: argparse.Namespace) -> int:
                 print(f"collider view: warning: {arg} is not the {what} {info.name} was made "
                       "from (sha256 differs)", file=sys.stderr)
     up = args.up or view_up(stored)
-    resolution = args.resolution or (64 if collider.animated else 96)
+    resolution = args.resolution if args.resolution is not None else 64 if collider.animated else 96
     page = serve_collider_view(collider, mesh, host=args.host, port=args.port,
                                resolution=resolution, up=up, clip_mm=args.clip_mm,
                                show_progress=not args.quiet)
