@@ -40,7 +40,8 @@ from collider_server.engine.collider import Collider
 from collider_server.making.progress import format_duration, progress
 
 from .plan import Candidate, Plan
-from .run import BenchConfig, default_devices, default_threads, load_average, machine_info, say, time_all
+from .run import (BenchConfig, default_devices, default_threads, finish_report, interrupted, load_average,
+                  say, time_all)
 from .timing import ANIMATED_MODES
 
 REFERENCE_MODE = "distance+normal+contact+velocity"
@@ -268,12 +269,8 @@ def run_animated_bench(animation: AnimatedMesh, transform: np.ndarray, config: B
                                     config, cache, rows, show_progress, modes=ANIMATED_MODES,
                                     reference_mode=REFERENCE_MODE, at=timing_time)
     except KeyboardInterrupt:  # Ctrl-C or SIGTERM: the report of what was measured until now
-        report["interrupted"] = True
-        say("interrupted: the report holds what was measured until now")
-    report["colliders"] = list(rows.values())
-    report["machine"] = machine_info(load_at_start)
-    report["seconds"] = time.perf_counter() - started
-    return report
+        interrupted(report)
+    return finish_report(report, rows, load_at_start, started)
 
 
 def build_estimate(candidates, animation: AnimatedMesh, first, cache: Path, transform, units: str,
@@ -281,14 +278,9 @@ def build_estimate(candidates, animation: AnimatedMesh, first, cache: Path, tran
     """How long the voxel bakes will take: the grids not cached, at the exact SDF's cost per point
     measured now on the first frame."""
     from collider_server.engine.meshes import ExactSDF
-    from collider_server.making.bake import keyframe_positions, padded_box
+    from collider_server.making.bake import exact_seconds_per_point, keyframe_positions, padded_box
 
-    sdf = ExactSDF(first)
-    lo, hi = padded_box(animation, 0.1)
-    probe = np.random.default_rng(0).uniform(lo, hi, (4096, 3))
-    t0 = time.perf_counter()
-    sdf.signed_distance(probe)
-    per_point = (time.perf_counter() - t0) / len(probe)
+    per_point = exact_seconds_per_point(ExactSDF(first), *padded_box(animation, 0.1))
     key = animation_key(animation, transform, units, meters_per_unit)
     grids: dict[int, set] = {}
     for c in candidates:

@@ -122,8 +122,19 @@ def run_bench(mesh: Mesh, transform: np.ndarray, config: BenchConfig, *, units: 
         report["timing"] = time_all(plan.candidates, colliders, devices, sets["timing"], config, cache,
                                     rows, show_progress)
     except KeyboardInterrupt:  # Ctrl-C or SIGTERM: the report of what was measured until now
-        report["interrupted"] = True
-        say("interrupted: the report holds what was measured until now")
+        interrupted(report)
+    return finish_report(report, rows, load_at_start, started)
+
+
+def interrupted(report: dict) -> None:
+    """Mark ``report`` as cut short (Ctrl-C or SIGTERM) and say so."""
+    report["interrupted"] = True
+    say("interrupted: the report holds what was measured until now")
+
+
+def finish_report(report: dict, rows: dict, load_at_start, started: float) -> dict:
+    """``report`` with its collider rows, the machine (and its load from ``load_at_start``) and
+    the seconds since ``started`` (``time.perf_counter``)."""
     report["colliders"] = list(rows.values())
     report["machine"] = machine_info(load_at_start)
     report["seconds"] = time.perf_counter() - started

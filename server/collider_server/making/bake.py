@@ -27,6 +27,17 @@ def padded_box(mesh: Mesh | AnimatedMesh, padding: float) -> tuple[np.ndarray, n
     return lo - margin, hi + margin
 
 
+def exact_seconds_per_point(sdf: ExactSDF, lo: np.ndarray, hi: np.ndarray, probe: int = 4096) -> float:
+    """Seconds ``sdf`` takes per point, measured now on ``probe`` points uniform in the box
+    ``lo``..``hi`` (its units): what a voxel bake's estimate rests on."""
+    import time
+
+    points = np.random.default_rng(0).uniform(lo, hi, (probe, 3))
+    started = time.perf_counter()
+    sdf.signed_distance(points)
+    return (time.perf_counter() - started) / probe
+
+
 def check_bake_settings(kind: str, resolution: int, padding: float) -> None:
     """ValueError naming the setting that :func:`bake_collider` cannot bake with (checked before
     any work: a bad padding would otherwise surface only after the bake)."""
