@@ -205,6 +205,7 @@ def main() -> int:
     parser.add_argument("--points", type=int, default=100_000)
     parser.add_argument("--rounds", type=int, default=5)
     parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--device", default="cpu", help="where the models run (cpu or cuda); training stays on the CPU")
     parser.add_argument("--seed", type=int, default=4321)
     parser.add_argument("--variants", nargs="*", default=[], metavar="JSON",
                         help='architecture overrides of the keyframes preset to train, e.g. \'{"keyframes": 5}\'')
@@ -222,10 +223,10 @@ def main() -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     paths = [Path(p) for p in args.models] + train_variants(animation, args.variants, args.minutes, args.threads,
                                                            args.out)
-    static = load_collider(args.static) if args.static else None
-    report = {"load_before": os.getloadavg(), "models": []}
+    static = load_collider(args.static, args.device) if args.static else None
+    report = {"load_before": os.getloadavg(), "device": args.device, "models": []}
     for path in paths:
-        collider = load_collider(path)
+        collider = load_collider(path, args.device)
         entry = {"model": str(path), "architecture": collider.info.settings.get("architecture"),
                  "training_s": collider.info.settings.get("training", {}).get("seconds"),
                  "steps": collider.info.settings.get("training", {}).get("steps_done"),

@@ -13,6 +13,7 @@ load average before and after, and the ratios the issue's targets name.
     python benchmarks/neural_query.py --model out/b.safetensors --points 200000 --threads 2
     git show 3853465^:server/collider_server/engine/kinds/grid_kernels.py > /tmp/kernel_before.py
     python benchmarks/neural_query.py --kernel-from /tmp/kernel_before.py --rounds 7
+    python benchmarks/neural_query.py --device cuda        # the networks on a GPU, the mesh on the CPU
 """
 
 from __future__ import annotations
@@ -39,6 +40,9 @@ def parse_args(argv=None):
     parser.add_argument("--points", type=int, default=1_000_000)
     parser.add_argument("--rounds", type=int, default=5, help="interleaved rounds (median and spread over them)")
     parser.add_argument("--threads", type=int, default=None, help="torch and kernel threads")
+    parser.add_argument("--device", default="cpu",
+                        help="where the neural models run: cpu (the fused kernel) or cuda (the torch path); "
+                             "the exact mesh runs on the CPU either way")
     parser.add_argument("--kernel-from", type=Path, default=None,
                         help="a grid_kernels.py (e.g. an older commit's) whose network_query to time too")
     parser.add_argument("--torch-path", action="store_true", help="also time the slow pure-torch path (1 round)")
@@ -63,6 +67,12 @@ def kernel(grid_kernels, network_query):
         yield
     finally:
         grid_kernels.network_query = own
+
+
+def _gpu(device: str) -> str:
+    import torch
+
+    return "" if device == "cpu" else f", neural models on {torch.cuda.get_device_name(torch.device(device))}"
 
 
 def timed(call) -> float:
@@ -91,11 +101,11 @@ def main(argv=None) -> int:
     # candidates: (label, collider, kernel or None, points)
     candidates = []
     for name in args.model or ["bunny"]:
-        collider = load_collider(repo.resolve(name), "cpu")
+        collider = load_collider(repo.resolve(name), args.device)
         transform = collider.info.source.get("transform")
         placed = mesh.transformed(transform) if transform is not None else mesh
         points = surface_band_points(placed, args.points, 1e-2 / collider.info.meters_per_unit, seed=1)
-        label = f"neural {collider.info.name}"
+        label = f"neural {collider.info.name}" + ("" if args.device == "cpu" else f" ({args.device})")
         candidates.append((label, collider, None, points))
         if other_kernel is not None:
             candidates.append((label + f" ({args.kernel_from.name})", collider, other_kernel, points))
@@ -125,7 +135,7 @@ def main(argv=None) -> int:
 
     scale = 1e6 / args.points
     print(f"{args.points:,} points in the +-10 mm band, embedded Collider.query, {args.rounds} interleaved "
-          f"rounds, torch threads {torch.get_num_threads()}; load average (1, 5, 15 min) "
+          f"rounds, torch threads {torch.get_num_threads()}{_gpu(args.device)}; load average (1, 5, 15 min) "
           f"{'/'.join(f'{v:.2f}' for v in load_before)} before, {'/'.join(f'{v:.2f}' for v in load_after)} after")
     print("seconds per 1M points: median (min - max)")
     print(f"{'collider':<52} {'d+n+c':>22} {'d only':>22}")
@@ -138,7 +148,7 @@ def main(argv=None) -> int:
     medians = {label: statistics.median(full) for label, (full, _) in times.items()}
     for label, _, query_kernel, _ in candidates:
         if label.startswith("neural") and query_kernel is None:
-            name = label.split(" ", 1)[1]
+            name = label.split(" ")[1]
             exact = medians[f"mesh (exact, libigl) for {name}"]
             print(f"{label}: exact mesh / neural (d+n+c, medians) = {exact / medians[label]:.2f}x")
             if other_kernel is not None:

@@ -59,15 +59,26 @@ def load_shared_mesh() -> Callable:
 # -- devices ---------------------------------------------------------------------------------
 
 
+def _skip_without_cuda() -> None:
+    import torch
+
+    if not torch.cuda.is_available():
+        pytest.skip("no CUDA GPU on this machine (CI has none: these run on a lent GPU, docs/neural.md)")
+
+
 @pytest.fixture(params=["cpu", "cuda"])
 def device(request) -> str:
     """Each torch device: "cpu" always, "cuda" only when a CUDA GPU is present."""
     if request.param == "cuda":
-        import torch
-
-        if not torch.cuda.is_available():
-            pytest.skip("no CUDA GPU on this machine")
+        _skip_without_cuda()
     return request.param
+
+
+@pytest.fixture
+def cuda() -> str:
+    """"cuda", for a test that compares a CUDA GPU's answers with the CPU's; skipped without one."""
+    _skip_without_cuda()
+    return "cuda"
 
 
 # -- procedural shapes with analytic signed distances ----------------------------------------

@@ -24,6 +24,20 @@ def arm_files(tmp_path_factory):
     return folder / "arm.obj", folder / "arm.pc2"
 
 
+def test_animate_frames_keeps_the_motion_and_its_duration(capsys, tmp_path, arm_files):
+    """``--frames N``: N frames over the same second (the rate follows), each frame the same
+    motion at its time: frame 2 of 49 is frame 1 of the default 25."""
+    from collider_server.making.animation_files import load_animation
+
+    code, out, _ = run(capsys, "animate", "arm", "--frames", 49, "--output", tmp_path, "--quiet")
+    assert code == 0 and "49 frames at 48 fps (1 s, looping)" in out
+    fine = load_animation(tmp_path / "arm.obj", tmp_path / "arm.pc2", 48.0, True)
+    default = load_animation(*arm_files, 24.0, True)
+    np.testing.assert_allclose(fine.frames[2], default.frames[1], atol=1e-6)
+    assert_user_error(capsys, ["animate", "arm", "--frames", 1, "--output", tmp_path],
+                      "--frames must be an integer >= 2, got 1")
+
+
 def write_pc2(path, frames):
     with PC2Writer(path, frames.shape[1]) as writer:
         for frame in frames:

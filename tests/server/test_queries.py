@@ -257,3 +257,41 @@ def test_openapi_page_documents_the_routes_and_bodies(server):
     assert set(body) == {"application/msgpack", "application/json"}
     assert "points" in body["application/msgpack"]["schema"]["required"]
     assert httpx.get(f"{server.url}/docs").status_code == 200
+
+
+def test_a_server_on_cuda_answers_as_the_cpu_engine(cuda):
+    """``collider serve --device cuda`` over the shipped models (grid networks, the exact animated
+    arm): the networks on the GPU, the exact kind on the CPU (libigl), and their answers through
+    the SDK those of the CPU engine."""
+    import collider_client as cc
+    from collider_cli.launch import ServerProcess
+
+    from collider_server.engine.repository import ModelRepository
+
+    repository = ModelRepository()
+    names = [n for n in ("bunny", "arm") if repository.path(n).is_file()]
+    if not names:
+        pytest.skip("no shipped models")
+    server = ServerProcess(repository.root, "--device", cuda, "--log-level", "warning")
+    try:
+        server.wait_ready(120)
+        with cc.Client(server.url, timeout_s=60) as remote, \
+                cc.Client(models=repository.root, device="cpu") as embedded:
+            on_cpu = ("mesh", "kdtree")  # libigl / scipy: the CPU whatever --device says
+            assert {m.name: m.device for m in remote.list_models()} == {
+                m.name: "cpu" if m.kind in on_cpu else "cuda" for m in embedded.list_models()}
+            for name in names:
+                info = next(m for m in embedded.list_models() if m.name == name)
+                lo, hi = np.asarray(info.domain_min), np.asarray(info.domain_max)
+                points = lo + np.random.default_rng(9).random((20_000, 3)) * (hi - lo)
+                time = 0.37 if info.animation else None
+                fields = ["distance", "normal", "contact"] + (["velocity"] if time is not None else [])
+                a = embedded.query(name, points, fields, time=time)
+                b = remote.query(name, points, fields, time=time)
+                scale = float(np.abs(a.distance).max())
+                np.testing.assert_allclose(b.distance, a.distance, rtol=0, atol=1e-5 * scale)
+                np.testing.assert_allclose(b.contact, a.contact, rtol=0, atol=1e-4 * scale)  # |d| x normal's
+                agree = np.einsum("ij,ij->i", a.normal, b.normal) > np.cos(np.radians(0.1))
+                assert agree.mean() > 0.999, name
+    finally:
+        server.stop()

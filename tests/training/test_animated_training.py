@@ -32,9 +32,10 @@ def config(**overrides) -> TrainConfig:
     return TrainConfig(**{**values, **overrides})
 
 
-def test_a_short_run_learns_the_pulsing_sphere_and_its_normal_speed(sphere):
+def test_a_short_run_learns_the_pulsing_sphere_and_its_normal_speed(sphere, device):
     animation, reference = sphere
-    result = train_animated_neural(animation, "pulse", config(), show_progress=False)
+    result = train_animated_neural(animation, "pulse", config(), device=device, show_progress=False)
+    assert result.collider.info.settings["training"]["device"] == device
     collider = result.collider
     assert isinstance(collider, AnimatedNeuralCollider)
     assert collider.info.animation["frames"] == 5  # the keyframe tables' timeline

@@ -147,3 +147,18 @@ def test_a_grid_network_trains_and_saves(tmp_path, analytic_shape):
     loaded = load_collider(path, "cpu")
     points = np.random.default_rng(0).uniform(-0.05, 0.05, (100, 3))
     np.testing.assert_allclose(loaded.query(points).distance, result.collider.query(points).distance, atol=1e-5)
+
+
+def test_a_grid_network_trains_on_cuda_as_on_the_cpu(cuda, analytic_shape):
+    """The same short run of the default preset's kind on CUDA (the torch path) and on the CPU
+    (the fused kernels): both learn the sphere alike; the model records where it was trained."""
+    sphere = analytic_shape("sphere").mesh
+    small = {"levels": 6, "base_resolution": 8, "max_resolution": 96, "table_log2": 14}
+    config = TrainConfig(preset="grid", architecture=small, samples=40_000, steps=300, batch_size=4096,
+                         validate_every=100, validation_points=2000, threads=2)
+    runs = {device: train_neural(sphere, "s", config, device=device, show_progress=False)
+            for device in ("cpu", cuda)}
+    assert runs[cuda].collider.info.settings["training"]["device"] == cuda
+    assert runs[cuda].collider.info.settings["training"]["device_name"]
+    cpu_mm, gpu_mm = runs["cpu"].best_validation_mm, runs[cuda].best_validation_mm
+    assert gpu_mm < 2 * cpu_mm + 0.05, (cpu_mm, gpu_mm)

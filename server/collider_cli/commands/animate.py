@@ -3,6 +3,7 @@ optionally bake it into animated colliders (:mod:`collider_server.making.animati
 
 from __future__ import annotations
 
+import inspect
 from pathlib import Path
 
 from .options import add_device_argument, add_models_argument, add_quiet_argument
@@ -22,6 +23,9 @@ def register(subparsers) -> None:
                    help="folder of NAME.obj and NAME.pc2 (default out/animations)")
     p.add_argument("--mesh", type=Path, default=Path("examples/meshes/stanford-bunny.obj"),
                    help="twisting-bunny: the bunny OBJ (default %(default)s)")
+    p.add_argument("--frames", type=int, default=None,
+                   help="frames over the same motion and duration (default: as above; e.g. "
+                        "twisting-bunny --frames 61 is 61 frames at 30 fps over its 2 s)")
     p.add_argument("--bake", default=None, metavar="KINDS",
                    help="also bake: mesh, voxel or mesh,voxel")
     p.add_argument("--resolution", type=int, default=128, help="voxel samples per axis (default 128)")
@@ -33,16 +37,26 @@ def register(subparsers) -> None:
     p.set_defaults(func=run_animate)
 
 
-def make_animation(name: str, mesh: Path):
-    """The generated animation ``name`` (:data:`~collider_server.making.animations.GENERATED`)."""
+def make_animation(name: str, mesh: Path, frames: int | None = None):
+    """The generated animation ``name`` (:data:`~collider_server.making.animations.GENERATED`),
+    with ``frames`` frames over its duration when given (the frame rate follows)."""
     from collider_server.making import animations
     from collider_server.making.animation_files import read_obj
 
-    if name == "arm":
-        return animations.bending_arm()
-    if name == "pulsing-sphere":
-        return animations.pulsing_sphere()[0]
-    return animations.twisting_bunny(read_obj(mesh))
+    function = {"arm": animations.bending_arm, "pulsing-sphere": animations.pulsing_sphere,
+                "twisting-bunny": animations.twisting_bunny}[name]
+    timing = {}
+    if frames is not None:
+        if frames < 2:
+            raise ValueError(f"--frames must be an integer >= 2, got {frames}")
+        # The generator's own duration: its default frames and rate.
+        defaults = inspect.signature(function).parameters
+        duration_s = (defaults["frames"].default - 1) / defaults["fps"].default
+        timing = {"frames": frames, "fps": (frames - 1) / duration_s}
+    if name == "twisting-bunny":
+        return function(read_obj(mesh), **timing)
+    made = function(**timing)
+    return made[0] if name == "pulsing-sphere" else made
 
 
 def run_animate(args) -> int:
@@ -58,7 +72,7 @@ def run_animate(args) -> int:
     repository = ModelRepository(args.models)
     if kinds:
         repository.check_writable()
-    animation = make_animation(args.name, args.mesh)
+    animation = make_animation(args.name, args.mesh, args.frames)
     timeline = animation.timeline
     obj, pc2 = write_animation(animation, args.output, args.name)
     print(f"wrote {obj} and {pc2}: {timeline.frames} frames at {timeline.frame_rate_hz:g} fps "

@@ -38,13 +38,13 @@ def random_network(seed=0, **overrides):
     return network
 
 
-def collider(network, loop=False):
+def collider(network, loop=False, device="cpu"):
     arch = architecture_from_dict(architecture_dict(network_arch(network)))
     frames = arch.keyframes
     info = ColliderInfo(name="k", kind="neural", domain_min=LO.tolist(), domain_max=HI.tolist(),
                         settings={"architecture": architecture_dict(arch)},
                         animation=Timeline(frames, (frames - 1) / DURATION, loop).to_dict())
-    return AnimatedNeuralCollider(info, network)
+    return AnimatedNeuralCollider(info, network, device)
 
 
 def network_arch(network):
@@ -150,6 +150,32 @@ def test_fused_training_kernels_match_the_torch_reference():
     assert torch.allclose(g1, g2, atol=2e-5, rtol=1e-4)
     assert torch.allclose(t1, t2, atol=1e-4, rtol=1e-4)
     assert (t2[0] != 0).any() and (t2[3] != 0).any()  # every keyframe table is reached
+
+
+def test_cuda_answers_and_trains_as_the_cpu(cuda):
+    """On CUDA (the torch path): distance, gradient and velocity at one time as the fused CPU
+    kernel gives them, and, each point at its own time, the distance, gradient and the tables'
+    gradient of a training loss as the CPU gives them."""
+    c = collider(random_network())
+    g = collider(random_network(), device=cuda)
+    assert not g.network.can_fuse(torch.zeros(1, 3, device=cuda))
+    x = points(3000, 7)
+    for t in (0.0, 0.11, 0.3, 0.59):
+        for a, b in zip(c.evaluate_at(x, True, t), g.evaluate_at(x, True, t)):
+            np.testing.assert_allclose(b, a, atol=2e-5, rtol=1e-4)
+    key, frac = keyframe_positions(np.random.default_rng(8).uniform(0.0, DURATION, len(x)), DURATION, 4)
+    grads = []
+    for network, device in ((c.network, "cpu"), (g.network, cuda)):
+        network.table.requires_grad_(True)
+        network.zero_grad()
+        distance, gradient = network.value_and_gradient(
+            torch.from_numpy(x.astype(np.float32)).to(device), torch.from_numpy(key).to(device),
+            torch.from_numpy(frac).to(device))
+        (distance.sum() + (gradient ** 2).sum()).backward()
+        grads.append([t.detach().cpu() for t in (distance, gradient, network.table.grad)])
+        network.table.requires_grad_(False)
+    for a, b in zip(*grads):
+        assert torch.allclose(a, b, atol=1e-4, rtol=1e-4)
 
 
 def test_keyframe_positions_span_the_duration():
