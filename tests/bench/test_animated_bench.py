@@ -60,9 +60,10 @@ def test_quick_bench_of_the_arm_writes_its_table_at_random_times(arm_bench):
 
 
 @pytest.mark.parametrize("extra, message", [
-    (["--presets", "grid"], "--train-minutes and --presets are for neural colliders"),
+    (["--presets", "grid"], "--presets is for a static mesh; with --animation the neural kind is the 4D network"),
+    (["--train-minutes", "-1"], "--train-minutes must be a finite number >= 0, got -1.0"),
     (["--keyframes", "5,1"], "--keyframes must be integers >= 2 or 'all', got [5, 1]"),
-    (["--kinds", "kdtree"], "--kinds with --animation must name some of ['mesh', 'voxel'], got ['kdtree']"),
+    (["--kinds", "kdtree"], "--kinds with --animation must name some of ['mesh', 'voxel', 'neural'], got ['kdtree']"),
     (["--times", "0"], "--times must be a positive number of random times, got 0"),
 ])
 def test_animated_bench_refuses_bad_settings_in_one_line(extra, message, tmp_path, capsys):
@@ -78,3 +79,28 @@ def test_bench_options_of_an_animation_need_one(tmp_path, capsys):
     code, out, err = collider_here(capsys, "bench", ROOT / "examples/meshes/spot.obj", "--fps", "24",
                                    "--output", tmp_path, "--cache", tmp_path)
     assert code == 2 and "--fps, --loop/--clamp, --keyframes and --times need --animation" in err
+
+
+def test_quick_bench_leaves_the_4d_network_out_with_the_command_that_measures_it(arm_bench):
+    _, report, _ = arm_bench
+    skipped = {s["name"]: s["reason"] for s in report["skipped"]}
+    assert "give --train-minutes M" in skipped["neural-keyframes"]
+    assert "--train-minutes 3` (trains it 3 minutes)" in skipped["neural-keyframes"]
+
+
+@pytest.mark.slow
+def test_bench_trains_the_4d_network_when_asked_and_measures_it_like_the_others(tmp_path):
+    result = collider("bench", *(str(ROOT / a) if a.startswith("examples/") else a for a in ARM), "--quick",
+                      "--kinds", "neural,voxel", "--resolutions", "16", "--keyframes", "5", "--train-minutes",
+                      "0.1", "--no-served", "--quiet", "--output", tmp_path / "result", "--cache", tmp_path / "cache")
+    assert result.returncode == 0, result.stdout + result.stderr
+    report = json.loads((tmp_path / "result" / "bench.json").read_text())
+    rows = {r["name"]: r for r in report["colliders"]}
+    assert list(rows) == ["voxel-16-k5", "neural-keyframes"]
+    neural = rows["neural-keyframes"]
+    assert neural["kind"] == "neural" and neural["build"] == "train" and neural["build_seconds"] >= 6
+    assert neural["settings"] == {"preset": "keyframes", "train_minutes": 0.1}
+    figures = neural["accuracy"]["band_1mm"]
+    assert 0 < figures["distance_mean_mm"] < 5 and figures["points"] == 5_000
+    assert {t["mode"] for t in neural["timings"]} == {"distance", "distance+normal+contact+velocity"}
+    assert "| neural keyframes (0.1 min) | " in (tmp_path / "result" / "bench.md").read_text()

@@ -8,10 +8,13 @@ Candidates (:func:`plan_animated`), in the order they are measured:
   evenly spaced from the first frame to the last, :func:`~collider_server.making.bake.
   keyframe_positions`), leaving out any whose memory (``K R^3 4`` bytes) exceeds
   ``max_memory_bytes``. The grids of one resolution are baked once for every keyframe count
-  (5, 13 and 25 keyframes of 25 frames share their grids) and cached like the static bench's.
+  (5, 13 and 25 keyframes of 25 frames share their grids) and cached like the static bench's;
+- ``neural``: the 4D network (preset ``keyframes``, docs/neural.md) trained here for
+  ``train_minutes`` on the CPU and cached like a voxel set (0, the default: listed as not
+  measured, with the option that measures it).
 
 Another animated kind joins by an entry in :data:`KINDS`: a function listing its candidates and
-one building (or loading) a candidate. Issue 19's 4D neural collider goes there.
+one building (or loading) a candidate.
 
 Accuracy: errors pooled over ``times`` random times drawn uniformly over the animation
 (:func:`~collider_server.making.sampling.random_times`: between frames), against the exact
@@ -56,14 +59,16 @@ class AnimatedPlanConfig:
     max_memory_bytes : largest memory of one collider (larger voxel sets are left out)
     padding : domain padding, fraction of the largest side over every frame
     times : random times the errors are measured at
+    train_minutes : training time of the 4D network (0: not measured)
     """
 
-    kinds: tuple[str, ...] = ("mesh", "voxel")
+    kinds: tuple[str, ...] = ("mesh", "voxel", "neural")
     resolutions: tuple[int, ...] = (32, 64, 128)
     keyframes: tuple[int | None, ...] = (5, 13, None)
     max_memory_bytes: int = 256 * 2**20
     padding: float = 0.1
     times: int = 8
+    train_minutes: float = 0.0
 
     def check(self) -> None:
         unknown = set(self.kinds) - set(KINDS)
@@ -77,6 +82,8 @@ class AnimatedPlanConfig:
             raise ValueError(f"--max-memory must be > 0, got {self.max_memory_bytes}")
         if not isinstance(self.times, int) or self.times < 1:
             raise ValueError(f"--times must be a positive number of random times, got {self.times!r}")
+        if not (np.isfinite(self.train_minutes) and self.train_minutes >= 0):
+            raise ValueError(f"--train-minutes must be a finite number >= 0, got {self.train_minutes}")
 
 
 #: ``collider bench --quick --animation ...``: small grids, few keyframes, few times.
@@ -115,6 +122,17 @@ def voxel_candidates(animation: AnimatedMesh, config: AnimatedPlanConfig):
     return candidates, skipped
 
 
+def neural_candidates(animation: AnimatedMesh, config: AnimatedPlanConfig):
+    from collider_server.engine.kinds.neural import DEFAULT_ANIMATED_PRESET
+
+    preset, minutes = DEFAULT_ANIMATED_PRESET, config.train_minutes
+    if minutes <= 0:
+        return [], [{"name": f"neural-{preset}", "preset": preset,
+                     "reason": "the 4D network is trained by the bench only when asked: give --train-minutes M"}]
+    return [Candidate(f"neural-{preset}", f"neural {preset} ({minutes:g} min)", "neural",
+                      {"preset": preset, "train_minutes": minutes}, build="train")], []
+
+
 def build_mesh(candidate: Candidate, animation: AnimatedMesh, shared: dict, **settings) -> Collider:
     from collider_server.making.bake import bake_animated_collider
 
@@ -140,9 +158,20 @@ def build_voxel(candidate: Candidate, animation: AnimatedMesh, shared: dict, **s
     return collider
 
 
+def build_neural(candidate: Candidate, animation: AnimatedMesh, shared: dict, *, units: str,
+                 meters_per_unit: float, device: str, show_progress: bool) -> Collider:
+    """Train the 4D network for ``train_minutes`` (the clock starts after its exact samples)."""
+    from collider_server.making.training import TrainConfig, train_animated_neural
+
+    config = TrainConfig(preset=candidate.settings["preset"], max_minutes=candidate.settings["train_minutes"])
+    return train_animated_neural(animation, candidate.name, config, units=units, meters_per_unit=meters_per_unit,
+                                 device=device, show_progress=show_progress).collider
+
+
 #: The animated kinds: (candidates(animation, config) -> (candidates, skipped), build(candidate,
 #: animation, shared, **bake settings) -> collider). A new animated kind adds its entry here.
-KINDS = {"mesh": (mesh_candidates, build_mesh), "voxel": (voxel_candidates, build_voxel)}
+KINDS = {"mesh": (mesh_candidates, build_mesh), "voxel": (voxel_candidates, build_voxel),
+         "neural": (neural_candidates, build_neural)}
 
 
 def plan_animated(animation: AnimatedMesh, config: AnimatedPlanConfig) -> Plan:
@@ -289,5 +318,8 @@ def build_estimate(candidates, animation: AnimatedMesh, first, cache: Path, tran
         positions = keyframe_positions(animation.timeline.frames, c.settings["keyframes"])
         grids.setdefault(c.settings["resolution"], set()).update(float(p) for p in positions)
     seconds = sum(r**3 * len(p) for r, p in grids.items()) * per_point
+    training = sum(c.settings["train_minutes"] for c in candidates
+                   if c.kind == "neural" and not candidate_path(c, key, cache).is_file())
     return (f"{sum(len(p) for p in grids.values())} keyframe grids to bake, about {format_duration(seconds)} at "
-            f"{per_point * 1e6:.1f} us per exact distance")
+            f"{per_point * 1e6:.1f} us per exact distance"
+            + (f"; {training:g} min of training, after its exact samples" if training else ""))

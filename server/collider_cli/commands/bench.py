@@ -134,10 +134,12 @@ def animated_plan_config(args):
     from ..bench.animated import QUICK_PLAN, AnimatedPlanConfig
     from ..bench.budget import size_bytes
 
-    if args.train_minutes is not None or args.presets is not None:
-        raise ValueError("--train-minutes and --presets are for neural colliders, which are not animated "
-                         "(yet); with --animation the kinds are mesh and voxel")
+    if args.presets is not None:
+        raise ValueError("--presets is for a static mesh; with --animation the neural kind is the 4D "
+                         "network (preset keyframes), trained for --train-minutes")
     plan = QUICK_PLAN if args.quick else AnimatedPlanConfig()
+    if args.train_minutes is not None:
+        plan = dataclasses.replace(plan, train_minutes=args.train_minutes)
     if args.kinds is not None:
         plan = dataclasses.replace(plan, kinds=tuple(k.strip() for k in args.kinds.split(",") if k.strip()))
     if args.resolutions is not None:
@@ -216,7 +218,9 @@ def add_hints(report: dict, args) -> None:
 
     for skipped in report["skipped"]:
         preset = skipped.get("preset")
-        if preset is not None:
+        if preset is not None and args.animation is not None:
+            skipped["reason"] += f"; measure it with `{again_with(args, '--train-minutes', '3')}` (trains it 3 minutes)"
+        elif preset is not None:
             name = f"{Path(args.mesh).stem}-{preset}"
             skipped["reason"] += (f"; measure it with `{again_with(args, '--train-minutes', '3')}` (trains each such "
                                   f"preset 3 minutes) or train it first with `"
