@@ -117,13 +117,13 @@ def test_view_command_errors_on_animated_models(capsys):
     obj, pc2 = (str(REPO_ROOT / "examples" / "animations" / f"arm.{ext}") for ext in ("obj", "pc2"))
     models = ["--models", str(REPO_ROOT / "models")]
     cases = [
-        (["arm", "--mesh", obj], "arm is animated: give the vertex cache it was baked from with "
-                                 "--mesh, --animation CACHE (arm was baked from arm.obj and "
-                                 "arm.pc2, 25 frames at 24 fps)"),
+        (["arm", "--mesh", obj], "arm is animated: give the frames it was made from, --mesh OBJ "
+                                 "--animation CACHE (arm was made from arm.obj and arm.pc2, 25 "
+                                 "frames at 24 fps)"),
         (["arm", "--animation", pc2], "--animation needs --mesh (the OBJ whose vertices it moves)"),
         (["arm", "--mesh", obj, "--animation", pc2, "--fps", "12"],
-         f"{pc2} at 12 fps lasts 2 s, but arm lasts 1 s (arm was baked from arm.obj and arm.pc2, "
-         "25 frames at 24 fps)"),
+         f"{pc2} at 12 fps lasts 2 s, but arm's animation lasts 1 s (arm was made from arm.obj and "
+         "arm.pc2, 25 frames at 24 fps)"),
         (["bunny", "--mesh", obj, "--animation", pc2],
          "bunny is static: --animation and --fps are for animated models"),
         (["bunny", "--fps", "24"], "bunny is static: --animation and --fps are for animated models"),

@@ -161,6 +161,36 @@ def load_placed_animation(args: argparse.Namespace, placement: MeshPlacement):
     return placement.apply_to_animation(load_animation(args.mesh, args.animation, args.fps, args.loop))
 
 
+def load_animated_source(info, args):
+    """The exact animation of the animated model ``info`` (what eval measures it against, what
+    view draws): ``--mesh`` OBJ and ``--animation`` CACHE at ``--fps`` (default: the rate the
+    model was made at), looping as the model does, in the file's frame; ValueError in one line
+    when they are missing or cannot be the model's animation (another frame count or duration)."""
+    from collider_contract import Timeline
+    from collider_server.making.animation_files import load_animation
+
+    source = info.source
+    rate = source.get("frame_rate_hz")
+    made_from = (f"{info.name} was made from {source.get('mesh', '?')}.obj and {source.get('cache', '?')}, "
+                 f"{source.get('frames', '?')} frames at {'?' if rate is None else f'{rate:g}'} fps")
+    if args.animation is None:
+        raise ValueError(f"{info.name} is animated: give the frames it was made from, --mesh OBJ "
+                         f"--animation CACHE ({made_from})")
+    fps = args.fps if args.fps is not None else source.get("frame_rate_hz")
+    if fps is None:
+        raise ValueError(f"{info.name} does not record its frame rate: give --fps")
+    timeline = Timeline.from_dict(info.animation)
+    animation = load_animation(args.mesh, args.animation, fps, timeline.loop)
+    frames = animation.timeline.frames
+    if source.get("frames") is not None and frames != source["frames"]:
+        raise ValueError(f"{args.animation}: {frames} frames, but {made_from}")
+    duration = animation.timeline.duration_s
+    if not math.isclose(duration, timeline.duration_s, rel_tol=1e-9, abs_tol=0.0):
+        raise ValueError(f"{args.animation} at {fps:g} fps lasts {duration:g} s, but {info.name}'s animation "
+                         f"lasts {timeline.duration_s:g} s ({made_from})")
+    return animation
+
+
 def default_cache_dir() -> Path:
     """``$XDG_CACHE_HOME/neural-collider``, else ``~/.cache/neural-collider`` (the XDG base
     directory rule: the user's cache, not the working folder)."""

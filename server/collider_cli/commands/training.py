@@ -17,6 +17,7 @@ from .options import (
     add_placement_arguments,
     add_quiet_argument,
     check_animation_arguments,
+    load_animated_source,
     load_placed_animation,
     placement_from_args,
 )
@@ -223,36 +224,6 @@ def check_units(info, args) -> None:
         raise ValueError(f"--units {args.units or 'm'} ({given:g} m per unit) is not the unit {info.name} was made in "
                          f"({info.units}, {info.meters_per_unit:g} m per unit); give the placement it was made with "
                          f"(`{command('info', info.name, *models_options(args))}` shows it)")
-
-
-def load_animated_source(info, args):
-    """The frames the animated model ``info`` is measured against: ``--mesh`` OBJ and
-    ``--animation`` CACHE at ``--fps`` (default: the rate the model was made at), in the file's
-    frame; ValueError in one line when they are missing or cannot be the model's animation (another
-    frame count or duration)."""
-    from collider_contract import Timeline
-    from collider_server.making.animation_files import load_animation
-
-    source = info.source
-    rate = source.get("frame_rate_hz")
-    made_from = (f"{info.name} was made from {source.get('mesh', '?')}.obj and {source.get('cache', '?')}, "
-                 f"{source.get('frames', '?')} frames at {'?' if rate is None else f'{rate:g}'} fps")
-    if args.animation is None:
-        raise ValueError(f"{info.name} is animated: give the frames it was made from, --mesh OBJ "
-                         f"--animation CACHE ({made_from})")
-    fps = args.fps if args.fps is not None else source.get("frame_rate_hz")
-    if fps is None:
-        raise ValueError(f"{info.name} does not record its frame rate: give --fps")
-    timeline = Timeline.from_dict(info.animation)
-    animation = load_animation(args.mesh, args.animation, fps, timeline.loop)
-    frames = animation.timeline.frames
-    if source.get("frames") is not None and frames != source["frames"]:
-        raise ValueError(f"{args.animation}: {frames} frames, but {made_from}")
-    duration = animation.timeline.duration_s
-    if not np.isclose(duration, timeline.duration_s, rtol=1e-9, atol=0.0):
-        raise ValueError(f"{args.animation} at {fps:g} fps lasts {duration:g} s, but {info.name}'s animation "
-                         f"lasts {timeline.duration_s:g} s ({made_from})")
-    return animation
 
 
 def source_differences(info, mesh, transform: np.ndarray, mesh_arg: str, cache_arg: str | None = None) -> list[str]:

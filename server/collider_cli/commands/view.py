@@ -14,6 +14,7 @@ from .options import (
     add_models_argument,
     add_placement_arguments,
     add_quiet_argument,
+    load_animated_source,
     placement_from_args,
 )
 
@@ -84,9 +85,6 @@ def run_collider_view(args: argparse.Namespace) -> int:
 
     collider = ModelRepository(args.models).load(args.model, args.device)
     info = collider.info
-    if collider.animated and args.mesh is not None and args.animation is None:
-        raise ValueError(f"{info.name} is animated: give the vertex cache it was baked from with "
-                         f"--mesh, --animation CACHE ({made_from(info)})")
     if not collider.animated and (args.animation, args.fps) != (None, None):
         raise ValueError(f"{info.name} is static: --animation and --fps are for animated models")
     if args.animation is not None and args.mesh is None:
@@ -118,37 +116,6 @@ def run_collider_view(args: argparse.Namespace) -> int:
     wait_until_interrupted(page.server, f"view of {collider.info.name} at {url_of(page.server)}  "
                                         "(Ctrl-C to stop)")
     return 0
-
-
-def made_from(info) -> str:
-    """What an animated model's source says it was baked from, for an error message."""
-    source = info.source
-    rate = source.get("frame_rate_hz")
-    return (f"{info.name} was baked from {source.get('mesh', '?')}.obj and "
-            f"{source.get('cache', '?')}, {source.get('frames', '?')} frames at "
-            f"{'?' if rate is None else f'{rate:g}'} fps")
-
-
-def load_animated_source(info, args):
-    """The exact animation of the animated model ``info``, in its file's frame: ``--mesh`` OBJ
-    and ``--animation`` CACHE at ``--fps`` (default: the rate the model was baked at), looping
-    as the model does; a one-line ValueError when it cannot be the model's animation (another
-    frame count or duration)."""
-    from collider_contract import Timeline
-    from collider_server.making.animation_files import load_animation
-
-    timeline = Timeline.from_dict(info.animation)
-    fps = args.fps if args.fps is not None else info.source.get("frame_rate_hz")
-    if fps is None:
-        raise ValueError(f"{info.name} does not record the frame rate it was baked at: give --fps")
-    animation = load_animation(args.mesh, args.animation, fps, timeline.loop)
-    frames = animation.timeline.frames
-    if info.source.get("frames") not in (None, frames):
-        raise ValueError(f"{args.animation}: {frames} frames, but {made_from(info)}")
-    if not np.isclose(animation.timeline.duration_s, timeline.duration_s, rtol=1e-9, atol=0.0):
-        raise ValueError(f"{args.animation} at {fps:g} fps lasts {animation.timeline.duration_s:g} "
-                         f"s, but {info.name} lasts {timeline.duration_s:g} s ({made_from(info)})")
-    return animation
 
 
 def view_up(transform) -> str:
