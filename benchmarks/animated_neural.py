@@ -186,7 +186,7 @@ def train_variants(animation, variants: list[str], minutes: float, threads: int,
     for variant in variants:
         architecture = json.loads(variant)
         config = TrainConfig(preset="keyframes", max_minutes=minutes, threads=threads, architecture=architecture)
-        result = train_animated_neural(animation, "variant", config, show_progress=False)
+        result = train_animated_neural(animation, "variant", config, device="cpu", show_progress=False)
         path = save_collider(result.collider, folder / f"variant-{len(paths)}.safetensors")
         print(f"{variant}: {result.summary()}", flush=True)
         paths.append(path)

@@ -1,7 +1,8 @@
 """Query speed of neural colliders against the exact mesh, embedded, in ONE interleaved run.
 
-For 1M points (default) near the bunny's surface (uniform in the +-10 mm band, collider frame,
-metres), the time of ``Collider.query`` for distance + normal + contact and for distance only, for
+For 1M points (default) near each model's source mesh (uniform in the +-10 mm band, collider
+frame, metres; the mesh is ``--mesh``, else the file the model was made from, found where it was
+or under examples/meshes or ../shared/data/meshes), the time of ``Collider.query`` for distance + normal + contact and for distance only, for
 the exact ``mesh`` kind (libigl) and for each neural model given (default: the shipped ``bunny``);
 optionally the same network through another grid query kernel (``--kernel-from``, e.g. the one
 before a change) and, for grid networks, the pure-torch path (the reference, and what runs on
@@ -28,13 +29,12 @@ import time
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
-BUNNY = REPO / "examples" / "meshes" / "stanford-bunny.obj"
 ALL = ["distance", "normal", "contact"]
 
 
 def parse_args(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--mesh", type=Path, default=BUNNY)
+    parser.add_argument("--mesh", type=Path, default=None, help="the models' source mesh (default: each one's own)")
     parser.add_argument("--model", action="append", default=None, help="model name or path (default: bunny)")
     parser.add_argument("--models", type=Path, default=REPO / "models")
     parser.add_argument("--points", type=int, default=1_000_000)
@@ -75,6 +75,22 @@ def _gpu(device: str) -> str:
     return "" if device == "cpu" else f", neural models on {torch.cuda.get_device_name(torch.device(device))}"
 
 
+def source_mesh(info, given: Path | None):
+    """``given``, else the mesh the model ``info`` was made from: ``NAME.obj`` (its source's
+    ``mesh``) in examples/meshes or ../shared/data/meshes, the same file (sha256)."""
+    from collider_server.making.mesh_files import load_mesh
+
+    if given is not None:
+        return load_mesh(given)
+    name = f"{info.source.get('mesh', info.name)}.obj"
+    for folder in (REPO / "examples" / "meshes", REPO.parent / "shared" / "data" / "meshes"):
+        if (folder / name).is_file():
+            mesh = load_mesh(folder / name)
+            if mesh.sha256 == info.source.get("sha256", mesh.sha256):
+                return mesh
+    raise SystemExit(f"neural_query.py: {info.name}'s source mesh {name} is not here: give --mesh")
+
+
 def timed(call) -> float:
     started = time.perf_counter()
     call()
@@ -84,24 +100,25 @@ def timed(call) -> float:
 def main(argv=None) -> int:
     import torch
 
+    from collider_server.engine.devices import resolve_device
     from collider_server.engine.kinds import grid_kernels
     from collider_server.engine.modelfile import load_collider
     from collider_server.engine.repository import ModelRepository
     from collider_server.making.bake import bake_collider
-    from collider_server.making.mesh_files import load_mesh
     from collider_server.making.sampling import surface_band_points
 
     args = parse_args(argv)
+    args.device = resolve_device(args.device)
     if args.threads:
         torch.set_num_threads(args.threads)
         grid_kernels.set_threads(args.threads)
     other_kernel = load_kernel(args.kernel_from) if args.kernel_from else None
-    mesh = load_mesh(args.mesh)
     repo = ModelRepository(args.models)
     # candidates: (label, collider, kernel or None, points)
     candidates = []
     for name in args.model or ["bunny"]:
         collider = load_collider(repo.resolve(name), args.device)
+        mesh = source_mesh(collider.info, args.mesh)
         transform = collider.info.source.get("transform")
         placed = mesh.transformed(transform) if transform is not None else mesh
         points = surface_band_points(placed, args.points, 1e-2 / collider.info.meters_per_unit, seed=1)

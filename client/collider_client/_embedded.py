@@ -81,13 +81,15 @@ class EmbeddedBackend:
             raise refusal(exc) from None
 
     def list_models(self) -> list[ModelInfo]:
-        from collider_server.engine.devices import resolve_device
+        from collider_server.engine.devices import device_of, resolve_device
         from collider_server.engine.modelfile import read_info
         from collider_server.engine.repository import model_info
 
         device = resolve_device(self.device)
-        return [model_info(name, read_info(path), path.stat().st_size, device)
-                for name, path in ((name, self.repository.path(name)) for name in self.repository.names())]
+        infos = ((name, path, read_info(path)) for name, path in
+                 ((name, self.repository.path(name)) for name in self.repository.names()))
+        return [model_info(name, info, path.stat().st_size, device_of(info.kind, device))
+                for name, path, info in infos]
 
     def close(self) -> None:
         self._colliders.clear()

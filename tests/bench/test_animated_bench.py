@@ -81,6 +81,7 @@ def test_bench_options_of_an_animation_need_one(tmp_path, capsys):
     assert code == 2 and "--fps, --loop/--clamp, --keyframes and --times need --animation" in err
 
 
+@pytest.mark.slow
 def test_quick_bench_leaves_the_4d_network_out_with_the_command_that_measures_it(arm_bench):
     _, report, _ = arm_bench
     skipped = {s["name"]: s["reason"] for s in report["skipped"]}

@@ -266,6 +266,7 @@ def test_a_server_on_cuda_answers_as_the_cpu_engine(cuda):
     import collider_client as cc
     from collider_cli.launch import ServerProcess
 
+    from collider_server.engine.devices import device_of
     from collider_server.engine.repository import ModelRepository
 
     repository = ModelRepository()
@@ -277,9 +278,10 @@ def test_a_server_on_cuda_answers_as_the_cpu_engine(cuda):
         server.wait_ready(120)
         with cc.Client(server.url, timeout_s=60) as remote, \
                 cc.Client(models=repository.root, device="cpu") as embedded:
-            on_cpu = ("mesh", "kdtree")  # libigl / scipy: the CPU whatever --device says
-            assert {m.name: m.device for m in remote.list_models()} == {
-                m.name: "cpu" if m.kind in on_cpu else "cuda" for m in embedded.list_models()}
+            served = {m.name: m.device for m in remote.list_models()}
+            assert served == {m.name: device_of(m.kind, "cuda") for m in embedded.list_models()}
+            with cc.Client(models=repository.root, device=cuda) as on_gpu:
+                assert {m.name: m.device for m in on_gpu.list_models()} == served
             for name in names:
                 info = next(m for m in embedded.list_models() if m.name == name)
                 lo, hi = np.asarray(info.domain_min), np.asarray(info.domain_max)

@@ -42,7 +42,7 @@ from collider_server.engine.animated_meshes import AnimatedMesh, ExactAtTimes
 from collider_server.engine.collider import Collider
 from collider_server.making.progress import format_duration, progress
 
-from .plan import Candidate, Plan
+from .plan import BENCH_TRAINING_SAMPLES, Candidate, Plan
 from .run import (BenchConfig, default_devices, default_threads, finish_report, interrupted, load_average,
                   say, time_all)
 from .timing import ANIMATED_MODES
@@ -163,7 +163,8 @@ def build_neural(candidate: Candidate, animation: AnimatedMesh, shared: dict, *,
     """Train the 4D network for ``train_minutes`` (the clock starts after its exact samples)."""
     from collider_server.making.training import TrainConfig, train_animated_neural
 
-    config = TrainConfig(preset=candidate.settings["preset"], max_minutes=candidate.settings["train_minutes"])
+    config = TrainConfig(preset=candidate.settings["preset"], max_minutes=candidate.settings["train_minutes"],
+                         samples=BENCH_TRAINING_SAMPLES)
     return train_animated_neural(animation, candidate.name, config, units=units, meters_per_unit=meters_per_unit,
                                  device=device, show_progress=show_progress).collider
 
@@ -304,8 +305,8 @@ def run_animated_bench(animation: AnimatedMesh, transform: np.ndarray, config: B
 
 def build_estimate(candidates, animation: AnimatedMesh, first, cache: Path, transform, units: str,
                    meters_per_unit: float) -> str:
-    """How long the voxel bakes will take: the grids not cached, at the exact SDF's cost per point
-    measured now on the first frame."""
+    """How long the builds will take: the voxel grids not cached, at the exact SDF's cost per point
+    measured now on the first frame, and the minutes of the networks to train."""
     from collider_server.engine.meshes import ExactSDF
     from collider_server.making.bake import exact_seconds_per_point, keyframe_positions, padded_box
 

@@ -33,6 +33,9 @@ from collider_server.engine.meshes import Mesh
 
 KINDS = ("kdtree", "mesh", "voxel", "neural")
 VOXEL_BYTES_PER_SAMPLE = 4  # float32 grid
+#: Exact samples a bench's training run caches (static or 4D): a run of a few minutes sees each
+#: several times, and making more would take longer than the training.
+BENCH_TRAINING_SAMPLES = 500_000
 
 
 @dataclass(frozen=True)
@@ -275,7 +278,7 @@ def _cached(candidate: Candidate, mesh: Mesh, transform, units, meters_per_unit,
         from collider_server.making.training import TrainConfig, train_neural
 
         minutes = candidate.settings["train_minutes"]
-        config = TrainConfig(preset=candidate.settings["preset"], max_minutes=minutes, samples=500_000)
+        config = TrainConfig(preset=candidate.settings["preset"], max_minutes=minutes, samples=BENCH_TRAINING_SAMPLES)
         collider = train_neural(mesh, candidate.name, config, units=units, meters_per_unit=meters_per_unit,
                                 transform=transform, device="cpu", show_progress=show_progress).collider
     collider.info.source["transform"] = np.asarray(transform).tolist()

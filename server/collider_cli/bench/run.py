@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
+from collider_server.engine.devices import DEVICE_KINDS
 from collider_server.engine.meshes import ExactSDF, Mesh
 from collider_server.making.progress import format_duration, progress
 
@@ -29,7 +30,6 @@ from .report import REFERENCE_MODE, size_label
 from .timing import MODES, Cell, Timing, TimingPolicy, process_cpu_clock, time_rounds, warm_up
 
 PATHS = ("embedded", "served")
-GPU_KINDS = ("voxel", "neural")  # mesh and kdtree run on the CPU only (libigl, SciPy)
 
 
 @dataclass(frozen=True)
@@ -198,7 +198,7 @@ def candidate_row(candidate: Candidate, collider, sdf: ExactSDF, sets: dict) -> 
 
 
 def _devices_of(candidate: Candidate, devices) -> list[str]:
-    return [d for d in devices if d == "cpu" or candidate.kind in GPU_KINDS]
+    return [d for d in devices if d == "cpu" or candidate.kind in DEVICE_KINDS]
 
 
 def time_all(candidates: list[Candidate], colliders: dict, devices, points: np.ndarray, config: BenchConfig,

@@ -47,8 +47,6 @@ def make_animation(name: str, mesh: Path, frames: int | None = None):
                 "twisting-bunny": animations.twisting_bunny}[name]
     timing = {}
     if frames is not None:
-        if frames < 2:
-            raise ValueError(f"--frames must be an integer >= 2, got {frames}")
         # The generator's own duration: its default frames and rate.
         defaults = inspect.signature(function).parameters
         duration_s = (defaults["frames"].default - 1) / defaults["fps"].default
@@ -65,6 +63,8 @@ def run_animate(args) -> int:
     from collider_server.making.animation_files import load_animation, write_animation
     from collider_server.making.bake import ANIMATED_KINDS, bake_animated_collider
 
+    if args.frames is not None and args.frames < 2:
+        raise ValueError(f"--frames must be an integer >= 2, got {args.frames}")
     kinds = [] if args.bake is None else [k.strip() for k in args.bake.split(",") if k.strip()]
     unknown = sorted(set(kinds) - set(ANIMATED_KINDS))
     if unknown or (args.bake is not None and not kinds):

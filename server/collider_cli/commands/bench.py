@@ -57,7 +57,7 @@ def register(subparsers) -> None:
                        help="largest collider memory, e.g. 128MiB (default); voxel grids stop before it")
     bench.add_argument("--train-minutes", type=float, default=None,
                        help="train each neural preset without a trained model of this mesh for this long "
-                            "(default 0: list them as not measured)")
+                            "(with --animation: the 4D network); default 0: list them as not measured")
     bench.add_argument("--presets", default=None,
                        help="comma-separated neural presets to include (default: every preset)")
     bench.add_argument("--sizes", default=None, help="points per query call (default 10k,40k,1M)")
@@ -76,7 +76,8 @@ def register(subparsers) -> None:
     add_models_argument(bench, "searched for trained neural models of MESH")
     animated = bench.add_argument_group(
         "animated colliders", "with --animation, MESH (an OBJ) and its frames are benched: the animated "
-        "mesh kind (exact) and voxel keyframe grids at each --resolutions and --keyframes, errors at "
+        "mesh kind (exact), voxel keyframe grids at each --resolutions and --keyframes and, with "
+        "--train-minutes, the 4D network (preset keyframes) trained here; errors at "
         "--times random times between frames, queries (distance, and distance+normal+contact+velocity) "
         "at one random time; --quick: voxel 16 and 32, 5 keyframes and every frame, 4 times")
     animated.add_argument("--animation", default=None, metavar="CACHE",

@@ -1,6 +1,16 @@
-"""Which torch device a collider runs on: CUDA when present, else the CPU."""
+"""Which torch device a collider runs on: CUDA when present, else the CPU; the exact kinds on
+the CPU whatever is asked."""
 
 from __future__ import annotations
+
+#: The kinds that run on the device they are given (torch); the exact ``mesh`` and the
+#: ``kdtree`` kinds run on the CPU whatever it is (libigl, SciPy).
+DEVICE_KINDS = ("voxel", "neural")
+
+
+def device_of(kind: str, device: str) -> str:
+    """Where a collider of ``kind`` asked to run on ``device`` (a resolved name) runs."""
+    return device if kind in DEVICE_KINDS else "cpu"
 
 
 def default_device() -> str:
