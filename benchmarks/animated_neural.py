@@ -5,7 +5,9 @@ in the +-1 mm band around the exact interpolated mesh at that time (``--points``
 exact SDF and its gradient (:class:`ExactAtTimes`). Figures: distance error mean / p99 / max (mm),
 sign errors among points with |d| > 0.2 mm (percent), normal angle mean / p99 (degrees), and the
 normal speed error (mm/s) against the exact surface's: the vertex velocities interpolated at the
-closest point, projected on the normal.
+closest point, projected on the normal. And the mean distance error by where the time lies between
+two of the collider's keyframes, in fifths of the segment: even, the blend in time is not what
+limits it (docs/neural.md).
 
 Memory: the model file's bytes. Query: 1M points in the +-10 mm band at one random time, fields
 distance + normal + contact + velocity, against ``--static`` (a static grid network, the same
@@ -43,7 +45,8 @@ def accuracy(collider, animation, times: int, points: int, seed: int) -> dict:
     rng = np.random.default_rng(seed)
     exact = ExactAtTimes(animation, keep=1)
     to_mm = 1000.0 * collider.info.meters_per_unit
-    errors, signs, angles, speeds = [], [], [], []
+    errors, signs, angles, speeds, fifths = [], [], [], [], []
+    keyframes = collider.info.animation["frames"]  # the collider's own keyframes (a network's tables)
     for i, t in enumerate(rng.uniform(0.0, animation.timeline.duration_s, times)):
         sdf, k, rate = exact.at(float(t))
         p = band_sets(sdf.mesh, max(1, points // times), seed + 10 * i, collider.info.meters_per_unit)["band_1mm"]
@@ -52,6 +55,9 @@ def accuracy(collider, animation, times: int, points: int, seed: int) -> dict:
         got = collider.query(p, ["distance", "normal", "velocity"], time=float(t))
         d = got.distance.astype(np.float64)
         errors.append(np.abs(d - truth) * to_mm)
+        # Where t lies between two of the collider's keyframes, in fifths: a blend errs most mid-way.
+        position = t / animation.timeline.duration_s * (keyframes - 1)
+        fifths.append(np.full(len(p), min(int(5 * (position - np.floor(position))), 4)))
         decided = np.abs(truth) * to_mm > SIGN_THRESHOLD_MM
         signs.append(((d < 0) != (truth < 0))[decided])
         cosine = np.clip(np.einsum("ij,ij->i", got.normal.astype(np.float64), normal), -1.0, 1.0)
@@ -62,13 +68,15 @@ def accuracy(collider, animation, times: int, points: int, seed: int) -> dict:
         true_speed = np.einsum("ij,ij->i", true_velocity, normal)
         speed = np.einsum("ij,ij->i", got.velocity.astype(np.float64), normal)
         speeds.append(np.abs(speed - true_speed) * to_mm)
-    error, sign, angle, speed = (np.concatenate(a) for a in (errors, signs, angles, speeds))
+    error, sign, angle, speed, fifth = (np.concatenate(a) for a in (errors, signs, angles, speeds, fifths))
     return {"points": int(len(error)), "times": times,
             "distance_mean_mm": float(error.mean()), "distance_p99_mm": float(np.percentile(error, 99)),
             "distance_max_mm": float(error.max()), "sign_errors_percent": float(100.0 * sign.mean()),
             "normal_mean_deg": float(angle.mean()), "normal_p99_deg": float(np.percentile(angle, 99)),
             "normal_speed_error_mean_mm_s": float(speed.mean()),
-            "normal_speed_error_p99_mm_s": float(np.percentile(speed, 99))}
+            "normal_speed_error_p99_mm_s": float(np.percentile(speed, 99)),
+            "distance_mean_mm_by_fifth_of_keyframe_segment": [
+                float(error[fifth == j].mean()) if (fifth == j).any() else None for j in range(5)]}
 
 
 def voxel_keyframe_errors(animation, resolutions, keyframe_counts, times: int, points: int, seed: int,
