@@ -187,13 +187,15 @@ def static_mesh(static):
     return mesh if np.allclose(transform, np.eye(4)) else mesh.transformed(transform)
 
 
-def train_variants(animation, variants: list[str], minutes: float, threads: int, folder: Path) -> list[Path]:
+def train_variants(animation, variants: list[str], minutes: float, threads: int, samples: int,
+                   folder: Path) -> list[Path]:
     from collider_server.making.training import TrainConfig, train_animated_neural
 
     paths = []
     for variant in variants:
         architecture = json.loads(variant)
-        config = TrainConfig(preset="keyframes", max_minutes=minutes, threads=threads, architecture=architecture)
+        config = TrainConfig(preset="keyframes", max_minutes=minutes, threads=threads, samples=samples,
+                             architecture=architecture)
         result = train_animated_neural(animation, "variant", config, device="cpu", show_progress=False)
         path = save_collider(result.collider, folder / f"variant-{len(paths)}.safetensors")
         print(f"{variant}: {result.summary()}", flush=True)
@@ -218,6 +220,7 @@ def main() -> int:
     parser.add_argument("--variants", nargs="*", default=[], metavar="JSON",
                         help='architecture overrides of the keyframes preset to train, e.g. \'{"keyframes": 5}\'')
     parser.add_argument("--minutes", type=float, default=5.0, help="training budget per variant")
+    parser.add_argument("--samples", type=int, default=1_000_000, help="cached exact samples per variant")
     parser.add_argument("--voxel-resolutions", type=int, nargs="*", default=[],
                         help="also the voxel keyframe collider's error at these resolutions")
     parser.add_argument("--voxel-keyframes", type=int, nargs="*", default=[],
@@ -230,7 +233,7 @@ def main() -> int:
     animation = load_animation(args.mesh, args.animation, args.fps, args.loop)
     args.out.mkdir(parents=True, exist_ok=True)
     paths = [Path(p) for p in args.models] + train_variants(animation, args.variants, args.minutes, args.threads,
-                                                           args.out)
+                                                           args.samples, args.out)
     static = load_collider(args.static, args.device) if args.static else None
     report = {"load_before": os.getloadavg(), "device": args.device, "models": []}
     for path in paths:
