@@ -86,10 +86,12 @@ class EmbeddedBackend:
         from collider_server.engine.repository import model_info
 
         device = resolve_device(self.device)
-        infos = ((name, path, read_info(path)) for name, path in
-                 ((name, self.repository.path(name)) for name in self.repository.names()))
-        return [model_info(name, info, path.stat().st_size, device_of(info.kind, device))
-                for name, path, info in infos]
+        models = []
+        for name in self.repository.names():
+            path = self.repository.path(name)
+            info = read_info(path)
+            models.append(model_info(name, info, path.stat().st_size, device_of(info.kind, device)))
+        return models
 
     def close(self) -> None:
         self._colliders.clear()
