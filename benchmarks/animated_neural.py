@@ -37,6 +37,9 @@ from collider_server.engine.modelfile import load_collider, save_collider
 from collider_server.making.animation_files import load_animation
 from collider_server.making.sampling import band_sets
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from neural_query import source_mesh  # noqa: E402  (a static model's own mesh: one rule for both scripts)
+
 SIGN_THRESHOLD_MM = 0.2
 
 
@@ -178,11 +181,8 @@ def query_times(collider, static, animation, rounds: int, seed: int) -> dict:
 
 
 def static_mesh(static):
-    """The static model's source mesh, placed as it was (the shipped bunny's file)."""
-    from collider_server.making.mesh_files import load_mesh
-
-    mesh = load_mesh(static.info.source["path"]) if os.path.exists(static.info.source.get("path", "")) \
-        else load_mesh(str(Path(__file__).resolve().parents[1] / "examples/meshes/stanford-bunny.obj"))
+    """The static model's source mesh (:func:`neural_query.source_mesh`), placed as it was."""
+    mesh = source_mesh(static.info, None)
     transform = np.asarray(static.info.source.get("transform", np.eye(4)))
     return mesh if np.allclose(transform, np.eye(4)) else mesh.transformed(transform)
 
