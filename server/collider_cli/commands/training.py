@@ -31,8 +31,10 @@ def register(subparsers) -> None:
     train = subparsers.add_parser(
         "train", help="train a neural collider from a mesh (or an animated one)",
         description="Train a neural collider of MESH. With --animation, one network for the whole "
-                    "animation (keyframe feature tables blended in time), trained at random times "
-                    "against the exact interpolated mesh.")
+                    "animation, validated at random times against the exact interpolated mesh: "
+                    "keyframe feature tables blended in time (preset keyframes, any motion), or the "
+                    "rest pose's grid carried by deformation fields fitted to the frames (preset "
+                    "deformed, a smooth deformation such as a twist or a squash: docs/neural.md).")
     train.add_argument("mesh", help="mesh file (OBJ, PLY, STL, OFF, GLB; an OBJ with --animation)")
     train.add_argument("--name", required=True, help="model name (file NAME.safetensors)")
     train.add_argument("--preset", default=None, choices=sorted({**PRESETS, **ANIMATED_PRESETS}),
@@ -53,7 +55,7 @@ def register(subparsers) -> None:
                             "schedule, validations, progress bar and stop follow the clock; keeps the best weights")
     train.add_argument("--seed", type=int, default=defaults.seed)
     train.add_argument("--threads", type=int, default=None, help="CPU threads for torch")
-    add_animation_arguments(train, "feature tables, evenly spaced from the first frame to the last "
+    add_animation_arguments(train, "feature tables of preset keyframes, evenly spaced from the first frame to the last "
                                    f"(default: the preset's, {ANIMATED_PRESETS[DEFAULT_ANIMATED_PRESET].keyframes})")
     add_placement_arguments(train)
     add_models_argument(train, "where the model is written")

@@ -222,7 +222,7 @@ def test_a_model_whose_tables_do_not_fit_its_animation_is_refused(tmp_path):
     c = collider(random_network())
     c.info.animation = {**c.info.animation, "frames": 5}
     path = save_collider(c, tmp_path / "bad.safetensors")
-    with pytest.raises(ModelFileError, match="4 keyframe tables, but the animation has 5 frames"):
+    with pytest.raises(ModelFileError, match="4 keyframes, but the animation has 5 frames"):
         load_collider(path)
 
 

@@ -402,3 +402,59 @@ if numba is not None:
                                   + gz * grad_jacobian[p, level, f, 2])
                         grad_tables[k, row, f] += a * g
                         grad_tables[k + 1, row, f] += b * g
+
+    @_pjit
+    def warp(u, field, dfield, resolution, want_velocity, rest, jacobian, velocity):
+        """The deformed network's warp (:mod:`.neural_deformed`) at normalised points ``u``
+        (n, 3): the trilinear field (nodes, 3) of ``resolution`` cells per side gives the rest
+        point ``rest = u + W(u)`` (n, 3) and ``jacobian = d rest / d u`` (n, 3, 3, row: the rest
+        point's component); when ``want_velocity``, ``velocity`` (n, 3) = ``-jacobian^-1 dW(u)``
+        with ``dfield`` the field's time derivative: the material point's velocity (normalised
+        units per second). Outputs overwritten."""
+        n = u.shape[0]
+        for p in numba.prange(n):
+            cx, wx, dx = _axis(u[p, 0], resolution, False)
+            cy, wy, dy = _axis(u[p, 1], resolution, False)
+            cz, wz, dz = _axis(u[p, 2], resolution, False)
+            o0 = o1 = o2 = 0.0
+            r0 = r1 = r2 = 0.0
+            j00 = j01 = j02 = j10 = j11 = j12 = j20 = j21 = j22 = 0.0
+            for corner in range(8):
+                row, weight, gx, gy, gz = _corner(corner, cx, cy, cz, wx, wy, wz, dx, dy, dz, resolution, 0, True)
+                v0, v1, v2 = field[row, 0], field[row, 1], field[row, 2]
+                o0 += weight * v0
+                o1 += weight * v1
+                o2 += weight * v2
+                j00 += gx * v0
+                j01 += gy * v0
+                j02 += gz * v0
+                j10 += gx * v1
+                j11 += gy * v1
+                j12 += gz * v1
+                j20 += gx * v2
+                j21 += gy * v2
+                j22 += gz * v2
+                if want_velocity:
+                    r0 += weight * dfield[row, 0]
+                    r1 += weight * dfield[row, 1]
+                    r2 += weight * dfield[row, 2]
+            rest[p, 0] = u[p, 0] + o0
+            rest[p, 1] = u[p, 1] + o1
+            rest[p, 2] = u[p, 2] + o2
+            j00 += 1.0
+            j11 += 1.0
+            j22 += 1.0
+            jacobian[p, 0, 0], jacobian[p, 0, 1], jacobian[p, 0, 2] = j00, j01, j02
+            jacobian[p, 1, 0], jacobian[p, 1, 1], jacobian[p, 1, 2] = j10, j11, j12
+            jacobian[p, 2, 0], jacobian[p, 2, 1], jacobian[p, 2, 2] = j20, j21, j22
+            if want_velocity:
+                # -J^-1 r by Cramer's rule (J is near the identity: a smooth fitted deformation).
+                c00, c01, c02 = j11 * j22 - j12 * j21, j02 * j21 - j01 * j22, j01 * j12 - j02 * j11
+                c10, c11, c12 = j12 * j20 - j10 * j22, j00 * j22 - j02 * j20, j02 * j10 - j00 * j12
+                c20, c21, c22 = j10 * j21 - j11 * j20, j01 * j20 - j00 * j21, j00 * j11 - j01 * j10
+                det = j00 * c00 + j01 * c10 + j02 * c20
+                if det == 0.0:
+                    det = 1e-30
+                velocity[p, 0] = -(c00 * r0 + c01 * r1 + c02 * r2) / det
+                velocity[p, 1] = -(c10 * r0 + c11 * r1 + c12 * r2) / det
+                velocity[p, 2] = -(c20 * r0 + c21 * r1 + c22 * r2) / det

@@ -21,6 +21,7 @@ import numpy as np
 from ..collider import Collider, ColliderInfo
 from ..devices import resolve_device
 from . import grid_kernels
+from .neural_deformed import DeformedGridArchitecture, build_deformed_network
 from .neural_grid import GridArchitecture, build_grid_network
 from .neural_keyframes import KeyframeGridArchitecture, build_keyframe_network
 
@@ -66,8 +67,12 @@ PRESETS: dict[str, Architecture | GridArchitecture] = {
 }
 
 #: The presets of an animation (``collider train --animation``), apart: a static mesh cannot use
-#: them (ours: keyframe tables, docs/neural.md).
-ANIMATED_PRESETS: dict[str, KeyframeGridArchitecture] = {"keyframes": KeyframeGridArchitecture()}
+#: them (ours, docs/neural.md): keyframe tables blended in time (any motion), or the rest pose's
+#: grid carried by fitted deformation fields (a smooth deformation: a twist, a squash).
+ANIMATED_PRESETS: dict[str, KeyframeGridArchitecture | DeformedGridArchitecture] = {
+    "keyframes": KeyframeGridArchitecture(),
+    "deformed": DeformedGridArchitecture(),
+}
 
 #: The preset ``collider train --animation`` uses when none is named.
 DEFAULT_ANIMATED_PRESET = "keyframes"
@@ -80,7 +85,7 @@ def architecture_from_dict(values: dict) -> Architecture | GridArchitecture:
     """The architecture stored in a model's ``settings["architecture"]`` (files written before
     the grid encoding have no ``encoding`` key: they are Fourier networks)."""
     values = dict(values)
-    for cls in (GridArchitecture, KeyframeGridArchitecture):
+    for cls in (GridArchitecture, KeyframeGridArchitecture, DeformedGridArchitecture):
         if values.get("encoding") == cls.ENCODING:
             return cls(**values)
     values.pop("encoding", None)
@@ -96,6 +101,8 @@ def build_network(arch: Architecture | GridArchitecture, centre, radius: float):
     """The torch module for ``arch``; input collider-frame points (n, 3) float32, output (n,)."""
     if isinstance(arch, KeyframeGridArchitecture):
         return build_keyframe_network(arch, centre, radius)
+    if isinstance(arch, DeformedGridArchitecture):
+        return build_deformed_network(arch, centre, radius)
     if isinstance(arch, GridArchitecture):
         return build_grid_network(arch, centre, radius)
     import torch

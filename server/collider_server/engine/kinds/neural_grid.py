@@ -22,7 +22,7 @@ correct reference it is tested against.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from typing import ClassVar
 
 import numpy as np
@@ -78,6 +78,12 @@ class GridArchitecture:
             raise ValueError(f"table_dtype must be 'float16' or 'float32', got {self.table_dtype!r}")
         if self.encoding != self.ENCODING:
             raise ValueError(f"a {type(self).__name__} has encoding {self.ENCODING!r}, got {self.encoding!r}")
+
+    def grid(self) -> "GridArchitecture":
+        """The plain grid of this architecture (a subclass's own fields dropped): the static
+        network an animated one is built on."""
+        return GridArchitecture(**{f.name: getattr(self, f.name) for f in fields(GridArchitecture)
+                                   if f.name != "encoding"})
 
     def resolutions(self) -> list[int]:
         """Cells per side of each level, coarse to fine."""

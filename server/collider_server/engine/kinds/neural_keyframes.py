@@ -22,7 +22,7 @@ kernels :func:`.grid_kernels.encode_keyframes` and its backward, or torch ops).
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from typing import ClassVar
 
 import numpy as np
@@ -50,9 +50,7 @@ class KeyframeGridArchitecture(GridArchitecture):
 
     def spatial(self) -> GridArchitecture:
         """The static grid of one keyframe (same levels, rows and MLP)."""
-        values = asdict(self)
-        del values["keyframes"], values["encoding"]
-        return GridArchitecture(**values)
+        return self.grid()
 
     def parameter_count(self) -> int:
         table = sum(self.level_rows()) * self.features

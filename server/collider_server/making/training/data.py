@@ -37,12 +37,13 @@ def default_margin(mesh: Mesh | AnimatedMesh, meters_per_unit: float) -> float:
 
 
 def make_training_data(mesh: Mesh, sdf: ExactSDF, config: TrainConfig, meters_per_unit: float,
-                       show_progress: bool = True) -> TrainingData:
+                       show_progress: bool = True, box=None) -> TrainingData:
     """``config.samples`` points (mesh units and frame) and their exact distances and
-    gradients: the near-surface share first (``near`` True), then uniform in the padded box."""
+    gradients: the near-surface share first (``near`` True), then uniform in ``box`` (lo, hi;
+    default the mesh's padded box)."""
     margin = config.margin_m / meters_per_unit if config.margin_m else default_margin(mesh, meters_per_unit)
     points, near = sample_points(mesh, config.samples, config, margin, meters_per_unit, config.seed,
-                                 padded_box(mesh, config.padding))
+                                 padded_box(mesh, config.padding) if box is None else box)
     distance = np.empty(len(points))
     gradient = np.empty((len(points), 3))
     chunk = 100_000

@@ -5,7 +5,7 @@ from __future__ import annotations
 import math
 import sys
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -16,6 +16,7 @@ from ...engine.animated_meshes import AnimatedMesh
 from ...engine.collider import ColliderInfo
 from ...engine.kinds.animated_neural import AnimatedNeuralCollider
 from ...engine.kinds.neural import ANIMATED_PRESETS, NeuralCollider, architecture_dict, build_network
+from ...engine.kinds.neural_deformed import DeformedGridArchitecture
 from ...engine.kinds.neural_keyframes import KeyframeGridArchitecture, keyframe_positions
 from ...engine.meshes import ExactSDF, Mesh
 from ..bake import animation_source, mesh_source, padded_box
@@ -29,6 +30,7 @@ from .checkpoints import (
 )
 from .config import TrainConfig
 from .data import animated_validation_sets, make_animated_training_data, make_training_data, validation_sets
+from .deformation import fit_deformation
 from .schedule import RunClock, cosine_learning_rate, make_optimizer, set_training_threads
 
 
@@ -68,14 +70,18 @@ class TrainResult:
 
 
 def check_preset(config: TrainConfig, animated: bool):
-    """``config`` checked, and its architecture, which must be a keyframe network for an
-    animation and a static one otherwise (ValueError naming the preset)."""
+    """``config`` checked, and its architecture, which must be an animated one (keyframes or
+    deformed) for an animation and a static one otherwise (ValueError naming the preset)."""
     config.check()
     arch = config.resolved_architecture()
-    if animated and not isinstance(arch, KeyframeGridArchitecture):
-        raise ValueError(f"preset {config.preset!r} is static; an animation takes a keyframe preset "
+    moving = isinstance(arch, (KeyframeGridArchitecture, DeformedGridArchitecture))
+    if animated and not moving:
+        raise ValueError(f"preset {config.preset!r} is static; an animation takes an animated preset "
                          f"({', '.join(sorted(ANIMATED_PRESETS))})")
-    if not animated and isinstance(arch, KeyframeGridArchitecture):
+    if isinstance(arch, DeformedGridArchitecture) and "keyframes" in config.architecture:
+        raise ValueError(f"preset {config.preset!r} has one deformation field per frame of the animation; "
+                         "keyframes (--keyframes) are the keyframes preset's")
+    if not animated and moving:
         raise ValueError(f"preset {config.preset!r} is for an animation (--animation); a static mesh "
                          "takes a static preset")
     return arch
@@ -104,26 +110,55 @@ def train_animated_neural(animation: AnimatedMesh, name: str, config: TrainConfi
                           meters_per_unit: float = 1.0, transform: np.ndarray | None = None,
                           device: str | None = None, checkpoint: Path | None = None,
                           show_progress: bool = True) -> TrainResult:
-    """Train one network for the whole of ``animation`` (its units and frame; a keyframe preset):
-    samples at random times, the exact interpolated mesh as truth, validation at other random
-    times; returns the best checkpoint as an animated collider whose ``info.animation`` is the
-    keyframes' timeline (the source's frames and rate in ``info.source``)."""
+    """Train one network for the whole of ``animation`` (its units and frame; an animated preset):
+    validation at random times against the exact interpolated mesh; returns the best checkpoint
+    as an animated collider whose ``info.animation`` is the keyframes' timeline (the source's
+    frames and rate in ``info.source``).
+
+    Keyframe tables train on samples at random times, the exact interpolated mesh as truth. A
+    deformed network fits its deformation fields to the frames (one per frame, before the clock)
+    and trains its rest pose, the first frame, on that mesh's exact samples (box samples over
+    every frame's box: where the deformation sends any point of the domain)."""
     arch = check_preset(config, animated=True)
     timeline = animation.timeline
     duration = timeline.duration_s
+    deformed = isinstance(arch, DeformedGridArchitecture)
+    if deformed:
+        arch = replace(arch, keyframes=timeline.frames)
 
     def inputs(times):
-        """An animated network's per-sample inputs after the point: keyframe segment, fraction."""
+        """An animated network's per-sample inputs after the point: keyframe segment, fraction
+        (none for a rest pose's samples, which have no time)."""
         import torch
 
+        if times is None:
+            return ()
         key, frac = keyframe_positions(times, duration, arch.keyframes)
         return torch.from_numpy(key), torch.from_numpy(frac)
 
     def samples():
         validation = animated_validation_sets(animation, config.validation_points, config.seed + 100,
                                               meters_per_unit)
-        return (make_animated_training_data(animation, config, meters_per_unit, show_progress),
-                {k: (p, d, inputs(t)) for k, (p, d, t) in validation.items()})
+        if deformed:
+            rest = animation.frame(0)
+            data = make_training_data(rest, ExactSDF(rest), config, meters_per_unit, show_progress,
+                                      box=padded_box(animation, config.padding))
+        else:
+            data = make_animated_training_data(animation, config, meters_per_unit, show_progress)
+        return data, {k: (p, d, inputs(t)) for k, (p, d, t) in validation.items()}
+
+    def prepare(network, centre, radius):
+        if not deformed:
+            return
+        import torch
+
+        fit = fit_deformation(animation, centre, radius, arch.deformation_resolution, show_progress)
+        network.deformation.copy_(torch.from_numpy(fit.fields))
+        worst = int(fit.residual_p99.argmax())
+        to_mm = 1000.0 * meters_per_unit
+        print(f"deformation fit: the fields carry every frame's surface samples to the rest pose within "
+              f"{fit.residual_p99.max() * to_mm:.4f} mm (99th percentile; frame {worst}, max "
+              f"{fit.residual_max.max() * to_mm:.3f} mm)", file=sys.stderr)
 
     # The keyframes' own timeline: the same duration, loop and speed bound, K frames.
     keyed = Timeline(arch.keyframes, (arch.keyframes - 1) / duration, timeline.loop, timeline.max_surface_speed)
@@ -131,14 +166,15 @@ def train_animated_neural(animation: AnimatedMesh, name: str, config: TrainConfi
                         meters_per_unit=meters_per_unit, source=animation_source(animation, transform),
                         animation=keyed.to_dict())
     return _train(animation, info, config, arch, samples, inputs, AnimatedNeuralCollider,
-                  run_identity(animation, config, meters_per_unit), device, checkpoint, show_progress)
+                  run_identity(animation, config, meters_per_unit), device, checkpoint, show_progress, prepare)
 
 
 def _train(shape, info: ColliderInfo, config: TrainConfig, arch, samples, inputs, collider_class, identity: dict,
-           device: str | None, checkpoint: Path | None, show_progress: bool) -> TrainResult:
+           device: str | None, checkpoint: Path | None, show_progress: bool, prepare=None) -> TrainResult:
     """The loop of both: ``samples()`` makes the training data and the validation sets
     ``{band: (points, distance, inputs)}``; ``inputs(times)`` the network's per-sample inputs
-    after the point (none for a static network)."""
+    after the point (none for a static network); ``prepare(network, centre, radius)``, when
+    given, sets what the network does not train (before the clock)."""
     import torch
 
     from ...engine.devices import resolve_device
@@ -151,7 +187,10 @@ def _train(shape, info: ColliderInfo, config: TrainConfig, arch, samples, inputs
     lo, hi = padded_box(shape, config.padding)
     centre = 0.5 * (lo + hi)
     radius = 0.5 * float((hi - lo).max())
-    network = build_network(arch, centre, radius).to(device)
+    network = build_network(arch, centre, radius)
+    if prepare is not None:
+        prepare(network, centre, radius)
+    network = network.to(device)
     first_lr, last_lr = config.resolved_learning_rates()
     normal_weight = config.resolved_normal_weight()
     optimizer = make_optimizer(network, first_lr, fused=isinstance(arch, KeyframeGridArchitecture))

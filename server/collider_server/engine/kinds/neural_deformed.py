@@ -1,0 +1,200 @@
+"""A rest pose and its deformation: the 4D network of an animated ``neural`` collider whose
+animation deforms smoothly (a twist, a squash, a breath), one network for the whole animation.
+
+Network (``DeformedGridArchitecture``): the static grid network of :mod:`.neural_grid`, trained on
+the animation's **rest pose** (its first frame), and for every frame k of the animation an
+**inverse deformation field** ``W_k``: on a grid of ``deformation_resolution`` cells per side over
+the collider's domain (normalised coordinates ``u``, trilinear), the offset that carries a point
+of frame k to where the same material point is in the rest pose, ``X = u + W_k(u)``. Between
+frames k and k + 1 (fraction ``s``) the field is ``(1 - s) W_k + s W_{k+1}``, the rule the
+animation's own vertices follow. The fields are fitted to the animation's vertex
+correspondences (a least-squares fit, :func:`fit_deformation`), not trained.
+
+With ``f0`` the rest pose's network, ``J = dX/du`` (3 x 3) and ``G = J^T grad f0(X)`` (the gradient
+of ``f0(X(u))``), in the collider frame and units:
+
+- distance ``f0(X) |grad f0(X)| / |G|``: ``f0(X(u))`` is a signed distance scaled by the
+  deformation's stretch across the surface, ``|J^T n0|`` with ``n0`` the rest normal, and dividing
+  by it undoes that to first order (exact on the surface, the error of second order in the
+  distance, as Taubin's first-order distance); where the deformation is the identity (the rest
+  frame) the answer is the rest network's own;
+- normal ``G / |G|``;
+- velocity: the velocity of the material point at the query point, ``-J^-1 dX/dt`` (the
+  fields' difference times the frame rate): the full velocity, sliding included, as the exact
+  kind's, not only the normal speed.
+
+A query is at one time: the two fields are blended once per call, then the warp, its Jacobian and
+the velocity run in one fused CPU kernel (:func:`.grid_kernels.warp`) and the rest network as the
+static one (the fused CPU kernel), or both as torch ops (CUDA, the reference). ``forward(x)`` and ``value_and_gradient(x)`` without a time are the rest pose's (training);
+``forward(x, key, frac)`` is the deformed distance of points each at its own time (validation).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import ClassVar
+
+import numpy as np
+
+from . import grid_kernels
+from .neural_grid import GridArchitecture, grid_network_class
+
+#: The 8 corners of a cell as 0/1 offsets along x, y, z: (8, 3).
+_CORNERS = np.array([[(c >> 0) & 1, (c >> 1) & 1, (c >> 2) & 1] for c in range(8)], dtype=np.int64)
+
+
+@dataclass(frozen=True)
+class DeformedGridArchitecture(GridArchitecture):
+    """A :class:`GridArchitecture` for the rest pose (the static preset's levels, rows and MLP)
+    and ``keyframes`` inverse deformation fields, one per frame of the animation (the training
+    sets it), of ``deformation_resolution`` cells per side."""
+
+    keyframes: int = 2
+    deformation_resolution: int = 16
+    encoding: str = "deformed-grid"
+    ENCODING: ClassVar[str] = "deformed-grid"
+
+    def __post_init__(self):
+        super().__post_init__()
+        for name, least in (("keyframes", 2), ("deformation_resolution", 1)):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < least:
+                raise ValueError(f"architecture {name} must be an integer >= {least}, got {value!r}")
+
+    def spatial(self) -> GridArchitecture:
+        """The rest pose's static grid (same levels, rows and MLP)."""
+        return self.grid()
+
+    def field_nodes(self) -> int:
+        """Nodes of one deformation field: ``(deformation_resolution + 1)^3``."""
+        return (self.deformation_resolution + 1) ** 3
+
+    def parameter_count(self) -> int:
+        return super().parameter_count() + self.keyframes * self.field_nodes() * 3
+
+
+def trilinear(u: np.ndarray, resolution: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Nodes (n, 8) int64, weights (n, 8) and weight derivatives d weight / d u (n, 8, 3) of the
+    trilinear interpolation at normalised points ``u`` (n, 3) (clamped into [-1, 1]) on a grid of
+    ``resolution`` cells per side over [-1, 1]^3, node ``(i, j, k)`` at row ``i + s (j + s k)``,
+    ``s = resolution + 1``. The numpy twin of the network's torch warp (the fit uses it)."""
+    side = resolution + 1
+    position = np.clip((np.asarray(u, np.float64) + 1.0) * 0.5, 0.0, 1.0) * resolution
+    cell = np.minimum(np.floor(position), resolution - 1)
+    t = position - cell
+    w = np.stack([1.0 - t, t], axis=-1)  # (n, 3, 2)
+    dw = np.stack([-np.ones_like(t), np.ones_like(t)], axis=-1) * (0.5 * resolution)
+    ox, oy, oz = _CORNERS[:, 0], _CORNERS[:, 1], _CORNERS[:, 2]
+    wx, wy, wz = w[:, 0, ox], w[:, 1, oy], w[:, 2, oz]
+    weight = wx * wy * wz
+    dweight = np.stack([dw[:, 0, ox] * wy * wz, wx * dw[:, 1, oy] * wz, wx * wy * dw[:, 2, oz]], axis=-1)
+    ijk = cell.astype(np.int64)[:, None, :] + _CORNERS[None]
+    return ijk[..., 0] + side * (ijk[..., 1] + side * ijk[..., 2]), weight, dweight
+
+
+def build_deformed_network(arch: DeformedGridArchitecture, centre, radius: float):
+    """The torch module for ``arch`` (centre (3,) and radius: the normalisation, collider frame
+    and units); see the module docstring."""
+    import torch
+
+    base = grid_network_class(arch.spatial())
+    resolution = arch.deformation_resolution
+    side = resolution + 1
+
+    class DeformedGridSDF(base):
+        """``deformation``: (K, nodes, 3) inverse deformation fields (normalised units; a buffer,
+        fitted, saved in the model file); everything else as the static GridSDF (the rest pose)."""
+
+        def __init__(self):
+            super().__init__(centre, radius)
+            self.register_buffer("deformation", torch.zeros(arch.keyframes, arch.field_nodes(), 3))
+
+        # -- the warp ---------------------------------------------------------------------------
+
+        def field_corners(self, u):
+            """Nodes (n, 8), weights (n, 8), d weights / d u (n, 8, 3) of the deformation grid at
+            normalised points ``u`` (n, 3): :func:`trilinear` in torch."""
+            position = ((u.clamp(-1.0, 1.0) + 1.0) * 0.5) * resolution
+            cell = position.floor().clamp_(max=resolution - 1)
+            t = position - cell
+            w = torch.stack([1.0 - t, t], dim=-1)
+            dw = torch.stack([-torch.ones_like(t), torch.ones_like(t)], dim=-1) * (0.5 * resolution)
+            ox, oy, oz = self.corners[:, 0], self.corners[:, 1], self.corners[:, 2]
+            wx, wy, wz = w[:, 0, ox], w[:, 1, oy], w[:, 2, oz]
+            dweight = torch.stack([dw[:, 0, ox] * wy * wz, wx * dw[:, 1, oy] * wz, wx * wy * dw[:, 2, oz]], dim=-1)
+            # Clamped axes do not move the warp: their derivative is 0.
+            dweight = dweight * (u.abs() <= 1.0).to(u.dtype)[:, None, :]
+            ijk = cell.long()[:, None, :] + self.corners[None]
+            return ijk[..., 0] + side * (ijk[..., 1] + side * ijk[..., 2]), wx * wy * wz, dweight
+
+        def warp(self, u, values, weight, dweight):
+            """Rest-pose points ``X`` (n, 3) and ``J = dX/du`` (n, 3, 3) (row: X's component) from
+            the corner values (n, 8, 3) of the field at normalised points ``u`` (n, 3)."""
+            offset = (weight[..., None] * values).sum(dim=1)
+            jacobian = torch.einsum("ncd,nce->nde", values, dweight)
+            return u + offset, jacobian + torch.eye(3, dtype=u.dtype, device=u.device)
+
+        def warp_at(self, u, key, frac):
+            """:meth:`warp` with point i at keyframe segment ``key[i]``, fraction ``frac[i]``."""
+            nodes, weight, dweight = self.field_corners(u)
+            s = frac[:, None, None]
+            values = (1.0 - s) * self.deformation[key[:, None], nodes] + s * self.deformation[key[:, None] + 1, nodes]
+            return self.warp(u, values, weight, dweight)
+
+        def deformed(self, x, rest_u, jacobian, fused: bool):
+            """Distance (n,), the gradient of ``f0(X(x))`` (n, 3) and the rest gradient (n, 3)
+            at collider-frame points ``x`` whose rest-pose points are ``rest_u`` (normalised)."""
+            rest_x = self.centre + self.radius * rest_u
+            if fused:
+                d0, g0 = self.fused_query(rest_x, True)
+            else:
+                d0, g0 = self.value_and_gradient(rest_x)
+            g = torch.einsum("nca,nc->na", jacobian, g0)
+            stretch = g.norm(dim=1) / g0.norm(dim=1).clamp_min(1e-12)  # |J^T n0|, n0 the rest normal
+            return d0 / stretch.clamp_min(1e-12), g, g0
+
+        # -- many times (validation) ------------------------------------------------------------
+
+        def forward(self, x, key=None, frac=None):
+            """Distance (n,) at collider-frame points ``x`` (n, 3): of the rest pose without
+            ``key`` (training), else of the animation, point i at keyframe segment ``key[i]`` and
+            fraction ``frac[i]``."""
+            if key is None:
+                return super().forward(x)
+            rest_u, jacobian = self.warp_at((x - self.centre) / self.radius, key, frac)
+            return self.deformed(x, rest_u, jacobian, False)[0]
+
+        # -- one time (queries) -----------------------------------------------------------------
+
+        def query_at(self, x, k: int, s: float, rate: float, want_gradient: bool):
+            """Distance (n,), and when ``want_gradient`` the unit normal (n, 3) and the velocity of
+            the material point at each point (n, 3, collider units per second), at collider-frame
+            points ``x`` (n, 3) at one time (frame segment ``k``, fraction ``s``, ``rate`` frames
+            per second, 0 where an end frame is held). Fused on a CPU (numba), else torch ops."""
+            low, high = self.deformation[k], self.deformation[k + 1]
+            field, dfield = low + s * (high - low), (high - low) * rate
+            u = (x - self.centre) / self.radius
+            fused = self.can_fuse(x)
+            if fused:
+                rest_u, jacobian, velocity = self._fused_warp(u, field, dfield, want_gradient)
+            else:
+                nodes, weight, dweight = self.field_corners(u)
+                rest_u, jacobian = self.warp(u, field[nodes], weight, dweight)
+                if want_gradient:  # d X / dt at fixed x; the material point (X fixed) moves at -J^-1 dX/dt
+                    rest_rate = (weight[..., None] * dfield[nodes]).sum(dim=1)
+                    velocity = -torch.linalg.solve(jacobian, rest_rate)
+            distance, g, _ = self.deformed(x, rest_u, jacobian, fused)
+            if not want_gradient:
+                return distance, None, None
+            return distance, g / g.norm(dim=1, keepdim=True).clamp_min(1e-12), velocity * self.radius
+
+        def _fused_warp(self, u, field, dfield, want_velocity: bool):
+            n = len(u)
+            rest = np.empty((n, 3), np.float32)
+            jacobian = np.empty((n, 3, 3), np.float32)
+            velocity = np.empty((n if want_velocity else 0, 3), np.float32)
+            grid_kernels.warp(u.contiguous().numpy(), field.contiguous().numpy(), dfield.contiguous().numpy(),
+                              resolution, want_velocity, rest, jacobian, velocity)
+            return torch.from_numpy(rest), torch.from_numpy(jacobian), torch.from_numpy(velocity)
+
+    return DeformedGridSDF()

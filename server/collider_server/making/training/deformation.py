@@ -1,0 +1,90 @@
+"""The deformation fields of a ``deformed`` network (:mod:`...engine.kinds.neural_deformed`),
+fitted to an animation's vertex correspondences: :func:`fit_deformation`."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ...engine.animated_meshes import AnimatedMesh
+from ...engine.kinds.neural_deformed import trilinear
+from ..progress import progress
+
+#: Weight of the fields' smoothness (squared second differences of the nodes) against the
+#: squared misfit at the surface samples, per sample per node: small, it only fills the nodes
+#: no sample constrains (away from the surface) and leaves affine motion unpenalised.
+SMOOTHNESS = 1e-4
+
+
+@dataclass(frozen=True)
+class DeformationFit:
+    """Fitted fields (K, nodes, 3) float32 (normalised units) and, per frame, the largest and
+    the 99th-percentile distance (the animation's units) between where a fitted field sends a
+    surface sample of that frame (its vertices and face centroids) and where it is in the rest
+    pose: how well the fields follow the motion."""
+
+    fields: np.ndarray
+    residual_max: np.ndarray
+    residual_p99: np.ndarray
+
+
+def fit_deformation(animation: AnimatedMesh, centre, radius: float, resolution: int,
+                    show_progress: bool = True) -> DeformationFit:
+    """Per frame k, the inverse deformation field ``W_k`` on a grid of ``resolution`` cells per
+    side over the normalised domain (``u = (x - centre) / radius``): the least-squares fit of
+    ``W_k(u_k) = u_0 - u_k`` at the frame's vertices and face centroids (frame 0, the rest pose,
+    is the identity), smoothed by :data:`SMOOTHNESS`. Each frame starts its conjugate gradients
+    from the previous frame's fit."""
+    import scipy.sparse as sp
+    from scipy.sparse.linalg import cg
+
+    centre = np.asarray(centre, np.float64)
+    used = np.unique(animation.faces)
+    side = resolution + 1
+    nodes = side ** 3
+    smooth = _second_differences(side)
+    smooth = (smooth.T @ smooth).tocsr()
+
+    def samples(frame: np.ndarray) -> np.ndarray:
+        u = (frame - centre) / radius
+        return np.concatenate([u[used], u[animation.faces].mean(axis=1)])
+
+    rest = samples(animation.frames[0])
+    count = len(animation.frames)
+    fields = np.zeros((count, nodes, 3))
+    residual_max, residual_p99 = np.zeros(count), np.zeros(count)
+    with progress(count, f"deformation fields of {count} frames ({resolution}^3)", "frame",
+                  show_progress) as bar:
+        for k, frame in enumerate(animation.frames):
+            u = samples(frame)
+            target = rest - u
+            rows, weight, _ = trilinear(u, resolution)
+            a = sp.csr_matrix((weight.ravel(), (np.repeat(np.arange(len(u)), 8), rows.ravel())),
+                              shape=(len(u), nodes))
+            system = (a.T @ a + SMOOTHNESS * len(u) / nodes * smooth).tocsr()
+            jacobi = sp.diags(1.0 / np.maximum(system.diagonal(), 1e-30))
+            for axis in range(3):
+                start = fields[k - 1, :, axis] if k else None
+                fields[k, :, axis], _ = cg(system, a.T @ target[:, axis], x0=start, rtol=1e-10,
+                                           maxiter=5000, M=jacobi)
+            miss = np.linalg.norm(a @ fields[k] - target, axis=1) * radius
+            residual_max[k], residual_p99[k] = miss.max(), np.percentile(miss, 99)
+            bar.update(1)
+    return DeformationFit(fields.astype(np.float32), residual_max, residual_p99)
+
+
+def _second_differences(side: int):
+    """(rows, side^3) sparse: the second difference of the nodes along each axis."""
+    import scipy.sparse as sp
+
+    index = np.arange(side ** 3).reshape(side, side, side)
+    parts = []
+    for axis in range(3):
+        a = np.moveaxis(index, axis, 0)
+        low, mid, high = a[:-2].ravel(), a[1:-1].ravel(), a[2:].ravel()
+        m = len(mid)
+        parts.append(sp.csr_matrix((np.tile([1.0, -2.0, 1.0], m),
+                                    (np.repeat(np.arange(m), 3), np.stack([low, mid, high], 1).ravel())),
+                                   shape=(m, side ** 3)))
+    return sp.vstack(parts).tocsr()

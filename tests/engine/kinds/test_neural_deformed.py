@@ -1,0 +1,191 @@
+"""The 4D neural collider as a rest pose carried by deformation fields (preset ``deformed``): the
+warp is the numpy rule the fit uses, the normal is the direction of the composed network's gradient
+(autograd and finite differences), the velocity moves with the material (the warp of the moved
+point at the later time is the same rest point), the fused CPU kernel equals the torch path, the
+identity deformation answers as the rest network, the fit carries an affine motion exactly, and
+the model file. Random networks with smooth random fields; collider frame, metres, seconds."""
+
+from __future__ import annotations
+
+import copy
+
+import numpy as np
+import pytest
+import torch
+from collider_contract import Timeline
+
+from collider_server.engine.collider import ColliderInfo
+from collider_server.engine.kinds import AnimatedNeuralCollider, grid_kernels
+from collider_server.engine.kinds.neural import ANIMATED_PRESETS, architecture_dict, build_network
+from collider_server.engine.kinds.neural_deformed import DeformedGridArchitecture, trilinear
+from collider_server.engine.kinds.neural_grid import GridArchitecture
+from collider_server.engine.kinds.neural_keyframes import keyframe_positions
+from collider_server.engine.modelfile import load_collider, save_collider
+
+LO, HI = np.array([-0.12, -0.1, -0.08]), np.array([0.12, 0.1, 0.08])
+CENTRE, RADIUS = 0.5 * (LO + HI), 0.12
+SMALL = dict(levels=4, features=2, base_resolution=4, max_resolution=40, table_log2=10,
+             hidden_layers=2, hidden_width=16, keyframes=4, deformation_resolution=6)
+DURATION = 0.6
+needs_numba = pytest.mark.skipif(not grid_kernels.available(), reason="numba is not installed")
+
+
+def random_network(seed=0, amplitude=0.08, **overrides):
+    """A random rest network and, per keyframe, a smooth random field (a twist-like offset of up
+    to ``amplitude`` normalised units, so the warp stays invertible)."""
+    arch = DeformedGridArchitecture(**{**SMALL, **overrides})
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(seed)
+        network = build_network(arch, CENTRE, RADIUS)
+        with torch.no_grad():
+            network.table.normal_(0.0, 0.5)
+            network.table.copy_(network.table.half().float())  # the file's float16
+    side = arch.deformation_resolution + 1
+    axis = np.linspace(-1.0, 1.0, side)
+    z, y, x = np.meshgrid(axis, axis, axis, indexing="ij")  # node i + s (j + s k): x fastest
+    nodes = np.stack([x.ravel(), y.ravel(), z.ravel()], axis=1)
+    rng = np.random.default_rng(seed)
+    fields = []
+    for _ in range(arch.keyframes):
+        phase, scale = rng.uniform(0, 2 * np.pi, 3), rng.uniform(-1, 1, 3) * amplitude
+        fields.append(np.stack([scale[0] * np.sin(2 * nodes[:, 2] + phase[0]),
+                                scale[1] * np.sin(2 * nodes[:, 0] + phase[1]),
+                                scale[2] * np.cos(2 * nodes[:, 1] + phase[2])], axis=1))
+    with torch.no_grad():
+        network.deformation.copy_(torch.from_numpy(np.stack(fields).astype(np.float32)))
+    return network
+
+
+def collider(network, loop=False, device="cpu"):
+    arch = DeformedGridArchitecture(**{**SMALL, "keyframes": network.deformation.shape[0]})
+    frames = arch.keyframes
+    info = ColliderInfo(name="d", kind="neural", domain_min=LO.tolist(), domain_max=HI.tolist(),
+                        settings={"architecture": architecture_dict(arch)},
+                        animation=Timeline(frames, (frames - 1) / DURATION, loop).to_dict())
+    return AnimatedNeuralCollider(info, network, device)
+
+
+def points(n, seed):
+    rng = np.random.default_rng(seed)
+    return LO + rng.random((n, 3)) * (HI - LO)
+
+
+def test_the_preset_is_the_static_grid_plus_one_field_per_frame():
+    preset = ANIMATED_PRESETS["deformed"]
+    assert preset.spatial() == GridArchitecture()  # the rest pose: the static preset
+    arch = DeformedGridArchitecture(keyframes=61)
+    assert arch.parameter_count() == GridArchitecture().parameter_count() + 61 * 17 ** 3 * 3
+    with pytest.raises(ValueError, match="deformation_resolution must be an integer >= 1"):
+        DeformedGridArchitecture(deformation_resolution=0)
+
+
+def test_the_torch_warp_is_the_numpy_rule_of_the_fit():
+    network = random_network()
+    u = np.random.default_rng(1).uniform(-1.1, 1.1, (400, 3))  # some outside: clamped
+    nodes, weight, dweight = trilinear(u, SMALL["deformation_resolution"])
+    field = network.deformation[2].double().numpy()
+    expected = u + (weight[..., None] * field[nodes]).sum(axis=1)
+    expected_jacobian = np.eye(3) + np.einsum("ncd,nce->nde", field[nodes], dweight)
+    inside = (np.abs(u) <= 1.0).all(axis=1)
+    t_nodes, t_weight, t_dweight = network.field_corners(torch.from_numpy(u))
+    rest, jacobian = network.warp(torch.from_numpy(u), network.deformation[2].double()[t_nodes], t_weight,
+                                  t_dweight)
+    assert np.array_equal(t_nodes.numpy(), nodes)
+    np.testing.assert_allclose(rest.numpy(), expected, atol=1e-12)
+    np.testing.assert_allclose(jacobian.numpy()[inside], expected_jacobian[inside], atol=1e-9)
+
+
+@pytest.mark.parametrize("fused", [False, True])
+def test_the_normal_is_the_composed_gradient_and_the_velocity_moves_with_the_material(fused):
+    if fused and not grid_kernels.available():
+        pytest.skip("numba is not installed")
+    c = collider(random_network())
+    c.network.fused = fused
+    x = points(300, 2)
+    t, dt = 0.23, 1e-4
+    _, normal, velocity = c.evaluate_at(x, True, t)
+    net = copy.deepcopy(c.network)
+    net.fused = False  # the reference: torch ops, autograd reaches the points
+
+    def composed(p, time):  # f0(X(p)) at one time, differentiable
+        key, frac = keyframe_positions(np.full(len(p), time), DURATION, 4)
+        u = (p - net.centre) / net.radius
+        rest_u, _ = net.warp_at(u, torch.from_numpy(key), torch.from_numpy(frac))
+        return rest_u, net.forward(net.centre + net.radius * rest_u)  # no time: the rest pose
+
+    p = torch.from_numpy(x.astype(np.float64)).float().requires_grad_(True)
+    _, g0 = composed(p, t)
+    (grad,) = torch.autograd.grad(g0.sum(), p)
+    expected = grad.numpy() / np.linalg.norm(grad.numpy(), axis=1, keepdims=True)
+    np.testing.assert_allclose(normal, expected, atol=2e-4)
+    # Finite differences of the composed distance along x.
+    h = 1e-5
+    with torch.no_grad():
+        e = torch.zeros(1, 3)
+        e[0, 0] = h
+        fd = (composed(p + e, t)[1] - composed(p - e, t)[1]) / (2 * h)
+    # float32 differences across the ReLUs' and the cells' kinks: nearly all, not all
+    close = np.abs(fd.numpy() - grad.numpy()[:, 0]) < 5e-3 * np.abs(grad.numpy()).max()
+    assert close.mean() > 0.98, close.mean()
+    # A material point: where x goes in dt, the warp at t + dt finds the same rest point (in
+    # float64, and a step short enough that few points cross a cell of the field).
+    exact = copy.deepcopy(net).double()
+
+    def rest_point(p, time):
+        key, frac = keyframe_positions(np.full(len(p), time), DURATION, 4)
+        u = (torch.from_numpy(p) - exact.centre) / exact.radius
+        return exact.warp_at(u, torch.from_numpy(key), torch.from_numpy(frac))[0].numpy()
+
+    before = rest_point(x, t)
+    drift = np.linalg.norm(rest_point(x + velocity * dt, t + dt) - before, axis=1)
+    still = np.linalg.norm(rest_point(x, t + dt) - before, axis=1)  # a point that does not move
+    assert drift.max() < 1e-3 * still.max() and still.max() > 1e-6, (drift.max(), still.max())
+
+
+@needs_numba
+def test_the_fused_kernel_answers_as_the_torch_path():
+    fused, plain = collider(random_network()), collider(random_network())
+    plain.network.fused = False
+    x = points(2000, 3)
+    for t in (0.0, 0.11, 0.3, 0.6):
+        (d1, n1, v1), (d2, n2, v2) = fused.evaluate_at(x, True, t), plain.evaluate_at(x, True, t)
+        np.testing.assert_allclose(d1, d2, atol=3e-5, rtol=1e-4)
+        # The kernel warps in float64, torch in float32: a point on a ReLU's kink may turn its
+        # normal by a little (1 in 6,000 by 1.7e-4 seen); every other one agrees.
+        for a, b in ((n1, n2), (v1, v2)):
+            assert np.isclose(a, b, atol=3e-5, rtol=1e-4).all(axis=1).mean() > 0.998
+            assert np.abs(a - b).max() < 1e-2
+        np.testing.assert_allclose(fused.evaluate_at(x, False, t)[0], plain.evaluate_at(x, True, t)[0],
+                                   atol=3e-5, rtol=1e-4)
+
+
+def test_the_identity_deformation_answers_as_the_rest_network():
+    c = collider(random_network(amplitude=0.0))
+    x = points(500, 4)
+    distance, normal, velocity = c.evaluate_at(x, True, 0.37)
+    d0, g0 = c.network.value_and_gradient(torch.from_numpy(x.astype(np.float32)))
+    np.testing.assert_allclose(distance, d0.numpy(), atol=1e-6)
+    np.testing.assert_allclose(normal, g0.numpy() / np.linalg.norm(g0.numpy(), axis=1, keepdims=True), atol=1e-5)
+    assert np.abs(velocity).max() == 0.0
+
+
+@needs_numba
+def test_cuda_answers_as_the_cpu(cuda):
+    c = collider(random_network())
+    g = collider(random_network(), device=cuda)
+    x = points(3000, 7)
+    for t in (0.0, 0.11, 0.59):
+        for a, b in zip(c.evaluate_at(x, True, t), g.evaluate_at(x, True, t)):
+            np.testing.assert_allclose(b, a, atol=3e-5, rtol=1e-4)
+
+
+def test_a_saved_model_loads_and_answers_the_same(tmp_path):
+    c = collider(random_network())
+    loaded = load_collider(save_collider(c, tmp_path / "d.safetensors"))
+    assert isinstance(loaded.architecture, DeformedGridArchitecture)
+    x = points(500, 7)
+    fields = ["distance", "normal", "contact", "velocity"]
+    a, b = c.query(x, fields, time=0.33), loaded.query(x, fields, time=0.33)
+    for field in fields:
+        assert np.array_equal(getattr(a, field), getattr(b, field)), field
+    assert np.abs(a.velocity).max() > 0
