@@ -85,8 +85,9 @@ def test_bench_options_of_an_animation_need_one(tmp_path, capsys):
 def test_quick_bench_leaves_the_4d_network_out_with_the_command_that_measures_it(arm_bench):
     _, report, _ = arm_bench
     skipped = {s["name"]: s["reason"] for s in report["skipped"]}
-    assert "give --train-minutes M" in skipped["neural-keyframes"]
-    assert "--train-minutes 3` (trains it 3 minutes)" in skipped["neural-keyframes"]
+    for preset in ("keyframes", "deformed"):
+        assert "give --train-minutes M" in skipped[f"neural-{preset}"]
+        assert "--train-minutes 3` (trains it 3 minutes)" in skipped[f"neural-{preset}"]
 
 
 @pytest.mark.slow
@@ -97,13 +98,14 @@ def test_bench_trains_the_4d_network_when_asked_and_measures_it_like_the_others(
     assert result.returncode == 0, result.stdout + result.stderr
     report = json.loads((tmp_path / "result" / "bench.json").read_text())
     rows = {r["name"]: r for r in report["colliders"]}
-    assert list(rows) == ["voxel-16-k5", "neural-keyframes"]
-    neural = rows["neural-keyframes"]
-    assert neural["kind"] == "neural" and neural["build"] == "train" and neural["build_seconds"] >= 6
-    assert neural["settings"] == {"preset": "keyframes", "train_minutes": 0.1}
-    figures = neural["accuracy"]["band_1mm"]
-    # Six seconds of training on a loaded machine: its figures are measured, not good (8.5 mm seen).
-    assert figures["points"] == 5_000 and 0 < figures["distance_mean_mm"] < np.inf
-    assert 0 <= figures["sign_errors_percent"] <= 100 and np.isfinite(figures["normal_mean_deg"])
-    assert {t["mode"] for t in neural["timings"]} == {"distance", "distance+normal+contact+velocity"}
-    assert "| neural keyframes (0.1 min) | " in (tmp_path / "result" / "bench.md").read_text()
+    assert list(rows) == ["voxel-16-k5", "neural-keyframes", "neural-deformed"]
+    for preset in ("keyframes", "deformed"):
+        neural = rows[f"neural-{preset}"]
+        assert neural["kind"] == "neural" and neural["build"] == "train" and neural["build_seconds"] >= 6
+        assert neural["settings"] == {"preset": preset, "train_minutes": 0.1}
+        figures = neural["accuracy"]["band_1mm"]
+        # Six seconds of training on a loaded machine: its figures are measured, not good (8.5 mm seen).
+        assert figures["points"] == 5_000 and 0 < figures["distance_mean_mm"] < np.inf
+        assert 0 <= figures["sign_errors_percent"] <= 100 and np.isfinite(figures["normal_mean_deg"])
+        assert {t["mode"] for t in neural["timings"]} == {"distance", "distance+normal+contact+velocity"}
+        assert f"| neural {preset} (0.1 min) | " in (tmp_path / "result" / "bench.md").read_text()

@@ -203,3 +203,18 @@ def test_train_cli_refuses_mismatched_options_in_one_line(tmp_path, args, messag
     assert result.returncode == 2
     lines = result.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("collider train: error:") and message in lines[0], result.stderr
+
+
+def test_an_animation_gets_the_preset_that_suits_its_motion(sphere):
+    """Without --preset: deformed where fitted fields follow every frame (the pulsing sphere's
+    affine motion), keyframes where they cannot (the arm's elbow folds: millimetres off)."""
+    from collider_server.making.animation_files import load_animation
+    from collider_server.making.training import choose_animated_preset
+
+    animation, _ = sphere
+    smooth = choose_animated_preset(animation, 0.1, 1.0, show_progress=False)
+    assert smooth.preset == "deformed" and "preset deformed: fields of 16^3 follow every frame" in smooth.reason
+    arm = load_animation(ARM / "arm.obj", ARM / "arm.pc2", 24.0)
+    folding = choose_animated_preset(arm, 0.1, 1.0, show_progress=False)
+    assert folding.preset == "keyframes" and folding.fit.residual_p99.max() > 1e-3, folding.reason
+    assert "no smooth field follows this motion" in folding.reason

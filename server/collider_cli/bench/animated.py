@@ -9,9 +9,9 @@ Candidates (:func:`plan_animated`), in the order they are measured:
   keyframe_positions`), leaving out any whose memory (``K R^3 4`` bytes) exceeds
   ``max_memory_bytes``. The grids of one resolution are baked once for every keyframe count
   (5, 13 and 25 keyframes of 25 frames share their grids) and cached like the static bench's;
-- ``neural``: the 4D network (preset ``keyframes``, docs/neural.md) trained here for
-  ``train_minutes`` on the CPU and cached like a voxel set (0, the default: listed as not
-  measured, with the option that measures it).
+- ``neural``: the 4D networks (each animated preset: ``keyframes`` and ``deformed``,
+  docs/neural.md) trained here for ``train_minutes`` each on the CPU and cached like a voxel set
+  (0, the default: listed as not measured, with the option that measures them).
 
 Another animated kind joins by an entry in :data:`KINDS`: a function listing its candidates and
 one building (or loading) a candidate.
@@ -123,14 +123,16 @@ def voxel_candidates(animation: AnimatedMesh, config: AnimatedPlanConfig):
 
 
 def neural_candidates(animation: AnimatedMesh, config: AnimatedPlanConfig):
-    from collider_server.engine.kinds.neural import DEFAULT_ANIMATED_PRESET
+    from collider_server.engine.kinds.neural import ANIMATED_PRESETS
 
-    preset, minutes = DEFAULT_ANIMATED_PRESET, config.train_minutes
+    minutes = config.train_minutes
     if minutes <= 0:
         return [], [{"name": f"neural-{preset}", "preset": preset,
-                     "reason": "the 4D network is trained by the bench only when asked: give --train-minutes M"}]
+                     "reason": "the 4D network is trained by the bench only when asked: give --train-minutes M"}
+                    for preset in ANIMATED_PRESETS]
     return [Candidate(f"neural-{preset}", f"neural {preset} ({minutes:g} min)", "neural",
-                      {"preset": preset, "train_minutes": minutes}, build="train")], []
+                      {"preset": preset, "train_minutes": minutes}, build="train")
+            for preset in ANIMATED_PRESETS], []
 
 
 def build_mesh(candidate: Candidate, animation: AnimatedMesh, shared: dict, **settings) -> Collider:

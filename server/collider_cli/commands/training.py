@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -38,9 +39,10 @@ def register(subparsers) -> None:
     train.add_argument("mesh", help="mesh file (OBJ, PLY, STL, OFF, GLB; an OBJ with --animation)")
     train.add_argument("--name", required=True, help="model name (file NAME.safetensors)")
     train.add_argument("--preset", default=None, choices=sorted({**PRESETS, **ANIMATED_PRESETS}),
-                       help=f"network (default {defaults.preset}, {DEFAULT_ANIMATED_PRESET} with --animation: a "
-                            "feature grid + tiny MLP, the fastest to train and to query; paper-bunny / "
-                            "paper-dragon reproduce the paper; docs/neural.md)")
+                       help=f"network (default {defaults.preset}: a feature grid + tiny MLP, the fastest to "
+                            "train and to query; paper-bunny / paper-dragon reproduce the paper. With "
+                            "--animation the default is the animated preset that suits the motion: deformed "
+                            "when fitted deformation fields follow every frame, else keyframes; docs/neural.md)")
     train.add_argument("--samples", type=int, default=defaults.samples, help="cached training samples")
     train.add_argument("--steps", type=int, default=None,
                        help="cap on optimiser steps (default: none with --max-minutes, which then runs to the "
@@ -107,11 +109,20 @@ def run_train(args) -> int:
     from collider_server.engine.modelfile import save_collider
     from collider_server.engine.repository import ModelRepository, check_name, check_writable_folder
     from collider_server.making.mesh_files import load_mesh
-    from collider_server.making.training import TrainConfig, check_preset, train_animated_neural, train_neural
+    from collider_server.making.training import (
+        TrainConfig,
+        check_preset,
+        choose_animated_preset,
+        train_animated_neural,
+        train_neural,
+    )
 
     check_name(args.name)
     check_animation_arguments(args)
     animated = args.animation is not None
+    # An animation without --preset (or --keyframes, the keyframe tables' option) gets the animated
+    # preset that suits its motion, measured once it is loaded.
+    choose = animated and args.preset is None and args.keyframes is None
     config = TrainConfig(
         preset=args.preset or (DEFAULT_ANIMATED_PRESET if animated else DEFAULT_PRESET), samples=args.samples,
         steps=args.steps, batch_size=args.batch_size,
@@ -138,11 +149,17 @@ def run_train(args) -> int:
             print(line)
     else:
         check = print_mesh_check(mesh)
+    extra = {}
+    if choose:
+        choice = choose_animated_preset(mesh, config.padding, placement.meters_per_unit, not args.quiet)
+        print(choice.reason)
+        config = replace(config, preset=choice.preset)
+        extra["deformation"] = choice.fit
     try:
         result = (train_animated_neural if animated else train_neural)(
             mesh, args.name, config, units=placement.units,
             meters_per_unit=placement.meters_per_unit, transform=transform,
-            device=args.device, checkpoint=checkpoint, show_progress=not args.quiet,
+            device=args.device, checkpoint=checkpoint, show_progress=not args.quiet, **extra,
         )
     except KeyboardInterrupt:  # what the run made: its checkpoint, which the same command resumes
         if checkpoint.is_file():
@@ -159,7 +176,9 @@ def run_train(args) -> int:
     if animated:
         from .models import describe_animation
 
-        print(f"animated: {describe_animation(result.collider.info.animation)} (keyframe tables); "
+        network = {"keyframes": "keyframe tables", "deformed": "a rest pose and one deformation field per frame"}
+        print(f"animated: {describe_animation(result.collider.info.animation)} "
+              f"({network.get(config.preset, config.preset)}); "
               f"source {mesh.timeline.frames} frames at {mesh.timeline.frame_rate_hz:g} fps")
         return 0
     print(sign_check_line(result.collider, mesh, check))

@@ -20,9 +20,11 @@ and validation sets), :mod:`.schedule` (steps or the clock, optimiser, threads),
 
 from .checkpoints import read_checkpoint_state, save_tensors_atomically
 from .config import DEFAULT_STEPS, LEARNING_RATES, NORMAL_WEIGHTS, VALIDATIONS_PER_BUDGET, TrainConfig
+from .deformation import DeformationFit, PresetChoice, choose_animated_preset, fit_deformation
 from .loop import TrainResult, check_preset, train_animated_neural, train_neural
 from .schedule import RunClock, cosine_learning_rate
 
-__all__ = ["DEFAULT_STEPS", "LEARNING_RATES", "NORMAL_WEIGHTS", "VALIDATIONS_PER_BUDGET", "RunClock", "TrainConfig",
-           "TrainResult", "check_preset", "cosine_learning_rate", "read_checkpoint_state", "save_tensors_atomically",
+__all__ = ["DEFAULT_STEPS", "LEARNING_RATES", "NORMAL_WEIGHTS", "VALIDATIONS_PER_BUDGET", "DeformationFit",
+           "PresetChoice", "RunClock", "TrainConfig", "TrainResult", "check_preset", "choose_animated_preset",
+           "cosine_learning_rate", "fit_deformation", "read_checkpoint_state", "save_tensors_atomically",
            "train_animated_neural", "train_neural"]

@@ -28,6 +28,14 @@ class TrainingData:
     times: np.ndarray | None = None
 
 
+def normalisation(shape: Mesh | AnimatedMesh, padding: float) -> tuple[np.ndarray, float]:
+    """The centre (3,) and radius of a network's normalised coordinates ``u = (x - centre) /
+    radius`` for ``shape`` (its units and frame): the padded box's centre and half its largest
+    side, so that the box lies in [-1, 1]^3."""
+    lo, hi = padded_box(shape, padding)
+    return 0.5 * (lo + hi), 0.5 * float((hi - lo).max())
+
+
 def default_margin(mesh: Mesh | AnimatedMesh, meters_per_unit: float) -> float:
     """5 % of the largest side, clamped to 5..10 mm (the paper's range), in mesh units."""
     vertices = mesh.frames[0] if isinstance(mesh, AnimatedMesh) else mesh.vertices

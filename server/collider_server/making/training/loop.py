@@ -29,8 +29,9 @@ from .checkpoints import (
     save_tensors_atomically,
 )
 from .config import TrainConfig
-from .data import animated_validation_sets, make_animated_training_data, make_training_data, validation_sets
-from .deformation import fit_deformation
+from .data import (animated_validation_sets, make_animated_training_data, make_training_data, normalisation,
+                   validation_sets)
+from .deformation import DeformationFit, fit_deformation
 from .schedule import RunClock, cosine_learning_rate, make_optimizer, set_training_threads
 
 
@@ -109,7 +110,7 @@ def train_neural(mesh: Mesh, name: str, config: TrainConfig, *, units: str = "m"
 def train_animated_neural(animation: AnimatedMesh, name: str, config: TrainConfig, *, units: str = "m",
                           meters_per_unit: float = 1.0, transform: np.ndarray | None = None,
                           device: str | None = None, checkpoint: Path | None = None,
-                          show_progress: bool = True) -> TrainResult:
+                          show_progress: bool = True, deformation: DeformationFit | None = None) -> TrainResult:
     """Train one network for the whole of ``animation`` (its units and frame; an animated preset):
     validation at random times against the exact interpolated mesh; returns the best checkpoint
     as an animated collider whose ``info.animation`` is the keyframes' timeline (the source's
@@ -118,7 +119,8 @@ def train_animated_neural(animation: AnimatedMesh, name: str, config: TrainConfi
     Keyframe tables train on samples at random times, the exact interpolated mesh as truth. A
     deformed network fits its deformation fields to the frames (one per frame, before the clock)
     and trains its rest pose, the first frame, on that mesh's exact samples (box samples over
-    every frame's box: where the deformation sends any point of the domain)."""
+    every frame's box: where the deformation sends any point of the domain); ``deformation``, a
+    fit of the same fields already made (:func:`choose_animated_preset`'s), is used as it is."""
     arch = check_preset(config, animated=True)
     timeline = animation.timeline
     duration = timeline.duration_s
@@ -152,7 +154,9 @@ def train_animated_neural(animation: AnimatedMesh, name: str, config: TrainConfi
             return
         import torch
 
-        fit = fit_deformation(animation, centre, radius, arch.deformation_resolution, show_progress)
+        fit = deformation
+        if fit is None or fit.fields.shape != tuple(network.deformation.shape):
+            fit = fit_deformation(animation, centre, radius, arch.deformation_resolution, show_progress)
         network.deformation.copy_(torch.from_numpy(fit.fields))
         worst = int(fit.residual_p99.argmax())
         to_mm = 1000.0 * meters_per_unit
@@ -185,8 +189,7 @@ def _train(shape, info: ColliderInfo, config: TrainConfig, arch, samples, inputs
     if config.threads is not None:
         set_training_threads(arch, config.threads)
     lo, hi = padded_box(shape, config.padding)
-    centre = 0.5 * (lo + hi)
-    radius = 0.5 * float((hi - lo).max())
+    centre, radius = normalisation(shape, config.padding)
     network = build_network(arch, centre, radius)
     if prepare is not None:
         prepare(network, centre, radius)
