@@ -142,8 +142,8 @@ def build_deformed_network(arch: DeformedGridArchitecture, centre, radius: float
             return self.warp(u, values, weight, dweight)
 
         def deformed(self, x, rest_u, jacobian, fused: bool):
-            """Distance (n,), the gradient of ``f0(X(x))`` (n, 3) and the rest gradient (n, 3)
-            at collider-frame points ``x`` whose rest-pose points are ``rest_u`` (normalised)."""
+            """Distance (n,) and the gradient of ``f0(X(x))`` (n, 3) at collider-frame points ``x``
+            whose rest-pose points are ``rest_u`` (normalised) and ``J = jacobian``."""
             rest_x = self.centre + self.radius * rest_u
             if fused:
                 d0, g0 = self.fused_query(rest_x, True)
@@ -151,7 +151,7 @@ def build_deformed_network(arch: DeformedGridArchitecture, centre, radius: float
                 d0, g0 = self.value_and_gradient(rest_x)
             g = torch.einsum("nca,nc->na", jacobian, g0)
             stretch = g.norm(dim=1) / g0.norm(dim=1).clamp_min(1e-12)  # |J^T n0|, n0 the rest normal
-            return d0 / stretch.clamp_min(1e-12), g, g0
+            return d0 / stretch.clamp_min(1e-12), g
 
         # -- many times (validation) ------------------------------------------------------------
 
@@ -183,7 +183,7 @@ def build_deformed_network(arch: DeformedGridArchitecture, centre, radius: float
                 if want_gradient:  # d X / dt at fixed x; the material point (X fixed) moves at -J^-1 dX/dt
                     rest_rate = (weight[..., None] * dfield[nodes]).sum(dim=1)
                     velocity = -torch.linalg.solve(jacobian, rest_rate)
-            distance, g, _ = self.deformed(x, rest_u, jacobian, fused)
+            distance, g = self.deformed(x, rest_u, jacobian, fused)
             if not want_gradient:
                 return distance, None, None
             return distance, g / g.norm(dim=1, keepdim=True).clamp_min(1e-12), velocity * self.radius
