@@ -157,12 +157,12 @@ def train_animated_neural(animation: AnimatedMesh, name: str, config: TrainConfi
         fit = deformation
         if fit is None or fit.fields.shape != tuple(network.deformation.shape):
             fit = fit_deformation(animation, centre, radius, arch.deformation_resolution, show_progress)
+            worst = int(fit.residual_p99.argmax())
+            to_mm = 1000.0 * meters_per_unit
+            print(f"deformation fit: the fields carry every frame's surface samples to the rest pose within "
+                  f"{fit.residual_p99.max() * to_mm:.4f} mm (99th percentile; frame {worst}, max "
+                  f"{fit.residual_max.max() * to_mm:.3f} mm)", file=sys.stderr)
         network.deformation.copy_(torch.from_numpy(fit.fields))
-        worst = int(fit.residual_p99.argmax())
-        to_mm = 1000.0 * meters_per_unit
-        print(f"deformation fit: the fields carry every frame's surface samples to the rest pose within "
-              f"{fit.residual_p99.max() * to_mm:.4f} mm (99th percentile; frame {worst}, max "
-              f"{fit.residual_max.max() * to_mm:.3f} mm)", file=sys.stderr)
 
     # The keyframes' own timeline: the same duration, loop and speed bound, K frames.
     keyed = Timeline(arch.keyframes, (arch.keyframes - 1) / duration, timeline.loop, timeline.max_surface_speed)
