@@ -129,7 +129,7 @@ def test_a_deformed_rest_pose_learns_the_pulsing_sphere_and_its_velocity(sphere,
     (the full vector: the sphere's points move with its centre and radius)."""
     animation, reference = sphere
     small = {k: v for k, v in SMALL.items() if k != "keyframes"}
-    result = train_animated_neural(animation, "pulse", config(preset="deformed",
+    result = train_animated_neural(animation, "pulse", config(preset="deformed", steps=400,
                                                               architecture={**small, "deformation_resolution": 4}),
                                    device=device, show_progress=False)
     collider = result.collider
@@ -151,7 +151,8 @@ def test_a_deformed_rest_pose_learns_the_pulsing_sphere_and_its_velocity(sphere,
                     + ((reference.radii[k + 1] - reference.radii[k]) * rate)[..., None] * directions)
         velocity_errors.append(np.linalg.norm(got.velocity - expected, axis=1))
         speeds.append(np.linalg.norm(expected, axis=1))
-    assert np.concatenate(errors).mean() < 2e-3
+    # 400 steps of a small rest network: 0.56 mm mean measured (an answer of 0 errs 1 mm here).
+    assert np.concatenate(errors).mean() < 0.8e-3 and result.best_validation_mm < 0.6
     # Within a few percent: the fields are blended linearly between frames, and the inverse of a
     # scaling is not linear in time (5 % of the mean speed here, measured; on the twisting bunny the
     # normal speed errs 0.35 mm/s where the surface moves up to 0.19 m/s).
@@ -213,8 +214,19 @@ def test_an_animation_gets_the_preset_that_suits_its_motion(sphere):
 
     animation, _ = sphere
     smooth = choose_animated_preset(animation, 0.1, 1.0, show_progress=False)
-    assert smooth.preset == "deformed" and "preset deformed: fields of 16^3 follow every frame" in smooth.reason
+    assert smooth.preset == "deformed" and "preset deformed: fields of 16^3 (0.8 MB for 13 frames) follow every" in smooth.reason
     arm = load_animation(ARM / "arm.obj", ARM / "arm.pc2", 24.0)
     folding = choose_animated_preset(arm, 0.1, 1.0, show_progress=False)
     assert folding.preset == "keyframes" and folding.fit.residual_p99.max() > 1e-3, folding.reason
     assert "no smooth field follows this motion" in folding.reason
+
+
+def test_train_without_a_preset_says_which_it_took_and_why(tmp_path):
+    """The CLI's default with --animation: the fit first, then one line naming the preset."""
+    result = run_cli("train", str(ARM / "arm.obj"), "--animation", str(ARM / "arm.pc2"), "--fps", "24",
+                     "--name", "arm-auto", "--models", str(tmp_path / "models"), "--samples", "4000",
+                     "--steps", "2")
+    assert result.returncode == 0, result.stderr
+    assert "preset keyframes: the deformation fields miss a frame by 3." in result.stdout
+    assert "(keyframe tables)" in result.stdout
+    assert load_collider(tmp_path / "models" / "arm-auto.safetensors").architecture.keyframes == 9

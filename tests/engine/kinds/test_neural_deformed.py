@@ -2,8 +2,10 @@
 warp is the numpy rule the fit uses, the normal is the direction of the composed network's gradient
 (autograd and finite differences), the velocity moves with the material (the warp of the moved
 point at the later time is the same rest point), the fused CPU kernel equals the torch path, the
-identity deformation answers as the rest network, the fit carries an affine motion exactly, and
-the model file. Random networks with smooth random fields; collider frame, metres, seconds."""
+identity deformation answers as the rest network, a uniform scale divides its distances by the
+scale (the stretch correction), a degenerate warp stays finite, and the model file (the fit is
+tested in tests/training/test_animated_training.py). Random networks with smooth random fields;
+collider frame, metres, seconds."""
 
 from __future__ import annotations
 
@@ -167,6 +169,54 @@ def test_the_identity_deformation_answers_as_the_rest_network():
     np.testing.assert_allclose(distance, d0.numpy(), atol=1e-6)
     np.testing.assert_allclose(normal, g0.numpy() / np.linalg.norm(g0.numpy(), axis=1, keepdims=True), atol=1e-5)
     assert np.abs(velocity).max() == 0.0
+
+
+@pytest.mark.parametrize("fused", [False, True])
+def test_a_uniform_scale_divides_the_distance_by_the_scale(fused):
+    """Fields that shrink the world by 1/a about the domain's centre (X = a u): the surface at rest
+    is the world's scaled by a, so every distance is the rest one divided by a."""
+    if fused and not grid_kernels.available():
+        pytest.skip("numba is not installed")
+    network = random_network(amplitude=0.0)
+    network.fused = fused
+    side = SMALL["deformation_resolution"] + 1
+    axis = np.linspace(-1.0, 1.0, side)
+    z, y, x = np.meshgrid(axis, axis, axis, indexing="ij")
+    nodes = np.stack([x.ravel(), y.ravel(), z.ravel()], axis=1)
+    with torch.no_grad():
+        network.deformation[2:] = torch.from_numpy((0.5 * nodes).astype(np.float32))  # a = 1.5 from frame 2
+    c = collider(network)
+    x = CENTRE + (points(500, 9) - CENTRE) * 0.6  # inside the domain once scaled
+    distance, _, _ = c.evaluate_at(x, True, DURATION)  # the last frame
+    rest = CENTRE + 1.5 * (x - CENTRE)
+    with torch.no_grad():
+        d0 = network.value_and_gradient(torch.from_numpy(rest.astype(np.float32)))[0].numpy()
+    np.testing.assert_allclose(distance, d0 / 1.5, rtol=1e-4, atol=1e-7)
+
+
+def test_a_degenerate_warp_answers_finite_distances_of_the_rest_sign():
+    """Fields that flatten the world onto a plane (a fold no deformation has): J is singular, the
+    answer stays finite and keeps the rest network's sign."""
+    network = random_network(amplitude=0.0)
+    side = SMALL["deformation_resolution"] + 1
+    axis = np.linspace(-1.0, 1.0, side)
+    z, y, x = np.meshgrid(axis, axis, axis, indexing="ij")
+    flatten = np.zeros((side ** 3, 3))
+    flatten[:, 2] = -z.ravel()  # X_z = 0 everywhere
+    with torch.no_grad():
+        network.deformation[:] = torch.from_numpy(flatten.astype(np.float32))
+    x = points(300, 10)
+    rest = x.copy()
+    rest[:, 2] = CENTRE[2]
+    with torch.no_grad():
+        d0 = network.value_and_gradient(torch.from_numpy(rest.astype(np.float32)))[0].numpy()
+    clear = np.abs(d0) > 1e-6
+    for fused in (False, True):
+        network.fused = fused and grid_kernels.available()
+        distance, normal, _ = collider(network).evaluate_at(x, True, 0.3)
+        assert np.isfinite(distance).all() and np.isfinite(normal).all()
+        assert np.array_equal(np.sign(distance[clear]), np.sign(d0[clear]))
+        assert np.abs(distance).max() <= 10 * np.abs(d0).max() + 1e-9
 
 
 @needs_numba

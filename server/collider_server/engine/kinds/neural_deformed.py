@@ -25,8 +25,13 @@ of ``f0(X(u))``), in the collider frame and units:
 
 A query is at one time: the two fields are blended once per call, then the warp, its Jacobian and
 the velocity run in one fused CPU kernel (:func:`.grid_kernels.warp`) and the rest network as the
-static one (the fused CPU kernel), or both as torch ops (CUDA, the reference). ``forward(x)`` and ``value_and_gradient(x)`` without a time are the rest pose's (training);
-``forward(x, key, frac)`` is the deformed distance of points each at its own time (validation).
+static one (the fused CPU kernel), or both as torch ops (CUDA, the reference). ``forward(x)`` and
+``value_and_gradient(x)`` without a time are the rest pose's (training); ``forward(x, key,
+frac)`` is the deformed distance of points each at its own time (validation).
+
+Where the warp degenerates (a fold the fields cannot follow, forced with ``--preset deformed``),
+the stretch is held within [1/10, 10] and a rest gradient of zero leaves it at 1: the answer
+stays finite and of the right sign.
 """
 
 from __future__ import annotations
@@ -37,10 +42,10 @@ from typing import ClassVar
 import numpy as np
 
 from . import grid_kernels
-from .neural_grid import GridArchitecture, grid_network_class
+from .neural_grid import CORNERS, GridArchitecture, grid_network_class
 
-#: The 8 corners of a cell as 0/1 offsets along x, y, z: (8, 3).
-_CORNERS = np.array([[(c >> 0) & 1, (c >> 1) & 1, (c >> 2) & 1] for c in range(8)], dtype=np.int64)
+#: The stretch's bounds: beyond them the warp is degenerate, not a deformation of the surface.
+STRETCH_BOUNDS = (0.1, 10.0)
 
 
 @dataclass(frozen=True)
@@ -79,16 +84,18 @@ def trilinear(u: np.ndarray, resolution: int) -> tuple[np.ndarray, np.ndarray, n
     ``resolution`` cells per side over [-1, 1]^3, node ``(i, j, k)`` at row ``i + s (j + s k)``,
     ``s = resolution + 1``. The numpy twin of the network's torch warp (the fit uses it)."""
     side = resolution + 1
-    position = np.clip((np.asarray(u, np.float64) + 1.0) * 0.5, 0.0, 1.0) * resolution
+    u = np.asarray(u, np.float64)
+    position = np.clip((u + 1.0) * 0.5, 0.0, 1.0) * resolution
     cell = np.minimum(np.floor(position), resolution - 1)
     t = position - cell
     w = np.stack([1.0 - t, t], axis=-1)  # (n, 3, 2)
     dw = np.stack([-np.ones_like(t), np.ones_like(t)], axis=-1) * (0.5 * resolution)
-    ox, oy, oz = _CORNERS[:, 0], _CORNERS[:, 1], _CORNERS[:, 2]
+    ox, oy, oz = CORNERS[:, 0], CORNERS[:, 1], CORNERS[:, 2]
     wx, wy, wz = w[:, 0, ox], w[:, 1, oy], w[:, 2, oz]
     weight = wx * wy * wz
     dweight = np.stack([dw[:, 0, ox] * wy * wz, wx * dw[:, 1, oy] * wz, wx * wy * dw[:, 2, oz]], axis=-1)
-    ijk = cell.astype(np.int64)[:, None, :] + _CORNERS[None]
+    dweight = dweight * (np.abs(u) <= 1.0)[:, None, :]  # clamped axes do not move the field
+    ijk = cell.astype(np.int64)[:, None, :] + CORNERS[None]
     return ijk[..., 0] + side * (ijk[..., 1] + side * ijk[..., 2]), weight, dweight
 
 
@@ -150,8 +157,9 @@ def build_deformed_network(arch: DeformedGridArchitecture, centre, radius: float
             else:
                 d0, g0 = self.value_and_gradient(rest_x)
             g = torch.einsum("nca,nc->na", jacobian, g0)
-            stretch = g.norm(dim=1) / g0.norm(dim=1).clamp_min(1e-12)  # |J^T n0|, n0 the rest normal
-            return d0 / stretch.clamp_min(1e-12), g
+            rest_norm = g0.norm(dim=1)
+            stretch = torch.where(rest_norm > 1e-12, g.norm(dim=1) / rest_norm.clamp_min(1e-12), 1.0)  # |J^T n0|
+            return d0 / stretch.clamp(*STRETCH_BOUNDS), g
 
         # -- many times (validation) ------------------------------------------------------------
 
@@ -182,7 +190,7 @@ def build_deformed_network(arch: DeformedGridArchitecture, centre, radius: float
                 rest_u, jacobian = self.warp(u, field[nodes], weight, dweight)
                 if want_gradient:  # d X / dt at fixed x; the material point (X fixed) moves at -J^-1 dX/dt
                     rest_rate = (weight[..., None] * dfield[nodes]).sum(dim=1)
-                    velocity = -torch.linalg.solve(jacobian, rest_rate)
+                    velocity = -torch.linalg.solve_ex(jacobian, rest_rate)[0]  # no raise where J is singular
             distance, g = self.deformed(x, rest_u, jacobian, fused)
             if not want_gradient:
                 return distance, None, None

@@ -29,6 +29,9 @@ import numpy as np
 
 from . import grid_kernels
 
+#: The 8 corners of a cell as 0/1 offsets along x, y, z (bit 0: x): (8, 3).
+CORNERS = np.array([[(c >> 0) & 1, (c >> 1) & 1, (c >> 2) & 1] for c in range(8)], dtype=np.int64)
+
 #: Primes of the spatial hash (Teschner et al. 2003, as in instant-NGP); the first is 1 so that
 #: neighbouring cells along x land in neighbouring rows.
 HASH_PRIMES = (1, 2_654_435_761, 805_459_861)
@@ -192,8 +195,6 @@ def grid_network_class(arch: GridArchitecture):
     rows = arch.level_rows()
     offsets = np.concatenate([[0], np.cumsum(rows)[:-1]])
     dense = [(r + 1) ** 3 <= n for r, n in zip(resolutions, rows)]
-    # The 8 corners of a cell as 0/1 offsets along x, y, z: (8, 3).
-    corners = np.array([[(c >> 0) & 1, (c >> 1) & 1, (c >> 2) & 1] for c in range(8)], dtype=np.int64)
 
     class GridSDF(nn.Module):
         def __init__(self, centre, radius: float):
@@ -205,7 +206,7 @@ def grid_network_class(arch: GridArchitecture):
             self.register_buffer("level_offset", torch.tensor(offsets, dtype=torch.int64), persistent=False)
             self.register_buffer("level_rows", torch.tensor(rows, dtype=torch.int64), persistent=False)
             self.register_buffer("dense", torch.tensor(dense), persistent=False)
-            self.register_buffer("corners", torch.from_numpy(corners), persistent=False)
+            self.register_buffer("corners", torch.from_numpy(CORNERS), persistent=False)
             self.register_buffer("primes", torch.tensor(HASH_PRIMES, dtype=torch.int64), persistent=False)
             # Small initial features (instant-NGP): the MLP starts from a near-constant input.
             self.table = nn.Parameter(torch.empty(sum(rows), arch.features).uniform_(-1e-4, 1e-4))

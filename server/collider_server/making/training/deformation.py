@@ -20,14 +20,34 @@ SMOOTHNESS = 1e-4
 
 @dataclass(frozen=True)
 class DeformationFit:
-    """Fitted fields (K, nodes, 3) float32 (normalised units) and, per frame, the largest and
-    the 99th-percentile distance (the animation's units) between where a fitted field sends a
-    surface sample of that frame (its vertices and face centroids) and where it is in the rest
-    pose: how well the fields follow the motion."""
+    """Fitted fields (K, nodes, 3) float32 (normalised units) over the normalised domain
+    ``centre``, ``radius`` at ``resolution`` cells per side; per frame, the largest and the
+    99th-percentile distance (the animation's units) between where a fitted field sends a surface
+    sample of that frame (its vertices and face centroids) and where it is in the rest pose (how
+    well the fields follow the motion); and the frames whose solve did not converge."""
 
     fields: np.ndarray
     residual_max: np.ndarray
     residual_p99: np.ndarray
+    centre: tuple
+    radius: float
+    resolution: int
+    unconverged: tuple = ()
+
+    def fits(self, centre, radius: float, resolution: int, frames: int) -> bool:
+        """Whether these are the fields of a network of that domain, resolution and frames."""
+        return (self.resolution == resolution and len(self.fields) == frames and self.radius == float(radius)
+                and np.array_equal(np.asarray(self.centre), np.asarray(centre, np.float64)))
+
+    def summary(self, meters_per_unit: float) -> str:
+        """How far the fields miss, in millimetres: the worst frame's 99th percentile and the max."""
+        worst = int(self.residual_p99.argmax())
+        to_mm = 1000.0 * meters_per_unit
+        text = (f"{self.residual_p99[worst] * to_mm:.3f} mm (99th percentile, frame {worst}; max "
+                f"{self.residual_max.max() * to_mm:.3f} mm)")
+        if self.unconverged:
+            text += f"; the solve of {len(self.unconverged)} frames did not converge (first: {self.unconverged[0]})"
+        return text
 
 
 def fit_deformation(animation: AnimatedMesh, centre, radius: float, resolution: int,
@@ -55,6 +75,7 @@ def fit_deformation(animation: AnimatedMesh, centre, radius: float, resolution: 
     count = len(animation.frames)
     fields = np.zeros((count, nodes, 3))
     residual_max, residual_p99 = np.zeros(count), np.zeros(count)
+    unconverged: list[int] = []
     with progress(count, f"deformation fields of {count} frames ({resolution}^3)", "frame",
                   show_progress) as bar:
         for k, frame in enumerate(animation.frames):
@@ -67,12 +88,15 @@ def fit_deformation(animation: AnimatedMesh, centre, radius: float, resolution: 
             jacobi = sp.diags(1.0 / np.maximum(system.diagonal(), 1e-30))
             for axis in range(3):
                 start = fields[k - 1, :, axis] if k else None
-                fields[k, :, axis], _ = cg(system, a.T @ target[:, axis], x0=start, rtol=1e-10,
-                                           maxiter=5000, M=jacobi)
+                fields[k, :, axis], status = cg(system, a.T @ target[:, axis], x0=start, rtol=1e-10,
+                                                maxiter=5000, M=jacobi)
+                if status != 0 and (not unconverged or unconverged[-1] != k):
+                    unconverged.append(k)
             miss = np.linalg.norm(a @ fields[k] - target, axis=1) * radius
             residual_max[k], residual_p99[k] = miss.max(), np.percentile(miss, 99)
             bar.update(1)
-    return DeformationFit(fields.astype(np.float32), residual_max, residual_p99)
+    return DeformationFit(fields.astype(np.float32), residual_max, residual_p99, tuple(centre.tolist()),
+                          float(radius), resolution, tuple(unconverged))
 
 
 def _second_differences(side: int):
@@ -96,7 +120,7 @@ def _second_differences(side: int):
 #: share of the distance error, small against the 0.05 mm a 4D collider is asked for. Measured:
 #: the twisting bunny 0.021 mm (deformed: 0.03 mm mean after 1 minute); the bending arm, whose
 #: elbow folds, misses by millimetres (keyframe tables: 0.053 mm mean after 30 minutes, the
-#: deformed floor 0.128 mm: docs/neural.md).
+#: deformed floor 0.123 mm: docs/neural.md).
 SMOOTH_ENOUGH_M = 1e-4
 
 
@@ -119,11 +143,13 @@ def choose_animated_preset(animation: AnimatedMesh, padding: float, meters_per_u
 
     resolution = ANIMATED_PRESETS["deformed"].deformation_resolution
     fit = fit_deformation(animation, *normalisation(animation, padding), resolution, show_progress)
-    worst = int(fit.residual_p99.argmax())
-    miss = f"{fit.residual_p99[worst] * meters_per_unit * 1000:.3f} mm (99th percentile, frame {worst})"
     bound = f"{SMOOTH_ENOUGH_M * 1000:g} mm"
-    if fit.residual_p99[worst] * meters_per_unit <= SMOOTH_ENOUGH_M:
-        return PresetChoice("deformed", fit, f"preset deformed: fields of {resolution}^3 follow every frame "
-                                             f"within {miss}, under {bound} (--preset keyframes to choose)")
-    return PresetChoice("keyframes", fit, f"preset keyframes: the deformation fields miss a frame by {miss}, "
-                                          f"over {bound}: no smooth field follows this motion (--preset to choose)")
+    if fit.residual_p99.max() * meters_per_unit <= SMOOTH_ENOUGH_M and not fit.unconverged:
+        size = fit.fields.size * 4 / 1e6
+        return PresetChoice("deformed", fit, f"preset deformed: fields of {resolution}^3 ({size:.1f} MB for "
+                                             f"{len(fit.fields)} frames) follow every frame within "
+                                             f"{fit.summary(meters_per_unit)}, under {bound} "
+                                             "(--preset keyframes to choose)")
+    return PresetChoice("keyframes", fit, f"preset keyframes: the deformation fields miss a frame by "
+                                          f"{fit.summary(meters_per_unit)}, over {bound}: no smooth field "
+                                          "follows this motion (--preset to choose)")

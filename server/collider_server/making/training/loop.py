@@ -155,13 +155,11 @@ def train_animated_neural(animation: AnimatedMesh, name: str, config: TrainConfi
         import torch
 
         fit = deformation
-        if fit is None or fit.fields.shape != tuple(network.deformation.shape):
+        if fit is None or not fit.fits(centre, radius, arch.deformation_resolution, arch.keyframes):
             fit = fit_deformation(animation, centre, radius, arch.deformation_resolution, show_progress)
-            worst = int(fit.residual_p99.argmax())
-            to_mm = 1000.0 * meters_per_unit
-            print(f"deformation fit: the fields carry every frame's surface samples to the rest pose within "
-                  f"{fit.residual_p99.max() * to_mm:.4f} mm (99th percentile; frame {worst}, max "
-                  f"{fit.residual_max.max() * to_mm:.3f} mm)", file=sys.stderr)
+            if show_progress:
+                print(f"deformation fit: the fields carry every frame's surface samples to the rest pose "
+                      f"within {fit.summary(meters_per_unit)}", file=sys.stderr)
         network.deformation.copy_(torch.from_numpy(fit.fields))
 
     # The keyframes' own timeline: the same duration, loop and speed bound, K frames.
