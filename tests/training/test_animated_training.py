@@ -208,7 +208,8 @@ def test_train_cli_refuses_mismatched_options_in_one_line(tmp_path, args, messag
 
 def test_an_animation_gets_the_preset_that_suits_its_motion(sphere):
     """Without --preset: deformed where fitted fields follow every frame (the pulsing sphere's
-    affine motion), keyframes where they cannot (the arm's elbow folds: millimetres off)."""
+    affine motion), keyframes where they cannot (the arm's elbow folds: 0.18 mm off by its third
+    frame, 3.7 mm at its deepest bend; the fit stops at the first frame over the bound)."""
     from collider_server.making.animation_files import load_animation
     from collider_server.making.training import choose_animated_preset
 
@@ -217,8 +218,9 @@ def test_an_animation_gets_the_preset_that_suits_its_motion(sphere):
     assert smooth.preset == "deformed" and "preset deformed: fields of 16^3 (0.8 MB for 13 frames) follow every" in smooth.reason
     arm = load_animation(ARM / "arm.obj", ARM / "arm.pc2", 24.0)
     folding = choose_animated_preset(arm, 0.1, 1.0, show_progress=False)
-    assert folding.preset == "keyframes" and folding.fit.residual_p99.max() > 1e-3, folding.reason
+    assert folding.preset == "keyframes" and folding.fit.residual_p99.max() > 1e-4, folding.reason
     assert "no smooth field follows this motion" in folding.reason
+    assert len(folding.fit.fields) < 25  # the fit stopped at the first frame it missed
 
 
 def test_train_without_a_preset_says_which_it_took_and_why(tmp_path):
@@ -227,6 +229,6 @@ def test_train_without_a_preset_says_which_it_took_and_why(tmp_path):
                      "--name", "arm-auto", "--models", str(tmp_path / "models"), "--samples", "4000",
                      "--steps", "2")
     assert result.returncode == 0, result.stderr
-    assert "preset keyframes: the deformation fields miss a frame by 3." in result.stdout
+    assert "preset keyframes: the deformation fields miss a frame by 0.177 mm (99th percentile, frame 2" in result.stdout
     assert "(keyframe tables)" in result.stdout
     assert load_collider(tmp_path / "models" / "arm-auto.safetensors").architecture.keyframes == 9

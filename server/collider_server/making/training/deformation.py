@@ -51,12 +51,13 @@ class DeformationFit:
 
 
 def fit_deformation(animation: AnimatedMesh, centre, radius: float, resolution: int,
-                    show_progress: bool = True) -> DeformationFit:
+                    show_progress: bool = True, stop_above: float | None = None) -> DeformationFit:
     """Per frame k, the inverse deformation field ``W_k`` on a grid of ``resolution`` cells per
     side over the normalised domain (``u = (x - centre) / radius``): the least-squares fit of
     ``W_k(u_k) = u_0 - u_k`` at the frame's vertices and face centroids (frame 0, the rest pose,
     is the identity), smoothed by :data:`SMOOTHNESS`. Each frame starts its conjugate gradients
-    from the previous frame's fit."""
+    from the previous frame's fit. With ``stop_above`` (the animation's units), the fit stops
+    after the first frame it misses by more (99th percentile): the fields of the frames so far."""
     import scipy.sparse as sp
     from scipy.sparse.linalg import cg
 
@@ -95,8 +96,11 @@ def fit_deformation(animation: AnimatedMesh, centre, radius: float, resolution: 
             miss = np.linalg.norm(a @ fields[k] - target, axis=1) * radius
             residual_max[k], residual_p99[k] = miss.max(), np.percentile(miss, 99)
             bar.update(1)
-    return DeformationFit(fields.astype(np.float32), residual_max, residual_p99, tuple(centre.tolist()),
-                          float(radius), resolution, tuple(unconverged))
+            if stop_above is not None and residual_p99[k] > stop_above:
+                count = k + 1
+                break
+    return DeformationFit(fields[:count].astype(np.float32), residual_max[:count], residual_p99[:count],
+                          tuple(centre.tolist()), float(radius), resolution, tuple(unconverged))
 
 
 def _second_differences(side: int):
@@ -142,7 +146,9 @@ def choose_animated_preset(animation: AnimatedMesh, padding: float, meters_per_u
     from ...engine.kinds.neural import ANIMATED_PRESETS
 
     resolution = ANIMATED_PRESETS["deformed"].deformation_resolution
-    fit = fit_deformation(animation, *normalisation(animation, padding), resolution, show_progress)
+    # A motion the fields do not follow is known at its first such frame: the rest is not fitted.
+    fit = fit_deformation(animation, *normalisation(animation, padding), resolution, show_progress,
+                          stop_above=SMOOTH_ENOUGH_M / meters_per_unit)
     bound = f"{SMOOTH_ENOUGH_M * 1000:g} mm"
     if fit.residual_p99.max() * meters_per_unit <= SMOOTH_ENOUGH_M and not fit.unconverged:
         size = fit.fields.size * 4 / 1e6
