@@ -32,6 +32,13 @@ DURATION = 0.6
 needs_numba = pytest.mark.skipif(not grid_kernels.available(), reason="numba is not installed")
 
 
+def node_positions(resolution=SMALL["deformation_resolution"]):
+    """(nodes, 3) normalised positions of a field's nodes, node i + s (j + s k): x fastest."""
+    axis = np.linspace(-1.0, 1.0, resolution + 1)
+    z, y, x = np.meshgrid(axis, axis, axis, indexing="ij")
+    return np.stack([x.ravel(), y.ravel(), z.ravel()], axis=1)
+
+
 def random_network(seed=0, amplitude=0.08, **overrides):
     """A random rest network and, per keyframe, a smooth random field (a twist-like offset of up
     to ``amplitude`` normalised units, so the warp stays invertible)."""
@@ -42,10 +49,7 @@ def random_network(seed=0, amplitude=0.08, **overrides):
         with torch.no_grad():
             network.table.normal_(0.0, 0.5)
             network.table.copy_(network.table.half().float())  # the file's float16
-    side = arch.deformation_resolution + 1
-    axis = np.linspace(-1.0, 1.0, side)
-    z, y, x = np.meshgrid(axis, axis, axis, indexing="ij")  # node i + s (j + s k): x fastest
-    nodes = np.stack([x.ravel(), y.ravel(), z.ravel()], axis=1)
+    nodes = node_positions(arch.deformation_resolution)
     rng = np.random.default_rng(seed)
     fields = []
     for _ in range(arch.keyframes):
@@ -179,12 +183,8 @@ def test_a_uniform_scale_divides_the_distance_by_the_scale(fused):
         pytest.skip("numba is not installed")
     network = random_network(amplitude=0.0)
     network.fused = fused
-    side = SMALL["deformation_resolution"] + 1
-    axis = np.linspace(-1.0, 1.0, side)
-    z, y, x = np.meshgrid(axis, axis, axis, indexing="ij")
-    nodes = np.stack([x.ravel(), y.ravel(), z.ravel()], axis=1)
-    with torch.no_grad():
-        network.deformation[2:] = torch.from_numpy((0.5 * nodes).astype(np.float32))  # a = 1.5 from frame 2
+    with torch.no_grad():  # a = 1.5 from frame 2
+        network.deformation[2:] = torch.from_numpy((0.5 * node_positions()).astype(np.float32))
     c = collider(network)
     x = CENTRE + (points(500, 9) - CENTRE) * 0.6  # inside the domain once scaled
     distance, _, _ = c.evaluate_at(x, True, DURATION)  # the last frame
@@ -198,11 +198,9 @@ def test_a_degenerate_warp_answers_finite_distances_of_the_rest_sign():
     """Fields that flatten the world onto a plane (a fold no deformation has): J is singular, the
     answer stays finite and keeps the rest network's sign."""
     network = random_network(amplitude=0.0)
-    side = SMALL["deformation_resolution"] + 1
-    axis = np.linspace(-1.0, 1.0, side)
-    z, y, x = np.meshgrid(axis, axis, axis, indexing="ij")
-    flatten = np.zeros((side ** 3, 3))
-    flatten[:, 2] = -z.ravel()  # X_z = 0 everywhere
+    nodes = node_positions()
+    flatten = np.zeros_like(nodes)
+    flatten[:, 2] = -nodes[:, 2]  # X_z = 0 everywhere
     with torch.no_grad():
         network.deformation[:] = torch.from_numpy(flatten.astype(np.float32))
     x = points(300, 10)
