@@ -86,6 +86,34 @@ if numba is not None:
         gz = ax * ay * (dz if bz else -dz)
         return row, ax * ay * az, gx, gy, gz
 
+    @_jit
+    def _cell_rows(cx, cy, cz, r, rows, dense):
+        """The rows of the 8 corners of cell (cx, cy, cz) in a level, ordered as ``_corner``'s
+        (bits x, y, z): ``_row`` of each corner, its per-axis terms computed once."""
+        if dense:
+            side = r + 1
+            x0, y0, z0 = cx, side * cy, side * side * cz
+            x1, y1, z1 = x0 + 1, y0 + side, z0 + side * side
+            return (x0 + y0 + z0, x1 + y0 + z0, x0 + y1 + z0, x1 + y1 + z0,
+                    x0 + y0 + z1, x1 + y0 + z1, x0 + y1 + z1, x1 + y1 + z1)
+        mask = rows - 1
+        x0, y0, z0 = cx * P0, cy * P1, cz * P2
+        x1, y1, z1 = (cx + 1) * P0, (cy + 1) * P1, (cz + 1) * P2
+        return ((x0 ^ y0 ^ z0) & mask, (x1 ^ y0 ^ z0) & mask, (x0 ^ y1 ^ z0) & mask, (x1 ^ y1 ^ z0) & mask,
+                (x0 ^ y0 ^ z1) & mask, (x1 ^ y0 ^ z1) & mask, (x0 ^ y1 ^ z1) & mask, (x1 ^ y1 ^ z1) & mask)
+
+    @numba.njit(cache=True, fastmath=True, nogil=True)
+    def _trilerp(v000, v100, v010, v110, v001, v101, v011, v111, wx, wy, wz):
+        """The corners' values (``vXYZ``, X, Y, Z the corner's bits) interpolated with per-axis
+        weights ``w*`` (of the high corner), one axis after another, and the result's derivatives
+        with respect to ``wx``, ``wy``, ``wz``: (value, d/dwx, d/dwy, d/dwz)."""
+        ex00, ex10, ex01, ex11 = v100 - v000, v110 - v010, v101 - v001, v111 - v011  # along x
+        e00, e10, e01, e11 = v000 + wx * ex00, v010 + wx * ex10, v001 + wx * ex01, v011 + wx * ex11
+        ey0, ey1 = e10 - e00, e11 - e01  # along y, at z0 and z1
+        e0, e1 = e00 + wy * ey0, e01 + wy * ey1
+        gx0, gx1 = ex00 + wy * (ex10 - ex00), ex01 + wy * (ex11 - ex01)
+        return (e0 + wz * (e1 - e0), gx0 + wz * (gx1 - gx0), ey0 + wz * (ey1 - ey0), e1 - e0)
+
     @_pjit
     def encode(u, table, resolution, offset, rows, dense, smooth, want_jacobian, features, jacobian):
         """Fill ``features`` (n, L, F) and, when ``want_jacobian``, ``jacobian`` (n, L, F, 3)
@@ -142,73 +170,51 @@ if numba is not None:
                                   + gz * grad_jacobian[p, level, f, 2])
                         grad_table[row, f] += g
 
-    @_jit
-    def _encode_point(u, p, q, table, dtable, resolution, offset, rows, dense, smooth, want_jacobian,
-                      feature, jac, dfeature):
-        """Column ``q`` of a block's ``feature`` (L * F, block) and ``jac`` (3, L * F, block):
-        the encoding of point ``p`` and its Jacobian (as in ``encode``; F = 2, the presets',
-        keeps its sums in registers); when ``dtable`` has rows (the table's time derivative, an
-        animated network's), ``dfeature`` (L * F, block): the encoding of ``dtable``, the
-        features' time derivative."""
+    @numba.njit(cache=True, fastmath=True, nogil=True)
+    def _encode_block(ub, m, table, dtable, resolution, offset, rows, dense, smooth, corner_rows,
+                      weights, feature, jac, dfeature):
+        """The encoding of a block's ``m`` points ``ub`` (3, block) float32: columns ``0:m`` of
+        ``feature`` (L * F, block), its Jacobian ``jac`` (3, L * F, block) and, when ``dtable``
+        (the table's time derivative, an animated network's) has rows, ``dfeature`` (L * F,
+        block), the encoding of ``dtable``. Level by level, each loop over the block's points
+        innermost so that the compiler vectorises it (gathers of the table rows):
+        first the cells' corner rows (``corner_rows`` (8, block)) and per-axis weights and
+        derivatives (``weights`` (6, block)), then per feature the corners read and
+        interpolated axis by axis."""
         width = table.shape[1]
         timed = dtable.shape[0] > 0
         for level in range(resolution.shape[0]):
             r = resolution[level]
-            cx, wx, dx = _axis(u[p, 0], r, smooth)
-            cy, wy, dy = _axis(u[p, 1], r, smooth)
-            cz, wz, dz = _axis(u[p, 2], r, smooth)
-            base = level * width
-            if width == 2:
-                f0 = f1 = j00 = j01 = j02 = j10 = j11 = j12 = t0 = t1 = 0.0
-                for corner in range(8):
-                    row, weight, gx, gy, gz = _corner(corner, cx, cy, cz, wx, wy, wz, dx, dy, dz,
-                                                      r, rows[level], dense[level])
-                    row += offset[level]
-                    v0 = table[row, 0]
-                    v1 = table[row, 1]
-                    f0 += weight * v0
-                    f1 += weight * v1
-                    if timed:
-                        t0 += weight * dtable[row, 0]
-                        t1 += weight * dtable[row, 1]
-                    if want_jacobian:
-                        j00 += gx * v0
-                        j01 += gy * v0
-                        j02 += gz * v0
-                        j10 += gx * v1
-                        j11 += gy * v1
-                        j12 += gz * v1
-                feature[base, q] = f0
-                feature[base + 1, q] = f1
-                jac[0, base, q] = j00
-                jac[1, base, q] = j01
-                jac[2, base, q] = j02
-                jac[0, base + 1, q] = j10
-                jac[1, base + 1, q] = j11
-                jac[2, base + 1, q] = j12
-                if timed:
-                    dfeature[base, q] = t0
-                    dfeature[base + 1, q] = t1
-                continue
+            o, level_rows, level_dense = offset[level], rows[level], dense[level]
+            for q in range(m):
+                # float64 here: a float32 cell position would cost the gradient ~1e-4 of itself
+                cx, wx, dx = _axis(ub[0, q], r, smooth)
+                cy, wy, dy = _axis(ub[1, q], r, smooth)
+                cz, wz, dz = _axis(ub[2, q], r, smooth)
+                weights[0, q], weights[1, q], weights[2, q] = wx, wy, wz
+                weights[3, q], weights[4, q], weights[5, q] = dx, dy, dz
+                c0, c1, c2, c3, c4, c5, c6, c7 = _cell_rows(cx, cy, cz, r, level_rows, level_dense)
+                corner_rows[0, q], corner_rows[1, q], corner_rows[2, q], corner_rows[3, q] = o + c0, o + c1, o + c2, o + c3
+                corner_rows[4, q], corner_rows[5, q], corner_rows[6, q], corner_rows[7, q] = o + c4, o + c5, o + c6, o + c7
             for f in range(width):
-                feature[base + f, q] = 0.0
+                i = level * width + f
+                for q in range(m):
+                    value, gx, gy, gz = _trilerp(
+                        table[corner_rows[0, q], f], table[corner_rows[1, q], f], table[corner_rows[2, q], f],
+                        table[corner_rows[3, q], f], table[corner_rows[4, q], f], table[corner_rows[5, q], f],
+                        table[corner_rows[6, q], f], table[corner_rows[7, q], f],
+                        weights[0, q], weights[1, q], weights[2, q])
+                    feature[i, q] = value
+                    jac[0, i, q] = gx * weights[3, q]
+                    jac[1, i, q] = gy * weights[4, q]
+                    jac[2, i, q] = gz * weights[5, q]
                 if timed:
-                    dfeature[base + f, q] = 0.0
-                for axis in range(3):
-                    jac[axis, base + f, q] = 0.0
-            for corner in range(8):
-                row, weight, gx, gy, gz = _corner(corner, cx, cy, cz, wx, wy, wz, dx, dy, dz,
-                                                  r, rows[level], dense[level])
-                row += offset[level]
-                for f in range(width):
-                    v = table[row, f]
-                    feature[base + f, q] += weight * v
-                    if timed:
-                        dfeature[base + f, q] += weight * dtable[row, f]
-                    if want_jacobian:
-                        jac[0, base + f, q] += gx * v
-                        jac[1, base + f, q] += gy * v
-                        jac[2, base + f, q] += gz * v
+                    for q in range(m):
+                        dfeature[i, q] = _trilerp(
+                            dtable[corner_rows[0, q], f], dtable[corner_rows[1, q], f], dtable[corner_rows[2, q], f],
+                            dtable[corner_rows[3, q], f], dtable[corner_rows[4, q], f], dtable[corner_rows[5, q], f],
+                            dtable[corner_rows[6, q], f], dtable[corner_rows[7, q], f],
+                            weights[0, q], weights[1, q], weights[2, q])[0]
 
     #: Points per block of the query kernel: the MLP runs on a block at a time, its inner loops
     #: over the block's points (contiguous, so the compiler vectorises them).
@@ -240,18 +246,98 @@ if numba is not None:
             count[key[p]] += 1
         return order
 
-    @numba.njit(cache=True, fastmath=True, nogil=True, parallel=True)
+    @numba.njit(cache=True, fastmath=True, nogil=True)
+    def _query_block(u, order, start, m, table, dtable, resolution, offset, rows, dense, smooth, weights,
+                     biases, w_out, b_out, scale, want_gradient, distance, gradient, dtime, ub, corner_rows,
+                     corner_weights, feature, dfeature, jac, act, g, g_next, out):
+        """One block of ``network_query_timed``: its ``m`` points from ``start`` in ``order``,
+        with the scratch arrays of its run."""
+        depth = len(weights)
+        n_in = feature.shape[0]
+        block = out.shape[0]
+        for q in range(m):
+            p = order[start + q]
+            ub[0, q], ub[1, q], ub[2, q] = u[p, 0], u[p, 1], u[p, 2]
+        _encode_block(ub, m, table, dtable, resolution, offset, rows, dense, smooth, corner_rows,
+                      corner_weights, feature, jac, dfeature)
+        # MLP forward, activations kept for the backward pass.
+        for k in range(depth):
+            w = weights[k]
+            for o in range(w.shape[0]):
+                s = act[k, o]
+                s[:] = biases[k][o]
+                for i in range(w.shape[1]):
+                    weight = w[o, i]
+                    source = feature[i] if k == 0 else act[k - 1, i]
+                    for q in range(block):
+                        s[q] += weight * source[q]
+                for q in range(block):
+                    s[q] = max(s[q], np.float32(0.0))
+        last = act[depth - 1]
+        out[:] = b_out
+        for i in range(weights[depth - 1].shape[0]):
+            for q in range(block):
+                out[q] += w_out[i] * last[i, q]
+        for q in range(m):
+            distance[order[start + q]] = out[q] * scale
+        if not want_gradient:
+            return
+        # Backward: d output / d activation, layer by layer (ReLU masks), then the encoding.
+        for i in range(weights[depth - 1].shape[0]):
+            g[i, :] = w_out[i]
+        for k in range(depth - 1, -1, -1):
+            w = weights[k]
+            g_next[:w.shape[1], :] = 0.0
+            for o in range(w.shape[0]):
+                go = g[o]
+                for q in range(block):
+                    if act[k, o, q] <= 0.0:
+                        go[q] = 0.0
+                for i in range(w.shape[1]):
+                    weight = w[o, i]
+                    target = g_next[i]
+                    for q in range(block):
+                        target[q] += weight * go[q]
+            g[:w.shape[1], :] = g_next[:w.shape[1], :]
+        for q in range(m):
+            gu0 = gu1 = gu2 = 0.0
+            for i in range(n_in):
+                gu0 += g[i, q] * jac[0, i, q]
+                gu1 += g[i, q] * jac[1, i, q]
+                gu2 += g[i, q] * jac[2, i, q]
+            p = order[start + q]
+            gradient[p, 0] = gu0
+            gradient[p, 1] = gu1
+            gradient[p, 2] = gu2
+        if dtable.shape[0] > 0:
+            for q in range(m):
+                gt = 0.0
+                for i in range(n_in):
+                    gt += g[i, q] * dfeature[i, q]
+                dtime[order[start + q]] = gt * scale
+
     def network_query_timed(u, table, dtable, resolution, offset, rows, dense, smooth, weights, biases, w_out,
-                      b_out, scale, want_gradient, distance, gradient, dtime):
+                            b_out, scale, want_gradient, distance, gradient, dtime):
         """The whole network at normalised points ``u`` (n, 3), fused: encoding, ReLU MLP
         (``weights[k]`` (out, in), ``biases[k]`` (out,)), linear output ``w_out`` (in,),
         ``b_out``; ``distance`` (n,) = output * ``scale``; when ``want_gradient``, ``gradient``
         (n, 3) = d output / d u (the MLP backward through the ReLU masks, times the encoding's
         Jacobian), and when ``dtable`` (the table's time derivative, same shape; (0, F) for a
         static network) has rows, ``dtime`` (n,) = d distance / dt = ``scale`` * d output /
-        d features . the encoding of ``dtable``. Blocks of QUERY_BLOCK points: the encoding point by point (random table
-        reads), then the MLP forward and backward for the whole block, point index innermost
-        (float32 SIMD); scratch arrays are allocated once per block. Inference only."""
+        d features . the encoding of ``dtable``. Points sorted by bucket (``_bucket_order``), then
+        in blocks of QUERY_BLOCK points (``_query_block``): the encoding, the MLP forward and
+        backward for the whole block, each loop's point index innermost (float32 SIMD); scratch
+        arrays allocated once per run of blocks. Inference only."""
+        # Scratch arrays once per run of blocks (not per block); 8 runs per thread balance the load.
+        blocks = (len(u) + QUERY_BLOCK - 1) // QUERY_BLOCK
+        _network_query(u, table, dtable, resolution, offset, rows, dense, smooth, weights, biases, w_out,
+                       b_out, scale, want_gradient, distance, gradient, dtime,
+                       min(blocks, 8 * numba.get_num_threads()))
+
+    @numba.njit(cache=True, fastmath=True, nogil=True, parallel=True)
+    def _network_query(u, table, dtable, resolution, offset, rows, dense, smooth, weights, biases, w_out,
+                       b_out, scale, want_gradient, distance, gradient, dtime, runs):
+        """``network_query_timed`` in ``runs`` runs of blocks."""
         n = u.shape[0]
         n_in = resolution.shape[0] * table.shape[1]
         depth = len(weights)
@@ -260,9 +346,11 @@ if numba is not None:
             widest = max(widest, weights[k].shape[0])
         block = QUERY_BLOCK
         order = _bucket_order(u)
-        for b in numba.prange((n + block - 1) // block):
-            start = b * block
-            m = min(n, start + block) - start
+        blocks = (n + block - 1) // block
+        for run in numba.prange(runs):
+            ub = np.empty((3, block), np.float32)
+            corner_rows = np.zeros((8, block), np.int64)
+            corner_weights = np.zeros((6, block), np.float32)
             feature = np.zeros((n_in, block), np.float32)
             dfeature = np.zeros((n_in if dtable.shape[0] > 0 else 0, block), np.float32)
             jac = np.zeros((3, n_in, block), np.float32)
@@ -270,64 +358,11 @@ if numba is not None:
             g = np.zeros((widest, block), np.float32)
             g_next = np.zeros((widest, block), np.float32)
             out = np.empty(block, np.float32)
-            for q in range(m):
-                _encode_point(u, order[start + q], q, table, dtable, resolution, offset, rows, dense, smooth,
-                              want_gradient, feature, jac, dfeature)
-            # MLP forward, activations kept for the backward pass.
-            for k in range(depth):
-                w = weights[k]
-                for o in range(w.shape[0]):
-                    s = act[k, o]
-                    s[:] = biases[k][o]
-                    for i in range(w.shape[1]):
-                        weight = w[o, i]
-                        source = feature[i] if k == 0 else act[k - 1, i]
-                        for q in range(block):
-                            s[q] += weight * source[q]
-                    for q in range(block):
-                        s[q] = max(s[q], np.float32(0.0))
-            last = act[depth - 1]
-            out[:] = b_out
-            for i in range(weights[depth - 1].shape[0]):
-                for q in range(block):
-                    out[q] += w_out[i] * last[i, q]
-            for q in range(m):
-                distance[order[start + q]] = out[q] * scale
-            if not want_gradient:
-                continue
-            # Backward: d output / d activation, layer by layer (ReLU masks), then the encoding.
-            for i in range(weights[depth - 1].shape[0]):
-                g[i, :] = w_out[i]
-            for k in range(depth - 1, -1, -1):
-                w = weights[k]
-                g_next[:w.shape[1], :] = 0.0
-                for o in range(w.shape[0]):
-                    go = g[o]
-                    for q in range(block):
-                        if act[k, o, q] <= 0.0:
-                            go[q] = 0.0
-                    for i in range(w.shape[1]):
-                        weight = w[o, i]
-                        target = g_next[i]
-                        for q in range(block):
-                            target[q] += weight * go[q]
-                g[:w.shape[1], :] = g_next[:w.shape[1], :]
-            for q in range(m):
-                gu0 = gu1 = gu2 = 0.0
-                for i in range(n_in):
-                    gu0 += g[i, q] * jac[0, i, q]
-                    gu1 += g[i, q] * jac[1, i, q]
-                    gu2 += g[i, q] * jac[2, i, q]
-                p = order[start + q]
-                gradient[p, 0] = gu0
-                gradient[p, 1] = gu1
-                gradient[p, 2] = gu2
-            if dtable.shape[0] > 0:
-                for q in range(m):
-                    gt = 0.0
-                    for i in range(n_in):
-                        gt += g[i, q] * dfeature[i, q]
-                    dtime[order[start + q]] = gt * scale
+            for b in range(run * blocks // runs, (run + 1) * blocks // runs):
+                _query_block(u, order, b * block, min(n, b * block + block) - b * block, table, dtable,
+                             resolution, offset, rows, dense, smooth, weights, biases, w_out, b_out,
+                             scale, want_gradient, distance, gradient, dtime, ub, corner_rows, corner_weights,
+                             feature, dfeature, jac, act, g, g_next, out)
 
     def network_query(u, table, resolution, offset, rows, dense, smooth, weights, biases, w_out, b_out,
                       scale, want_gradient, distance, gradient):
