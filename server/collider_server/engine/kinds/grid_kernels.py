@@ -247,6 +247,31 @@ if numba is not None:
         return order
 
     @numba.njit(cache=True, fastmath=True, nogil=True)
+    def _multiply_add(matrix, source, target):
+        """``target[r] += sum_c matrix[r, c] * source[c]`` for the rows ``r`` of ``matrix`` (the
+        rows of ``source`` and ``target`` are a block's points): eight sources per pass over a
+        target row, so that each load and store of it carries eight multiply-adds."""
+        rows, cols = matrix.shape
+        block = target.shape[1]
+        for r in range(rows):
+            t = target[r]
+            c = 0
+            while c + 8 <= cols:
+                m0, m1, m2, m3 = matrix[r, c], matrix[r, c + 1], matrix[r, c + 2], matrix[r, c + 3]
+                m4, m5, m6, m7 = matrix[r, c + 4], matrix[r, c + 5], matrix[r, c + 6], matrix[r, c + 7]
+                s0, s1, s2, s3 = source[c], source[c + 1], source[c + 2], source[c + 3]
+                s4, s5, s6, s7 = source[c + 4], source[c + 5], source[c + 6], source[c + 7]
+                for q in range(block):
+                    t[q] += (m0 * s0[q] + m1 * s1[q] + m2 * s2[q] + m3 * s3[q]
+                             + m4 * s4[q] + m5 * s5[q] + m6 * s6[q] + m7 * s7[q])
+                c += 8
+            while c < cols:
+                mc, sc = matrix[r, c], source[c]
+                for q in range(block):
+                    t[q] += mc * sc[q]
+                c += 1
+
+    @numba.njit(cache=True, fastmath=True, nogil=True)
     def _query_block(u, order, start, m, table, dtable, resolution, offset, rows, dense, smooth, weights,
                      biases, w_out, b_out, scale, want_gradient, distance, gradient, dtime, ub, corner_rows,
                      corner_weights, feature, dfeature, jac, act, g, g_next, out):
@@ -264,13 +289,10 @@ if numba is not None:
         for k in range(depth):
             w = weights[k]
             for o in range(w.shape[0]):
+                act[k, o, :] = biases[k][o]
+            _multiply_add(w, feature if k == 0 else act[k - 1], act[k])
+            for o in range(w.shape[0]):
                 s = act[k, o]
-                s[:] = biases[k][o]
-                for i in range(w.shape[1]):
-                    weight = w[o, i]
-                    source = feature[i] if k == 0 else act[k - 1, i]
-                    for q in range(block):
-                        s[q] += weight * source[q]
                 for q in range(block):
                     s[q] = max(s[q], np.float32(0.0))
         last = act[depth - 1]
@@ -287,28 +309,28 @@ if numba is not None:
             g[i, :] = w_out[i]
         for k in range(depth - 1, -1, -1):
             w = weights[k]
-            g_next[:w.shape[1], :] = 0.0
             for o in range(w.shape[0]):
                 go = g[o]
                 for q in range(block):
                     if act[k, o, q] <= 0.0:
                         go[q] = 0.0
-                for i in range(w.shape[1]):
-                    weight = w[o, i]
-                    target = g_next[i]
-                    for q in range(block):
-                        target[q] += weight * go[q]
+            g_next[:w.shape[1], :] = 0.0
+            _multiply_add(w.T, g, g_next)
             g[:w.shape[1], :] = g_next[:w.shape[1], :]
+        # d output / d u = g . jac, summed over the inputs with the points innermost (into g_next).
+        grad_u = g_next[:3]
+        grad_u[:] = 0.0
+        for i in range(n_in):
+            for axis in range(3):
+                row, jrow = grad_u[axis], jac[axis, i]
+                gi = g[i]
+                for q in range(block):
+                    row[q] += gi[q] * jrow[q]
         for q in range(m):
-            gu0 = gu1 = gu2 = 0.0
-            for i in range(n_in):
-                gu0 += g[i, q] * jac[0, i, q]
-                gu1 += g[i, q] * jac[1, i, q]
-                gu2 += g[i, q] * jac[2, i, q]
             p = order[start + q]
-            gradient[p, 0] = gu0
-            gradient[p, 1] = gu1
-            gradient[p, 2] = gu2
+            gradient[p, 0] = grad_u[0, q]
+            gradient[p, 1] = grad_u[1, q]
+            gradient[p, 2] = grad_u[2, q]
         if dtable.shape[0] > 0:
             for q in range(m):
                 gt = 0.0
