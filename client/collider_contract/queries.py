@@ -72,14 +72,15 @@ def check_points(points) -> np.ndarray:
                          status=413, code="too-many-points")
     if array.dtype not in (np.float32, np.float64):
         array = array.astype(np.float64)
-    finite = np.isfinite(array).all(axis=1)
-    if not finite.all():
-        bad = int(np.flatnonzero(~finite)[0])
-        raise QueryError(f"points contain NaN or Inf (first at row {bad}: {array[bad].tolist()})",
-                         code="bad-points")
-    inside = (np.abs(array) <= MAX_COORDINATE_M).all(axis=1)
-    if not inside.all():
-        bad = int(np.flatnonzero(~inside)[0])
+    # Two reductions over all coordinates, no temporaries (a NaN propagates and fails the
+    # comparison); rows only for the message.
+    if array.size and not max(array.max(), -array.min()) <= MAX_COORDINATE_M:
+        finite = np.isfinite(array).all(axis=1)
+        if not finite.all():
+            bad = int(np.flatnonzero(~finite)[0])
+            raise QueryError(f"points contain NaN or Inf (first at row {bad}: {array[bad].tolist()})",
+                             code="bad-points")
+        bad = int(np.flatnonzero(~(np.abs(array) <= MAX_COORDINATE_M).all(axis=1))[0])
         raise QueryError(f"points outside the coordinate range +-{MAX_COORDINATE_M:g} (world units; "
                          f"first at row {bad}: {array[bad].tolist()})", code="bad-points")
     return array

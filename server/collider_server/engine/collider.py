@@ -247,8 +247,8 @@ class Collider(abc.ABC):
         normal is the direction to ``p`` from ``c - f(c) n(c)``, the surface point that ``c``'s
         own answer suggests: equal to ``n(c)`` on the box, so continuous with the inside, and
         tending to the direction away from the object far from it. The velocity is ``c``'s."""
-        if not self.clamps_to_domain:
-            return self.evaluate_at(local, want_gradient, time)
+        if not self.clamps_to_domain or ((local >= self.domain_min).all() and (local <= self.domain_max).all()):
+            return self.evaluate_at(local, want_gradient, time)  # (all inside: no copy, no clamp)
         clamped = np.clip(local, self.domain_min, self.domain_max)
         outside = (clamped != local).any(axis=1)
         if not outside.any():
@@ -268,8 +268,11 @@ class Collider(abc.ABC):
         # Where the gradient vanishes (the medial axis, e.g. a sphere's centre) fall back on the
         # direction from the domain centre, then +z, so a normal is always a unit vector. The
         # fallback is built only when some gradient vanishes (it cost 10 % of a 1M-point query).
-        length = np.linalg.norm(gradient, axis=1, keepdims=True)
-        if (length >= 1e-20).all():
+        # Element-wise in a fixed order (bit-identical whatever the batch; a reduction over the
+        # rows, as np.linalg.norm's, may round by the batch's length), with no (n, 3) temporary.
+        x, y, z = gradient[:, 0], gradient[:, 1], gradient[:, 2]
+        length = np.sqrt(x * x + y * y + z * z)[:, None]
+        if length.min(initial=np.inf) >= 1e-20:
             return gradient / length
         centre = 0.5 * (self.domain_min + self.domain_max)
         fallback = unit_vectors(local - centre, np.tile([0.0, 0.0, 1.0], (len(local), 1)))
