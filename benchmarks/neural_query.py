@@ -136,8 +136,9 @@ def main(argv=None) -> int:
     load_before = os.getloadavg()
     times = {label: ([], []) for label, *_ in candidates}
     for round_ in range(args.rounds):
-        # Each round starts one candidate later: none always runs right after the exact mesh's
-        # multi-threaded query (the one after it ran up to 1.4x slower in some rounds).
+        # Each round starts one candidate later, so that none always follows the same one: a query
+        # right after the exact mesh's pays the page faults of memory glibc gave back after it
+        # (docs/neural.md: up to 1.5x, d+n+c of the grid network).
         turn = round_ % len(candidates)
         for label, collider, query_kernel, points in candidates[turn:] + candidates[:turn]:
             with kernel(grid_kernels, query_kernel):
