@@ -143,9 +143,10 @@ def finish(query: ModelQuery, eps: float, distance: np.ndarray, normal: np.ndarr
     if "contact" in query.fields or "velocity" in query.fields:
         # In float64 (normal is); a zero normal leaves the point where it is, the documented
         # contact of a free point.
-        contact = points + (eps - distance)[:, None] * normal
+        contact = (eps - distance)[:, None] * normal
+        contact += points  # (in place: 1M points' contacts are 24 MB; p + x == x + p exactly)
     if "contact" in query.fields:
-        result.contact = contact.astype(points.dtype)
+        result.contact = contact.astype(points.dtype, copy=False)
     if "collides" in query.fields:
         result.collides = collides
     if "velocity" in query.fields:
