@@ -171,10 +171,11 @@ if numba is not None:
                         grad_table[row, f] += g
 
     @numba.njit(cache=True, fastmath=True, nogil=True)
-    def _encode_block(ub, m, table, dtable, resolution, offset, rows, dense, smooth, corner_rows,
-                      weights, feature, jac, dfeature):
+    def _encode_block(ub, m, table, dtable, resolution, offset, rows, dense, smooth, want_jacobian,
+                      corner_rows, weights, feature, jac, dfeature):
         """The encoding of a block's ``m`` points ``ub`` (3, block) float32: columns ``0:m`` of
-        ``feature`` (L * F, block), its Jacobian ``jac`` (3, L * F, block) and, when ``dtable``
+        ``feature`` (L * F, block), when ``want_jacobian`` its Jacobian ``jac`` (3, L * F, block)
+        and, when ``dtable``
         (the table's time derivative, an animated network's) has rows, ``dfeature`` (L * F,
         block), the encoding of ``dtable``. Level by level, each loop over the block's points
         innermost so that the compiler vectorises it (gathers of the table rows):
@@ -205,9 +206,10 @@ if numba is not None:
                         table[corner_rows[6, q], f], table[corner_rows[7, q], f],
                         weights[0, q], weights[1, q], weights[2, q])
                     feature[i, q] = value
-                    jac[0, i, q] = gx * weights[3, q]
-                    jac[1, i, q] = gy * weights[4, q]
-                    jac[2, i, q] = gz * weights[5, q]
+                    if want_jacobian:
+                        jac[0, i, q] = gx * weights[3, q]
+                        jac[1, i, q] = gy * weights[4, q]
+                        jac[2, i, q] = gz * weights[5, q]
                 if timed:
                     for q in range(m):
                         dfeature[i, q] = _trilerp(
@@ -283,8 +285,8 @@ if numba is not None:
         for q in range(m):
             p = order[start + q]
             ub[0, q], ub[1, q], ub[2, q] = u[p, 0], u[p, 1], u[p, 2]
-        _encode_block(ub, m, table, dtable, resolution, offset, rows, dense, smooth, corner_rows,
-                      corner_weights, feature, jac, dfeature)
+        _encode_block(ub, m, table, dtable, resolution, offset, rows, dense, smooth, want_gradient,
+                      corner_rows, corner_weights, feature, jac, dfeature)
         # MLP forward, activations kept for the backward pass.
         for k in range(depth):
             w = weights[k]
