@@ -134,6 +134,26 @@ def test_fused_network_query_matches_the_torch_reference(smooth, features, n):
 
 
 @needs_numba
+def test_fused_network_query_of_the_smallest_network():
+    """One level of one feature and an MLP one unit wide: fewer inputs and units than the
+    gradient's three components (the kernel keeps them in its scratch rows)."""
+    network = random_network(seed=3, levels=1, features=1, hidden_layers=1, hidden_width=1,
+                             base_resolution=8, max_resolution=8)
+    with torch.no_grad():  # a positive pre-activation, so the one ReLU passes the gradient
+        network.body[0].bias.fill_(5.0)
+    network.fused = False
+    x = points(200, 5)
+    xr = x.clone().requires_grad_(True)
+    reference = network(xr)
+    (autograd,) = torch.autograd.grad(reference.sum(), xr)
+    network.fused = True
+    distance, gradient = network.fused_query(x, True)
+    torch.testing.assert_close(distance, reference.detach(), rtol=0, atol=1e-5 * float(reference.abs().max()))
+    torch.testing.assert_close(gradient, autograd, rtol=0, atol=1e-4 * float(autograd.abs().max()))
+    assert float(autograd.abs().max()) > 0
+
+
+@needs_numba
 def test_fused_forward_matches_reference_on_the_default_preset():
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(11)

@@ -365,7 +365,7 @@ if numba is not None:
         n = u.shape[0]
         n_in = resolution.shape[0] * table.shape[1]
         depth = len(weights)
-        widest = n_in
+        widest = max(n_in, 3)  # (g_next's first 3 rows hold the gradient at the end)
         for k in range(depth):
             widest = max(widest, weights[k].shape[0])
         block = QUERY_BLOCK
