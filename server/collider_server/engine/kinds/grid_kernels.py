@@ -475,28 +475,25 @@ if numba is not None:
             cx, wx, dx = _axis(u[p, 0], resolution, False)
             cy, wy, dy = _axis(u[p, 1], resolution, False)
             cz, wz, dz = _axis(u[p, 2], resolution, False)
-            o0 = o1 = o2 = 0.0
+            c0, c1, c2, c3, c4, c5, c6, c7 = _cell_rows(cx, cy, cz, resolution, 0, True)
+            o0, j00, j01, j02 = _trilerp(field[c0, 0], field[c1, 0], field[c2, 0], field[c3, 0],
+                                         field[c4, 0], field[c5, 0], field[c6, 0], field[c7, 0], wx, wy, wz)
+            o1, j10, j11, j12 = _trilerp(field[c0, 1], field[c1, 1], field[c2, 1], field[c3, 1],
+                                         field[c4, 1], field[c5, 1], field[c6, 1], field[c7, 1], wx, wy, wz)
+            o2, j20, j21, j22 = _trilerp(field[c0, 2], field[c1, 2], field[c2, 2], field[c3, 2],
+                                         field[c4, 2], field[c5, 2], field[c6, 2], field[c7, 2], wx, wy, wz)
+            # d/dw to d/du: the weights' derivatives along each axis
+            j00, j01, j02 = j00 * dx, j01 * dy, j02 * dz
+            j10, j11, j12 = j10 * dx, j11 * dy, j12 * dz
+            j20, j21, j22 = j20 * dx, j21 * dy, j22 * dz
             r0 = r1 = r2 = 0.0
-            j00 = j01 = j02 = j10 = j11 = j12 = j20 = j21 = j22 = 0.0
-            for corner in range(8):
-                row, weight, gx, gy, gz = _corner(corner, cx, cy, cz, wx, wy, wz, dx, dy, dz, resolution, 0, True)
-                v0, v1, v2 = field[row, 0], field[row, 1], field[row, 2]
-                o0 += weight * v0
-                o1 += weight * v1
-                o2 += weight * v2
-                j00 += gx * v0
-                j01 += gy * v0
-                j02 += gz * v0
-                j10 += gx * v1
-                j11 += gy * v1
-                j12 += gz * v1
-                j20 += gx * v2
-                j21 += gy * v2
-                j22 += gz * v2
-                if want_velocity:
-                    r0 += weight * dfield[row, 0]
-                    r1 += weight * dfield[row, 1]
-                    r2 += weight * dfield[row, 2]
+            if want_velocity:
+                r0 = _trilerp(dfield[c0, 0], dfield[c1, 0], dfield[c2, 0], dfield[c3, 0],
+                              dfield[c4, 0], dfield[c5, 0], dfield[c6, 0], dfield[c7, 0], wx, wy, wz)[0]
+                r1 = _trilerp(dfield[c0, 1], dfield[c1, 1], dfield[c2, 1], dfield[c3, 1],
+                              dfield[c4, 1], dfield[c5, 1], dfield[c6, 1], dfield[c7, 1], wx, wy, wz)[0]
+                r2 = _trilerp(dfield[c0, 2], dfield[c1, 2], dfield[c2, 2], dfield[c3, 2],
+                              dfield[c4, 2], dfield[c5, 2], dfield[c6, 2], dfield[c7, 2], wx, wy, wz)[0]
             rest[p, 0] = u[p, 0] + o0
             rest[p, 1] = u[p, 1] + o1
             rest[p, 2] = u[p, 2] + o2
