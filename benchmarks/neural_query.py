@@ -7,8 +7,9 @@ the exact ``mesh`` kind (libigl) and for each neural model given (default: the s
 optionally the same network through another grid query kernel (``--kernel-from``, e.g. the one
 before a change) and, for grid networks, the pure-torch path (the reference, and what runs on
 CUDA). Every round times every candidate once, in turn (each round starting one candidate
-later), so that a shared machine's load falls on all of them alike; prints the median and the spread (min - max) in seconds per 1M points, the
-load average before and after, and the ratios the issue's targets name.
+later), so that a shared machine's load falls on all of them alike; prints the median and the
+spread (min - max) in seconds per 1M points, the load average before and after, and the ratios
+the issue's targets name.
 
     python benchmarks/neural_query.py                      # shipped bunny vs mesh, 1M points
     python benchmarks/neural_query.py --model out/b.safetensors --points 200000 --threads 2

@@ -251,8 +251,6 @@ class Collider(abc.ABC):
             return self.evaluate_at(local, want_gradient, time)  # (all inside: no copy, no clamp)
         clamped = np.clip(local, self.domain_min, self.domain_max)
         outside = (clamped != local).any(axis=1)
-        if not outside.any():
-            return self.evaluate_at(local, want_gradient, time)
         d, g, v = self.evaluate_at(clamped, want_gradient, time)
         away = local - clamped
         box_distance = np.linalg.norm(away, axis=1)
