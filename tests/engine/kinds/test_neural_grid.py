@@ -204,12 +204,78 @@ def test_model_file_stores_the_table_in_float16(tmp_path):
     assert 0 < np.abs(after - before).max() < 2e-3 * np.abs(before).max()
 
 
+def test_int8_table_codes_the_hashed_levels_and_keeps_the_dense_ones_in_float16():
+    """``table_dtype="int8"``: the hashed levels' rows become 8-bit codes times a scale per level
+    and feature (the 99.9th percentile of |value| / 127: within half a step of the value,
+    clipped above it), the dense levels' rows float16; unpacking rebuilds the table in level
+    order, for one table (rows, F) or keyframe tables (K, rows, F)."""
+    from collider_server.engine.kinds.neural_grid import INT8_QUANTILE, pack_table, unpack_table
+
+    arch = GridArchitecture(**SMALL, table_dtype="int8")
+    rows, dense = arch.level_rows(), arch.level_dense()
+    assert dense == [True, True, False, False]
+    rng = np.random.default_rng(4)
+    for shape in [(sum(rows), 2), (3, sum(rows), 2)]:
+        table = rng.normal(0.0, 0.5, shape).astype(np.float32)
+        table[..., -1, 0] = 40.0  # an outlier of the finest level: clipped, not the scale
+        packed = pack_table(table, arch)
+        assert sorted(packed) == ["table_codes", "table_dense", "table_scales"]
+        assert packed["table_dense"].dtype == np.float16 and packed["table_dense"].shape[-2] == 125 + 1000
+        assert packed["table_codes"].dtype == np.int8 and packed["table_codes"].shape[-2] == 2 * 1024
+        assert packed["table_scales"].shape == (2, 2)
+        back = unpack_table({**packed, "other": np.zeros(1)}, arch)
+        assert sorted(back) == ["other", "table"] and back["table"].shape == shape
+        np.testing.assert_array_equal(back["table"][..., :1125, :], table[..., :1125, :].astype(np.float16))
+        start = 1125
+        for level in range(2):
+            block, got = table[..., start:start + 1024, :], back["table"][..., start:start + 1024, :]
+            step = np.quantile(np.abs(block).reshape(-1, 2), INT8_QUANTILE, axis=0) / 127
+            np.testing.assert_allclose(packed["table_scales"][level], step, rtol=1e-6)
+            inside = np.abs(block) <= 127 * step
+            assert inside.mean() > 0.99
+            assert (np.abs(got - block)[inside] <= 0.5 * np.broadcast_to(step, block.shape)[inside] + 1e-7).all()
+            np.testing.assert_allclose(np.abs(got[~inside]), np.broadcast_to(127 * step, block.shape)[~inside], rtol=1e-6)
+            start += 1024
+        assert back["table"][..., -1, 0].max() < 40.0  # clipped
+    # The float formats are one array, as before.
+    plain = pack_table(table[0], GridArchitecture(**SMALL))
+    assert list(plain) == ["table"] and plain["table"].dtype == np.float16
+
+
+@pytest.mark.parametrize("damage, message", [
+    (lambda t: t.pop("table_scales"), "table_scales is missing"),
+    (lambda t: t.update(table_codes=t["table_codes"][:-1]), "the int8 table does not fit the architecture"),
+    (lambda t: t.update(table_codes=t["table_codes"].astype(np.int16)), "the int8 table does not fit"),
+    (lambda t: t.update(table_scales=t["table_scales"][:1]), "the int8 table does not fit"),
+])
+def test_int8_model_file_round_trip_and_damaged_files(tmp_path, damage, message):
+    """A network saved with an int8 table loads (float32 in memory) and answers as the original
+    to within its codes' steps; a file whose parts do not fit says which."""
+    from collider_server.engine.modelfile import load_collider, save_collider
+
+    network = random_network(seed=8)
+    arch = GridArchitecture(**SMALL, table_dtype="int8")
+    info = ColliderInfo("g", "neural", LO.tolist(), HI.tolist(), settings={"architecture": arch.__dict__.copy()})
+    collider = NeuralCollider(info, network, "cpu")
+    tensors = collider.tensors()
+    assert "table" not in tensors and tensors["table_codes"].dtype == np.int8
+    loaded = load_collider(save_collider(collider, tmp_path / "g.safetensors"), "cpu")
+    assert loaded.network.table.dtype == torch.float32
+    x = points(1000, 9).numpy().astype(np.float64)
+    before, after = collider.query(x).distance, loaded.query(x).distance
+    # 8-bit steps (~1/100 of a hashed level's spread) move distances by ~1 % of their range.
+    assert 0 < np.abs(after - before).max() < 3e-2 * np.abs(before).max()
+    damage(tensors)
+    with pytest.raises(ValueError, match=message):
+        NeuralCollider.from_tensors(info, tensors)
+
+
 def test_architecture_from_dict_reads_old_and_new_files():
     old = {"fourier_features": 8, "hidden_layers": 2, "hidden_width": 16, "fourier_scale": 1.0}
     assert type(architecture_from_dict(old)).__name__ == "Architecture"
     assert architecture_from_dict({**SMALL, "encoding": "grid"}) == GridArchitecture(**SMALL)
     with pytest.raises(ValueError, match="table_dtype"):
-        GridArchitecture(table_dtype="int8")
+        GridArchitecture(table_dtype="int4")
     with pytest.raises(ValueError, match="max_resolution"):
         GridArchitecture(base_resolution=64, max_resolution=32)
 
@@ -260,7 +326,7 @@ def test_shipped_grid_models_analytic_gradient_matches_autograd(name):
     (dict(hidden_width=None), "architecture hidden_width must be a positive integer, got None"),
     (dict(base_resolution=64, max_resolution=32), "max_resolution (32) must be >= base_resolution (64)"),
     (dict(table_log2=25), "table_log2 must be <= 24 (16M rows per level), got 25"),
-    (dict(table_dtype="int8"), "table_dtype must be 'float16' or 'float32', got 'int8'"),
+    (dict(table_dtype="int4"), "table_dtype must be one of 'float16', 'float32', 'int8', got 'int4'"),
     (dict(encoding="fourier"), "a GridArchitecture has encoding 'grid', got 'fourier'"),
 ])
 def test_grid_architecture_validation_messages(bad, message):

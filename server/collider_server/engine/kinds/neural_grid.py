@@ -37,6 +37,15 @@ CORNERS = np.array([[(c >> 0) & 1, (c >> 1) & 1, (c >> 2) & 1] for c in range(8)
 HASH_PRIMES = (1, 2_654_435_761, 805_459_861)
 
 
+#: How a model file may store the feature table (``GridArchitecture.table_dtype``).
+TABLE_DTYPES = ("float16", "float32", "int8")
+
+#: The quantile of a hashed level's |feature values| that its 8-bit codes reach (``int8``); the
+#: rarer larger values are clipped to it. Scaling by the maximum instead left most values a
+#: coarser step (docs/neural.md: "8-bit tables").
+INT8_QUANTILE = 0.999
+
+
 @dataclass(frozen=True)
 class GridArchitecture:
     """Shape of a grid network (see the module docstring).
@@ -48,8 +57,9 @@ class GridArchitecture:
     hidden_layers, hidden_width : the MLP after the encoding
     smooth : smoothstep interpolation weights (continuous normals) instead of trilinear
     surface_rows : hashed levels' rows grow like r^2 up to ``2^table_log2`` (see level_rows)
-    table_dtype : dtype the feature table is stored in the model file ("float16" or "float32";
-        computation is float32 either way)
+    table_dtype : how the feature table is stored in the model file: "float16", "float32", or
+        "int8": the hashed levels as 8-bit codes with one scale per level and feature, the dense
+        (coarse) levels as float16 (see :func:`pack_table`); computation is float32 either way
     """
 
     levels: int = 8
@@ -77,8 +87,9 @@ class GridArchitecture:
                              f"({self.base_resolution})")
         if self.table_log2 > 24:
             raise ValueError(f"table_log2 must be <= 24 (16M rows per level), got {self.table_log2}")
-        if self.table_dtype not in ("float16", "float32"):
-            raise ValueError(f"table_dtype must be 'float16' or 'float32', got {self.table_dtype!r}")
+        if self.table_dtype not in TABLE_DTYPES:
+            raise ValueError(f"table_dtype must be one of {', '.join(map(repr, TABLE_DTYPES))}, "
+                             f"got {self.table_dtype!r}")
         if self.encoding != self.ENCODING:
             raise ValueError(f"a {type(self).__name__} has encoding {self.ENCODING!r}, got {self.encoding!r}")
 
@@ -110,6 +121,10 @@ class GridArchitecture:
             rows.append(min((r + 1) ** 3, hashed))
         return rows
 
+    def level_dense(self) -> list[bool]:
+        """Whether each level is dense (one row per corner) rather than hashed."""
+        return [(r + 1) ** 3 <= n for r, n in zip(self.resolutions(), self.level_rows())]
+
     def parameter_count(self) -> int:
         width = self.levels * self.features
         mlp = 0
@@ -117,6 +132,81 @@ class GridArchitecture:
             mlp += width * self.hidden_width + self.hidden_width
             width = self.hidden_width
         return sum(self.level_rows()) * self.features + mlp + width + 1
+
+
+def pack_table(table: np.ndarray, arch: GridArchitecture) -> dict[str, np.ndarray]:
+    """The feature table (..., rows, F) float32 as a model file stores it (``arch.table_dtype``):
+    ``{"table": ...}`` in float16 or float32, or for ``int8`` the dense levels' rows as float16
+    (``table_dense``: the coarse levels, few rows, to which the distance is most sensitive) and
+    the hashed levels' rows as int8 codes (``table_codes``) times one float32 scale per level and
+    feature (``table_scales`` (hashed levels, F)): the value is ``code * scale``, the scale the
+    level's :data:`INT8_QUANTILE` of |value| / 127. :func:`unpack_table` inverts it."""
+    if arch.table_dtype != "int8":
+        return {"table": table.astype(arch.table_dtype)}
+    dense_rows, codes, scales = [], [], []
+    for rows, dense in _level_slices(arch):
+        block = table[..., rows, :]
+        if dense:
+            dense_rows.append(block.astype(np.float16))
+            continue
+        flat = np.abs(block).reshape(-1, block.shape[-1])
+        scale = np.quantile(flat, INT8_QUANTILE, axis=0).astype(np.float32) / 127
+        scale = np.where(scale > 0, scale, np.float32(1.0))  # an all-zero level: any scale
+        codes.append(np.clip(np.rint(block / scale), -127, 127).astype(np.int8))
+        scales.append(scale)
+    features = table.shape[-1]
+    return {"table_dense": np.concatenate(dense_rows, axis=-2) if dense_rows
+            else np.zeros((*table.shape[:-2], 0, features), np.float16),
+            "table_codes": np.concatenate(codes, axis=-2) if codes
+            else np.zeros((*table.shape[:-2], 0, features), np.int8),
+            "table_scales": np.asarray(scales, np.float32).reshape(len(scales), features)}
+
+
+def unpack_table(tensors: dict[str, np.ndarray], arch: GridArchitecture) -> dict[str, np.ndarray]:
+    """A copy of ``tensors`` with the table as :func:`pack_table` stored it turned back into
+    ``"table"`` (..., rows, F) float32. Raises ValueError when the stored parts do not fit ``arch``."""
+    tensors = dict(tensors)
+    if arch.table_dtype != "int8":
+        return tensors
+    try:
+        dense = np.asarray(tensors.pop("table_dense"), np.float32)
+        codes = np.asarray(tensors.pop("table_codes"))
+        scales = np.asarray(tensors.pop("table_scales"), np.float32)
+    except KeyError as exc:
+        raise ValueError(f"an int8 table needs table_dense, table_codes and table_scales; "
+                         f"{exc.args[0]} is missing") from None
+    levels = _level_slices(arch)
+    hashed = [rows for rows, is_dense in levels if not is_dense]
+    expected_dense = sum(rows.stop - rows.start for rows, is_dense in levels if is_dense)
+    expected_codes = sum(rows.stop - rows.start for rows in hashed)
+    features = arch.features
+    if (codes.dtype != np.int8 or dense.ndim < 2 or codes.ndim != dense.ndim
+            or dense.shape[-2:] != (expected_dense, features) or codes.shape[-2:] != (expected_codes, features)
+            or dense.shape[:-2] != codes.shape[:-2] or scales.shape != (len(hashed), features)):
+        raise ValueError(f"the int8 table does not fit the architecture: expected (..., {expected_dense}, "
+                         f"{features}) dense rows, (..., {expected_codes}, {features}) int8 codes and "
+                         f"({len(hashed)}, {features}) scales, found {dense.dtype} {dense.shape}, "
+                         f"{codes.dtype} {codes.shape}, {scales.shape}")
+    table = np.empty((*dense.shape[:-2], expected_dense + expected_codes, features), np.float32)
+    dense_at = code_at = level = 0
+    for rows, is_dense in levels:
+        n = rows.stop - rows.start
+        if is_dense:
+            table[..., rows, :] = dense[..., dense_at:dense_at + n, :]
+            dense_at += n
+        else:
+            table[..., rows, :] = codes[..., code_at:code_at + n, :] * scales[level]
+            code_at += n
+            level += 1
+    tensors["table"] = table
+    return tensors
+
+
+def _level_slices(arch: GridArchitecture) -> list[tuple[slice, bool]]:
+    """Each level's rows of the table and whether the level is dense."""
+    stops = np.cumsum(arch.level_rows())
+    return [(slice(int(stop - n), int(stop)), dense)
+            for stop, n, dense in zip(stops, arch.level_rows(), arch.level_dense())]
 
 
 @dataclass(frozen=True)
@@ -194,7 +284,7 @@ def grid_network_class(arch: GridArchitecture):
     resolutions = arch.resolutions()
     rows = arch.level_rows()
     offsets = np.concatenate([[0], np.cumsum(rows)[:-1]])
-    dense = [(r + 1) ** 3 <= n for r, n in zip(resolutions, rows)]
+    dense = arch.level_dense()
 
     class GridSDF(nn.Module):
         def __init__(self, centre, radius: float):
