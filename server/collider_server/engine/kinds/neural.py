@@ -22,7 +22,7 @@ from ..collider import Collider, ColliderInfo
 from ..devices import resolve_device
 from . import grid_kernels
 from .neural_deformed import DeformedGridArchitecture, build_deformed_network
-from .neural_grid import GridArchitecture, build_grid_network
+from .neural_grid import GridArchitecture, build_grid_network, pack_table, unpack_table
 from .neural_keyframes import KeyframeGridArchitecture, build_keyframe_network
 
 
@@ -63,7 +63,9 @@ PRESETS: dict[str, Architecture | GridArchitecture] = {
     "paper-dragon": Architecture(128, 8, 256, 3.0),
     # Ours: narrower, trains several times faster on a CPU.
     "fast": Architecture(64, 3, 128, 3.0),
-    "grid": GridArchitecture(),
+    # Twice the default rows per hashed level, stored in 8 bits: the file of 2^16 float16 rows,
+    # fewer hash collisions (docs/neural.md, "8-bit tables").
+    "grid": GridArchitecture(table_log2=17, table_dtype="int8"),
 }
 
 #: The presets of an animation (``collider train --animation``), apart: a static mesh cannot use
@@ -195,8 +197,8 @@ class NeuralCollider(Collider):
     def tensors(self):
         tensors = {k: v.detach().cpu().numpy() for k, v in self.network.state_dict().items()}
         arch = self.architecture
-        if isinstance(arch, GridArchitecture) and arch.table_dtype == "float16":
-            tensors["table"] = tensors["table"].astype(np.float16)  # half the file; see docs/neural.md
+        if isinstance(arch, GridArchitecture):
+            tensors.update(pack_table(tensors.pop("table"), arch))  # a smaller file; docs/neural.md
         return tensors
 
     @classmethod
@@ -207,7 +209,7 @@ class NeuralCollider(Collider):
             arch = architecture_from_dict(info.settings["architecture"])
         except (KeyError, TypeError, AttributeError) as exc:
             raise ValueError(f"neural settings lack a valid architecture: {exc}") from None
-        tensors = dict(tensors)
+        tensors = unpack_table(tensors, arch) if isinstance(arch, GridArchitecture) else dict(tensors)
         if np.shape(tensors.get("radius")) == (1,):
             # Files written before scalars kept their shape hold the radius as (1,).
             tensors["radius"] = np.asarray(tensors["radius"]).reshape(())
