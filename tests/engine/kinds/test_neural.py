@@ -140,14 +140,14 @@ def test_presets_are_the_documented_ones():
     assert PRESETS["paper-dragon"] == Architecture(128, 8, 256, 3.0)
     assert PRESETS["fast"] == Architecture(64, 3, 128, 3.0)
     assert PRESETS["grid"] == GridArchitecture(levels=8, features=2, base_resolution=16, max_resolution=256,
-                                               table_log2=16, hidden_layers=2, hidden_width=32, smooth=True,
-                                               table_dtype="float16", surface_rows=False)
-    # The animated preset: the grid's levels, rows and MLP, 9 keyframe tables.
+                                               table_log2=17, hidden_layers=2, hidden_width=32, smooth=True,
+                                               table_dtype="int8", surface_rows=False)
+    # The animated preset: the grid's levels and MLP, 2^16 float16 rows, 9 keyframe tables.
     assert ANIMATED_PRESETS["keyframes"] == KeyframeGridArchitecture(
         levels=8, features=2, base_resolution=16, max_resolution=256, table_log2=16, hidden_layers=2,
         hidden_width=32, smooth=True, table_dtype="float16", surface_rows=False, keyframes=9)
     assert DEFAULT_ANIMATED_PRESET == "keyframes"
-    counts = {"grid": 791_381, "paper-bunny": 198_017, "paper-dragon": 526_977, "fast": 49_857}
+    counts = {"grid": 1_446_741, "paper-bunny": 198_017, "paper-dragon": 526_977, "fast": 49_857}
     assert {name: arch.parameter_count() for name, arch in PRESETS.items()} == counts
     assert ANIMATED_PRESETS["keyframes"].parameter_count() == 7_109_365
 

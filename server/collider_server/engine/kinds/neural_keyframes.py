@@ -35,9 +35,10 @@ from .neural_grid import GridArchitecture, grid_network_class
 class KeyframeGridArchitecture(GridArchitecture):
     """A :class:`GridArchitecture` whose table is repeated ``keyframes`` times (K >= 2 tables,
     evenly spaced from the first frame of the animation to its last); the other fields as
-    there, the static preset's 2^16 rows per hashed level included (2^14 rows train twice as
-    many steps in the same minutes but reached less: on the bending arm, 30 quiet minutes on 2
-    threads, 0.053 against 0.046 mm mean; docs/neural.md)."""
+    there: 2^16 float16 rows per hashed level (2^14 rows train twice as many steps in the same
+    minutes but reached less: on the bending arm, 30 quiet minutes on 2 threads, 0.053 against
+    0.046 mm mean; docs/neural.md). The static preset's 2^17 rows in 8 bits were not measured
+    on animations."""
 
     keyframes: int = 9
     table_log2: int = 16
