@@ -237,3 +237,27 @@ def test_a_saved_model_loads_and_answers_the_same(tmp_path):
     for field in fields:
         assert np.array_equal(getattr(a, field), getattr(b, field)), field
     assert np.abs(a.velocity).max() > 0
+
+
+def test_a_plateau_of_the_rest_network_gets_the_normal_across_it():
+    """The static rule for a vanishing gradient (test_neural_grid: central differences at half
+    the finest cell) holds at any time of an animated network: the rest network
+    radius * (relu(u_x - 0.2) + 0.05) under identity fields, asked in its plateau near the edge."""
+    arch = DeformedGridArchitecture(levels=1, features=1, base_resolution=4, max_resolution=4, table_log2=10,
+                                    hidden_layers=1, hidden_width=2, smooth=False, keyframes=2,
+                                    deformation_resolution=2)
+    network = build_network(arch, CENTRE, RADIUS)
+    with torch.no_grad():
+        network.table.copy_((-1.0 + 0.5 * (torch.arange(125) % 5)).float()[:, None])  # u_x
+        network.body[0].weight.copy_(torch.tensor([[1.0], [0.0]]))
+        network.body[0].bias.copy_(torch.tensor([-0.2, -1.0]))
+        network.body[2].weight.copy_(torch.tensor([[1.0, 0.0]]))
+        network.body[2].bias.copy_(torch.tensor([0.05]))
+        network.deformation.zero_()
+    info = ColliderInfo(name="p", kind="neural", domain_min=LO.tolist(), domain_max=HI.tolist(),
+                        settings={"architecture": architecture_dict(arch)},
+                        animation=Timeline(2, 1 / DURATION, False).to_dict())
+    c = AnimatedNeuralCollider(info, network, "cpu")
+    local = CENTRE + RADIUS * np.array([[0.1, 0.3, 0.1], [0.5, 0.3, 0.1]])
+    _, gradient, _ = c.evaluate_at(local, True, 0.25)
+    np.testing.assert_allclose(gradient, [[(0.1 + 0.25 - 0.2) / 0.5, 0, 0], [1, 0, 0]], atol=1e-5)

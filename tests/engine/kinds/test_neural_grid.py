@@ -270,6 +270,46 @@ def test_int8_model_file_round_trip_and_damaged_files(tmp_path, damage, message)
         NeuralCollider.from_tensors(info, tensors)
 
 
+def plateau_network():
+    """A real network with a plateau: one dense level whose feature is u_x (trilinear, exact),
+    one hidden unit relu(u_x - 0.2), output radius * (relu(u_x - 0.2) + 0.05): for u_x < 0.2
+    every unit is off, the distance is the constant 0.05 radius and the gradient exactly zero
+    (what a trained ReLU network can learn; the 30-minute bunny of 2026-11-27 did)."""
+    arch = GridArchitecture(levels=1, features=1, base_resolution=4, max_resolution=4, table_log2=10,
+                            hidden_layers=1, hidden_width=2, smooth=False)
+    network = build_network(arch, CENTRE, RADIUS)
+    with torch.no_grad():
+        i = torch.arange(125) % 5
+        network.table.copy_((-1.0 + 0.5 * i).float()[:, None])  # corner i of 5 along x: u_x
+        network.body[0].weight.copy_(torch.tensor([[1.0], [0.0]]))
+        network.body[0].bias.copy_(torch.tensor([-0.2, -1.0]))
+        network.body[2].weight.copy_(torch.tensor([[1.0, 0.0]]))
+        network.body[2].bias.copy_(torch.tensor([0.05]))
+    info = ColliderInfo("plateau", "neural", LO.tolist(), HI.tolist(), settings={"architecture": arch.__dict__.copy()})
+    return NeuralCollider(info, network, "cpu")
+
+
+def test_normal_across_a_plateau_comes_from_differences_at_half_the_finest_cell():
+    """Where the network's gradient vanishes (a ReLU plateau), the normal is the direction of the
+    central differences at half the finest cell (here radius / 4: u_x +-0.25): within that of the
+    plateau's edge it points across it (+x); deeper in, the differences vanish too and the
+    collider's zero-gradient fallback (away from the domain centre) stands; elsewhere the
+    analytic gradient is untouched."""
+    collider = plateau_network()
+    u_x = np.array([0.1, -0.04, 0.5, -0.6])  # in the plateau near its edge (twice), active, deep in
+    local = CENTRE + np.stack([u_x * RADIUS, np.full(4, 0.3 * RADIUS), np.full(4, 0.1 * RADIUS)], axis=1)
+    distance, gradient = collider.evaluate(local, True)
+    np.testing.assert_allclose(distance, RADIUS * (np.maximum(u_x - 0.2, 0.0) + 0.05), rtol=1e-5)
+    # Central differences of radius * relu(u_x - 0.2) over u_x +-0.25, per collider unit:
+    expected_x = [(0.1 + 0.25 - 0.2) / 0.5, (-0.04 + 0.25 - 0.2) / 0.5, 1.0, 0.0]
+    np.testing.assert_allclose(gradient[:, 0], expected_x, rtol=1e-4, atol=1e-6)
+    np.testing.assert_allclose(gradient[:, 1:], 0.0, atol=1e-6)
+    normal = collider.query(local, ["normal"]).normal
+    np.testing.assert_allclose(normal[:3], [[1.0, 0.0, 0.0]] * 3, atol=1e-6)
+    away = (local[3] - CENTRE) / np.linalg.norm(local[3] - CENTRE)
+    np.testing.assert_allclose(normal[3], away, atol=1e-6)  # the fallback's guess, as before
+
+
 def test_architecture_from_dict_reads_old_and_new_files():
     old = {"fourier_features": 8, "hidden_layers": 2, "hidden_width": 16, "fourier_scale": 1.0}
     assert type(architecture_from_dict(old)).__name__ == "Architecture"

@@ -63,7 +63,8 @@ class AnimatedNeuralCollider(NeuralCollider):
         distance = d.double().cpu().numpy()
         if not want_gradient:
             return distance, None, None
-        gradient = g.double().cpu().numpy()
+        gradient = self.across_plateaus(local, g.double().cpu().numpy(),
+                                        lambda p: self.evaluate_at(p, False, time)[0])
         moving = moving.double().cpu().numpy()  # the velocity (deformed) or df/dt (keyframes)
         if self._material_velocity:
             return distance, gradient, moving
