@@ -237,6 +237,10 @@ def test_int8_table_codes_the_hashed_levels_and_keeps_the_dense_ones_in_float16(
             np.testing.assert_allclose(np.abs(got[~inside]), np.broadcast_to(127 * step, block.shape)[~inside], rtol=1e-6)
             start += 1024
         assert back["table"][..., -1, 0].max() < 40.0  # clipped
+        # Loading and saving again keeps the codes and scales (the table is on its own steps).
+        again = pack_table(back["table"], arch)
+        for key in packed:
+            np.testing.assert_array_equal(again[key], packed[key])
     # The float formats are one array, as before.
     plain = pack_table(table[0], GridArchitecture(**SMALL))
     assert list(plain) == ["table"] and plain["table"].dtype == np.float16

@@ -151,6 +151,12 @@ def pack_table(table: np.ndarray, arch: GridArchitecture) -> dict[str, np.ndarra
             continue
         flat = np.abs(block).reshape(-1, block.shape[-1])
         scale = np.quantile(flat, INT8_QUANTILE, axis=0).astype(np.float32) / 127
+        # A table that was loaded from 8 bits is kept on its own steps (its largest value is code
+        # 127), so that loading and saving again changes nothing.
+        peak = flat.max(axis=0) / np.float32(127)
+        steps = flat / np.where(peak > 0, peak, 1.0)
+        coded = (np.abs(steps - np.rint(steps)) < 1e-3).all(axis=0)
+        scale = np.where(coded, peak, scale)
         scale = np.where(scale > 0, scale, np.float32(1.0))  # an all-zero level: any scale
         codes.append(np.clip(np.rint(block / scale), -127, 127).astype(np.int8))
         scales.append(scale)
