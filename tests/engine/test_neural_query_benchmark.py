@@ -20,7 +20,8 @@ _own = grid_kernels.network_query
 
 def network_query(*args):
     marks = Path({marks!r})
-    marks.write_text(marks.read_text() + "x" if marks.exists() else "x")
+    mark = "g" if args[12] else "d"  # want_gradient
+    marks.write_text(marks.read_text() + mark if marks.exists() else mark)
     return _own(*args)
 """
 
@@ -43,5 +44,7 @@ def test_the_benchmark_times_every_candidate_in_turn_and_prints_the_ratios(tmp_p
     assert re.search(r"exact mesh / neural \(d\+n\+c, medians\) = [0-9.]+x", out)
     assert re.search(r"kernel_before\.py / engine kernel \(d\+n\+c, medians\) = [0-9.]+x", out)
     # The other kernel really answered its rows: a warm-up call plus 2 rounds x (d+n+c, d only),
-    # one call per 65,536-point chunk (2,000 points: one).
-    assert marks.read_text() == "x" * 5
+    # one call per 65,536-point chunk (2,000 points: one), and where the shipped bunny's gradient
+    # vanishes at some of the points (a plateau), one distance call more per d+n+c call.
+    marks = marks.read_text()
+    assert marks.count("g") == 3 and marks.count("d") in (2, 5), marks
