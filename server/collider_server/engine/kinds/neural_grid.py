@@ -175,9 +175,9 @@ def unpack_table(tensors: dict[str, np.ndarray], arch: GridArchitecture) -> dict
     if arch.table_dtype != "int8":
         return tensors
     try:
-        dense = np.asarray(tensors.pop("table_dense"), np.float32)
+        dense = np.asarray(tensors.pop("table_dense"))
         codes = np.asarray(tensors.pop("table_codes"))
-        scales = np.asarray(tensors.pop("table_scales"), np.float32)
+        scales = np.asarray(tensors.pop("table_scales"))
     except KeyError as exc:
         raise ValueError(f"an int8 table needs table_dense, table_codes and table_scales; "
                          f"{exc.args[0]} is missing") from None
@@ -193,6 +193,7 @@ def unpack_table(tensors: dict[str, np.ndarray], arch: GridArchitecture) -> dict
                          f"{features}) dense rows, (..., {expected_codes}, {features}) int8 codes and "
                          f"({len(hashed)}, {features}) scales, found {dense.dtype} {dense.shape}, "
                          f"{codes.dtype} {codes.shape}, {scales.shape}")
+    dense, scales = dense.astype(np.float32), scales.astype(np.float32)
     table = np.empty((*dense.shape[:-2], expected_dense + expected_codes, features), np.float32)
     dense_at = code_at = level = 0
     for rows, is_dense in levels:
