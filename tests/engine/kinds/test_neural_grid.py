@@ -1,8 +1,8 @@
 """The grid network (multiresolution feature grid + tiny MLP): the analytic gradient against
 autograd and finite differences, the fused CPU kernels against the torch reference (values,
 Jacobians, table gradients), dense and hashed levels, smoothstep continuity, the model file
-(float16 table) and old files. Random networks here; the shipped models in test_real_meshes.
-Collider frame, metres."""
+(float16 and 8-bit tables) and old files, the normal across a plateau. Random networks here; the
+shipped models in test_real_meshes. Collider frame, metres."""
 
 from __future__ import annotations
 
