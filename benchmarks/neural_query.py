@@ -123,12 +123,15 @@ def main(argv=None) -> int:
         transform = collider.info.source.get("transform")
         placed = mesh.transformed(transform) if transform is not None else mesh
         points = surface_band_points(placed, args.points, 1e-2 / collider.info.meters_per_unit, seed=1)
-        label = f"neural {collider.info.name}" + ("" if args.device == "cpu" else f" ({args.device})")
+        # Two models of one name (a file from an older commit beside the shipped one): the
+        # second is shown by the name or path it was given.
+        shown = name if any(c.info.name == collider.info.name for _, c, _, _ in candidates) else collider.info.name
+        label = f"neural {shown}" + ("" if args.device == "cpu" else f" ({args.device})")
         candidates.append((label, collider, None, points))
         if other_kernel is not None:
             candidates.append((label + f" ({args.kernel_from.name})", collider, other_kernel, points))
         # the exact mesh in the model's frame, where the points are
-        candidates.append((f"mesh (exact, libigl) for {collider.info.name}",
+        candidates.append((f"mesh (exact, libigl) for {shown}",
                            bake_collider(placed, "mesh", "exact", show_progress=False), None, points))
     for _, collider, query_kernel, points in candidates:  # warm-up: kernel compilation is cached on disk
         with kernel(grid_kernels, query_kernel):

@@ -48,3 +48,18 @@ def test_the_benchmark_times_every_candidate_in_turn_and_prints_the_ratios(tmp_p
     # vanishes at some of the points (a plateau), one distance call more per d+n+c call.
     marks = marks.read_text()
     assert marks.count("g") == 3 and marks.count("d") in (2, 5), marks
+
+
+@pytest.mark.slow
+def test_two_models_of_one_name_are_timed_apart():
+    """A model file of an older commit beside the shipped one (both named ``bunny``): each gets
+    its own rows, the second shown by the path it was given."""
+    shipped = REPO / "models" / "bunny.safetensors"
+    result = subprocess.run(
+        [sys.executable, str(REPO / "benchmarks" / "neural_query.py"), "--points", "2000", "--rounds", "1",
+         "--threads", "1", "--model", "bunny", "--model", str(shipped)],
+        capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stdout + result.stderr
+    for label in ("neural bunny ", f"neural {shipped} ", "mesh (exact, libigl) for bunny ",
+                  f"mesh (exact, libigl) for {shipped} "):
+        assert any(line.startswith(label) for line in result.stdout.splitlines()), (label, result.stdout)
