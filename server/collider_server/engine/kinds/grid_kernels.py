@@ -175,9 +175,8 @@ if numba is not None:
                       corner_rows, weights, feature, jac, dfeature):
         """The encoding of a block's ``m`` points ``ub`` (3, block) float32: columns ``0:m`` of
         ``feature`` (L * F, block), when ``want_jacobian`` its Jacobian ``jac`` (3, L * F, block)
-        and, when ``dtable``
-        (the table's time derivative, an animated network's) has rows, ``dfeature`` (L * F,
-        block), the encoding of ``dtable``. Level by level, each loop over the block's points
+        and, when ``dtable`` (the table's time derivative, an animated network's) has rows,
+        ``dfeature`` (L * F, block), the encoding of ``dtable``. Level by level, each loop over the block's points
         innermost so that the compiler vectorises it (gathers of the table rows):
         first the cells' corner rows (``corner_rows`` (8, block)) and per-axis weights and
         derivatives (``weights`` (6, block)), then per feature the corners read and
