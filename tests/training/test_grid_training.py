@@ -116,6 +116,19 @@ def test_a_budget_is_used_to_its_end_and_the_summary_says_what_it_bought(analyti
     assert "7 steps (1,792 samples" in capped.summary() and "the step cap, reached after" in capped.summary()
 
 
+def test_the_model_records_the_threads_that_trained_it(analytic_shape):
+    """A grid network trains in the kernels' threads (torch keeps one): the model says so."""
+    import numba
+
+    sphere = analytic_shape("sphere").mesh
+    small = {"levels": 4, "base_resolution": 4, "max_resolution": 32, "table_log2": 12}
+    config = TrainConfig(preset="grid", architecture=small, samples=5000, steps=2, batch_size=256,
+                         validation_points=500, threads=2)
+    name = train_neural(sphere, "s", config, show_progress=False).collider.info.settings["training"]["device_name"]
+    threads = min(2, numba.config.NUMBA_NUM_THREADS)
+    assert name.endswith(f"CPU, {threads} thread{'s' if threads > 1 else ''}"), name
+
+
 def test_cosine_learning_rate_ends_at_the_final_rate():
     assert cosine_learning_rate(0.0, 1e-2, 1e-4) == pytest.approx(1e-2)
     assert cosine_learning_rate(1.0, 1e-2, 1e-4) == pytest.approx(1e-4)

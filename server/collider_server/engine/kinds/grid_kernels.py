@@ -33,6 +33,11 @@ def available() -> bool:
     return numba is not None
 
 
+def threads() -> int:
+    """Threads of the kernels (1 without numba: torch does the work)."""
+    return numba.get_num_threads() if numba is not None else 1
+
+
 def set_threads(threads: int) -> None:
     """Threads of the kernels (numba's pool; at most the cores numba found)."""
     if numba is not None:

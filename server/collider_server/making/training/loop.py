@@ -17,6 +17,7 @@ from ...engine.collider import ColliderInfo
 from ...engine.kinds.animated_neural import AnimatedNeuralCollider
 from ...engine.kinds.neural import ANIMATED_PRESETS, NeuralCollider, architecture_dict, build_network
 from ...engine.kinds.neural_deformed import DeformedGridArchitecture
+from ...engine.kinds.neural_grid import GridArchitecture
 from ...engine.kinds.neural_keyframes import KeyframeGridArchitecture, keyframe_positions
 from ...engine.meshes import ExactSDF, Mesh
 from ..bake import animation_source, mesh_source, padded_box
@@ -300,7 +301,7 @@ def _train(shape, info: ColliderInfo, config: TrainConfig, arch, samples, inputs
         "architecture": architecture_dict(arch),
         "parameters": arch.parameter_count(),
         "training": {**asdict(config), "steps_done": state["step"], "seconds": round(seconds, 1),
-                     "device": device, "device_name": _device_name(device),
+                     "device": device, "device_name": _device_name(device, arch),
                      "best_validation_1mm_mm": state["best_mm"]},
     }
     collider = collider_class(info, network.cpu(), device="cpu")
@@ -308,11 +309,18 @@ def _train(shape, info: ColliderInfo, config: TrainConfig, arch, samples, inputs
                        state.get("best_step", 0), state.get("best_seconds", 0.0))
 
 
-def _device_name(device: str) -> str:
+def _device_name(device: str, arch) -> str:
+    """The device, and on a CPU the threads that did the work (a grid network's are the
+    kernels', torch having one: ``set_training_threads``)."""
     import platform
 
     import torch
 
+    from ...engine.kinds import grid_kernels
+
     if device.startswith("cuda"):
         return torch.cuda.get_device_name(torch.device(device))
-    return f"{platform.processor() or platform.machine()} CPU, {torch.get_num_threads()} threads"
+    threads = torch.get_num_threads()
+    if isinstance(arch, GridArchitecture) and grid_kernels.available():
+        threads = grid_kernels.threads()
+    return f"{platform.processor() or platform.machine()} CPU, {threads} thread{'s' if threads != 1 else ''}"
