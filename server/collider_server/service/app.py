@@ -16,7 +16,7 @@ from .batching import DeviceWorkers
 from .answers import answer_batch
 from .connections import ConnectionGuard
 from .fastpath import QueryFastPath, check_equivalent
-from .heap import settle_heap
+from .heap import hold_freed_memory, settle_heap
 from .metrics import RequestObserver, ServiceMetrics
 from .openapi import add_security, query_body, scene_body
 from .openapi import router as docs_router
@@ -65,6 +65,8 @@ def create_app(settings: ServiceSettings | None = None) -> FastAPI:
 
     @contextlib.asynccontextmanager
     async def lifespan(app: FastAPI):
+        if settings.hold_freed_memory and hold_freed_memory():
+            log.info("freed memory is kept for the next batches (glibc)")
         threads = settings.resolved_compute_threads()
         # Set from the compute thread itself: with OpenMP the count can be a per-thread setting.
         workers = DeviceWorkers(functools.partial(set_compute_threads, threads))

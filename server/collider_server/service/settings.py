@@ -72,6 +72,9 @@ class ServiceSettings(BaseSettings):
                                                     "ASGI directly (off: through FastAPI's "
                                                     "router; same answers, more overhead)")
     warmup: bool = Field(True, description="run one small query per model before ready")
+    hold_freed_memory: bool = Field(True, description="keep memory a batch frees for the next "
+                                                      "batch (glibc): no page faults on its "
+                                                      "arrays; the process keeps its peak")
     log_level: str = Field("info", description=f"one of {', '.join(LOG_LEVELS)}")
 
     @field_validator("log_level", mode="before")
