@@ -18,7 +18,7 @@ from collider_contract import Timeline
 
 from collider_server.engine.collider import ColliderInfo
 from collider_server.engine.kinds import AnimatedNeuralCollider, grid_kernels
-from collider_server.engine.kinds.neural import ANIMATED_PRESETS, architecture_dict, build_network
+from collider_server.engine.kinds.neural import ANIMATED_PRESETS, PRESETS, architecture_dict, build_network
 from collider_server.engine.kinds.neural_deformed import DeformedGridArchitecture, trilinear
 from collider_server.engine.kinds.neural_grid import GridArchitecture
 from collider_server.engine.kinds.neural_keyframes import keyframe_positions
@@ -78,7 +78,7 @@ def points(n, seed):
 
 def test_the_preset_is_the_static_grid_plus_one_field_per_frame():
     preset = ANIMATED_PRESETS["deformed"]
-    assert preset.spatial() == GridArchitecture()  # the rest pose: the static preset
+    assert preset.spatial() == PRESETS["grid"]  # the rest pose: the static preset
     arch = DeformedGridArchitecture(keyframes=61)
     assert arch.parameter_count() == GridArchitecture().parameter_count() + 61 * 17 ** 3 * 3
     with pytest.raises(ValueError, match="deformation_resolution must be an integer >= 1"):

@@ -74,7 +74,8 @@ PRESETS: dict[str, Architecture | GridArchitecture] = {
 #: grid carried by fitted deformation fields (a smooth deformation: a twist, a squash).
 ANIMATED_PRESETS: dict[str, KeyframeGridArchitecture | DeformedGridArchitecture] = {
     "keyframes": KeyframeGridArchitecture(),
-    "deformed": DeformedGridArchitecture(),
+    # The rest pose's grid as the static preset's (docs/neural.md, "8-bit tables").
+    "deformed": DeformedGridArchitecture(table_log2=17, table_dtype="int8"),
 }
 
 #: The animated preset for any motion: ``collider train --animation`` takes it when none is named

@@ -50,10 +50,10 @@ STRETCH_BOUNDS = (0.1, 10.0)
 
 @dataclass(frozen=True)
 class DeformedGridArchitecture(GridArchitecture):
-    """A :class:`GridArchitecture` for the rest pose (the static preset's levels and MLP, 2^16
-    float16 rows per hashed level: the static preset's before its 8-bit tables, not measured here)
-    and ``keyframes`` inverse deformation fields, one per frame of the animation (the training
-    sets it), of ``deformation_resolution`` cells per side."""
+    """A :class:`GridArchitecture` for the rest pose (the ``deformed`` preset: the static
+    preset's levels, MLP and 2^17 rows per hashed level in 8 bits) and ``keyframes`` inverse
+    deformation fields, one per frame of the animation (the training sets it), of
+    ``deformation_resolution`` cells per side."""
 
     keyframes: int = 2
     deformation_resolution: int = 16

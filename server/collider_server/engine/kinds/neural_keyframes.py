@@ -37,8 +37,8 @@ class KeyframeGridArchitecture(GridArchitecture):
     evenly spaced from the first frame of the animation to its last); the other fields as
     there: 2^16 float16 rows per hashed level (2^14 rows train twice as many steps in the same
     minutes but reached less: on the bending arm, 30 quiet minutes on 2 threads, 0.053 against
-    0.046 mm mean; docs/neural.md). The static preset's 2^17 rows in 8 bits were not measured
-    on animations."""
+    0.046 mm mean; docs/neural.md). The static preset's 2^17 rows in 8 bits (the deformed
+    preset's too) were not measured on keyframe tables."""
 
     keyframes: int = 9
     table_log2: int = 16
