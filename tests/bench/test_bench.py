@@ -441,6 +441,13 @@ def assert_labels_readable(fig, report):
 
     renderer = fig.canvas.get_renderer()
     for ax in fig.axes:
+        # The time axis's numbers: each one readable, none running into the next.
+        ticks = [t for t in ax.get_xticklabels(which="both") if t.get_visible() and t.get_text()]
+        lo, hi = ax.get_xlim()
+        ticks = [t for t in ticks if lo <= t.get_position()[0] <= hi]
+        assert len(ticks) >= 2, [t.get_text() for t in ticks]
+        boxes = sorted((t.get_window_extent(renderer) for t in ticks), key=lambda b: b.x0)
+        assert all(a.x1 < b.x0 for a, b in zip(boxes, boxes[1:])), [t.get_text() for t in ticks]
         markers = []
         for collection in ax.collections:
             sizes = collection.get_sizes()

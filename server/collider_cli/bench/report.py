@@ -467,6 +467,7 @@ def figure(report: dict, device: str = "cpu"):
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     from matplotlib.lines import Line2D
+    from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
 
     basis = ranking_basis(report, device) or "wall"
     rows = [r for r in report["colliders"]
@@ -504,6 +505,12 @@ def figure(report: dict, device: str = "cpu"):
             ax.set_title("Pareto front not called: unstable timings (see bench.md)", fontsize=9, color="crimson")
         ax.set_xscale("log")
         ax.set_yscale("log")
+        # Times at 1, 2, 5 of each decade as plain numbers: matplotlib's own labels for a span of
+        # one or two decades (2x10^-1, 3x10^-1, ... at every minor tick) run into each other.
+        ax.xaxis.set_major_locator(LogLocator(base=10, subs=(1.0, 2.0, 5.0)))
+        ax.xaxis.set_major_formatter(FuncFormatter(lambda value, _: f"{value:g}"))
+        ax.xaxis.set_minor_locator(LogLocator(base=10, subs=tuple(range(2, 10))))
+        ax.xaxis.set_minor_formatter(NullFormatter())
         ax.set_xlabel(f"{reference_mode(report).replace('+', ' + ')}: {'CPU ' if basis == 'cpu' else ''}µs per point "
                       f"({size_label(size)} points per call, {device})")
         ax.set_ylabel("mean distance error, +-1 mm band (mm)" if error == "distance"
