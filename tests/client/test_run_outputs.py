@@ -64,9 +64,13 @@ def test_a_run_stopped_by_a_signal_leaves_its_png_and_its_report_marked_interrup
     long it will take once it has measured its first steps; stopped then, it writes the OBJ, the
     PC2 of the frames so far, the PNG and the report of the steps that ran."""
     out = tmp_path / "out"
+    # Started as from a terminal, whatever started the tests: a process launched in the background
+    # by a non-interactive shell inherits SIGINT ignored, and Python then never sees the Ctrl-C (a
+    # CI run started that way failed here with status 0: the run went to its end).
     process = subprocess.Popen([sys.executable, "-m", "collider_cli", "simulate", "drape_bunny_quick",
                                 "--output", str(out), "--quiet"], stdout=subprocess.PIPE,
-                               stderr=subprocess.PIPE, text=True)
+                               stderr=subprocess.PIPE, text=True,
+                               preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     estimate = ""
     deadline = time.monotonic() + 240
     while time.monotonic() < deadline and process.poll() is None:
