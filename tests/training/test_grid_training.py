@@ -118,14 +118,14 @@ def test_a_budget_is_used_to_its_end_and_the_summary_says_what_it_bought(analyti
 
 def test_the_model_records_the_threads_that_trained_it(analytic_shape):
     """A grid network trains in the kernels' threads (torch keeps one): the model says so."""
-    import numba
+    from collider_server.engine.kinds import grid_kernels
 
     sphere = analytic_shape("sphere").mesh
     small = {"levels": 4, "base_resolution": 4, "max_resolution": 32, "table_log2": 12}
     config = TrainConfig(preset="grid", architecture=small, samples=5000, steps=2, batch_size=256,
                          validation_points=500, threads=2)
     name = train_neural(sphere, "s", config, show_progress=False).collider.info.settings["training"]["device_name"]
-    threads = min(2, numba.config.NUMBA_NUM_THREADS)
+    threads = grid_kernels.threads() if grid_kernels.available() else 2  # (numba: at most its cores)
     assert name.endswith(f"CPU, {threads} thread{'s' if threads > 1 else ''}"), name
 
 

@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from collider_server.engine.devices import DEVICE_KINDS
+from collider_server.engine.memory import hold_freed_memory
 from collider_server.engine.meshes import ExactSDF, Mesh
 from collider_server.making.progress import format_duration, progress
 
@@ -100,6 +101,9 @@ def run_bench(mesh: Mesh, transform: np.ndarray, config: BenchConfig, *, units: 
     started = time.perf_counter()
     load_at_start = load_average()
     torch.set_num_threads(config.threads or default_threads())
+    # As `collider serve` does (its setting hold_freed_memory), so that the embedded and served
+    # paths differ only by the service.
+    held = hold_freed_memory()
     devices = config.devices or default_devices()
     plan = plan_candidates(mesh, transform, config.plan, models_root)
     if not plan.candidates:
@@ -111,7 +115,7 @@ def run_bench(mesh: Mesh, transform: np.ndarray, config: BenchConfig, *, units: 
                  "transform": np.asarray(transform).tolist(), "units": units,
                  "meters_per_unit": meters_per_unit},
         "config": {**asdict(config), "devices": list(devices)},
-        "colliders": [], "skipped": plan.skipped, "timing": {},
+        "colliders": [], "skipped": plan.skipped, "timing": {}, "held_freed_memory_bytes": held,
     }
     try:
         sets = point_sets(mesh, config, meters_per_unit)

@@ -11,12 +11,13 @@ from fastapi import FastAPI
 from fastapi.openapi.utils import get_openapi
 
 from ..engine.devices import resolve_device
+from ..engine.memory import hold_freed_memory
 from ..engine.repository import ModelRepository
-from .batching import DeviceWorkers
 from .answers import answer_batch
+from .batching import DeviceWorkers
 from .connections import ConnectionGuard
 from .fastpath import QueryFastPath, check_equivalent
-from .heap import hold_freed_memory, settle_heap
+from .heap import settle_heap
 from .metrics import RequestObserver, ServiceMetrics
 from .openapi import add_security, query_body, scene_body
 from .openapi import router as docs_router
@@ -65,8 +66,12 @@ def create_app(settings: ServiceSettings | None = None) -> FastAPI:
 
     @contextlib.asynccontextmanager
     async def lifespan(app: FastAPI):
-        if settings.hold_freed_memory and hold_freed_memory():
-            log.info("freed memory is kept for the next batches (glibc)")
+        if settings.hold_freed_memory:
+            held = hold_freed_memory()
+            if held:
+                log.info("freed arrays up to %d MiB are kept for the next batches (glibc)", held >> 20)
+            else:
+                log.info("freed memory goes back to the system (not glibc, or MALLOC_* / GLIBC_TUNABLES set)")
         threads = settings.resolved_compute_threads()
         # Set from the compute thread itself: with OpenMP the count can be a per-thread setting.
         workers = DeviceWorkers(functools.partial(set_compute_threads, threads))

@@ -34,7 +34,7 @@ def available() -> bool:
 
 
 def threads() -> int:
-    """Threads of the kernels (1 without numba: torch does the work)."""
+    """Threads of the kernels (numba's pool; 1 without numba, which runs no kernel)."""
     return numba.get_num_threads() if numba is not None else 1
 
 

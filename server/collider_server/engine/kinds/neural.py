@@ -75,7 +75,8 @@ PRESETS: dict[str, Architecture | GridArchitecture] = {
 ANIMATED_PRESETS: dict[str, KeyframeGridArchitecture | DeformedGridArchitecture] = {
     "keyframes": KeyframeGridArchitecture(),
     # The rest pose's grid as the static preset's (docs/neural.md, "8-bit tables").
-    "deformed": DeformedGridArchitecture(table_log2=17, table_dtype="int8"),
+    "deformed": DeformedGridArchitecture(table_log2=PRESETS["grid"].table_log2,
+                                         table_dtype=PRESETS["grid"].table_dtype),
 }
 
 #: The animated preset for any motion: ``collider train --animation`` takes it when none is named

@@ -17,7 +17,6 @@ from ...engine.collider import ColliderInfo
 from ...engine.kinds.animated_neural import AnimatedNeuralCollider
 from ...engine.kinds.neural import ANIMATED_PRESETS, NeuralCollider, architecture_dict, build_network
 from ...engine.kinds.neural_deformed import DeformedGridArchitecture
-from ...engine.kinds.neural_grid import GridArchitecture
 from ...engine.kinds.neural_keyframes import KeyframeGridArchitecture, keyframe_positions
 from ...engine.meshes import ExactSDF, Mesh
 from ..bake import animation_source, mesh_source, padded_box
@@ -33,7 +32,7 @@ from .config import TrainConfig
 from .data import (animated_validation_sets, make_animated_training_data, make_training_data, normalisation,
                    validation_sets)
 from .deformation import DeformationFit, fit_deformation
-from .schedule import RunClock, cosine_learning_rate, make_optimizer, set_training_threads
+from .schedule import RunClock, cosine_learning_rate, make_optimizer, set_training_threads, training_threads
 
 
 @dataclass
@@ -316,11 +315,7 @@ def _device_name(device: str, arch) -> str:
 
     import torch
 
-    from ...engine.kinds import grid_kernels
-
     if device.startswith("cuda"):
         return torch.cuda.get_device_name(torch.device(device))
-    threads = torch.get_num_threads()
-    if isinstance(arch, GridArchitecture) and grid_kernels.available():
-        threads = grid_kernels.threads()
+    threads = training_threads(arch)
     return f"{platform.processor() or platform.machine()} CPU, {threads} thread{'s' if threads != 1 else ''}"

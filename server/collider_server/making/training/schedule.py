@@ -19,11 +19,28 @@ def set_training_threads(arch, threads: int) -> None:
 
     from ...engine.kinds import grid_kernels
 
-    if isinstance(arch, GridArchitecture) and grid_kernels.available():
+    if _in_kernels(arch):
         torch.set_num_threads(1)
         grid_kernels.set_threads(threads)
     else:
         torch.set_num_threads(threads)
+
+
+def training_threads(arch) -> int:
+    """The CPU threads a run of ``arch`` computes with (``set_training_threads``'s, or the
+    defaults): the kernels' for a grid network, else torch's."""
+    import torch
+
+    from ...engine.kinds import grid_kernels
+
+    return grid_kernels.threads() if _in_kernels(arch) else torch.get_num_threads()
+
+
+def _in_kernels(arch) -> bool:
+    """Whether a run of ``arch`` computes in the fused grid kernels."""
+    from ...engine.kinds import grid_kernels
+
+    return isinstance(arch, GridArchitecture) and grid_kernels.available()
 
 
 def make_optimizer(network, learning_rate: float, fused: bool = False):
