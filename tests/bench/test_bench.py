@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import os
+import platform
 import re
 import subprocess
 import sys
@@ -349,6 +350,10 @@ def test_quick_bench_measures_every_kind_embedded_and_served_with_plausible_accu
     assert machine["cores"] >= 1 and machine["versions"]["torch"] and "cpu" in machine
     assert "| 10k |" in stdout and "| 40k |" in stdout and "Pareto front (cpu" in stdout
     assert report["timing"]["rounds"] >= 5 and report["machine"]["torch_threads"] == max(1, (os.cpu_count() or 2) - 1)
+    # Freed memory kept as `collider serve` keeps it (engine/memory.py): the two paths alike.
+    if platform.libc_ver()[0] == "glibc" and not ({"MALLOC_MMAP_THRESHOLD_", "MALLOC_TRIM_THRESHOLD_"} & set(os.environ)
+                                                  or "threshold" in os.environ.get("GLIBC_TUNABLES", "")):
+        assert report["held_freed_memory_bytes"] >= 32 << 20
     assert "mesh: 69,451 faces, not watertight (5 holes, 223 boundary edges), 1 piece" in stdout
     assert "sign errors, +-1 mm band" in stdout and f"cache {out / 'cache'}: " in stdout
     assert not list((out / "cache").glob("served-*"))  # the served run's links are gone
