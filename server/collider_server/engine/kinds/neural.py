@@ -183,8 +183,7 @@ class NeuralCollider(Collider):
         exactly zero and the normal would be the fallback's guess; the differences across the
         slab give the surface's direction. Rows whose differences vanish too (a true extremum)
         keep their zero gradient for the caller's fallback."""
-        length = np.sqrt(np.einsum("ij,ij->i", gradient, gradient))
-        flat = np.flatnonzero(length < self.PLATEAU_GRADIENT)
+        flat = np.flatnonzero(np.einsum("ij,ij->i", gradient, gradient) < self.PLATEAU_GRADIENT ** 2)
         if not len(flat):
             return gradient
         arch = self.architecture
