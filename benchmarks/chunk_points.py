@@ -44,6 +44,9 @@ def main() -> None:
     parser.add_argument("--points", type=int, default=1_000_000)
     parser.add_argument("--rounds", type=int, default=7)
     parser.add_argument("--chunks", default="16384,65536,262144,1048576", help="block sizes, comma-separated")
+    parser.add_argument("--hold-freed-memory", action="store_true",
+                        help="keep freed arrays in the heap, as `collider serve` and `collider bench` do "
+                             "(engine/memory.py): large blocks then page-fault less")
     args = parser.parse_args()
 
     import torch
@@ -54,6 +57,11 @@ def main() -> None:
 
     if args.threads:
         torch.set_num_threads(args.threads)
+    held = 0
+    if args.hold_freed_memory:
+        from collider_server.engine.memory import hold_freed_memory
+
+        held = hold_freed_memory()
     mesh = load_mesh(BUNNY)
     collider = (bake_collider(mesh, "voxel", "voxel", resolution=args.resolution, show_progress=False)
                 if args.kind == "voxel" else ModelRepository(None).load("bunny"))
@@ -78,6 +86,7 @@ def main() -> None:
                     times.setdefault((label, chunk), []).append(elapsed)
     print(f"{args.kind} ({'%d^3' % args.resolution if args.kind == 'voxel' else 'bunny'}), "
           f"{args.points:,} points, {torch.get_num_threads()} threads, {args.rounds} rounds; "
+          f"{f'freed memory held up to {held >> 20} MiB' if held else 'freed memory not held'}; "
           f"load average {', '.join(f'{x:.1f}' for x in os.getloadavg())}; the kind's own block: {own:,}")
     for label in FIELDS:
         base = np.median(times[label, own])

@@ -22,10 +22,10 @@ class VoxelCollider(Collider):
     """Trilinear signed-distance grid. ``tensors()["grid"]``: (R, R, R) float32, [x, y, z]."""
 
     kind = "voxel"
-    #: On a CPU, blocks whose float32 temporaries stay in the cache: 1M points in blocks of 65,536
-    #: took 1/1.37 (distance) and 1/1.50 (with normals and contacts) of the time in one block on
-    #: 1 thread, 1/1.21 and 1/1.36 on 2 (the bunny at 128^3: benchmarks/chunk_points.py). On a
-    #: GPU, large blocks fill it.
+    #: On a CPU, small blocks: their temporaries stay in the cache and are not mapped anew. 1M
+    #: points (the bunny at 128^3, benchmarks/chunk_points.py) in one block took 1.3-1.5x the time
+    #: of blocks of 65,536 on 1 thread, 1.2-1.4x on 2; 1.1-1.2x where freed memory is held (as
+    #: `collider serve` does). On a GPU, large blocks fill it.
     chunk_points = 65_536
     GPU_CHUNK_POINTS: ClassVar[int] = 1_048_576
 
