@@ -281,8 +281,8 @@ def summary(report: dict) -> str:
     faster = served_faster(report)
     if faster:
         parts += ["", "Served measured faster than embedded by more than the spread, even after retiming "
-                  "(the same query plus HTTP cannot be: these cells measured the machine's load, not the "
-                  "colliders; rerun on a quieter machine):"] + [f"- {f}" for f in faster]
+                  "(the same query plus HTTP should not be: the load of the machine most likely changed "
+                  "between the two; rerun on a quieter machine):"] + [f"- {f}" for f in faster]
     if report["skipped"]:
         parts += ["", "Not measured:"] + [f"- {s['name']}: {s['reason']}" for s in report["skipped"]]
     return "\n".join(parts) + "\n"

@@ -245,8 +245,10 @@ def interval(values: list[float]) -> tuple[float, float]:
 
 def served_beats_embedded(embedded: Timing, served: Timing) -> bool:
     """Served faster than embedded by more than the measured spread: the served median's
-    interval wholly below the embedded one's. The same query plus HTTP cannot be faster, so this
-    is a measurement to redo, never a figure to report as is."""
+    interval wholly below the embedded one's. The same query plus HTTP should not be faster (the
+    engine computes an embedded query in the blocks a server batches: ``Collider.chunk_points``
+    and ``max_batch_points``, 65,536 for the grid kinds), so this is a measurement to redo, never
+    a figure to report as is."""
     if not embedded.times_s or not served.times_s:
         return False
     return interval(served.times_s)[1] < interval(embedded.times_s)[0]
