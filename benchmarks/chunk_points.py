@@ -26,21 +26,12 @@ BUNNY = Path(__file__).resolve().parents[1] / "examples" / "meshes" / "stanford-
 FIELDS = {"distance": ["distance"], "d+n+c": ["distance", "normal", "contact"]}
 
 
-def band_points(mesh, n: int, seed: int = 0) -> np.ndarray:
-    """``n`` float32 points within 10 mm of ``mesh``'s surface (along the face normals), metres."""
-    import trimesh
-
-    surface = trimesh.Trimesh(mesh.vertices, mesh.faces, process=False)
-    points, faces = trimesh.sample.sample_surface(surface, n, seed=seed)
-    offsets = np.random.default_rng(seed).uniform(-0.01, 0.01, (n, 1))
-    return (points + surface.face_normals[faces] * offsets).astype(np.float32)
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--kind", choices=("voxel", "neural"), default="voxel")
     parser.add_argument("--resolution", type=int, default=128, help="voxel samples per axis")
-    parser.add_argument("--threads", type=int, default=None, help="torch and kernel threads (default: torch's)")
+    parser.add_argument("--threads", type=int, default=None,
+                        help="torch and kernel threads (default: torch's)")
     parser.add_argument("--points", type=int, default=1_000_000)
     parser.add_argument("--rounds", type=int, default=7)
     parser.add_argument("--chunks", default="16384,65536,262144,1048576", help="block sizes, comma-separated")
@@ -54,6 +45,7 @@ def main() -> None:
     from collider_server.engine.repository import ModelRepository
     from collider_server.making.bake import bake_collider
     from collider_server.making.mesh_files import load_mesh
+    from collider_server.making.sampling import surface_band_points
 
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -67,7 +59,7 @@ def main() -> None:
                 if args.kind == "voxel" else ModelRepository(None).load("bunny"))
     own = collider.chunk_points
     chunks = sorted({int(c) for c in args.chunks.split(",")} | {own})
-    points = band_points(mesh, args.points)
+    points = surface_band_points(mesh, args.points, 1e-2, seed=0).astype(np.float32)  # as a client sends
     times: dict[tuple, list[float]] = {}
     answers: dict[str, object] = {}
     for round_ in range(args.rounds + 1):  # round 0: warm-up, and the answers compared
