@@ -10,17 +10,16 @@ models/arm.safetensors; metres, collider frame, seconds):
 """
 import os
 import time
-
 from pathlib import Path
 
 import igl
 import numpy as np
 
 from collider_contract.point_cache import read_pc2
-from collider_server.making.animation_files import read_obj
-from collider_server.engine.modelfile import load_collider
-from collider_server.making.bake import bake_collider
 from collider_server.engine.meshes import Mesh
+from collider_server.engine.modelfile import load_collider
+from collider_server.making.animation_files import read_obj
+from collider_server.making.bake import bake_collider
 
 ROOT = Path(__file__).resolve().parents[1]
 print(f"load average {os.getloadavg()[0]:.2f}")

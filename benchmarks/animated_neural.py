@@ -38,7 +38,7 @@ from collider_server.making.animation_files import load_animation
 from collider_server.making.sampling import band_sets
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from neural_query import source_mesh  # noqa: E402  (a static model's own mesh: one rule for both scripts)
+from neural_query import source_mesh
 
 SIGN_THRESHOLD_MM = 0.2
 
@@ -72,7 +72,7 @@ def accuracy(collider, animation, times: int, points: int, seed: int) -> dict:
         speed = np.einsum("ij,ij->i", got.velocity.astype(np.float64), normal)
         speeds.append(np.abs(speed - true_speed) * to_mm)
     error, sign, angle, speed, fifth = (np.concatenate(a) for a in (errors, signs, angles, speeds, fifths))
-    return {"points": int(len(error)), "times": times,
+    return {"points": len(error), "times": times,
             "distance_mean_mm": float(error.mean()), "distance_p99_mm": float(np.percentile(error, 99)),
             "distance_max_mm": float(error.max()), "sign_errors_percent": float(100.0 * sign.mean()),
             "normal_mean_deg": float(angle.mean()), "normal_p99_deg": float(np.percentile(angle, 99)),
@@ -91,7 +91,6 @@ def voxel_keyframe_errors(animation, resolutions, keyframe_counts, times: int, p
     point's cell, on the two keyframe meshes around the time, blended linearly in time, so only
     those corners are computed (:func:`check_voxel_emulation` pins this to a baked collider)."""
     from collider_contract import Timeline
-
     from collider_server.engine.meshes import ExactSDF
     from collider_server.making.bake import padded_box
 

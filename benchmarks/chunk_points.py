@@ -76,7 +76,7 @@ def main() -> None:
                             raise SystemExit(f"{name} differs with blocks of {chunk} points")
                 else:
                     times.setdefault((label, chunk), []).append(elapsed)
-    print(f"{args.kind} ({'%d^3' % args.resolution if args.kind == 'voxel' else 'bunny'}), "
+    print(f"{args.kind} ({f'{args.resolution}^3' if args.kind == 'voxel' else 'bunny'}), "
           f"{args.points:,} points, {torch.get_num_threads()} threads, {args.rounds} rounds; "
           f"{f'freed memory held up to {held >> 20} MiB' if held else 'freed memory not held'}; "
           f"load average {', '.join(f'{x:.1f}' for x in os.getloadavg())}; the kind's own block: {own:,}")

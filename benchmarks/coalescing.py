@@ -39,7 +39,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from service_common import (  # noqa: E402
+from service_common import (
     REPO,
     LeanConnection,
     bunny_points,

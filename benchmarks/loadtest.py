@@ -33,7 +33,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from service_common import (  # noqa: E402
+from service_common import (
     REPO,
     HTTPError,
     LeanConnection,

@@ -27,6 +27,7 @@ import os
 import statistics
 import sys
 import time
+from functools import partial
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
@@ -146,16 +147,16 @@ def main(argv=None) -> int:
         turn = round_ % len(candidates)
         for label, collider, query_kernel, points in candidates[turn:] + candidates[:turn]:
             with kernel(grid_kernels, query_kernel):
-                times[label][0].append(timed(lambda: collider.query(points, ALL)))
-                times[label][1].append(timed(lambda: collider.query(points, ["distance"])))
+                times[label][0].append(timed(partial(collider.query, points, ALL)))
+                times[label][1].append(timed(partial(collider.query, points, ["distance"])))
     load_after = os.getloadavg()
     if args.torch_path:
         for label, collider, query_kernel, points in candidates:
             if query_kernel is None and getattr(collider, "network", None) is not None \
                     and hasattr(collider.network, "fused"):
                 collider.network.fused = False
-                times[label + " (pure torch, 1 round)"] = ([timed(lambda: collider.query(points, ALL))],
-                                                          [timed(lambda: collider.query(points, ["distance"]))])
+                times[label + " (pure torch, 1 round)"] = ([timed(partial(collider.query, points, ALL))],
+                                                          [timed(partial(collider.query, points, ["distance"]))])
                 collider.network.fused = True
 
     scale = 1e6 / args.points

@@ -33,8 +33,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from loadtest import Simulator, simulate  # noqa: E402
-from service_common import REPO, free_port, machine_note, nginx, nginx_config, percentiles_ms, serve  # noqa: E402
+from loadtest import Simulator, simulate
+from service_common import REPO, free_port, machine_note, nginx, nginx_config, percentiles_ms, serve
 
 POLICIES = ("round-robin", "by-model")
 
@@ -48,7 +48,7 @@ def batch_metrics(port: int) -> dict[str, dict[str, float]]:
     for metric, key in (("collider_batch_points_count", "batches"),
                         ("collider_batch_points_sum", "points"),
                         ("collider_compute_seconds_sum", "compute_s")):
-        for model, value in re.findall(rf'^{metric}\{{model="([^"]+)"\}} (\S+)$', text, re.M):
+        for model, value in re.findall(rf'^{metric}\{{model="([^"]+)"\}} (\S+)$', text, re.MULTILINE):
             found.setdefault(model, {})[key] = float(value)
     return found
 

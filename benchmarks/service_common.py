@@ -28,8 +28,8 @@ REPO = Path(__file__).resolve().parents[1]
 MESHES = REPO.parent / "shared" / "data" / "meshes"
 sys.path.insert(0, str(REPO / "client"))
 
-from collider_cli.launch import free_port  # noqa: E402,F401  (one home for it)
-from collider_contract import wire  # noqa: E402
+from collider_cli.launch import free_port  # noqa: F401  (one home for it)
+from collider_contract import wire
 
 
 class HTTPError(Exception):
@@ -189,7 +189,7 @@ def nginx_config(policy: str, listen_port: int, replicas: list[int], root: Path,
     policy: "by-model" (the template) or "round-robin" (its ``hash`` line removed)."""
     text = NGINX_TEMPLATE.read_text()
     if policy == "round-robin":
-        text, removed = re.subn(r"^\s*hash \$collider_model consistent;\n", "", text, flags=re.M)
+        text, removed = re.subn(r"^\s*hash \$collider_model consistent;\n", "", text, flags=re.MULTILINE)
         assert removed == 1, "the template's hash line moved: update benchmarks/service_common.py"
     servers = " ".join(f"server 127.0.0.1:{p} max_fails=1 fail_timeout=10s;" for p in replicas)
     values = {"NGINX_LISTEN": f"127.0.0.1:{listen_port}", "COLLIDER_UPSTREAMS": servers}

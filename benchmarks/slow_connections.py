@@ -46,7 +46,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from service_common import (  # noqa: E402
+from service_common import (
     LeanConnection,
     free_port,
     machine_note,
@@ -162,7 +162,7 @@ def attack(port: int, count: int) -> dict:
 
 
 def attacker_main(args) -> int:
-    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    _soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
     resource.setrlimit(resource.RLIMIT_NOFILE, (hard, hard))
     result = attack(args.port, args.connections)
     print(json.dumps(result), flush=True)
@@ -217,7 +217,7 @@ def measure(port: int, body: bytes, seconds: float, during=None) -> list[float]:
     return asyncio.run(run())
 
 
-def run_attack_slice(port: int, body: bytes, args, sampler: "FdSampler") -> tuple[list[float], dict]:
+def run_attack_slice(port: int, body: bytes, args, sampler: FdSampler) -> tuple[list[float], dict]:
     """Queries for ``args.slice_s`` under attack; then the attack stops opening connections and
     waits for the server to close the ones it holds. Also returns how long the server's
     descriptors took to come back to their level before the attack."""

@@ -27,9 +27,8 @@ def y_up_to_z_up() -> np.ndarray:
 
 
 def build(args):
-    import warp as wp
-
     import newton
+    import warp as wp
 
     builder = newton.ModelBuilder()
     size = (args.cells - 1) * args.cell_m

@@ -9,9 +9,9 @@ Units: metres. Frames: every procedural shape is centred at the origin of its ow
 from __future__ import annotations
 
 import functools
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 import pytest
@@ -29,7 +29,7 @@ def shared_mesh_path(name: str) -> Path:
     return path
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _load_shared_mesh(name: str):
     from collider_server.making.mesh_files import load_mesh
 
@@ -217,7 +217,7 @@ def make_torus() -> Shape:
 SHAPE_MAKERS = {"sphere": make_sphere, "box": make_box, "torus": make_torus}
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def procedural_shape(name: str) -> Shape:
     """The procedural :class:`Shape` ``name`` ("sphere", "box", "torus"), cached."""
     return SHAPE_MAKERS[name]()
@@ -227,7 +227,7 @@ def procedural_shape(name: str) -> Shape:
 TEST_VOXEL_RESOLUTION = 64
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _baked(shape_name: str, kind: str, resolution: int):
     from collider_server.making.bake import bake_collider
 

@@ -26,7 +26,7 @@ INPUT_OPTIONS = {"mesh", "points", "pose", "config", "bench", "animation"}
 
 def blocks(page: Path, languages=("bash", "sh", "console", "")) -> list[str]:
     """The fenced code blocks of ``page`` in ``languages`` ('' = no language given)."""
-    return [body for language, body in re.findall(r"```([a-z]*)\n(.*?)```", page.read_text(), re.S)
+    return [body for language, body in re.findall(r"```([a-z]*)\n(.*?)```", page.read_text(), re.DOTALL)
             if language in languages]
 
 

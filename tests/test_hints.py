@@ -132,7 +132,7 @@ def test_every_hint_every_command_prints_works_when_pasted(user):
     found = {name: hints(text) for name, text in printed}
     assert all(found.values()), {name: text for name, text in printed if not found[name]}
     outcomes = {}
-    for name, commands in found.items():
+    for commands in found.values():
         for command in commands:
             if command not in outcomes:
                 outcomes[command] = paste(command, home, env)

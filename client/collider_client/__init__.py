@@ -40,6 +40,8 @@ from .response import (
 )
 
 __all__ = [
+    "FIELDS",
+    "USE_CLIENT_DEFAULT",
     "AsyncClient",
     "BadRequestError",
     "Client",
@@ -48,7 +50,6 @@ __all__ = [
     "CollisionHook",
     "ConnectError",
     "DeadlineExceededError",
-    "FIELDS",
     "InvalidValueError",
     "ModelInfo",
     "ModelNotFoundError",
@@ -62,7 +63,6 @@ __all__ = [
     "ServiceUnavailableError",
     "TimeoutError",
     "TransportError",
-    "USE_CLIENT_DEFAULT",
     "UnauthorizedError",
     "UnsupportedMediaTypeError",
     "UseClientDefault",

@@ -10,9 +10,10 @@ rules the service and the embedded backend apply.
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable
 from dataclasses import dataclass
 from email.utils import parsedate_to_datetime
-from typing import Any, Iterable
+from typing import Any
 
 from collider_contract import ModelInfo, QueryError, QueryResult, wire
 

@@ -14,15 +14,26 @@ from __future__ import annotations
 
 import asyncio
 import time
+from collections.abc import Iterable, Sequence
 from pathlib import Path
-from typing import Iterable, Sequence
 
 import httpx
+from typing_extensions import Self
 
 from collider_contract import ModelInfo, ModelQuery, QueryError, QueryResult, SceneQuery, check_fields, wire
 
-from ._base import (CUT, OTHER, REFUSED, USE_CLIENT_DEFAULT, Attempts, RetryPolicy,
-                    UseClientDefault, decode_models, decode_query, refusal)
+from ._base import (
+    CUT,
+    OTHER,
+    REFUSED,
+    USE_CLIENT_DEFAULT,
+    Attempts,
+    RetryPolicy,
+    UseClientDefault,
+    decode_models,
+    decode_query,
+    refusal,
+)
 from ._exceptions import ConnectError, TimeoutError, TransportError
 
 DEFAULT_TIMEOUT_S = 30.0
@@ -215,7 +226,7 @@ class Client:
         if self._embedded is not None:
             self._embedded.close()
 
-    def __enter__(self) -> "Client":
+    def __enter__(self) -> Self:
         return self
 
     def __exit__(self, *exc) -> None:
@@ -317,7 +328,7 @@ class AsyncClient:
         if self._embedded is not None:
             self._embedded.close()
 
-    async def __aenter__(self) -> "AsyncClient":
+    async def __aenter__(self) -> Self:
         return self
 
     async def __aexit__(self, *exc) -> None:

@@ -11,8 +11,16 @@ from __future__ import annotations
 import threading
 from pathlib import Path
 
-from collider_contract import (ModelInfo, ModelQuery, QueryError, QueryResult, SceneQuery,
-                               answer_model_query, answer_scene_query, unknown_model)
+from collider_contract import (
+    ModelInfo,
+    ModelQuery,
+    QueryError,
+    QueryResult,
+    SceneQuery,
+    answer_model_query,
+    answer_scene_query,
+    unknown_model,
+)
 
 from ._base import refusal
 from ._exceptions import ModelNotFoundError

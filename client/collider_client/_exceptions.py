@@ -26,21 +26,21 @@ Statuses without a class of their own (500, ...) raise :class:`ServerError` itse
 from __future__ import annotations
 
 __all__ = [
-    "ColliderError",
-    "TransportError",
-    "ConnectError",
-    "TimeoutError",
-    "ProtocolError",
-    "ServerError",
     "BadRequestError",
-    "UnauthorizedError",
+    "ColliderError",
+    "ConnectError",
+    "DeadlineExceededError",
+    "InvalidValueError",
     "ModelNotFoundError",
     "PayloadTooLargeError",
-    "UnsupportedMediaTypeError",
-    "InvalidValueError",
+    "ProtocolError",
     "QueueFullError",
+    "ServerError",
     "ServiceUnavailableError",
-    "DeadlineExceededError",
+    "TimeoutError",
+    "TransportError",
+    "UnauthorizedError",
+    "UnsupportedMediaTypeError",
     "error_for_status",
 ]
 
@@ -57,7 +57,7 @@ class ConnectError(TransportError):
     """The server could not be reached at the client's URL."""
 
 
-class TimeoutError(TransportError):  # noqa: A001 - mirrors httpx's name inside our namespace
+class TimeoutError(TransportError):
     """Connecting, sending or reading took longer than the client's ``timeout_s``."""
 
 
@@ -78,7 +78,7 @@ class ServerError(ColliderError):
     status: int = 500
 
     def __init__(self, detail: str, *, status: int | None = None, title: str = "",
-                 type: str = "about:blank", retry_after_s: float | None = None):  # noqa: A002
+                 type: str = "about:blank", retry_after_s: float | None = None):
         if status is not None:
             self.status = status
         self.detail = detail
@@ -150,7 +150,7 @@ STATUS_ERRORS: dict[int, type[ServerError]] = {
 }
 
 
-def error_for_status(status: int, detail: str, *, title: str = "", type: str = "about:blank",  # noqa: A002
+def error_for_status(status: int, detail: str, *, title: str = "", type: str = "about:blank",
                      retry_after_s: float | None = None) -> ServerError:
     """The typed exception for an HTTP error ``status`` (unknown codes give :class:`ServerError`)."""
     cls = STATUS_ERRORS.get(status, ServerError)

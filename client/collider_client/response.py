@@ -17,23 +17,23 @@ points (``collides`` from a query, or ``distance < eps``).
 from __future__ import annotations
 
 import time
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from typing import Callable, Sequence
 
 import numpy as np
 
 from collider_contract import ModelInfo, SceneCollider, Timeline, transform_points
 
 __all__ = [
-    "project_to_contacts",
-    "respond_velocities",
-    "collider_velocity",
-    "world_box",
     "ColliderPlacement",
-    "animation_time",
     "CollisionHook",
     "HookStats",
     "TunnellingError",
+    "animation_time",
+    "collider_velocity",
+    "project_to_contacts",
+    "respond_velocities",
+    "world_box",
 ]
 
 

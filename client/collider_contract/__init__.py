@@ -17,21 +17,76 @@ the same by construction:
 """
 
 from .animation import Timeline
-from .answers import (DEFAULT_EPS_METERS, Evaluate, Evaluation, answer_model_query,
-                      answer_scene_query, check_finite, default_eps, finish, finish_scene,
-                      nearest_collider, prepare, require_time, resolve_eps)
+from .answers import (
+                      DEFAULT_EPS_METERS,
+                      Evaluate,
+                      Evaluation,
+                      answer_model_query,
+                      answer_scene_query,
+                      check_finite,
+                      default_eps,
+                      finish,
+                      finish_scene,
+                      nearest_collider,
+                      prepare,
+                      require_time,
+                      resolve_eps,
+)
 from .errors import TITLES, QueryError, unknown_model
 from .pose import IDENTITY, MAX_COORDINATE_M, MAX_SCALE, Pose, PoseError, as_pose, transform_points
-from .queries import (FIELDS, GRADIENT_FIELDS, ModelQuery, Placed, SceneCollider, SceneQuery, check_eps,
-                      check_fields, check_points, check_pose_velocity, check_time)
+from .queries import (
+                      FIELDS,
+                      GRADIENT_FIELDS,
+                      ModelQuery,
+                      Placed,
+                      SceneCollider,
+                      SceneQuery,
+                      check_eps,
+                      check_fields,
+                      check_points,
+                      check_pose_velocity,
+                      check_time,
+)
 from .results import ModelInfo, QueryResult
 from .wire import WireError
 
 __all__ = [
-    "DEFAULT_EPS_METERS", "FIELDS", "GRADIENT_FIELDS", "IDENTITY", "MAX_COORDINATE_M", "MAX_SCALE",
-    "TITLES", "Evaluate", "Evaluation", "ModelInfo", "ModelQuery", "Pose", "PoseError", "QueryError",
-    "QueryResult", "Placed", "SceneCollider", "SceneQuery", "Timeline", "WireError", "answer_model_query",
-    "answer_scene_query", "as_pose", "check_finite", "check_eps", "check_fields", "check_points",
-    "check_pose_velocity", "check_time", "default_eps",
-    "finish", "finish_scene", "nearest_collider", "prepare", "require_time", "resolve_eps", "transform_points", "unknown_model",
+                      "DEFAULT_EPS_METERS",
+                      "FIELDS",
+                      "GRADIENT_FIELDS",
+                      "IDENTITY",
+                      "MAX_COORDINATE_M",
+                      "MAX_SCALE",
+                      "TITLES",
+                      "Evaluate",
+                      "Evaluation",
+                      "ModelInfo",
+                      "ModelQuery",
+                      "Placed",
+                      "Pose",
+                      "PoseError",
+                      "QueryError",
+                      "QueryResult",
+                      "SceneCollider",
+                      "SceneQuery",
+                      "Timeline",
+                      "WireError",
+                      "answer_model_query",
+                      "answer_scene_query",
+                      "as_pose",
+                      "check_eps",
+                      "check_fields",
+                      "check_finite",
+                      "check_points",
+                      "check_pose_velocity",
+                      "check_time",
+                      "default_eps",
+                      "finish",
+                      "finish_scene",
+                      "nearest_collider",
+                      "prepare",
+                      "require_time",
+                      "resolve_eps",
+                      "transform_points",
+                      "unknown_model",
 ]

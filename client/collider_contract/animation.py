@@ -64,7 +64,7 @@ class Timeline:
         """Seconds from the first frame to the last: ``(frames - 1) / frame_rate_hz``."""
         return (self.frames - 1) / self.frame_rate_hz
 
-    def with_loop(self, loop: bool | None) -> "Timeline":
+    def with_loop(self, loop: bool | None) -> Timeline:
         """This timeline with ``loop`` overridden (None: as it is)."""
         if loop is None or loop == self.loop:
             return self
@@ -100,7 +100,7 @@ class Timeline:
                 "max_surface_speed": float(self.max_surface_speed)}
 
     @classmethod
-    def from_dict(cls, data: dict) -> "Timeline":
+    def from_dict(cls, data: dict) -> Timeline:
         """The timeline of ``ModelInfo.animation`` (``duration_s`` is derived, not read); a
         ValueError names what is wrong."""
         if not isinstance(data, dict):

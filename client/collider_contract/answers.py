@@ -35,8 +35,8 @@ for the points that collide; for the others ``normal`` and ``velocity`` are ``[0
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Callable, Sequence
 
 import numpy as np
 

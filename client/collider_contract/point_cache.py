@@ -36,7 +36,7 @@ class PC2Writer:
         self.path = Path(path)
         self.points = points
         self.samples = 0
-        self._file = open(self.path, "wb")
+        self._file = open(self.path, "wb")  # noqa: SIM115 -- open across write() calls, closed by close()
         # Start frame 0, sample rate 1.0: one sample per (Blender) frame.
         self._file.write(struct.pack("<12siiffi", PC2_MAGIC, 1, points, 0.0, 1.0, 0))
 

@@ -115,7 +115,7 @@ def transform_points(matrix, points) -> np.ndarray:
     return np.asarray(points, dtype=np.float64) @ m[:3, :3].T + m[:3, 3]
 
 
-def as_pose(pose: "Pose | np.ndarray | list | None") -> Pose:
+def as_pose(pose: Pose | np.ndarray | list | None) -> Pose:
     """Validate ``pose`` (a 4x4 array-like, a :class:`Pose` or ``None`` for identity).
 
     Raises :class:`PoseError` naming what is wrong: shape, non-finite entries, a bottom row other

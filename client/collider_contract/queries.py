@@ -16,8 +16,9 @@ collider is asked (a static one ignores it); ``pose_velocity`` (the pose's time 
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
-from typing import Any, Iterable, NamedTuple, Sequence
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -224,7 +225,7 @@ class ModelQuery:
 
     @classmethod
     def build(cls, points, fields: Iterable[str] | str = DEFAULT_FIELDS, pose=None, eps=None,
-              only_colliding: bool = False, time=None, pose_velocity=None) -> "ModelQuery":
+              only_colliding: bool = False, time=None, pose_velocity=None) -> ModelQuery:
         """Validate the Python API's arguments (checked in this order: fields, points, pose,
         eps, time, pose velocity); raises :class:`~.errors.QueryError`."""
         return cls(fields=check_fields(fields), points=check_points(points), pose=check_pose(pose),
@@ -249,7 +250,7 @@ class ModelQuery:
         return body
 
     @classmethod
-    def from_body(cls, body: dict, max_points: int = MAX_POINTS) -> "ModelQuery":
+    def from_body(cls, body: dict, max_points: int = MAX_POINTS) -> ModelQuery:
         """The query of a decoded wire body (:func:`~.wire.loads`); more than ``max_points``
         points is a 413. Checked in :meth:`build`'s order, then ``only_colliding``. Raises
         :class:`~.errors.QueryError`."""
@@ -279,7 +280,7 @@ class SceneQuery:
 
     @classmethod
     def build(cls, points, colliders: Sequence, fields: Iterable[str] | str = DEFAULT_FIELDS,
-              eps=None, only_colliding: bool = False, time=None) -> "SceneQuery":
+              eps=None, only_colliding: bool = False, time=None) -> SceneQuery:
         """Validate the Python API's arguments (:func:`check_colliders` lists the forms of
         ``colliders``; ``time``: theirs when they give none); raises
         :class:`~.errors.QueryError`."""
@@ -318,7 +319,7 @@ class SceneQuery:
 
     @classmethod
     def from_body(cls, body: dict, max_points: int = MAX_POINTS,
-                  max_colliders: int | None = None) -> "SceneQuery":
+                  max_colliders: int | None = None) -> SceneQuery:
         """As :meth:`ModelQuery.from_body`; more than ``max_colliders`` colliders is a 413. A
         top-level ``time`` is the time of the colliders that give none."""
         _check_keys(body, {"points", "colliders", "fields", "eps", "only_colliding", "time"},

@@ -54,7 +54,7 @@ class QueryResult:
         return body
 
     @classmethod
-    def from_body(cls, body: dict[str, Any], fields, scene: bool) -> "QueryResult":
+    def from_body(cls, body: dict[str, Any], fields, scene: bool) -> QueryResult:
         """The result in a decoded response body that answered ``fields`` (a scene query's
         when ``scene``); :class:`~.wire.WireError` when a field is missing or malformed.
         msgpack arrays stay read-only views on the body; JSON lists get the promised dtypes."""
@@ -121,7 +121,7 @@ class ModelInfo:
         return {**self.extra, **data}
 
     @classmethod
-    def from_dict(cls, data: dict[str, Any]) -> "ModelInfo":
+    def from_dict(cls, data: dict[str, Any]) -> ModelInfo:
         known = {f.name for f in dataclasses.fields(cls)} - {"extra"}
         values = {k: v for k, v in data.items() if k in known}
         for key in ("domain_min", "domain_max"):

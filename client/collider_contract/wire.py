@@ -157,7 +157,7 @@ def loads(data: bytes, content_type: str = MSGPACK) -> dict:
             raise WireError(f"unsupported content type {content_type!r}; use {MSGPACK} or {JSON}")
     except WireError:
         raise
-    except Exception as exc:  # msgpack and json raise several types for malformed bodies
+    except Exception as exc:  # noqa: BLE001 -- msgpack and json raise several types for malformed bodies
         # Some (msgpack's FormatError) carry no message: say at least what kind of error it is.
         reason = str(exc) or _REASONS.get(type(exc).__name__, type(exc).__name__)
         raise WireError(f"malformed {content_type} body: {reason}") from None

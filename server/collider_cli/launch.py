@@ -15,8 +15,10 @@ import subprocess
 import sys
 import threading
 import time
+from collections.abc import Iterator
 from pathlib import Path
-from typing import Iterator
+
+from typing_extensions import Self
 
 LOOPBACK = "127.0.0.1"
 #: Tokens a test or benchmark server must not inherit from the caller's environment.
@@ -80,7 +82,7 @@ class ServerProcess:
             stdout=subprocess.PIPE if capture else None,
             stderr=subprocess.STDOUT if capture else None, text=capture)
 
-    def wait_ready(self, timeout_s: float = 120.0) -> "ServerProcess":
+    def wait_ready(self, timeout_s: float = 120.0) -> ServerProcess:
         try:
             wait_ready(self.url, self.process, timeout_s)
         except BaseException:
@@ -133,7 +135,7 @@ class ServerThread:
         self.server = uvicorn.Server(config)
         self.thread = threading.Thread(target=self.server.run, daemon=True)
 
-    def __enter__(self) -> "ServerThread":
+    def __enter__(self) -> Self:
         self.thread.start()
         wait_ready(self.url, timeout_s=60.0)
         return self

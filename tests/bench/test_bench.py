@@ -5,6 +5,7 @@ picked from its report. Structure and plausible accuracy are asserted, never tim
 
 from __future__ import annotations
 
+import itertools
 import json
 import os
 import platform
@@ -265,7 +266,7 @@ def test_rank_takes_the_smaller_of_colliders_equally_fast_within_the_measurement
     assert [r["name"] for r in ranked] == ["voxel-128", "voxel-256", "mesh"]
     assert [r["name"] for r in equally_fast(report, ranked)] == ["voxel-256"]
     report["colliders"][1] = _row("voxel-128", 0.50, 0.024, memory=8_400_000)  # 1.67x: measurably slower
-    assert [r["name"] for r in rank(report, Budget(0.05))][0] == "voxel-256"
+    assert next(r["name"] for r in rank(report, Budget(0.05))) == "voxel-256"
 
 
 def test_plan_stops_voxels_at_the_memory_budget_and_lists_every_neural_preset(monkeypatch, load_shared_mesh):
@@ -452,7 +453,7 @@ def assert_labels_readable(fig, report):
         ticks = [t for t in ticks if lo <= t.get_position()[0] <= hi]
         assert len(ticks) >= 2, [t.get_text() for t in ticks]
         boxes = sorted((t.get_window_extent(renderer) for t in ticks), key=lambda b: b.x0)
-        assert all(a.x1 < b.x0 for a, b in zip(boxes, boxes[1:])), [t.get_text() for t in ticks]
+        assert all(a.x1 < b.x0 for a, b in itertools.pairwise(boxes)), [t.get_text() for t in ticks]
         markers = []
         for collection in ax.collections:
             sizes = collection.get_sizes()

@@ -96,9 +96,8 @@ NO_RETRY = cc.RetryPolicy(max_retries=0)
 @pytest.mark.parametrize("status", sorted(EXPECTED))
 def test_every_status_maps_to_its_exception(scripted, status):
     scripted.script.append((status, {}))
-    with cc.Client(scripted.url, retry=NO_RETRY) as client:
-        with pytest.raises(EXPECTED[status]) as info:
-            client.query("m", np.zeros((2, 3)))
+    with cc.Client(scripted.url, retry=NO_RETRY) as client, pytest.raises(EXPECTED[status]) as info:
+        client.query("m", np.zeros((2, 3)))
     error = info.value
     assert type(error) is EXPECTED[status]
     assert error.status == status

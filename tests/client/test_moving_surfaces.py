@@ -39,7 +39,6 @@ def translation(x=0.0, y=0.0, z=0.0):
 def translated(mesh, offsets, fps):
     """An animated mesh: ``mesh`` moved by each of ``offsets`` (k, 3) in turn, clamped."""
     from collider_contract import Timeline
-
     from collider_server.engine.animated_meshes import AnimatedMesh, max_surface_speed
 
     frames = mesh.vertices[None] + np.asarray(offsets, float)[:, None, :]
@@ -177,9 +176,10 @@ def test_a_surface_that_speeds_up_within_a_step_does_not_leave_a_point_inside(cl
 def test_the_duration_probe_asks_an_animated_collider_at_a_time(tmp_path):
     """`collider simulate`'s duration estimate probes the first collider as the hook asks; an
     animated one refuses a query without a time, so the probe gives it the first frame's."""
+    from tests.conftest import REPO_ROOT
+
     from collider_client.sim.run import query_cost_per_point
     from collider_client.sim.scene import load_scene, resolve_scene
-    from tests.conftest import REPO_ROOT
 
     scene = load_scene(resolve_scene("cloth_on_arm"))
     with cc.Client(models=REPO_ROOT / "models") as arm_client:

@@ -532,7 +532,7 @@ def test_hook_sends_only_the_points_near_a_collider(exact_client, check_step):
     v[5, 2] = 0.45 / dt  # from z = 0.05 to 0.5 in the step
     if check_step:
         x[4, 2], x[5, 2], v[5, 2] = 0.215, 0.3, 0.1  # 5 mm above its 10 mm move; slow, far
-    pos, vel, mask = hook.apply(x, v, 0.1, dt)
+    pos, _vel, mask = hook.apply(x, v, 0.1, dt)
     assert not mask.any()
     np.testing.assert_array_equal(pos, x)
     sent = hook.stats.points_sent

@@ -238,8 +238,8 @@ def test_embedded_and_remote_give_the_same_outcome(backends, server_url, case):
                                   headers={"content-type": wire.MSGPACK})
             problem = response.json()
             error = embedded[1]
-            assert (response.status_code, problem["type"], f"{error.status} {problem['title']}: "
-                    f"{problem['detail']}") == (error.status, embedded[2], embedded[3])
+            assert (response.status_code, problem["type"], (f"{error.status} {problem['title']}: "
+                    f"{problem['detail']}")) == (error.status, embedded[2], embedded[3])
         return
     assert embedded[2] == remote[2]  # the model name (None for a scene)
     assert embedded[1].keys() == remote[1].keys()

@@ -71,10 +71,10 @@ def test_minimal_scene(tmp_path):
     (("[effects.gravity]", "[effects.collisions]"), "needs at least one [[colliders]]"),
     (("[effects.gravity]", "[effects.gravity]\n[[colliders]]\nmodel = 'sphere'"),
      "[effects.collisions] is absent"),
-    (("[effects.gravity]", "[effects.collisions]\n[[colliders]]\nmodel = 'sphere'\n"
-                           "motion = { kind = 'teleport' }"), "colliders[0].motion.kind"),
-    (("[effects.gravity]", "[effects.collisions]\n[[colliders]]\nmodel = 'sphere'\n"
-                           "motion = { kind = 'keyframes', times_s = [1, 0] }"), "increase strictly"),
+    (("[effects.gravity]", ("[effects.collisions]\n[[colliders]]\nmodel = 'sphere'\n"
+                           "motion = { kind = 'teleport' }")), "colliders[0].motion.kind"),
+    (("[effects.gravity]", ("[effects.collisions]\n[[colliders]]\nmodel = 'sphere'\n"
+                           "motion = { kind = 'keyframes', times_s = [1, 0] }")), "increase strictly"),
     (("[effects.gravity]", "[effects.friction]\ncoefficient = -1"), "effects.friction.coefficient"),
 ])
 def test_validation_names_the_key_and_the_file(tmp_path, change, message):
@@ -287,8 +287,8 @@ KNOWN_EFFECTS = sorted(["gravity", "wind", "damping", "stretch", "shear", "bend"
     ("dt_s = 1e-4", "", "scene.dt_s: missing (required)"),
     ("duration_s = 0.01", "duration_s = 0", "scene.duration_s: must be > 0, got 0"),
     ("duration_s = 0.01", "duration_s = -1.0", "scene.duration_s: must be > 0, got -1.0"),
-    ("[scene]", "speed = 3\n[scene]", "unknown key(s) ['speed']; "
-     "known here: ['cloth', 'colliders', 'effects', 'scene']"),
+    ("[scene]", "speed = 3\n[scene]", ("unknown key(s) ['speed']; "
+     "known here: ['cloth', 'colliders', 'effects', 'scene']")),
     ("dt_s = 1e-4", "dt_s = 1e-4\nframe_every_steps = 0",
      "scene.frame_every_steps: must be >= 1, got 0"),
     ("dt_s = 1e-4", "dt_s = 1e-4\nframe_every_steps = 2.0",
@@ -302,8 +302,8 @@ KNOWN_EFFECTS = sorted(["gravity", "wind", "damping", "stretch", "shear", "bend"
     ("dt_s = 1e-4", "dt_s = 1e-4\npreview_frames = [0, 1.5]",
      "scene.preview_frames: must be a list of frame indices (negative from the end), got [0, 1.5]"),
     ("dt_s = 1e-4", "dt_s = 1e-4\nname = 3", "scene.name: must be a string, got int 3"),
-    ("dt_s = 1e-4", "dt_s = 1e-4\nspeed = 3", "unknown key(s) ['scene.speed']; known here: "
-     "['dt_s', 'duration_s', 'frame_every_steps', 'name', 'preview_frames']"),
+    ("dt_s = 1e-4", "dt_s = 1e-4\nspeed = 3", ("unknown key(s) ['scene.speed']; known here: "
+     "['dt_s', 'duration_s', 'frame_every_steps', 'name', 'preview_frames']")),
     # [cloth]
     ("[cloth]\nwidth = 10\nheight = 8\nspacing_m = 0.01\n", "", "cloth: missing (required)"),
     ("width = 10\n", "", "cloth.width: missing (required)"),
@@ -339,8 +339,8 @@ KNOWN_EFFECTS = sorted(["gravity", "wind", "damping", "stretch", "shear", "bend"
      "colliders[1].position_m: must be a list of 3 numbers, got [0, 0]"),
     ("[effects.gravity]", COLLIDER + "rotation_deg = [0, 0]",
      "colliders[0].rotation_deg: must be a list of 3 numbers, got [0, 0]"),
-    ("[effects.gravity]", COLLIDER + "colour = 'red'", "unknown key(s) ['colliders[0].colour']; "
-     "known here: ['loop', 'make', 'model', 'motion', 'position_m', 'rotation_deg', 'time_offset_s']"),
+    ("[effects.gravity]", COLLIDER + "colour = 'red'", ("unknown key(s) ['colliders[0].colour']; "
+     "known here: ['loop', 'make', 'model', 'motion', 'position_m', 'rotation_deg', 'time_offset_s']")),
     ("[effects.gravity]", COLLIDER + "time_offset_s = 'soon'",
      "colliders[0].time_offset_s: must be a number, got str 'soon'"),
     ("[effects.gravity]", COLLIDER + "time_offset_s = nan",
@@ -356,8 +356,8 @@ KNOWN_EFFECTS = sorted(["gravity", "wind", "damping", "stretch", "shear", "bend"
     ("[effects.gravity]", COLLIDER + "motion = { kind = 'velocity', angular_velocity_deg_s = [0, 1] }",
      "colliders[0].motion.angular_velocity_deg_s: must be a list of 3 numbers, got [0, 1]"),
     ("[effects.gravity]", COLLIDER + "motion = { kind = 'velocity', times_s = [0, 1] }",
-     "unknown key(s) ['colliders[0].motion.times_s']; "
-     "known here: ['angular_velocity_deg_s', 'kind', 'velocity_m_s']"),
+     ("unknown key(s) ['colliders[0].motion.times_s']; "
+     "known here: ['angular_velocity_deg_s', 'kind', 'velocity_m_s']")),
     ("[effects.gravity]", COLLIDER + "motion = { kind = 'keyframes' }",
      "colliders[0].motion.times_s: missing (required)"),
     ("[effects.gravity]", COLLIDER + "motion = { kind = 'keyframes', times_s = [0] }",
@@ -372,27 +372,27 @@ KNOWN_EFFECTS = sorted(["gravity", "wind", "damping", "stretch", "shear", "bend"
      "colliders[0].motion.times_s: must increase strictly, got [0.0, 1.0, 1.0]"),
     ("[effects.gravity]", COLLIDER + "motion = { kind = 'keyframes', times_s = [0, 1], "
                                      "positions_m = [[0, 0, 0]] }",
-     "colliders[0].motion.positions_m: must hold 2 finite [x, y, z] rows (one per time), "
-     "got shape (1, 3)"),
+     ("colliders[0].motion.positions_m: must hold 2 finite [x, y, z] rows (one per time), "
+     "got shape (1, 3)")),
     ("[effects.gravity]", COLLIDER + "motion = { kind = 'keyframes', times_s = [0, 1], "
                                      "positions_m = [[0, 0], [0, 0]] }",
-     "colliders[0].motion.positions_m: must hold 2 finite [x, y, z] rows (one per time), "
-     "got shape (2, 2)"),
+     ("colliders[0].motion.positions_m: must hold 2 finite [x, y, z] rows (one per time), "
+     "got shape (2, 2)")),
     ("[effects.gravity]", COLLIDER + "motion = { kind = 'keyframes', times_s = [0, 1], "
                                      "positions_m = [[0, 0, 0], [0, 0, inf]] }",
-     "colliders[0].motion.positions_m: must hold 2 finite [x, y, z] rows (one per time), "
-     "got shape (2, 3)"),
+     ("colliders[0].motion.positions_m: must hold 2 finite [x, y, z] rows (one per time), "
+     "got shape (2, 3)")),
     ("[effects.gravity]", COLLIDER + "motion = { kind = 'keyframes', times_s = [0, 1], "
                                      "rotations_deg = [[0, 0, 'a'], [0, 0, 0]] }",
-     "colliders[0].motion.rotations_deg: must be a list of [x, y, z] lists, "
-     "got [[0, 0, 'a'], [0, 0, 0]]"),
+     ("colliders[0].motion.rotations_deg: must be a list of [x, y, z] lists, "
+     "got [[0, 0, 'a'], [0, 0, 0]]")),
     ("[effects.gravity]", COLLIDER + "motion = { kind = 'keyframes', times_s = [0, 1], "
                                      "rotations_deg = [[0, 0, 0]] }",
-     "colliders[0].motion.rotations_deg: must hold 2 finite [x, y, z] rows (one per time), "
-     "got shape (1, 3)"),
+     ("colliders[0].motion.rotations_deg: must hold 2 finite [x, y, z] rows (one per time), "
+     "got shape (1, 3)")),
     ("[effects.gravity]", COLLIDER + "motion = { kind = 'keyframes', times_s = [0, 1], speed = 1 }",
-     "unknown key(s) ['colliders[0].motion.speed']; "
-     "known here: ['kind', 'positions_m', 'rotations_deg', 'times_s']"),
+     ("unknown key(s) ['colliders[0].motion.speed']; "
+     "known here: ['kind', 'positions_m', 'rotations_deg', 'times_s']")),
     # [effects]
     ("[effects.gravity]\n", "", "effects: missing (required)"),
     ("[effects.gravity]", "[effects.magnetism]",
@@ -422,11 +422,11 @@ KNOWN_EFFECTS = sorted(["gravity", "wind", "damping", "stretch", "shear", "bend"
      "effects.friction.restitution: must be >= 0.0, got -0.5"),
     # pins
     ("[effects.gravity]", "[effects.pins]\ncorners = 'top-left'",
-     "effects.pins.corners: must be a list of ['top-left', 'top-right', 'bottom-left', "
-     "'bottom-right'], got 'top-left'"),
+     ("effects.pins.corners: must be a list of ['top-left', 'top-right', 'bottom-left', "
+     "'bottom-right'], got 'top-left'")),
     ("[effects.gravity]", "[effects.pins]\ncorners = ['top-left', 'middle']",
-     "effects.pins.corners: must be a list of ['top-left', 'top-right', 'bottom-left', "
-     "'bottom-right'], got ['top-left', 'middle']"),
+     ("effects.pins.corners: must be a list of ['top-left', 'top-right', 'bottom-left', "
+     "'bottom-right'], got ['top-left', 'middle']")),
     ("[effects.gravity]", "[effects.pins]\nvertices = '0 0'",
      "effects.pins.vertices: must be a list of [column, row] integer pairs, got '0 0'"),
     ("[effects.gravity]", "[effects.pins]\nvertices = [[1]]",
@@ -449,8 +449,8 @@ KNOWN_EFFECTS = sorted(["gravity", "wind", "damping", "stretch", "shear", "bend"
      "effects.pins.corners: pins need at least one of corners or vertices"),
     ("[effects.gravity]", "[effects.pins]\ncorners = []\nvertices = []",
      "effects.pins.corners: pins need at least one of corners or vertices"),
-    ("[effects.gravity]", "[effects.pins]\nvertices = [[0, 0]]\ncorner = ['top-left']", "unknown key(s) "
-     "['effects.pins.corner']; known here: ['corners', 'vertices']"),
+    ("[effects.gravity]", "[effects.pins]\nvertices = [[0, 0]]\ncorner = ['top-left']", ("unknown key(s) "
+     "['effects.pins.corner']; known here: ['corners', 'vertices']")),
     # effects that need each other
     ("[effects.gravity]", "[effects.gravity]\n[[colliders]]\nmodel = 'sphere'",
      "colliders are declared but [effects.collisions] is absent; add it or remove the [[colliders]]"),
@@ -475,8 +475,8 @@ def test_each_invalid_value_is_refused_with_its_whole_message(tmp_path, old, new
     ("[effects.gravity]", "[effects.friction]\ncoefficient = 0.3\nrestitution = 1.0\n" + COLLIDER),
     ("[effects.gravity]", "[effects.friction]\ncoefficient = 0.3\nrestitution = 0\n" + COLLIDER),
     ("[effects.gravity]", "[effects.pins]\nvertices = [[0, 0], [9, 7], [9, 0], [0, 7]]"),
-    ("[effects.gravity]", "[effects.pins]\ncorners = ['top-left', 'top-right', 'bottom-left', "
-                          "'bottom-right']"),
+    ("[effects.gravity]", ("[effects.pins]\ncorners = ['top-left', 'top-right', 'bottom-left', "
+                          "'bottom-right']")),
 ])
 def test_values_at_their_limits_are_accepted(tmp_path, old, new):
     assert old in BASE
@@ -519,8 +519,8 @@ def stability_scene(tmp_path: Path, effects: str, dt: float = 1e-3) -> str:
     ("[effects.stretch]\nstiffness_n_m = 2", {"springs": 0.5}),  # 2 / sqrt(8 / 0.5)
     ("[effects.shear]\nstiffness_n_m = 2", {"springs": 0.5}),
     ("[effects.bend]\nstiffness_n_m = 2", {"springs": 0.5}),
-    ("[effects.stretch]\nstiffness_n_m = 2\n[effects.shear]\nstiffness_n_m = 2\n"
-     "[effects.bend]\nstiffness_n_m = 4\n[effects.damping]\ncoefficient_1_s = 2",
+    (("[effects.stretch]\nstiffness_n_m = 2\n[effects.shear]\nstiffness_n_m = 2\n"
+     "[effects.bend]\nstiffness_n_m = 4\n[effects.damping]\ncoefficient_1_s = 2"),
      {"springs": 0.25, "damping and wind drag": 0.5}),  # 2 / sqrt(32 / 0.5)
 ])
 def test_stability_limits_follow_their_closed_forms(tmp_path, effects, limits):

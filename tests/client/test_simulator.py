@@ -13,10 +13,10 @@ import numpy as np
 import pytest
 
 import collider_client as cc
-from collider_contract.point_cache import read_pc2
 from collider_client.sim.run import run_scene
 from collider_client.sim.scene import load_scene
 from collider_client.sim.simulator import Simulator
+from collider_contract.point_cache import read_pc2
 
 from .conftest import SPHERE_RADIUS_M
 
@@ -167,7 +167,7 @@ def test_moving_sphere_pushes_the_cloth(tmp_path, models_dir):
     with cc.Client(models=models_dir, device="cpu") as client:
         report, frames = run_scene(scene, client, tmp_path / "out", show_progress=False,
                                    preview=False)
-    centre = lambda t: np.array([0.0, 0.0, -0.05 + 0.5 * t])  # noqa: E731
+    centre = lambda t: np.array([0.0, 0.0, -0.05 + 0.5 * t])
     assert sphere_depth(frames, centre) < 1e-3
     assert report.colliding_max > 20
     top = frames[-1][1][:, 2].max()
@@ -435,10 +435,10 @@ def test_simulate_options_defaults_and_help(capsys, monkeypatch):
     from collider_client.sim.scene import shipped_scenes
 
     parser = simulate_parser()
-    defaults = dict(command="simulate", scene="drop", server=None, token=None, models=None,
-                    device=None, threads=None, output=Path("out"), steps=None, no_preview=False,
-                    quiet=False, check_mesh=[], check_animation=[], view=False, host="127.0.0.1",
-                    port=8080, paused=False, func=run_simulate)
+    defaults = {"command": "simulate", "scene": "drop", "server": None, "token": None, "models": None,
+                    "device": None, "threads": None, "output": Path("out"), "steps": None, "no_preview": False,
+                    "quiet": False, "check_mesh": [], "check_animation": [], "view": False, "host": "127.0.0.1",
+                    "port": 8080, "paused": False, "func": run_simulate}
     assert vars(parser.parse_args(["simulate", "drop"])) == defaults
     given = parser.parse_args([
         "simulate", "drop", "--server", "http://h:1", "--token", "t", "--models", "m",
@@ -457,18 +457,18 @@ def test_simulate_options_defaults_and_help(capsys, monkeypatch):
         parser.parse_args(["simulate", "--help"])
     text = " ".join(capsys.readouterr().out.split())
     for phrase in (
-            "Simulate a cloth scene with the reference Verlet simulator. SCENE is a TOML file or a "
+            ("Simulate a cloth scene with the reference Verlet simulator. SCENE is a TOML file or a "
             f"shipped scene name ({', '.join(shipped_scenes())}). Writes OBJ + PC2 (Blender: "
-            "import the OBJ, add a Mesh Cache modifier with the PC2), a PNG preview and a report.",
+            "import the OBJ, add a Mesh Cache modifier with the PC2), a PNG preview and a report."),
             "--output OUTPUT output folder (default out/)",
-            "--threads THREADS embedded engine CPU threads (default: cores - 1, at least 1, as the "
-            "server)",
-            "--check-mesh MODEL=MESH also measure penetration of every output frame against the "
-            "exact SDF of MESH (collider frame) for collider MODEL; repeatable",
+            ("--threads THREADS embedded engine CPU threads (default: cores - 1, at least 1, as the "
+            "server)"),
+            ("--check-mesh MODEL=MESH also measure penetration of every output frame against the "
+            "exact SDF of MESH (collider frame) for collider MODEL; repeatable"),
             "--check-animation MODEL=CACHE with --check-mesh for an animated MODEL: its vertex cache",
             "live view (extra [view]: pip install 'neural-collider[view]'):",
-            "--view show the run live in the browser (play / pause / step); the view stays up "
-            "after the run until Ctrl-C",
+            ("--view show the run live in the browser (play / pause / step); the view stays up "
+            "after the run until Ctrl-C"),
             "--host HOST address the view listens on (default 127.0.0.1;",
             "--port PORT port of the view (default 8080)"):
         assert phrase in text
@@ -683,11 +683,11 @@ def test_quad_faces_of_a_4_by_3_grid_are_listed_row_by_row_counter_clockwise():
 def run_report(**kwargs):
     from collider_client.sim.simulator import RunReport, Timings
 
-    values = dict(scene="drop", backend="embedded", vertices=6, steps=4, dt_s=2e-4, frames=3,
-                  effects=["gravity", "stretch", "collisions"], fields=["distance", "contact"],
-                  wall_s=0.2, timings=Timings(integration_s=0.08, collision_s=0.04, query_s=0.02),
-                  points_total=200, points_sent=25, queries=7, colliding_max=5, colliding_last=3,
-                  deepest_penetration_m=-0.0025)
+    values = {"scene": "drop", "backend": "embedded", "vertices": 6, "steps": 4, "dt_s": 2e-4, "frames": 3,
+                  "effects": ["gravity", "stretch", "collisions"], "fields": ["distance", "contact"],
+                  "wall_s": 0.2, "timings": Timings(integration_s=0.08, collision_s=0.04, query_s=0.02),
+                  "points_total": 200, "points_sent": 25, "queries": 7, "colliding_max": 5, "colliding_last": 3,
+                  "deepest_penetration_m": -0.0025}
     values.update(kwargs)
     return RunReport(**values)
 
@@ -709,8 +709,8 @@ def test_run_report_text_states_each_figure():
         "cloth            6 vertices, 4 steps of 0.0002 s, 3 frames written",
         "effects          gravity, stretch, collisions",
         "fields asked     distance, contact",
-        "time per step    50.000 ms = integration 20.000 + collision 10.000 + query "
-        "(engine/transport) 5.000 ms",
+        ("time per step    50.000 ms = integration 20.000 + collision 10.000 + query "
+        "(engine/transport) 5.000 ms"),
         "points sent      25 of 200 (12.5 %) in 7 queries",
         "colliding        max 5, at the end 3 vertices",
         "deepest penetration (reported by the collider, before projection) 2.500 mm",

@@ -10,10 +10,27 @@ import re
 import numpy as np
 import pytest
 
-from collider_contract import (DEFAULT_EPS_METERS, IDENTITY, Evaluation, ModelQuery, QueryError,
-                               QueryResult, SceneCollider, SceneQuery, answer_model_query,
-                               answer_scene_query, as_pose, check_finite, default_eps, finish,
-                               finish_scene, nearest_collider, prepare, require_time, resolve_eps)
+from collider_contract import (
+    DEFAULT_EPS_METERS,
+    IDENTITY,
+    Evaluation,
+    ModelQuery,
+    QueryError,
+    QueryResult,
+    SceneCollider,
+    SceneQuery,
+    answer_model_query,
+    answer_scene_query,
+    as_pose,
+    check_finite,
+    default_eps,
+    finish,
+    finish_scene,
+    nearest_collider,
+    prepare,
+    require_time,
+    resolve_eps,
+)
 from collider_contract.answers import gradient_threshold
 
 ALL_FIELDS = ("distance", "normal", "contact", "collides", "velocity")
@@ -497,12 +514,12 @@ def test_a_collide_only_scene_query_zeroes_the_normals_a_collider_gives_anyway()
 # -- time and velocity -------------------------------------------------------------------------
 
 MOTIONS = {
-    "spin": dict(spin=(0.0, 0.0, 2.0)),
-    "tumble": dict(spin=(0.3, -1.0, 0.5)),
-    "drift": dict(drift=(1.0, -2.0, 0.5)),
-    "swell": dict(scale_rate=0.5),
-    "growth": dict(growth=0.25),
-    "all": dict(spin=(0.3, -1.0, 0.5), drift=(1.0, -2.0, 0.5), scale_rate=-0.5, growth=0.25),
+    "spin": {"spin": (0.0, 0.0, 2.0)},
+    "tumble": {"spin": (0.3, -1.0, 0.5)},
+    "drift": {"drift": (1.0, -2.0, 0.5)},
+    "swell": {"scale_rate": 0.5},
+    "growth": {"growth": 0.25},
+    "all": {"spin": (0.3, -1.0, 0.5), "drift": (1.0, -2.0, 0.5), "scale_rate": -0.5, "growth": 0.25},
 }
 
 
@@ -526,7 +543,7 @@ def test_velocity_is_the_frames_motion_at_the_contact_plus_the_surfaces_own(moti
 def test_collide_only_velocity_is_zero_for_free_points():
     rotation, translation = QUARTER_TURN, np.array([0.0, 0.0, 1.0])
     points = np.array([[0.0, 0.0, 1.5], [0.9, 0.0, 1.0], [0.0, 3.0, 1.0], [0.0, -1.2, 1.0]])
-    motion = dict(spin=(0.0, 0.0, 1.0), drift=(0.0, 0.0, 3.0))
+    motion = {"spin": (0.0, 0.0, 1.0), "drift": (0.0, 0.0, 3.0)}
     query = ModelQuery.build(points, ["velocity", "collides"], pose_matrix(rotation, translation), 0.1,
                              True, pose_velocity=pose_rate(rotation, 1.0, **motion))
     result = answer_model_query(query, 1.0, Sphere(1.0, growth=1.0))

@@ -65,10 +65,10 @@ def _header(version=1, points=2, samples=3):
     ("version", "{path}: PC2 header is malformed (version 2, 2 points, 3 samples)"),
     ("no points", "{path}: PC2 header is malformed (version 1, 0 points, 3 samples)"),
     ("negative samples", "{path}: PC2 header is malformed (version 1, 2 points, -1 samples)"),
-    ("truncated", "{path}: truncated: the header promises 3 frames of 2 points (104 bytes), the "
-                  "file has 92 bytes (2.5 frames)"),
-    ("longer", "{path}: longer than its header says: the header promises 3 frames of 2 points "
-               "(104 bytes), the file has 116 bytes (3.5 frames)"),
+    ("truncated", ("{path}: truncated: the header promises 3 frames of 2 points (104 bytes), the "
+                  "file has 92 bytes (2.5 frames)")),
+    ("longer", ("{path}: longer than its header says: the header promises 3 frames of 2 points "
+               "(104 bytes), the file has 116 bytes (3.5 frames)")),
 ])
 def test_a_malformed_cache_is_refused_naming_the_file_and_the_fault(tmp_path, case, message):
     path = tmp_path / "c.pc2"

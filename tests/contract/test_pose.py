@@ -6,8 +6,18 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from collider_contract.pose import (IDENTITY, MAX_COORDINATE_M, MAX_SCALE, ORTHONORMAL_TOLERANCE, Pose,
-                                    PoseError, as_pose, box_corners, rotate_rows, transform_points)
+from collider_contract.pose import (
+    IDENTITY,
+    MAX_COORDINATE_M,
+    MAX_SCALE,
+    ORTHONORMAL_TOLERANCE,
+    Pose,
+    PoseError,
+    as_pose,
+    box_corners,
+    rotate_rows,
+    transform_points,
+)
 
 
 def random_rotation(seed) -> np.ndarray:

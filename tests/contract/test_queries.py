@@ -8,12 +8,35 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from collider_contract import (FIELDS, GRADIENT_FIELDS, IDENTITY, ModelQuery, QueryError, SceneCollider,
-                               SceneQuery, as_pose, check_eps, check_fields, check_points, wire)
-from collider_contract import queries
-from collider_contract.queries import (COLLIDER_KEYS, DEFAULT_FIELDS, MAX_POINTS, MAX_TIME_S,
-                                       TRANSPORT_KEYS, Placed, check_colliders, check_number,
-                                       check_pose, check_pose_velocity, check_time, read_deadline_ms)
+from collider_contract import (
+    FIELDS,
+    GRADIENT_FIELDS,
+    IDENTITY,
+    ModelQuery,
+    QueryError,
+    SceneCollider,
+    SceneQuery,
+    as_pose,
+    check_eps,
+    check_fields,
+    check_points,
+    queries,
+    wire,
+)
+from collider_contract.queries import (
+    COLLIDER_KEYS,
+    DEFAULT_FIELDS,
+    MAX_POINTS,
+    MAX_TIME_S,
+    TRANSPORT_KEYS,
+    Placed,
+    check_colliders,
+    check_number,
+    check_pose,
+    check_pose_velocity,
+    check_time,
+    read_deadline_ms,
+)
 
 RANGE_ONE_ABOVE = np.nextafter(1e6, np.inf)
 ALL_FIELDS = ["distance", "normal", "contact", "collides", "velocity"]
@@ -68,10 +91,10 @@ def test_any_iterable_of_fields_is_read_once():
 
 
 @pytest.mark.parametrize("given, message", [
-    (["distance", "speed", "Normal"], "unknown field(s) ['speed', 'Normal']; valid fields are "
-                                      "['distance', 'normal', 'contact', 'collides', 'velocity']"),
-    ("normals", "unknown field(s) ['normals']; valid fields are "
-                "['distance', 'normal', 'contact', 'collides', 'velocity']"),
+    (["distance", "speed", "Normal"], ("unknown field(s) ['speed', 'Normal']; valid fields are "
+                                      "['distance', 'normal', 'contact', 'collides', 'velocity']")),
+    ("normals", ("unknown field(s) ['normals']; valid fields are "
+                "['distance', 'normal', 'contact', 'collides', 'velocity']")),
     ([], "no fields asked for; choose from ['distance', 'normal', 'contact', 'collides', 'velocity']"),
     ("", "unknown field(s) ['']; valid fields are ['distance', 'normal', 'contact', 'collides', 'velocity']"),
 ])
@@ -117,12 +140,12 @@ def test_no_points_is_an_empty_n_by_3_array(given):
      "points contain NaN or Inf (first at row 1: [1.0, nan, 0.0])"),
     (np.array([[0, 0, -np.inf]], np.float32), "points contain NaN or Inf (first at row 0: [0.0, 0.0, -inf])"),
     (np.array([[0, 0, 0], [0, 0, 0], [0, RANGE_ONE_ABOVE, 0], [-2e6, 0, 0]]),
-     "points outside the coordinate range +-1e+06 (world units; first at row 2: "
-     "[0.0, 1000000.0000000001, 0.0])"),
-    (np.array([[-1.5e6, 0, 0]], np.float32), "points outside the coordinate range +-1e+06 "
-                                             "(world units; first at row 0: [-1500000.0, 0.0, 0.0])"),
-    ([[2 * 10 ** 6, 0, 0]], "points outside the coordinate range +-1e+06 (world units; first at "
-                            "row 0: [2000000.0, 0.0, 0.0])"),
+     ("points outside the coordinate range +-1e+06 (world units; first at row 2: "
+     "[0.0, 1000000.0000000001, 0.0])")),
+    (np.array([[-1.5e6, 0, 0]], np.float32), ("points outside the coordinate range +-1e+06 "
+                                             "(world units; first at row 0: [-1500000.0, 0.0, 0.0])")),
+    ([[2 * 10 ** 6, 0, 0]], ("points outside the coordinate range +-1e+06 (world units; first at "
+                            "row 0: [2000000.0, 0.0, 0.0])")),
 ])
 def test_bad_points_are_refused_naming_the_first_bad_row(given, message):
     assert refusal(check_points, given) == (message, 422, "bad-points")
@@ -322,7 +345,7 @@ def test_the_gradient_is_wanted_for_normal_or_contact(fields, want):
 
 
 def test_build_checks_fields_then_points_then_pose_then_eps():
-    bad = dict(points=np.array([[np.nan, 0, 0]]), fields=["speed"], pose=SHEAR, eps=-1)
+    bad = {"points": np.array([[np.nan, 0, 0]]), "fields": ["speed"], "pose": SHEAR, "eps": -1}
     assert refusal(ModelQuery.build, **bad)[2] == "unknown-field"
     assert refusal(ModelQuery.build, **{**bad, "fields": "distance"})[2] == "bad-points"
     assert refusal(ModelQuery.build, **{**bad, "fields": "distance", "points": [[0, 0, 0]]})[2] == "bad-pose"
@@ -392,12 +415,12 @@ def test_from_body_reads_eps_pose_and_mode():
 
 @pytest.mark.parametrize("body, message, status, code", [
     ({"points": POINTS, "pose_": 1, "Eps": 2},
-     "unknown key(s) ['Eps', 'pose_']; valid keys are ['deadline_ms', 'eps', 'fields', "
-     "'only_colliding', 'points', 'pose', 'pose_velocity', 'time']", 422,
+     ("unknown key(s) ['Eps', 'pose_']; valid keys are ['deadline_ms', 'eps', 'fields', "
+     "'only_colliding', 'points', 'pose', 'pose_velocity', 'time']"), 422,
      "unknown-key"),
     ({"fields": ["distance"]}, "the body has no 'points'", 422, "missing-points"),
-    ({"colliders": []}, "unknown key(s) ['colliders']; valid keys are ['deadline_ms', 'eps', 'fields', "
-                        "'only_colliding', 'points', 'pose', 'pose_velocity', 'time']", 422,
+    ({"colliders": []}, ("unknown key(s) ['colliders']; valid keys are ['deadline_ms', 'eps', 'fields', "
+                        "'only_colliding', 'points', 'pose', 'pose_velocity', 'time']"), 422,
      "unknown-key"),
     # null is not absent
     ({"points": POINTS, "fields": None}, "fields must not be null (leave it out for its default)",
@@ -414,10 +437,10 @@ def test_from_body_reads_eps_pose_and_mode():
      422, "bad-fields"),
     ({"points": POINTS, "fields": ["distance", 1]}, "fields must be a list of strings, got ['distance', 1]",
      422, "bad-fields"),
-    ({"points": POINTS, "fields": {"distance": 1}}, "fields must be a list of strings, got "
-                                                    "{'distance': 1}", 422, "bad-fields"),
-    ({"points": POINTS, "fields": []}, "no fields asked for; choose from ['distance', 'normal', "
-                                       "'contact', 'collides', 'velocity']", 422, "unknown-field"),
+    ({"points": POINTS, "fields": {"distance": 1}}, ("fields must be a list of strings, got "
+                                                    "{'distance': 1}"), 422, "bad-fields"),
+    ({"points": POINTS, "fields": []}, ("no fields asked for; choose from ['distance', 'normal', "
+                                       "'contact', 'collides', 'velocity']"), 422, "unknown-field"),
     ({"points": POINTS, "only_colliding": 1}, "only_colliding must be true or false, got 1", 422,
      "bad-only-colliding"),
     ({"points": POINTS, "only_colliding": "true"}, "only_colliding must be true or false, got 'true'",
@@ -453,10 +476,10 @@ def test_a_bad_body_is_refused_as_the_service_answers_it(body, message, status, 
     ([[True, False, True]], "points must be float32 or float64, got bool"),
     ([[0, True, 0]], "points: must hold numbers only, got a boolean among them"),
     ({"dtype": "<f8", "shape": [3], "data": bytes(24)}, "points must have shape (n, 3), got [3]"),
-    ({"dtype": "<f4", "shape": [1, 3], "data": b""}, "points: data has 0 bytes but dtype <f4 and "
-                                                     "shape [1, 3] need 12"),
-    ([[0.0, 0.0, 1e300]], "points outside the coordinate range +-1e+06 (world units; first at row 0: "
-                          "[0.0, 0.0, 1e+300])"),
+    ({"dtype": "<f4", "shape": [1, 3], "data": b""}, ("points: data has 0 bytes but dtype <f4 and "
+                                                     "shape [1, 3] need 12")),
+    ([[0.0, 0.0, 1e300]], ("points outside the coordinate range +-1e+06 (world units; first at row 0: "
+                          "[0.0, 0.0, 1e+300])")),
     ([[0, 0, 0], [0, 0]], "points: nested lists are ragged"),
 ])
 def test_bad_wire_points_are_refused(points, message):
@@ -551,7 +574,7 @@ def test_scene_build_defaults_and_order_of_checks():
     assert [placed.model for placed in scene.colliders] == ["a", "b"]
     assert scene.colliders[0].pose is IDENTITY
     assert SceneQuery.build([[0, 0, 1]], ["a"], "normal", 0, 1).only_colliding is True
-    bad = dict(points=[[np.nan, 0, 0]], colliders=[], fields="speed", eps=-1, time="t")
+    bad = {"points": [[np.nan, 0, 0]], "colliders": [], "fields": "speed", "eps": -1, "time": "t"}
     for key, good, code in (("fields", "normal", "unknown-field"), ("time", 1.0, "bad-time"),
                             ("colliders", ["a"], "bad-colliders"), ("points", [[0, 0, 0]], "bad-points"),
                             ("eps", 0.0, "eps-out-of-range")):
@@ -603,8 +626,8 @@ def test_scene_from_body_reads_defaults():
 
 @pytest.mark.parametrize("body, message, code", [
     ({"points": POINTS, "colliders": [{"model": "a"}], "pose": None},
-     "unknown key(s) ['pose']; valid keys are ['colliders', 'deadline_ms', 'eps', 'fields', "
-     "'only_colliding', 'points', 'time']", "unknown-key"),
+     ("unknown key(s) ['pose']; valid keys are ['colliders', 'deadline_ms', 'eps', 'fields', "
+     "'only_colliding', 'points', 'time']"), "unknown-key"),
     ({"colliders": [{"model": "a"}]}, "the body has no 'points'", "missing-points"),
     ({"points": POINTS}, "the body has no 'colliders'", "missing-colliders"),
     ({"points": POINTS, "colliders": []}, LIST_FORM + "[]", "bad-colliders"),
@@ -730,10 +753,10 @@ def _rate_with(row, col, value):
     (_rate_with(0, 3, -np.inf), "pose_velocity must hold finite numbers within +-1e+06"),
     (_rate_with(2, 3, np.nextafter(1e6, np.inf)), "pose_velocity must hold finite numbers within +-1e+06"),
     (_rate_with(3, 3, np.nan), "pose_velocity must hold finite numbers within +-1e+06"),
-    (_rate_with(3, 3, 1.0), "pose_velocity bottom row must be [0, 0, 0, 0] (a pose's bottom row does "
-                            "not change), got [0.0, 0.0, 0.0, 1.0]"),
-    (_rate_with(3, 0, -1e-300), "pose_velocity bottom row must be [0, 0, 0, 0] (a pose's bottom row "
-                                "does not change), got [-1e-300, 0.0, 0.0, 0.0]"),
+    (_rate_with(3, 3, 1.0), ("pose_velocity bottom row must be [0, 0, 0, 0] (a pose's bottom row does "
+                            "not change), got [0.0, 0.0, 0.0, 1.0]")),
+    (_rate_with(3, 0, -1e-300), ("pose_velocity bottom row must be [0, 0, 0, 0] (a pose's bottom row "
+                                "does not change), got [-1e-300, 0.0, 0.0, 0.0]")),
 ])
 def test_a_bad_pose_velocity_is_refused(given, message):
     assert refusal(check_pose_velocity, given) == (message, 422, "bad-pose-velocity")
@@ -780,8 +803,8 @@ def test_a_model_query_carries_its_time_and_pose_velocity_to_the_wire_and_back()
     ({"pose_velocity": wire.encode_array(np.zeros((4, 4), bool))}, "pose_velocity: must hold numbers, got bool",
      "bad-pose-velocity"),
     ({"pose_velocity": [[False] * 4] * 4}, "pose_velocity: must hold numbers, got bool", "bad-pose-velocity"),
-    ({"pose_velocity": wire.encode_array(np.zeros((4, 3)))}, "pose_velocity must be a 4x4 matrix, got "
-                                                             "shape (4, 3)", "bad-pose-velocity"),
+    ({"pose_velocity": wire.encode_array(np.zeros((4, 3)))}, ("pose_velocity must be a 4x4 matrix, got "
+                                                             "shape (4, 3)"), "bad-pose-velocity"),
     ({"pose_velocity": {"dtype": "<f8", "shape": [4, 4], "data": b""}},
      "pose_velocity: data has 0 bytes but dtype <f8 and shape [4, 4] need 128", "bad-pose-velocity"),
 ])
@@ -806,8 +829,8 @@ def test_a_scene_colliders_checks_run_time_then_pose_then_pose_velocity():
     for key, good, message, code in (
             ("time", 1.0, "colliders[1].time must be a finite number, got 't'", "bad-time"),
             ("pose", None, "colliders[1].pose: " + RIGID_MESSAGE, "bad-pose"),
-            ("pose_velocity", None, "colliders[1].pose_velocity bottom row must be [0, 0, 0, 0] (a "
-                                    "pose's bottom row does not change), got [0.0, 0.0, 0.0, 1.0]",
+            ("pose_velocity", None, ("colliders[1].pose_velocity bottom row must be [0, 0, 0, 0] (a "
+                                    "pose's bottom row does not change), got [0.0, 0.0, 0.0, 1.0]"),
              "bad-pose-velocity")):
         assert refusal(check_colliders, ["z", item]) == (message, 422, code)
         wire_item = {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in item.items()

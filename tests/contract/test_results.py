@@ -9,7 +9,6 @@ import pytest
 from collider_contract import ModelInfo, QueryResult, wire
 from collider_contract.wire import WireError
 
-
 ALL_FIELDS = ["distance", "normal", "contact", "collides", "velocity"]
 
 

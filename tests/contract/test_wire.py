@@ -77,10 +77,10 @@ GOOD = {"dtype": "<f8", "shape": [1, 3], "data": bytes(24)}
 @pytest.mark.parametrize("value, message", [
     ({"dtype": "<f8"}, "points: array map lacks ['data', 'shape']"),
     ({"shape": [1], "data": b""}, "points: array map lacks ['dtype']"),
-    ({**GOOD, "dtype": "<f2"}, "points: dtype '<f2' not supported; use one of "
-                               "['<f4', '<f8', '|b1', '<i4', '<i8']"),
-    ({**GOOD, "dtype": ">f8"}, "points: dtype '>f8' not supported; use one of "
-                               "['<f4', '<f8', '|b1', '<i4', '<i8']"),
+    ({**GOOD, "dtype": "<f2"}, ("points: dtype '<f2' not supported; use one of "
+                               "['<f4', '<f8', '|b1', '<i4', '<i8']")),
+    ({**GOOD, "dtype": ">f8"}, ("points: dtype '>f8' not supported; use one of "
+                               "['<f4', '<f8', '|b1', '<i4', '<i8']")),
     ({**GOOD, "shape": "1,3"}, "points: shape must be a list of non-negative integers, got '1,3'"),
     ({**GOOD, "shape": 3}, "points: shape must be a list of non-negative integers, got 3"),
     ({**GOOD, "shape": [1, 3.0]}, "points: shape must be a list of non-negative integers, got [1, 3.0]"),
@@ -217,23 +217,23 @@ class _Undecodable(bytes):
 
 
 @pytest.mark.parametrize("data, media, message", [
-    (b"\xc1", wire.MSGPACK, "malformed application/msgpack body: a byte that starts no msgpack "
-                            "value (e.g. 0xc1)"),
+    (b"\xc1", wire.MSGPACK, ("malformed application/msgpack body: a byte that starts no msgpack "
+                            "value (e.g. 0xc1)")),
     (b"\x91" * 100_000, wire.MSGPACK, "malformed application/msgpack body: nesting too deep"),
     (b"\x92\x01", wire.MSGPACK, "malformed application/msgpack body: Unpack failed: incomplete input"),
     (b"\x80\x80", wire.MSGPACK, "malformed application/msgpack body: unpack(b) received extra data."),
     (msgpack.packb({1: 2}), wire.MSGPACK,
      "malformed application/msgpack body: int is not allowed for map key when strict_map_key=True"),
-    (b"\xa2\xff\xfe", wire.MSGPACK, "malformed application/msgpack body: 'utf-8' codec can't decode "
-                                    "byte 0xff in position 0: invalid start byte"),
-    (b"{", wire.JSON, "malformed application/json body: Expecting property name enclosed in double "
-                      "quotes: line 1 column 2 (char 1)"),
-    (b'{"a": NaN', "Application/Json", "malformed application/json body: Expecting ',' delimiter: "
-                                       "line 1 column 10 (char 9)"),
+    (b"\xa2\xff\xfe", wire.MSGPACK, ("malformed application/msgpack body: 'utf-8' codec can't decode "
+                                    "byte 0xff in position 0: invalid start byte")),
+    (b"{", wire.JSON, ("malformed application/json body: Expecting property name enclosed in double "
+                      "quotes: line 1 column 2 (char 1)")),
+    (b'{"a": NaN', "Application/Json", ("malformed application/json body: Expecting ',' delimiter: "
+                                       "line 1 column 10 (char 9)")),
     (msgpack.packb([1, 2]), wire.MSGPACK, "body must be a map/object, got list"),
     (b"3", wire.JSON, "body must be a map/object, got int"),
-    (b"{}", "text/plain; charset=x", "unsupported content type 'text/plain'; use "
-                                     "application/msgpack or application/json"),
+    (b"{}", "text/plain; charset=x", ("unsupported content type 'text/plain'; use "
+                                     "application/msgpack or application/json")),
     (b"{}", None, "unsupported content type ''; use application/msgpack or application/json"),
 ])
 def test_a_malformed_body_is_refused_in_one_line(data, media, message):

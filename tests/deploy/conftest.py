@@ -24,7 +24,7 @@ SPHERE_RADIUS_M = 0.1
 
 
 # One home for starting servers: collider_cli.launch.
-from collider_cli.launch import free_port, wait_ready  # noqa: E402
+from collider_cli.launch import free_port, wait_ready
 
 
 def render_template(text: str, values: dict[str, str]) -> str:
@@ -51,7 +51,7 @@ class Replica:
              "--log-level", "warning", *flags],
             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
 
-    def wait_ready(self) -> "Replica":
+    def wait_ready(self) -> Replica:
         wait_ready(self.url, self.process)
         return self
 
@@ -59,7 +59,7 @@ class Replica:
         """``collider_points_total`` of each model, from this replica's ``/metrics``."""
         text = httpx.get(f"{self.url}/metrics", timeout=10).text
         return {m: float(v) for m, v in
-                re.findall(r'^collider_points_total\{model="([^"]+)"\} ([0-9.e+]+)$', text, re.M)}
+                re.findall(r'^collider_points_total\{model="([^"]+)"\} ([0-9.e+]+)$', text, re.MULTILINE)}
 
     def kill(self) -> None:
         if self.process.poll() is None:

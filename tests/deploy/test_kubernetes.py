@@ -157,7 +157,7 @@ def test_deployment_is_wired_to_the_other_resources(overlay):
 def test_pods_run_as_the_images_non_root_user_on_a_read_only_root(overlay):
     pod = resources(overlay)[("Deployment", "collider")]["spec"]["template"]["spec"]
     dockerfile = (REPO / "docker" / "Dockerfile").read_text()
-    image_uid = int(re.findall(r"^USER (\d+)", dockerfile, re.M)[-1])
+    image_uid = int(re.findall(r"^USER (\d+)", dockerfile, re.MULTILINE)[-1])
     assert pod["securityContext"]["runAsNonRoot"] is True
     assert pod["securityContext"]["runAsUser"] == image_uid
     security = container(overlay)["securityContext"]
@@ -285,7 +285,7 @@ def test_the_reader_renders_as_kubectl_kustomize(folder):
     result = subprocess.run([kubectl, "kustomize", str(K8S / folder)], capture_output=True,
                             text=True, timeout=120)
     assert result.returncode == 0, result.stderr
-    key = lambda d: (d["kind"], d["metadata"]["name"])  # noqa: E731
+    key = lambda d: (d["kind"], d["metadata"]["name"])
     assert sorted([d for d in yaml.safe_load_all(result.stdout) if d], key=key) == \
         sorted(render(K8S / folder), key=key)
 

@@ -202,7 +202,7 @@ def test_slow_clients_are_closed_by_nginx_and_never_reach_a_replica(repo, tmp_pa
         with httpx.Client(timeout=30) as client:
             query(client, front.url, "m00", 0)
         metrics = httpx.get(f"{replica.url}/metrics", timeout=10).text
-        open_now = float(re.search(r"^collider_connections_open (\S+)$", metrics, re.M).group(1))
+        open_now = float(re.search(r"^collider_connections_open (\S+)$", metrics, re.MULTILINE).group(1))
         assert open_now <= 3  # nginx's upstream keep-alive and this scrape, not the 30
         lifetimes = []
         for sock in slow:

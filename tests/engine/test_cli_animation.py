@@ -182,7 +182,7 @@ CASES = ["vertex count", "non-finite", "single frame", "zero fps", "negative fps
 @pytest.mark.parametrize("case", CASES)
 def test_a_malformed_animation_is_one_line_and_exit_2(capsys, tmp_path, arm_files, case):
     argv, message = malformed(tmp_path, arm_files, case)
-    code, out, err = run(capsys, *argv)
+    code, _out, err = run(capsys, *argv)
     assert code == 2 and "Traceback" not in err, err
     assert err.strip().splitlines() == [err.strip()], err  # one line
     assert err.startswith("collider bake: error: ") and message in err, err
@@ -191,7 +191,7 @@ def test_a_malformed_animation_is_one_line_and_exit_2(capsys, tmp_path, arm_file
 
 def test_a_nan_frame_rate_is_refused_by_the_option_itself(capsys, tmp_path, arm_files):
     obj, pc2 = arm_files
-    code, out, err = run(capsys, "bake", obj, "--animation", pc2, "--fps", "nan", "--name", "x",
+    code, _out, err = run(capsys, "bake", obj, "--animation", pc2, "--fps", "nan", "--name", "x",
                          "--models", tmp_path)
     assert code == 2 and "Traceback" not in err
     assert "argument --fps: 'nan' is not a finite number" in err.strip().splitlines()[-1]

@@ -79,7 +79,7 @@ def test_query_from_a_points_file_with_fields_pose_and_output(capsys, tmp_path, 
     pose = np.eye(4)
     pose[:3, 3] = [0.0, 0.0, 0.2]
     (tmp_path / "pose.json").write_text(json.dumps(pose.tolist()))
-    code, out, err = run(capsys, "query", "sphere", "--points", tmp_path / "points.npy",
+    code, _out, err = run(capsys, "query", "sphere", "--points", tmp_path / "points.npy",
                          "--fields", "distance,collides", "--pose", tmp_path / "pose.json",
                          "--eps", 0.002, "--output", tmp_path / "out.npz", "--models", models)
     assert code == 0, err

@@ -9,9 +9,8 @@ import itertools
 import numpy as np
 import pytest
 
-from collider_contract import FIELDS
+from collider_contract import FIELDS, QueryError
 from collider_contract.pose import MAX_COORDINATE_M
-from collider_contract import QueryError
 from collider_contract.queries import MAX_POINTS as MAX_POINTS_PER_CALL
 from collider_server.engine.collider import Collider, ColliderInfo
 

@@ -97,7 +97,7 @@ def test_exact_sdf_matches_slow_references(analytic_shape, brute_force_closest_p
     mesh = shape.mesh
     rng = np.random.default_rng(0)
     points = np.concatenate([shape.sample(100, 1), rng.uniform(-0.2, 0.2, (40, 3))])
-    distance, closest, face = ExactSDF(mesh).query(points, chunk_points=64)
+    distance, closest, _face = ExactSDF(mesh).query(points, chunk_points=64)
     triangles = mesh.vertices[mesh.faces]
     for i, point in enumerate(points):
         nearest, nearest_point = brute_force_closest_point(triangles, point)

@@ -169,8 +169,8 @@ def test_malformed_metadata(tmp_path, info, message):
     ({"domain_max": [1.0, None, 1.0]}, "domain_max must be 3 finite numbers"),
     ({"domain_max": [1.0, 1e400, 1.0]}, "domain_max must be 3 finite numbers"),  # JSON Infinity
     ({"domain_min": [2.0, -1.0, -1.0]},
-     r"domain_min must be below domain_max on every axis, got \[2\.0, -1\.0, -1\.0\] and "
-     r"\[1\.0, 1\.0, 1\.0\]"),
+     (r"domain_min must be below domain_max on every axis, got \[2\.0, -1\.0, -1\.0\] and "
+     r"\[1\.0, 1\.0, 1\.0\]")),
     ({"domain_min": [-1.0, 1.0, -1.0]}, "domain_min must be below domain_max"),  # equal on y
     ({"meters_per_unit": 0.0}, r"meters_per_unit must be a number > 0, got 0\.0"),
     ({"meters_per_unit": -0.001}, "meters_per_unit must be a number > 0"),

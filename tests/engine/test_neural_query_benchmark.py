@@ -40,7 +40,7 @@ def test_the_benchmark_times_every_candidate_in_turn_and_prints_the_ratios(tmp_p
     assert "2 interleaved rounds" in out and re.search(r"load average \(1, 5, 15 min\) [0-9.]+/", out)
     number = r"[0-9]+\.[0-9]{3} \([0-9]+\.[0-9]{3}-[0-9]+\.[0-9]{3}\)"
     for label in ("neural bunny", r"neural bunny \(kernel_before\.py\)", r"mesh \(exact, libigl\) for bunny"):
-        assert re.search(rf"^{label}\s+{number}\s+{number}$", out, re.M), (label, out)
+        assert re.search(rf"^{label}\s+{number}\s+{number}$", out, re.MULTILINE), (label, out)
     assert re.search(r"exact mesh / neural \(d\+n\+c, medians\) = [0-9.]+x", out)
     assert re.search(r"kernel_before\.py / engine kernel \(d\+n\+c, medians\) = [0-9.]+x", out)
     # The other kernel really answered its rows: a warm-up call plus 2 rounds x (d+n+c, d only),

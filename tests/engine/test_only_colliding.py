@@ -8,9 +8,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from collider_contract import FIELDS
+from collider_contract import FIELDS, ModelQuery, Placed, SceneQuery, finish, finish_scene
 from collider_contract.pose import as_pose
-from collider_contract import ModelQuery, Placed, SceneQuery, finish, finish_scene
 from collider_server.engine.collider import Collider
 
 from .test_collider import KINDS, fresh_collider, mixed_points  # noqa: F401  (fixture)

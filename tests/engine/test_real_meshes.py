@@ -72,7 +72,7 @@ def test_mesh_kind_is_exact(load_shared_mesh, brute_force_closest_point, name):
     import igl
 
     mesh = load_shared_mesh(name)
-    points, distance, normal, extent = _truth(mesh)
+    points, distance, _normal, extent = _truth(mesh)
     result = _colliders(mesh)["mesh"].query(points, ["distance", "normal", "contact"], eps=1e-3 * extent)
     np.testing.assert_allclose(result.distance, distance, rtol=1e-6, atol=1e-9 * extent)
     triangles = mesh.vertices[mesh.faces]
@@ -132,6 +132,8 @@ def test_shipped_4d_twisting_bunny_against_its_exact_animation():
     61``, the same file by sha256) at random times between its frames, in the +-1 mm band;
     its velocity is the exact surface's (sliding included: the deformation says where each
     point goes) to a few mm/s. Metres, seconds."""
+    from tests.conftest import REPO_ROOT
+
     from collider_server.engine.animated_meshes import ExactAtTimes
     from collider_server.engine.meshes import barycentric
     from collider_server.engine.modelfile import load_collider
@@ -139,8 +141,6 @@ def test_shipped_4d_twisting_bunny_against_its_exact_animation():
     from collider_server.making.animation_files import read_obj
     from collider_server.making.animations import twisting_bunny
     from collider_server.making.sampling import band_sets
-
-    from tests.conftest import REPO_ROOT
 
     path = ModelRepository().path("twisting-bunny-neural")
     if not path.is_file():

@@ -278,7 +278,7 @@ def test_collisions_keep_the_cloth_at_eps_above_the_floor(tmp_path, client):
 @pytest.mark.parametrize("restitution", [0.0, 0.5])
 def test_restitution_returns_that_fraction_of_the_impact_speed(tmp_path, client, restitution):
     friction = f"[effects.friction]\ncoefficient = 0.0\nrestitution = {restitution}"
-    sim, heights, speeds = drop_on_floor(tmp_path, client, friction, height=0.01, steps=300)
+    sim, _heights, speeds = drop_on_floor(tmp_path, client, friction, height=0.01, steps=300)
     impact = speeds[:, 2].min()  # most negative vertical speed, just before the contact
     rebound = speeds[np.argmin(speeds[:, 2]):, 2].max()
     assert impact < -0.3
@@ -528,9 +528,9 @@ def test_a_huge_cloth_is_estimated_warned_about_and_refused_where_it_cannot_fit(
 
 
 def test_frames_are_streamed_to_the_pc2_file(tmp_path):
-    from collider_contract.point_cache import read_pc2
     from collider_client.sim.output import PC2Frames
     from collider_client.sim.run import run_scene
+    from collider_contract.point_cache import read_pc2
 
     scene = load_scene(write_scene(tmp_path, "[effects.gravity]", duration=0.05))
     report, frames = run_scene(scene, None, tmp_path / "out", show_progress=False, preview=False)

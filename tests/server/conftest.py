@@ -15,7 +15,7 @@ ADMIN_TOKEN = "admin-secret"
 
 
 # One home for starting servers (tests, benchmarks, collider bench): collider_cli.launch.
-from collider_cli.launch import ServerThread, free_port, wait_ready  # noqa: E402,F401
+from collider_cli.launch import ServerThread, free_port, wait_ready  # noqa: F401
 
 
 def bake_sphere(path: Path, radius: float, resolution: int = 32) -> Path:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import asyncio
 import threading
 import time
-from typing import Callable, Sequence
+from collections.abc import Callable, Sequence
 
 import numpy as np
 import pytest
@@ -778,12 +778,12 @@ def test_an_empty_request_is_answered_on_the_event_loop_without_queueing(workers
 @pytest.mark.parametrize("rows, answers, message", [
     (3, [], "the batch function returned 0 answers for 1 parts"),
     (3, {"row": np.zeros(3)}, "the batch function returned dict answers for 1 parts"),
-    (3, [{"row": np.zeros(4)}], "the batch function returned row of shape (4,) for a part of 3 "
-                                "rows"),
+    (3, [{"row": np.zeros(4)}], ("the batch function returned row of shape (4,) for a part of 3 "
+                                "rows")),
     (3, [{"row": [0, 0, 0]}], "the batch function returned row of shape list for a part of 3 rows"),
     (0, [{"row": np.zeros(0)}, {}], "the batch function returned 2 answers for 1 parts"),
-    (0, [{"row": np.zeros(1)}], "the batch function returned row of shape (1,) for a part of 0 "
-                                "rows"),
+    (0, [{"row": np.zeros(1)}], ("the batch function returned row of shape (1,) for a part of 0 "
+                                "rows")),
 ])
 def test_batch_contract_violations_are_typed_errors_saying_what_was_wrong(workers, rows, answers,
                                                                           message):

@@ -80,7 +80,7 @@ def test_silent_and_half_sent_connections_are_closed_after_the_header_timeout(gu
         try:
             if trickle.recv(65536) == b"":
                 break
-        except socket.timeout:
+        except TimeoutError:
             pass
         except ConnectionResetError:  # a byte sent after the server's close was answered RST
             break
@@ -145,7 +145,7 @@ def test_descriptors_fall_back_after_the_header_timeout(guarded):
 def test_a_connection_beyond_max_connections_gets_503_at_once(guarded):
     # The server was started with a soft open-files limit of 256; it raised it to fit.
     limits = open(f"/proc/{guarded.process.pid}/limits").read()
-    soft = int(re.search(r"^Max open files\s+(\d+)", limits, re.M).group(1))
+    soft = int(re.search(r"^Max open files\s+(\d+)", limits, re.MULTILINE).group(1))
     assert soft >= MAX_CONNECTIONS + 256
     # All within the 1 s header timeout that would close these silent connections.
     held = [connect(guarded.port) for _ in range(MAX_CONNECTIONS - 1)]
@@ -171,8 +171,8 @@ def test_a_connection_beyond_max_connections_gets_503_at_once(guarded):
 
 @pytest.mark.parametrize("request_bytes", [
     b"GET /v1/models/\xc3\xa9 HTTP/1.1\r\nHost: x\r\n\r\n",  # raw UTF-8 in the path
-    b"POST /v1/models/sphere/query HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\n"
-    b"Transfer-Encoding: chunked\r\n\r\nzz\r\n{}\r\n0\r\n\r\n",  # a chunk size that is no number
+    (b"POST /v1/models/sphere/query HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\n"
+    b"Transfer-Encoding: chunked\r\n\r\nzz\r\n{}\r\n0\r\n\r\n"),  # a chunk size that is no number
 ])
 def test_a_request_the_http_parser_refuses_is_a_400_problem(guarded, request_bytes):
     with connect(guarded.port) as sock:

@@ -8,7 +8,6 @@ import time
 
 import httpx
 import pytest
-
 from tests.view.chromium import Browser, find_browser
 
 from .conftest import ServerThread

@@ -74,8 +74,8 @@ def test_hostile_shapes_are_422_and_the_connection_stays_usable(server, engine, 
 
 
 FAR = {
-    "points-1e300-json": (wire.JSON, b'{"points": [[0, 0, 0], [1e300, 0, 0]], "fields": '
-                                     b'["distance", "normal", "contact", "collides"]}'),
+    "points-1e300-json": (wire.JSON, (b'{"points": [[0, 0, 0], [1e300, 0, 0]], "fields": '
+                                     b'["distance", "normal", "contact", "collides"]}')),
     "points-1e39-json": (wire.JSON, b'{"points": [[1e39, 0, 0]], "fields": ["distance"]}'),
     "pose-1e300-msgpack": (wire.MSGPACK, wire.dumps({
         "points": np.zeros((3, 3)), "fields": ["distance", "normal", "contact"],
@@ -318,7 +318,7 @@ def raw_exchange(port: int, request: bytes) -> bytes:
         try:
             while chunk := sock.recv(65536):
                 answer += chunk
-        except socket.timeout:
+        except TimeoutError:
             answer += b"<still open>"
     return answer
 

@@ -28,7 +28,7 @@ from .test_queries import decode, post, sample_points
 
 def metric(url: str, name: str, headers=None) -> float:
     text = httpx.get(f"{url}/metrics", headers=headers).text
-    found = re.search(rf"^{re.escape(name)} ([0-9.e+-]+)$", text, re.M)
+    found = re.search(rf"^{re.escape(name)} ([0-9.e+-]+)$", text, re.MULTILINE)
     return float(found.group(1)) if found else 0.0
 
 

@@ -265,7 +265,6 @@ def test_a_server_on_cuda_answers_as_the_cpu_engine(cuda):
     the SDK those of the CPU engine."""
     import collider_client as cc
     from collider_cli.launch import ServerProcess
-
     from collider_server.engine.devices import device_of
     from collider_server.engine.repository import ModelRepository
 

@@ -10,15 +10,15 @@ import sys
 
 import numpy as np
 import pytest
+from tests.conftest import REPO_ROOT
 
 from collider_server.engine.kinds import AnimatedNeuralCollider
 from collider_server.engine.modelfile import load_collider
 from collider_server.making.animations import pulsing_sphere
 from collider_server.making.training import TrainConfig, train_animated_neural
-from tests.conftest import REPO_ROOT
 
 ARM = REPO_ROOT / "examples" / "animations"
-SMALL = dict(levels=4, base_resolution=8, max_resolution=48, table_log2=12, hidden_width=16, keyframes=5)
+SMALL = {"levels": 4, "base_resolution": 8, "max_resolution": 48, "table_log2": 12, "hidden_width": 16, "keyframes": 5}
 
 
 @pytest.fixture(scope="module")
@@ -27,8 +27,8 @@ def sphere():
 
 
 def config(**overrides) -> TrainConfig:
-    values = dict(preset="keyframes", architecture=SMALL, samples=20_000, steps=150, batch_size=2048,
-                  validate_every=50, validation_points=2000, threads=2)
+    values = {"preset": "keyframes", "architecture": SMALL, "samples": 20_000, "steps": 150, "batch_size": 2048,
+                  "validate_every": 50, "validation_points": 2000, "threads": 2}
     return TrainConfig(**{**values, **overrides})
 
 

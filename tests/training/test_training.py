@@ -25,8 +25,8 @@ def sphere_mesh() -> Mesh:
 
 
 def small_config(**overrides) -> TrainConfig:
-    values = dict(preset="fast", architecture=SMALL, samples=20_000, steps=400, batch_size=1024,
-                  validate_every=100, validation_points=2000, learning_rate=3e-3, threads=2)
+    values = {"preset": "fast", "architecture": SMALL, "samples": 20_000, "steps": 400, "batch_size": 1024,
+                  "validate_every": 100, "validation_points": 2000, "learning_rate": 3e-3, "threads": 2}
     values.update(overrides)
     return TrainConfig(**values)
 

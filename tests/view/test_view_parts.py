@@ -23,7 +23,7 @@ def test_level_surface_lies_at_the_level(sphere):
     from collider_cli.views.collider import collider_grid
     from collider_server.making.surface import level_surface
 
-    shape, collider = sphere
+    _shape, collider = sphere
     grid = collider_grid(collider, 40, show_progress=False)
     for level in (0.0, 0.005):  # the surface, and an eps offset surface 5 mm out
         verts, faces = level_surface(grid, level)
@@ -38,7 +38,7 @@ def test_error_colours_and_surface_error(sphere):
     from collider_cli.views.collider import error_colors, surface_error_mm
     from collider_server.engine.meshes import ExactSDF
 
-    shape, collider = sphere
+    shape, _collider = sphere
     colours = error_colors(np.array([-2.0, 0.0, 0.5, 1.0, 3.0]), clip_mm=1.0)
     assert colours[1].tolist() == [245, 245, 245]            # no error: white
     assert colours[3].tolist() == colours[4].tolist()        # clipped at +clip
@@ -97,9 +97,10 @@ def test_view_up_follows_the_placements_z_up_flag(tmp_path, capsys, flags, up):
 
 
 def test_view_up_of_the_shipped_models():
+    from tests.conftest import REPO_ROOT
+
     from collider_cli.commands.view import view_up
     from collider_server.engine.repository import ModelRepository
-    from tests.conftest import REPO_ROOT
 
     repository = ModelRepository(REPO_ROOT / "models")
     # dragon: made with --z-up --fit-size (a scaled rotation); bunny: kept as is.
@@ -111,19 +112,20 @@ def test_view_command_errors_on_animated_models(capsys):
     """The exact animation of an animated model is its OBJ and vertex cache together, on the
     model's clock; each wrong combination is refused in one line before anything is served."""
     pytest.importorskip("viser")
-    from collider_cli import main
     from tests.conftest import REPO_ROOT
+
+    from collider_cli import main
 
     obj, pc2 = (str(REPO_ROOT / "examples" / "animations" / f"arm.{ext}") for ext in ("obj", "pc2"))
     models = ["--models", str(REPO_ROOT / "models")]
     cases = [
-        (["arm", "--mesh", obj], "arm is animated: give the frames it was made from, --mesh OBJ "
+        (["arm", "--mesh", obj], ("arm is animated: give the frames it was made from, --mesh OBJ "
                                  "--animation CACHE (arm was made from arm.obj and arm.pc2, 25 "
-                                 "frames at 24 fps)"),
+                                 "frames at 24 fps)")),
         (["arm", "--animation", pc2], "--animation needs --mesh (the OBJ whose vertices it moves)"),
         (["arm", "--mesh", obj, "--animation", pc2, "--fps", "12"],
-         f"{pc2} at 12 fps lasts 2 s, but arm's animation lasts 1 s (arm was made from arm.obj and "
-         "arm.pc2, 25 frames at 24 fps)"),
+         (f"{pc2} at 12 fps lasts 2 s, but arm's animation lasts 1 s (arm was made from arm.obj and "
+         "arm.pc2, 25 frames at 24 fps)")),
         (["bunny", "--mesh", obj, "--animation", pc2],
          "bunny is static: --animation and --fps are for animated models"),
         (["bunny", "--fps", "24"], "bunny is static: --animation and --fps are for animated models"),

@@ -8,6 +8,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+
 from collider_contract.point_cache import PC2_HEADER
 
 

@@ -14,10 +14,10 @@ from pathlib import Path
 import numpy as np
 
 from collider_contract import transform_points
+from collider_contract.point_cache import PC2Writer, write_obj
 
 from .cloth import quad_faces
 from .motion import pose_function
-from collider_contract.point_cache import PC2Writer, write_obj
 from .output import PC2Frames, write_preview
 from .scene import Scene, check_models
 from .simulator import RunReport, Simulator

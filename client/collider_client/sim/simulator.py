@@ -69,17 +69,17 @@ class RunReport:
         planned = self.steps if self.steps_planned is None else self.steps_planned
         lines = [
             f"scene            {self.scene}  ({self.backend} backend)",
-            f"cloth            {self.vertices} vertices, {self.steps} steps of {self.dt_s:g} s, "
-            f"{self.frames} frames written",
+            (f"cloth            {self.vertices} vertices, {self.steps} steps of {self.dt_s:g} s, "
+            f"{self.frames} frames written"),
             f"effects          {', '.join(self.effects)}",
             f"fields asked     {', '.join(self.fields) or 'none (no collisions)'}",
-            f"time per step    {ms['total']:.3f} ms = integration {ms['integration']:.3f} + "
-            f"collision {ms['collision']:.3f} + query (engine/transport) {ms['query']:.3f} ms",
-            f"points sent      {self.points_sent} of {self.points_total} "
-            f"({100.0 * self.points_sent / max(self.points_total, 1):.1f} %) in {self.queries} queries",
+            (f"time per step    {ms['total']:.3f} ms = integration {ms['integration']:.3f} + "
+            f"collision {ms['collision']:.3f} + query (engine/transport) {ms['query']:.3f} ms"),
+            (f"points sent      {self.points_sent} of {self.points_total} "
+            f"({100.0 * self.points_sent / max(self.points_total, 1):.1f} %) in {self.queries} queries"),
             f"colliding        max {self.colliding_max}, at the end {self.colliding_last} vertices",
-            f"deepest penetration (reported by the collider, before projection) "
-            f"{1e3 * max(0.0, -self.deepest_penetration_m):.3f} mm",
+            (f"deepest penetration (reported by the collider, before projection) "
+            f"{1e3 * max(0.0, -self.deepest_penetration_m):.3f} mm"),
         ]
         if self.exact_check:
             lines.append(f"exact check      {exact_check_text(self.exact_check)}")

@@ -84,7 +84,7 @@ class Table:
             self.fail(name, f"must be true or false, got {type(value).__name__} {value!r}")
         return value
 
-    def table(self, name, required=False) -> "Table | None":
+    def table(self, name, required=False) -> Table | None:
         value = self.get(name, None, required)
         if value is None:
             return None

@@ -18,5 +18,13 @@ from .plan import PlanConfig
 from .run import QUICK, BenchConfig, run_bench
 from .timing import TimingPolicy
 
-__all__ = ["BenchConfig", "Budget", "NothingMeetsBudget", "PlanConfig", "QUICK", "TimingPolicy",
-           "rank", "run_bench"]
+__all__ = [
+           "QUICK",
+           "BenchConfig",
+           "Budget",
+           "NothingMeetsBudget",
+           "PlanConfig",
+           "TimingPolicy",
+           "rank",
+           "run_bench",
+]

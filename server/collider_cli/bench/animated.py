@@ -43,8 +43,16 @@ from collider_server.engine.collider import Collider
 from collider_server.making.progress import format_duration, progress
 
 from .plan import BENCH_TRAINING_SAMPLES, Candidate, Plan
-from .run import (BenchConfig, default_devices, default_threads, finish_report, interrupted, load_average,
-                  say, time_all)
+from .run import (
+    BenchConfig,
+    default_devices,
+    default_threads,
+    finish_report,
+    interrupted,
+    load_average,
+    say,
+    time_all,
+)
 from .timing import ANIMATED_MODES
 
 REFERENCE_MODE = "distance+normal+contact+velocity"

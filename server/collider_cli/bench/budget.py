@@ -70,16 +70,16 @@ class Budget:
         """Every limit of the budget against the figures: ``(met, "figure <= limit")``, one per
         limit given. A figure equal to its limit meets it."""
         out = [(band_1mm["distance_mean_mm"] <= self.max_error_mm,
-                f"mean distance error {band_1mm['distance_mean_mm']:.4f} mm "
-                f"{'<=' if band_1mm['distance_mean_mm'] <= self.max_error_mm else '>'} {self.max_error_mm:g} mm")]
+                (f"mean distance error {band_1mm['distance_mean_mm']:.4f} mm "
+                f"{'<=' if band_1mm['distance_mean_mm'] <= self.max_error_mm else '>'} {self.max_error_mm:g} mm"))]
         if self.max_normal_error_deg is not None:
             met = band_1mm["normal_mean_deg"] <= self.max_normal_error_deg
-            out.append((met, f"mean normal error {band_1mm['normal_mean_deg']:.2f} deg "
-                             f"{'<=' if met else '>'} {self.max_normal_error_deg:g} deg"))
+            out.append((met, (f"mean normal error {band_1mm['normal_mean_deg']:.2f} deg "
+                             f"{'<=' if met else '>'} {self.max_normal_error_deg:g} deg")))
         if self.max_memory_bytes is not None:
             met = memory_bytes <= self.max_memory_bytes
-            out.append((met, f"memory {format_bytes(memory_bytes)} {'<=' if met else '>'} "
-                             f"{format_bytes(self.max_memory_bytes)}"))
+            out.append((met, (f"memory {format_bytes(memory_bytes)} {'<=' if met else '>'} "
+                             f"{format_bytes(self.max_memory_bytes)}")))
         return out
 
     def misses_figures(self, band_1mm: dict, memory_bytes: int) -> list[str]:

@@ -205,10 +205,10 @@ def accuracy_table(report: dict) -> str:
     animation = report.get("animation")
     against = ("the exact SDF" if animation is None else
                f"the exact interpolated mesh at {len(animation['times_s'])} random times (above), pooled,")
-    out = [f"Errors against {against} on {n:,} points per band (mm, deg); sign errors among "
-           "points with abs(d) > 0.2 mm; memory: what the collider holds.", "",
-           "| collider | +-1 mm: distance mean / p99 / max | sign | normal mean / p99 | "
-           "+-10 mm: distance mean / p99 / max | normal mean | build | file | memory |",
+    out = [(f"Errors against {against} on {n:,} points per band (mm, deg); sign errors among "
+           "points with abs(d) > 0.2 mm; memory: what the collider holds."), "",
+           ("| collider | +-1 mm: distance mean / p99 / max | sign | normal mean / p99 | "
+           "+-10 mm: distance mean / p99 / max | normal mean | build | file | memory |"),
            "|---|---|---|---|---|---|---|---|---|"]
     for r in report["colliders"]:
         a, b = r["accuracy"]["band_1mm"], r["accuracy"]["band_10mm"]
@@ -238,9 +238,9 @@ def ratio_table(report: dict, device: str = "cpu") -> str:
     rows = {r["name"]: r for r in report["colliders"]}
     base = reference_seconds_per_point(rows["mesh"], report, device) if "mesh" in rows else None
     size = max(report["config"]["sizes"])
-    out = [f"Reference time: {reference_mode(report)} on {size_label(size)} points per call, embedded, {device}: "
+    out = [(f"Reference time: {reference_mode(report)} on {size_label(size)} points per call, embedded, {device}: "
            "median wall seconds per 1M points (+- spread), the process CPU seconds it cost, the time "
-           "relative to `mesh` (exact; below 1 = faster), and the +-1 mm band mean errors.", "",
+           "relative to `mesh` (exact; below 1 = faster), and the +-1 mm band mean errors."), "",
            "| collider | s per 1M points | CPU s per 1M points | time / mesh | distance mean (mm) | normal mean (deg) |",
            "|---|---|---|---|---|---|"]
     for r in report["colliders"]:
@@ -262,8 +262,8 @@ def summary(report: dict) -> str:
     m = report["machine"]
     timing_info = report.get("timing") or {}
     parts = [
-        f"# collider bench: {report['mesh']['name']} ({report['mesh']['faces']:,} faces, "
-        f"{report['mesh']['units']})", "",
+        (f"# collider bench: {report['mesh']['name']} ({report['mesh']['faces']:,} faces, "
+        f"{report['mesh']['units']})"), "",
     ]
     if report.get("interrupted"):
         parts += ["**Interrupted** (Ctrl-C or SIGTERM): what follows is what was measured until then.", ""]
@@ -280,9 +280,9 @@ def summary(report: dict) -> str:
         parts.append(front_text(report, device))
     faster = served_faster(report)
     if faster:
-        parts += ["", "Served measured faster than embedded by more than the spread, even after retiming "
+        parts += ["", ("Served measured faster than embedded by more than the spread, even after retiming "
                   "(the same query plus HTTP should not be: the load of the machine most likely changed "
-                  "between the two; rerun on a quieter machine):"] + [f"- {f}" for f in faster]
+                  "between the two; rerun on a quieter machine):")] + [f"- {f}" for f in faster]
     if report["skipped"]:
         parts += ["", "Not measured:"] + [f"- {s['name']}: {s['reason']}" for s in report["skipped"]]
     return "\n".join(parts) + "\n"
@@ -294,10 +294,10 @@ def _animation_lines(report: dict) -> list[str]:
     if not a:
         return []
     times = ", ".join(f"{t:.4f}" for t in a["times_s"])
-    return [f"Animated: {a['frames']} frames at {a['frame_rate_hz']:g} fps ({a['cache']}), {a['duration_s']:g} s, "
+    return [(f"Animated: {a['frames']} frames at {a['frame_rate_hz']:g} fps ({a['cache']}), {a['duration_s']:g} s, "
             f"{'looping' if a['loop'] else 'clamped'}. Errors at {len(a['times_s'])} random times drawn uniformly "
             f"over [0, {a['duration_s']:g}) s (between frames): {times} s; every query timed at "
-            f"t = {a['timing_time_s']:.4f} s.", ""]
+            f"t = {a['timing_time_s']:.4f} s."), ""]
 
 
 def _mesh_lines(report: dict) -> list[str]:

@@ -20,9 +20,9 @@ from pathlib import Path
 import numpy as np
 
 from collider_client.sim.cloth import quad_faces
-from collider_contract import transform_points
 from collider_client.sim.motion import pose_function
 from collider_client.sim.scene import Scene
+from collider_contract import transform_points
 from collider_server.making.surface import distance_grid, level_surface
 
 from .page import look_at_box, start_server
@@ -73,7 +73,7 @@ class Colliders:
     poses: list
 
     @classmethod
-    def add(cls, server, scene: Scene, client, infos: dict | None) -> "Colliders":
+    def add(cls, server, scene: Scene, client, infos: dict | None) -> Colliders:
         handles, poses = [], []
         for i, spec in enumerate(scene.colliders):
             surface = None
@@ -311,7 +311,7 @@ def _grid_from_obj(obj: Path, n: int) -> tuple[int, int]:
     """(width, height) of the cloth grid from the OBJ's first quad (a b b+1 ... rows of W)."""
     for line in obj.open():
         if line.startswith("f "):
-            a, b, c, d = (int(v) for v in line.split()[1:5])
+            a, _b, _c, d = (int(v) for v in line.split()[1:5])
             width = d - a
             if width > 0 and n % width == 0:
                 return width, n // width

@@ -28,8 +28,8 @@ from collections import OrderedDict
 from dataclasses import dataclass
 
 import numpy as np
-from collider_contract import Timeline
 
+from collider_contract import Timeline
 from collider_server.engine.animated_meshes import AnimatedMesh, ExactAtTimes
 from collider_server.engine.collider import Collider
 from collider_server.engine.meshes import ExactSDF, Mesh
@@ -186,7 +186,7 @@ def probe_text(collider: Collider, point: np.ndarray, eps: float,
     mm = 1e3 * collider.info.meters_per_unit
     fields = {"distance": float(r.distance[0]), "normal": r.normal[0].astype(float),
               "contact": r.contact[0].astype(float), "collides": bool(r.collides[0])}
-    fmt = lambda v: "(" + ", ".join(f"{x:.5g}" for x in v) + ")"  # noqa: E731
+    fmt = lambda v: "(" + ", ".join(f"{x:.5g}" for x in v) + ")"
     units = collider.info.units
     at = f" at t = {time:.4g} s" if collider.animated else ""
     text = (f"**probe** {fmt(point)} {units}{at}  \n"

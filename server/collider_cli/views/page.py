@@ -91,5 +91,5 @@ def box_edges(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     """(12, 2, 3) the edges of the axis-aligned box ``lo``..``hi``."""
     corners = box_corners(lo, hi)
     pairs = [(a, b) for a in range(8) for b in range(a + 1, 8)
-             if bin(a ^ b).count("1") == 1]  # corners differing in one coordinate
+             if (a ^ b).bit_count() == 1]  # corners differing in one coordinate
     return np.stack([corners[[a, b]] for a, b in pairs])

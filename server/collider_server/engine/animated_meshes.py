@@ -15,6 +15,7 @@ from collections import OrderedDict
 from dataclasses import dataclass
 
 import numpy as np
+
 from collider_contract import Timeline
 
 from .meshes import ExactSDF, Mesh, edge_index
@@ -83,7 +84,7 @@ class AnimatedMesh:
         """The interpolated surface at ``t`` as a static :class:`Mesh`."""
         return Mesh(self.vertices_at(t), self.faces, self.name, self.sha256)
 
-    def transformed(self, matrix: np.ndarray) -> "AnimatedMesh":
+    def transformed(self, matrix: np.ndarray) -> AnimatedMesh:
         """Every frame moved by the 4x4 similarity ``matrix`` (faces flipped by a reflection)."""
         m = np.asarray(matrix, dtype=np.float64)
         frames = self.frames @ m[:3, :3].T + m[:3, 3]

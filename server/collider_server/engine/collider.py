@@ -18,8 +18,9 @@ from __future__ import annotations
 
 import abc
 import dataclasses
+from collections.abc import Iterable
 from dataclasses import dataclass, field
-from typing import ClassVar, Iterable
+from typing import ClassVar
 
 import numpy as np
 
@@ -59,7 +60,7 @@ class ColliderInfo:
         return dataclasses.asdict(self)
 
     @classmethod
-    def from_dict(cls, data: dict) -> "ColliderInfo":
+    def from_dict(cls, data: dict) -> ColliderInfo:
         names = {f.name for f in dataclasses.fields(cls)}
         unknown = set(data) - names
         if unknown:
@@ -159,7 +160,7 @@ class Collider(abc.ABC):
     # -- the query ----------------------------------------------------------------------------
 
     def query(self, points, fields: Iterable[str] | str = ("distance",),
-              pose: "Pose | np.ndarray | None" = None, eps: float | None = None,
+              pose: Pose | np.ndarray | None = None, eps: float | None = None,
               only_colliding: bool = False, time: float | None = None,
               pose_velocity=None) -> QueryResult:
         """Answer ``fields`` for world-frame ``points``.

@@ -10,7 +10,6 @@ model making's job (:mod:`collider_server.making.mesh_files`).
 from __future__ import annotations
 
 import threading
-
 from dataclasses import dataclass
 
 import numpy as np
@@ -36,7 +35,7 @@ class Mesh:
         """(2, 3) float64: min and max corner."""
         return np.stack([self.vertices.min(axis=0), self.vertices.max(axis=0)])
 
-    def transformed(self, matrix: np.ndarray) -> "Mesh":
+    def transformed(self, matrix: np.ndarray) -> Mesh:
         """The mesh with a 4x4 similarity ``matrix`` applied to its vertices."""
         m = np.asarray(matrix, dtype=np.float64)
         vertices = self.vertices @ m[:3, :3].T + m[:3, 3]

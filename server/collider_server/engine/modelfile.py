@@ -85,7 +85,7 @@ def _read_header(path: Path) -> tuple[dict, ColliderInfo]:
     try:
         with safe_open(str(path), framework="numpy") as fh:
             metadata = fh.metadata() or {}
-    except Exception as exc:  # safetensors raises its own error type for damaged headers
+    except Exception as exc:  # noqa: BLE001 -- safetensors raises its own error type for damaged headers
         raise ModelFileError(path, f"not a readable safetensors file ({exc})") from None
     if metadata.get("format") != FORMAT:
         raise ModelFileError(path, f"not a collider model (format {metadata.get('format')!r}, expected {FORMAT!r})")
@@ -122,7 +122,7 @@ def load_collider(path: str | Path, device: str | None = None) -> Collider:
         raise ModelFileError(path, str(exc)) from None
     try:
         tensors = load_file(str(path))
-    except Exception as exc:
+    except Exception as exc:  # noqa: BLE001 -- safetensors raises its own error type
         raise ModelFileError(path, f"arrays are unreadable, the file may be truncated ({exc})") from None
     if content_hash(metadata["collider"], tensors) != metadata.get("content_sha256"):
         raise ModelFileError(path, "content hash mismatch: the file was modified or damaged")

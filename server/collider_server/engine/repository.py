@@ -7,6 +7,7 @@ import re
 from pathlib import Path
 
 import numpy as np
+
 from collider_contract import ModelInfo
 
 from .collider import Collider, ColliderInfo

@@ -18,8 +18,9 @@ import re
 from pathlib import Path
 
 import numpy as np
-from collider_contract.point_cache import read_pc2
+
 from collider_contract import Timeline
+from collider_contract.point_cache import read_pc2
 
 from ..engine.animated_meshes import AnimatedMesh, max_surface_speed
 from ..engine.meshes import Mesh

@@ -20,6 +20,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+
 from collider_contract import Timeline
 
 from ..engine.animated_meshes import AnimatedMesh, max_surface_speed

@@ -6,13 +6,18 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..engine.collider import Collider, ColliderInfo
-from ..engine.animated_meshes import AnimatedMesh
-from ..engine.kinds import (AnimatedMeshCollider, AnimatedVoxelCollider, KDTreeCollider, MeshCollider,
-                            VoxelCollider)
-from ..engine.kinds.voxel import MAX_RESOLUTION, MIN_RESOLUTION
 from collider_contract import Timeline
 
+from ..engine.animated_meshes import AnimatedMesh
+from ..engine.collider import Collider, ColliderInfo
+from ..engine.kinds import (
+    AnimatedMeshCollider,
+    AnimatedVoxelCollider,
+    KDTreeCollider,
+    MeshCollider,
+    VoxelCollider,
+)
+from ..engine.kinds.voxel import MAX_RESOLUTION, MIN_RESOLUTION
 from ..engine.meshes import ExactSDF, Mesh
 from .progress import progress
 

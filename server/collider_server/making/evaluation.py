@@ -257,9 +257,9 @@ def times_lines(report: dict) -> list[str]:
     if not times:
         return []
     shown = ", ".join(f"{t:.4f}" for t in times[:8]) + (", ..." if len(times) > 8 else "")
-    return [f"at {len(times)} random times in [0, {report['duration_s']:g}) s, uniform (seed {report['seed']}; "
+    return [(f"at {len(times)} random times in [0, {report['duration_s']:g}) s, uniform (seed {report['seed']}; "
             f"between frames), {report['points_per_time']:,} points per set at each, pooled, against the "
-            f"exact interpolated mesh at that time", f"times (s): {shown}"]
+            f"exact interpolated mesh at that time"), f"times (s): {shown}"]
 
 
 def format_report(name: str, kind: str, report: dict) -> str:

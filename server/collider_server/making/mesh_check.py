@@ -189,6 +189,6 @@ def self_intersections(vertices: np.ndarray, faces: np.ndarray, max_faces: int) 
     try:
         pairs = remesh_self_intersections(np.ascontiguousarray(vertices), np.ascontiguousarray(faces),
                                           detect_only=True)[2]
-    except Exception as exc:  # CGAL refuses some degenerate input; the other checks still stand
+    except Exception as exc:  # noqa: BLE001 -- CGAL refuses some degenerate input; the other checks still stand
         return None, f"libigl could not check: {type(exc).__name__}"
     return len(pairs), ""

@@ -53,7 +53,7 @@ def load_mesh(path: str | Path, max_faces: int = MAX_FACES) -> Mesh:
         # binary blob named .obj ends up here, so say what is wrong with the file instead.
         raise MeshError(f"{path}: cannot read mesh (not UTF-8 text, so not a valid "
                         f"{path.suffix or 'mesh'} file)") from None
-    except Exception as exc:  # trimesh raises many types for broken files
+    except Exception as exc:  # noqa: BLE001 -- trimesh raises many types for broken files
         raise MeshError(f"{path}: cannot read mesh ({type(exc).__name__}: {exc})") from None
     if not isinstance(loaded, trimesh.Trimesh):
         raise MeshError(f"{path}: file holds no triangle mesh")

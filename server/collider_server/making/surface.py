@@ -4,8 +4,8 @@ reconstruction error and the browser views."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 import numpy as np
 

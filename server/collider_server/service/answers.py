@@ -14,12 +14,23 @@ from __future__ import annotations
 import asyncio
 import dataclasses
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Sequence
 
 import numpy as np
-from collider_contract import (ModelQuery, QueryError, QueryResult, SceneQuery, check_finite, finish,
-                               finish_scene, prepare, require_time, resolve_eps)
+
+from collider_contract import (
+    ModelQuery,
+    QueryError,
+    QueryResult,
+    SceneQuery,
+    check_finite,
+    finish,
+    finish_scene,
+    prepare,
+    require_time,
+    resolve_eps,
+)
 
 from ..engine.collider import Collider
 from .batching import BatcherClosed, BatchPart, DeadlineExceeded, QueueFull

@@ -17,8 +17,9 @@ from __future__ import annotations
 import re
 from types import SimpleNamespace
 
-from collider_contract import QueryError
 from starlette.requests import Request
+
+from collider_contract import QueryError
 
 from .auth import require_token
 from .problems import Problem

@@ -6,11 +6,12 @@ from __future__ import annotations
 import json
 import logging
 
-from collider_contract import TITLES, QueryError
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.responses import Response
+
+from collider_contract import TITLES, QueryError
 
 PROBLEM_JSON = "application/problem+json"
 log = logging.getLogger("collider_server.service")
@@ -27,7 +28,7 @@ class Problem(Exception):
         self.headers = headers or {}
 
     @classmethod
-    def of(cls, error: QueryError) -> "Problem":
+    def of(cls, error: QueryError) -> Problem:
         """The problem document of a query the contract refused (same status, code, detail)."""
         return cls(error.status, error.code, error.detail)
 

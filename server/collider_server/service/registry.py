@@ -5,10 +5,11 @@ from __future__ import annotations
 import asyncio
 import functools
 import logging
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Callable, Sequence
 
 import numpy as np
+
 from collider_contract import ModelInfo
 
 from ..engine.collider import Collider
@@ -68,7 +69,7 @@ class ModelRegistry:
         for name in self.repository.names():
             try:
                 await self.load(name)
-            except Exception as exc:  # a broken file must not keep the others from serving
+            except Exception as exc:  # noqa: BLE001 -- a broken file must not keep the others from serving
                 self.errors[name] = str(exc)
                 log.error("model %s not loaded: %s", name, exc)
         before_ready()

@@ -95,7 +95,7 @@ class ServiceSettings(BaseSettings):
         return value
 
     @model_validator(mode="after")
-    def _request_fits_queue(self) -> "ServiceSettings":
+    def _request_fits_queue(self) -> ServiceSettings:
         if self.max_request_points > self.max_queue_points:
             raise ValueError(
                 f"max_request_points ({self.max_request_points}) must not exceed "

@@ -4,8 +4,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from collider_contract import unknown_model
 from fastapi import Request
+
+from collider_contract import unknown_model
 
 from .batching import DeviceWorkers
 from .metrics import ServiceMetrics

@@ -163,7 +163,7 @@ def test_velocity_at_a_vertex_is_the_vertex_velocity(arm):
     animation, collider = arm
     frames = np.asarray(animation.frames)
     t = 0.3  # segment 7 of 24 fps
-    k, u, rate = animation.timeline.locate(t)
+    k, u, _rate = animation.timeline.locate(t)
     vertices = (1 - u) * frames[k] + u * frames[k + 1]
     tip = int(np.argmax(vertices[:, 0]))  # the hand's pole
     result = collider.query(vertices[tip:tip + 1], ["velocity"], time=t)

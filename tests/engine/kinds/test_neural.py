@@ -36,9 +36,9 @@ def test_presets_match_the_paper():
 
 
 @pytest.mark.parametrize("bad, message", [
-    (dict(fourier_features=0), "fourier_features must be a positive integer"),
-    (dict(hidden_layers=2.5), "hidden_layers must be a positive integer"),
-    (dict(fourier_scale=-1.0), "fourier_scale must be > 0"),
+    ({"fourier_features": 0}, "fourier_features must be a positive integer"),
+    ({"hidden_layers": 2.5}, "hidden_layers must be a positive integer"),
+    ({"fourier_scale": -1.0}, "fourier_scale must be > 0"),
 ])
 def test_architecture_validation(bad, message):
     with pytest.raises(ValueError, match=message):
@@ -153,12 +153,12 @@ def test_presets_are_the_documented_ones():
 
 
 @pytest.mark.parametrize("bad, message", [
-    (dict(fourier_features=0), "architecture fourier_features must be a positive integer, got 0"),
-    (dict(hidden_layers=2.5), "architecture hidden_layers must be a positive integer, got 2.5"),
-    (dict(hidden_width="8"), "architecture hidden_width must be a positive integer, got '8'"),
-    (dict(fourier_scale=-1.0), "fourier_scale must be > 0, got -1.0"),
-    (dict(fourier_scale=0.0), "fourier_scale must be > 0, got 0.0"),
-    (dict(fourier_scale=float("nan")), "fourier_scale must be > 0, got nan"),
+    ({"fourier_features": 0}, "architecture fourier_features must be a positive integer, got 0"),
+    ({"hidden_layers": 2.5}, "architecture hidden_layers must be a positive integer, got 2.5"),
+    ({"hidden_width": "8"}, "architecture hidden_width must be a positive integer, got '8'"),
+    ({"fourier_scale": -1.0}, "fourier_scale must be > 0, got -1.0"),
+    ({"fourier_scale": 0.0}, "fourier_scale must be > 0, got 0.0"),
+    ({"fourier_scale": float("nan")}, "fourier_scale must be > 0, got nan"),
 ])
 def test_architecture_validation_messages(bad, message):
     with pytest.raises(ValueError) as error:

@@ -14,8 +14,8 @@ import copy
 import numpy as np
 import pytest
 import torch
-from collider_contract import Timeline
 
+from collider_contract import Timeline
 from collider_server.engine.collider import ColliderInfo
 from collider_server.engine.kinds import AnimatedNeuralCollider, grid_kernels
 from collider_server.engine.kinds.neural import ANIMATED_PRESETS, PRESETS, architecture_dict, build_network
@@ -26,8 +26,8 @@ from collider_server.engine.modelfile import load_collider, save_collider
 
 LO, HI = np.array([-0.12, -0.1, -0.08]), np.array([0.12, 0.1, 0.08])
 CENTRE, RADIUS = 0.5 * (LO + HI), 0.12
-SMALL = dict(levels=4, features=2, base_resolution=4, max_resolution=40, table_log2=10,
-             hidden_layers=2, hidden_width=16, keyframes=4, deformation_resolution=6)
+SMALL = {"levels": 4, "features": 2, "base_resolution": 4, "max_resolution": 40, "table_log2": 10,
+             "hidden_layers": 2, "hidden_width": 16, "keyframes": 4, "deformation_resolution": 6}
 DURATION = 0.6
 needs_numba = pytest.mark.skipif(not grid_kernels.available(), reason="numba is not installed")
 

@@ -25,8 +25,8 @@ from collider_server.engine.kinds.neural import (
 LO, HI = np.array([-0.12, -0.1, -0.08]), np.array([0.12, 0.1, 0.08])
 CENTRE, RADIUS = 0.5 * (LO + HI), 0.12
 # Small tables so that levels 0-1 are dense and the finer ones hashed (collisions included).
-SMALL = dict(levels=4, features=2, base_resolution=4, max_resolution=40, table_log2=10,
-             hidden_layers=2, hidden_width=16)
+SMALL = {"levels": 4, "features": 2, "base_resolution": 4, "max_resolution": 40, "table_log2": 10,
+             "hidden_layers": 2, "hidden_width": 16}
 needs_numba = pytest.mark.skipif(not grid_kernels.available(), reason="numba is not installed")
 
 
@@ -361,17 +361,17 @@ def test_shipped_grid_models_analytic_gradient_matches_autograd(name):
 
 
 @pytest.mark.parametrize("bad, message", [
-    (dict(levels=0), "architecture levels must be a positive integer, got 0"),
-    (dict(features=True), "architecture features must be a positive integer, got True"),
-    (dict(base_resolution=1.5), "architecture base_resolution must be a positive integer, got 1.5"),
-    (dict(max_resolution=-4), "architecture max_resolution must be a positive integer, got -4"),
-    (dict(table_log2="16"), "architecture table_log2 must be a positive integer, got '16'"),
-    (dict(hidden_layers=0), "architecture hidden_layers must be a positive integer, got 0"),
-    (dict(hidden_width=None), "architecture hidden_width must be a positive integer, got None"),
-    (dict(base_resolution=64, max_resolution=32), "max_resolution (32) must be >= base_resolution (64)"),
-    (dict(table_log2=25), "table_log2 must be <= 24 (16M rows per level), got 25"),
-    (dict(table_dtype="int4"), "table_dtype must be one of 'float16', 'float32', 'int8', got 'int4'"),
-    (dict(encoding="fourier"), "a GridArchitecture has encoding 'grid', got 'fourier'"),
+    ({"levels": 0}, "architecture levels must be a positive integer, got 0"),
+    ({"features": True}, "architecture features must be a positive integer, got True"),
+    ({"base_resolution": 1.5}, "architecture base_resolution must be a positive integer, got 1.5"),
+    ({"max_resolution": -4}, "architecture max_resolution must be a positive integer, got -4"),
+    ({"table_log2": "16"}, "architecture table_log2 must be a positive integer, got '16'"),
+    ({"hidden_layers": 0}, "architecture hidden_layers must be a positive integer, got 0"),
+    ({"hidden_width": None}, "architecture hidden_width must be a positive integer, got None"),
+    ({"base_resolution": 64, "max_resolution": 32}, "max_resolution (32) must be >= base_resolution (64)"),
+    ({"table_log2": 25}, "table_log2 must be <= 24 (16M rows per level), got 25"),
+    ({"table_dtype": "int4"}, "table_dtype must be one of 'float16', 'float32', 'int8', got 'int4'"),
+    ({"encoding": "fourier"}, "a GridArchitecture has encoding 'grid', got 'fourier'"),
 ])
 def test_grid_architecture_validation_messages(bad, message):
     with pytest.raises(ValueError) as error:
@@ -409,13 +409,13 @@ def test_resolutions_grow_geometrically(levels, base, top, expected):
 @pytest.mark.parametrize("arch, expected", [
     # cap 2^16; r = 16: 17^3 = 4913 corners fit (dense); r = 32: share 2^16 / 16 = 2^12, raised to
     # 2^14; r = 64: share 2^14; r = 128: the whole 2^16.
-    (dict(levels=4, base_resolution=16, max_resolution=128, table_log2=16), [4913, 16384, 16384, 65536]),
+    ({"levels": 4, "base_resolution": 16, "max_resolution": 128, "table_log2": 16}, [4913, 16384, 16384, 65536]),
     # cap 2^18; r = 48: share 2^18 / 9 = 29127.1, down to the power of two 2^14; r = 144: 2^18.
-    (dict(levels=3, base_resolution=16, max_resolution=144, table_log2=18), [4913, 16384, 262144]),
+    ({"levels": 3, "base_resolution": 16, "max_resolution": 144, "table_log2": 18}, [4913, 16384, 262144]),
     # cap 2^18; r = 64: share 2^18 / 4 = 2^16 (65^3 corners do not fit).
-    (dict(levels=3, base_resolution=32, max_resolution=128, table_log2=18), [16384, 65536, 262144]),
+    ({"levels": 3, "base_resolution": 32, "max_resolution": 128, "table_log2": 18}, [16384, 65536, 262144]),
     # cap 2^13 below the 2^14 floor: never more than the cap.
-    (dict(levels=2, base_resolution=32, max_resolution=64, table_log2=13), [8192, 8192]),
+    ({"levels": 2, "base_resolution": 32, "max_resolution": 64, "table_log2": 13}, [8192, 8192]),
 ])
 def test_surface_rows_grow_like_the_surface(arch, expected):
     """``surface_rows``: hashed levels get cap * (r / r_max)^2 rows, rounded down to a power of

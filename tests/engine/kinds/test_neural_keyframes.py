@@ -9,8 +9,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-from collider_contract import Timeline
 
+from collider_contract import Timeline
 from collider_server.engine.collider import ColliderInfo
 from collider_server.engine.kinds import AnimatedNeuralCollider, grid_kernels
 from collider_server.engine.kinds.neural import architecture_dict, architecture_from_dict, build_network
@@ -20,8 +20,8 @@ from collider_server.engine.modelfile import ModelFileError, load_collider, save
 LO, HI = np.array([-0.12, -0.1, -0.08]), np.array([0.12, 0.1, 0.08])
 CENTRE, RADIUS = 0.5 * (LO + HI), 0.12
 # Levels 0-1 dense, the finer ones hashed (collisions included); 4 keyframes over 0.6 s.
-SMALL = dict(levels=4, features=2, base_resolution=4, max_resolution=40, table_log2=10,
-             hidden_layers=2, hidden_width=16, keyframes=4)
+SMALL = {"levels": 4, "features": 2, "base_resolution": 4, "max_resolution": 40, "table_log2": 10,
+             "hidden_layers": 2, "hidden_width": 16, "keyframes": 4}
 DURATION = 0.6
 needs_numba = pytest.mark.skipif(not grid_kernels.available(), reason="numba is not installed")
 
@@ -97,7 +97,7 @@ def test_gradient_and_time_derivative_match_finite_differences(fused):
     c.network.fused = fused
     x = points(200, 2)
     t, dt, h = 0.27, 1e-4, 1e-5
-    d, g, v = c.evaluate_at(x, True, t)
+    _d, g, v = c.evaluate_at(x, True, t)
     fd_t = (c.evaluate_at(x, False, t + dt)[0] - c.evaluate_at(x, False, t - dt)[0]) / (2 * dt)
     normal = g / np.linalg.norm(g, axis=1, keepdims=True)
     dfdt = -np.einsum("ij,ij->i", v, normal)
@@ -188,7 +188,7 @@ def test_keyframe_positions_span_the_duration():
 def test_velocity_is_the_normal_speed_and_zero_where_an_end_frame_is_held():
     c = collider(random_network(), loop=False)
     x = points(300, 6)
-    d, g, v = c.evaluate_at(x, True, 0.3)
+    _d, g, v = c.evaluate_at(x, True, 0.3)
     normal = g / np.linalg.norm(g, axis=1, keepdims=True)
     tangential = v - np.einsum("ij,ij->i", v, normal)[:, None] * normal
     assert np.abs(tangential).max() < 1e-9 and np.abs(v).max() > 0.01

@@ -8,6 +8,7 @@ triangle (collider units per second, collider frame). Exact everywhere, no domai
 from __future__ import annotations
 
 import numpy as np
+
 from collider_contract import Timeline
 
 from ..animated_meshes import AnimatedMesh, ExactAtTimes

@@ -12,6 +12,7 @@ is zero.
 from __future__ import annotations
 
 import numpy as np
+
 from collider_contract import Timeline
 
 from ..collider import ColliderInfo

@@ -58,8 +58,7 @@ if numba is not None:
             value, inside = 1.0, 0.0
         position = (value + 1.0) * 0.5 * resolution
         cell = math.floor(position)
-        if cell > resolution - 1:
-            cell = resolution - 1
+        cell = min(cell, resolution - 1)
         t = position - cell
         if smooth:
             w = t * t * (3.0 - 2.0 * t)

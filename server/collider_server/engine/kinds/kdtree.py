@@ -41,7 +41,7 @@ class KDTreeCollider(Collider):
         self.tree = cKDTree(self.vertices)
 
     @classmethod
-    def from_mesh(cls, info: ColliderInfo, mesh: Mesh) -> "KDTreeCollider":
+    def from_mesh(cls, info: ColliderInfo, mesh: Mesh) -> KDTreeCollider:
         return cls(info, mesh.vertices, vertex_normals(mesh))
 
     def evaluate(self, local, want_gradient):

@@ -93,7 +93,7 @@ class GridArchitecture:
         if self.encoding != self.ENCODING:
             raise ValueError(f"a {type(self).__name__} has encoding {self.ENCODING!r}, got {self.encoding!r}")
 
-    def grid(self) -> "GridArchitecture":
+    def grid(self) -> GridArchitecture:
         """The plain grid of this architecture (a subclass's own fields dropped): the static
         network an animated one is built on."""
         return GridArchitecture(**{f.name: getattr(self, f.name) for f in fields(GridArchitecture)

@@ -44,7 +44,7 @@ def read_checkpoint_state(path: Path) -> dict:
     try:
         with safe_open(str(path), framework="pt") as fh:
             state = json.loads((fh.metadata() or {})["state"])
-    except Exception as exc:  # safetensors' own error type, JSON errors, a missing "state"
+    except Exception as exc:  # noqa: BLE001 -- safetensors' own error type, JSON errors, a missing "state"
         raise ValueError(f"{path}: not a readable training checkpoint ({type(exc).__name__}: "
                          f"{exc}); delete it to start over") from None
     if not isinstance(state, dict):
@@ -62,7 +62,7 @@ def load_checkpoint(path: Path, network, optimizer) -> dict:
     state = read_checkpoint_state(path)
     try:
         tensors = load_file(str(path))
-    except Exception as exc:  # safetensors' own error type
+    except Exception as exc:  # noqa: BLE001 -- safetensors' own error type
         raise ValueError(f"{path}: not a readable training checkpoint ({type(exc).__name__}: "
                          f"{exc}); delete it to start over") from None
     weights = {k[6:]: v for k, v in tensors.items() if k.startswith("model.")}

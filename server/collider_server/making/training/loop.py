@@ -29,8 +29,13 @@ from .checkpoints import (
     save_tensors_atomically,
 )
 from .config import TrainConfig
-from .data import (animated_validation_sets, make_animated_training_data, make_training_data, normalisation,
-                   validation_sets)
+from .data import (
+    animated_validation_sets,
+    make_animated_training_data,
+    make_training_data,
+    normalisation,
+    validation_sets,
+)
 from .deformation import DeformationFit, fit_deformation
 from .schedule import RunClock, cosine_learning_rate, make_optimizer, set_training_threads, training_threads
 
