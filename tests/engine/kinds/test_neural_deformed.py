@@ -4,7 +4,7 @@ warp is the numpy rule the fit uses, the normal is the direction of the composed
 point at the later time is the same rest point), the fused CPU kernel equals the torch path, the
 identity deformation answers as the rest network, a uniform scale divides its distances by the
 scale (the stretch correction), a degenerate warp stays finite, and the model file (the fit is
-tested in tests/training/test_animated_training.py). Random networks with smooth random fields;
+tested in tests/making/training/test_animated_training.py). Random networks with smooth random fields;
 collider frame, metres, seconds."""
 
 from __future__ import annotations

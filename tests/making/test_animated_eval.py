@@ -10,10 +10,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from tests.cli.test_cli_models import assert_user_error, run
 
 from collider_contract.point_cache import PC2Writer, read_pc2
-
-from .test_cli_models import assert_user_error, run
 
 ROOT = Path(__file__).resolve().parents[2]
 ARM_OBJ, ARM_PC2 = ROOT / "examples/animations/arm.obj", ROOT / "examples/animations/arm.pc2"
