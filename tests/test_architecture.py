@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import ast
 import functools
+import importlib
 import importlib.metadata
 import re
 import sys
@@ -426,3 +427,29 @@ def test_the_graph_checks_see_a_cycle():
     assert layer_of("collider_cli.views.page") == "views" and layer_of("collider_cli.main") == "cli"
     assert layer_of("collider_client._embedded") == "sdk"
     assert layer_of("somebody_else") is None
+
+
+# -- the packages' public names ---------------------------------------------------------------
+
+
+def _defines_all(source: Source) -> bool:
+    return any(isinstance(node, (ast.Assign, ast.AnnAssign)) and any(
+        isinstance(target, ast.Name) and target.id == "__all__"
+        for target in (node.targets if isinstance(node, ast.Assign) else [node.target]))
+        for node in ast.parse(source.text).body)
+
+
+def test_the_four_packages_declare_their_public_names(found):
+    with_all = [name for name, source in found.items() if _defines_all(source)]
+    assert {"collider_contract", "collider_client", "collider_server", "collider_cli"} <= set(with_all)
+
+
+@pytest.mark.parametrize("module", [name for name, source in sources().items() if _defines_all(source)])
+def test_star_import_gives_exactly_all(module):
+    """``from MODULE import *`` works for every module with an ``__all__`` (every name it lists
+    is defined or imported there), and gives those names, each once."""
+    namespace: dict = {}
+    exec(f"from {module} import *", namespace)  # noqa: S102 (the module is one of this project's)
+    listed = importlib.import_module(module).__all__
+    assert len(listed) == len(set(listed))
+    assert set(namespace) - {"__builtins__"} == set(listed)

@@ -21,7 +21,7 @@ import os
 # is set before anything imports torch; a value the user set wins.
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
-from collider_contract import FIELDS
+from collider_contract import FIELDS, MAX_COORDINATE_M, Pose, PoseError, QueryResult, as_pose
 
 from .engine import Collider, ColliderInfo, ModelFileError, ModelRepository, load_collider, save_collider
 
