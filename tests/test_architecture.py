@@ -342,6 +342,27 @@ def test_the_cli_registers_its_commands_through_imports_the_checker_reads(found)
     assert {"collider_cli.commands.models", "collider_cli.commands.serve"} <= seen
 
 
+def engine_names_outside_all(found: dict[str, Source]) -> list[str]:
+    """The embedded backend's engine imports that are not ``from collider_server.engine import
+    NAME`` with NAME in ``engine.__all__``: it uses the engine's exported API only, as the
+    service's twin (docs/architecture.md)."""
+    exported = set(importlib.import_module("collider_server.engine").__all__)
+    module = "collider_client._embedded"
+    return [f"{module}:{line} imports {imported_from}{'.' + name if name else ''}"
+            for imported_from, name, line in imports_of(module, found[module])
+            if imported_from and layer_of(imported_from) == "engine"
+            and (imported_from != "collider_server.engine" or name not in exported)]
+
+
+def test_the_embedded_backend_imports_only_what_the_engine_exports(found):
+    assert engine_names_outside_all(found) == []
+    broken = planted(found, "collider_client._embedded",
+                     "def _planted():\n    from collider_server.engine.devices import device_of  # planted")
+    line = len(broken["collider_client._embedded"].text.splitlines())
+    assert engine_names_outside_all(broken) == [
+        f"collider_client._embedded:{line} imports collider_server.engine.devices.device_of"]
+
+
 # -- the checker catches planted breaks -------------------------------------------------------
 
 

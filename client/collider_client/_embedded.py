@@ -30,6 +30,11 @@ class EmbeddedBackend:
     """Colliders loaded from a model repository folder (``models``, default ``models/``) on
     ``device`` ("cpu", "cuda", None = CUDA if present). Loaded models are kept for reuse.
 
+    The service's twin: a model is a repository NAME, never a file path; it is loaded as the
+    service loads it (:meth:`~collider_server.engine.ModelRepository.load_model`), and the models
+    listed (and named in an unknown model's refusal) are the loaded ones, as the service lists
+    them (:func:`~collider_server.engine.served_models`), so listing loads every model.
+
     threads : torch CPU threads for the engine (process-wide, as torch's setting is); None
         leaves torch's default. On a busy CPU, fewer threads than cores avoid spin-waiting
         (``collider serve`` uses cores - 1 for the same reason).
@@ -38,7 +43,7 @@ class EmbeddedBackend:
     def __init__(self, models: str | Path | None = None, device: str | None = None,
                  threads: int | None = None):
         try:
-            from collider_server.engine.repository import ModelRepository
+            from collider_server.engine import ModelRepository
         except ImportError as exc:  # the light install has no engine
             raise ImportError(
                 "the embedded backend needs the engine: pip install 'neural-collider[serve]' "
@@ -52,23 +57,39 @@ class EmbeddedBackend:
             torch.set_num_threads(threads)
         self.repository = ModelRepository(models)
         self.device = device
-        self._colliders: dict[str, object] = {}
+        self._loaded: dict[str, object] = {}  # name -> the engine's LoadedCollider
+        self._failed: dict[str, str] = {}  # names whose file did not load, and why
         self._lock = threading.Lock()
+
+    def _load(self, name: str):
+        """The loaded model ``name`` (the lock held)."""
+        if name not in self._loaded:
+            self._loaded[name] = self.repository.load_model(name, self.device)
+        return self._loaded[name]
+
+    def _load_all(self) -> None:
+        """Every model of the repository, as the service loads them at start: a file that does
+        not load is not served (the lock held)."""
+        for name in self.repository.names():
+            if name not in self._loaded and name not in self._failed:
+                try:
+                    self._load(name)
+                except Exception as exc:  # noqa: BLE001 -- as the service: the others are served
+                    self._failed[name] = str(exc)
 
     def collider(self, name: str):
         """The loaded engine collider ``name`` (loads it on first use); the service's 404 for a
-        name the repository does not hold."""
-        from collider_server.engine.modelfile import ModelFileError
+        name the repository does not hold, a path given as a name included."""
+        from collider_server.engine import ModelFileError
 
         with self._lock:
-            if name not in self._colliders:
-                try:
-                    self._colliders[name] = self.repository.load(name, self.device)
-                except ModelFileError as exc:  # a file there, but not a usable model
-                    raise ModelNotFoundError(f"model {name!r} cannot be loaded: {exc}") from None
-                except (FileNotFoundError, ValueError):  # absent, or an invalid name
-                    raise refusal(unknown_model(name, self.repository.names())) from None
-            return self._colliders[name]
+            try:
+                return self._load(name).collider
+            except ModelFileError as exc:  # a file there, but not a usable model
+                raise ModelNotFoundError(f"model {name!r} cannot be loaded: {exc}") from None
+            except (FileNotFoundError, ValueError):  # absent, or not a name
+                self._load_all()
+                raise refusal(unknown_model(name, self._loaded)) from None
 
     def query(self, model: str, query: ModelQuery) -> QueryResult:
         collider = self.collider(model)
@@ -89,17 +110,12 @@ class EmbeddedBackend:
             raise refusal(exc) from None
 
     def list_models(self) -> list[ModelInfo]:
-        from collider_server.engine.devices import device_of, resolve_device
-        from collider_server.engine.modelfile import read_info
-        from collider_server.engine.repository import model_info
+        from collider_server.engine import served_models
 
-        device = resolve_device(self.device)
-        models = []
-        for name in self.repository.names():
-            path = self.repository.path(name)
-            info = read_info(path)
-            models.append(model_info(name, info, path.stat().st_size, device_of(info.kind, device)))
-        return models
+        with self._lock:
+            self._load_all()
+            return served_models(self._loaded)
 
     def close(self) -> None:
-        self._colliders.clear()
+        self._loaded.clear()
+        self._failed.clear()

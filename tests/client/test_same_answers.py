@@ -7,6 +7,9 @@ both backends answer them through the query contract (collider_contract). Voxel 
 
 from __future__ import annotations
 
+import json
+import shutil
+
 import httpx
 import numpy as np
 import pytest
@@ -223,7 +226,11 @@ def raw_body(method: str, args, kwargs) -> bytes | None:
 
 @pytest.mark.parametrize("case", list(CASES))
 def test_embedded_and_remote_give_the_same_outcome(backends, server_url, case):
-    method, args, kwargs = CASES[case]
+    assert_same_outcome(backends, server_url, *CASES[case])
+
+
+def assert_same_outcome(backends, server_url, method, args, kwargs):
+    """Embedded and remote give the same answer, or the same error as the service's problem."""
     embedded, remote = (outcome(client, method, args, kwargs) for client in backends)
     assert embedded[0] == remote[0], (embedded, remote)
     if embedded[0] == "error":
@@ -247,6 +254,52 @@ def test_embedded_and_remote_give_the_same_outcome(backends, server_url, case):
         other = remote[1][name]
         assert value.dtype == other.dtype and value.shape == other.shape, name
         np.testing.assert_array_equal(value, other, err_msg=name)  # bit-identical
+
+
+@pytest.mark.parametrize("method", ["query", "scene"])
+def test_a_file_path_given_as_a_model_name_is_refused_alike(backends, server_url, models_dir, method):
+    """A model is a name, never a file: the path of a model file that exists is refused by
+    both backends as the service refuses it (404 ``unknown-model``, listing the models served)."""
+    path = str(models_dir / "sphere.safetensors")
+    kwargs = {"model": path} if method == "query" else {"colliders": ["box", path]}
+    assert_same_outcome(backends, server_url, method, (NEAR[:2],), kwargs)
+    error = outcome(backends[0], method, (NEAR[:2],), kwargs)
+    assert error[:3] == ("error", cc.ModelNotFoundError, "unknown-model"), error
+    assert error[3] == (f"404 Not found: no model named {path!r} "
+                        "(models: box, pulse, pulse-voxel, sphere)")
+
+
+def test_an_embedded_client_of_an_empty_folder_refuses_a_file_path(tmp_path, models_dir):
+    with cc.Client(models=tmp_path, device="cpu") as client:
+        assert client.list_models() == []
+        for name in (str(models_dir / "sphere.safetensors"), "sphere.safetensors", "sphere"):
+            with pytest.raises(cc.ModelNotFoundError) as refused:
+                client.query(name, NEAR[:2])
+            assert refused.value.type == "unknown-model"
+            assert str(refused.value) == f"404 Not found: no model named {name!r} (models: none)"
+
+
+def test_embedded_and_remote_list_the_same_models(backends):
+    embedded, remote = ([m.to_dict() for m in client.list_models()] for client in backends)
+    assert [m["name"] for m in embedded] == ["box", "pulse", "pulse-voxel", "sphere"]
+    assert json.dumps(embedded, sort_keys=True) == json.dumps(remote, sort_keys=True)
+
+
+def test_a_file_that_does_not_load_is_listed_by_neither(models_dir, tmp_path):
+    """The service serves the models that load; the embedded backend lists the same."""
+    from collider_cli.launch import ServerProcess
+
+    shutil.copy(models_dir / "sphere.safetensors", tmp_path / "sphere.safetensors")
+    (tmp_path / "broken.safetensors").write_bytes(b"not a model")
+    server = ServerProcess(tmp_path, "--device", "cpu", "--log-level", "error")
+    try:
+        server.wait_ready(90)
+        with cc.Client(models=tmp_path, device="cpu") as embedded, cc.Client(server.url) as remote:
+            listed = [[m.to_dict() for m in client.list_models()] for client in (embedded, remote)]
+            assert [m["name"] for m in listed[0]] == ["sphere"]
+            assert json.dumps(listed[0], sort_keys=True) == json.dumps(listed[1], sort_keys=True)
+    finally:
+        server.stop()
 
 
 def test_the_cases_cover_answers_and_every_refusal(backends):

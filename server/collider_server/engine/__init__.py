@@ -7,7 +7,7 @@ the repository that finds them by name (torch, numpy; no HTTP, no mesh files).
 
 from .collider import Collider, ColliderInfo
 from .modelfile import ModelFileError, load_collider, save_collider
-from .repository import ModelRepository
+from .repository import LoadedCollider, ModelRepository, served_models
 
-__all__ = ["Collider", "ColliderInfo", "ModelFileError", "ModelRepository", "load_collider",
-           "save_collider"]
+__all__ = ["Collider", "ColliderInfo", "LoadedCollider", "ModelFileError", "ModelRepository", "load_collider",
+           "save_collider", "served_models"]

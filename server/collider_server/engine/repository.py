@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import os
 import re
+from collections.abc import Mapping
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -93,6 +95,21 @@ def model_info(name: str, info: ColliderInfo, size_bytes: int, device: str) -> M
                      settings=info.settings, device=device, animation=info.animation)
 
 
+class LoadedCollider(NamedTuple):
+    """A repository's model, loaded: its collider and what ``GET /v1/models`` and the SDK's
+    ``list_models`` say of it (:func:`model_info`)."""
+
+    collider: Collider
+    info: ModelInfo
+
+
+def served_models(loaded: Mapping[str, LoadedCollider]) -> list[ModelInfo]:
+    """The models a service or an embedded client serves, as both list them: every loaded
+    model (a repository's file that failed to load is not served), sorted by name. ``loaded``'s
+    values need only an ``info``."""
+    return [loaded[name].info for name in sorted(loaded)]
+
+
 class ModelRepository:
     """Colliders stored as ``root/NAME.safetensors``."""
 
@@ -112,10 +129,30 @@ class ModelRepository:
     def path(self, name: str) -> Path:
         return self.root / f"{check_name(name)}{SUFFIX}"
 
+    def model_file(self, name: str) -> Path:
+        """The file of the repository's model ``name``, a name only, never a path (what the
+        service and the SDK's embedded backend serve): ValueError for an invalid name,
+        FileNotFoundError when the repository holds no such model."""
+        path = self.path(name)
+        if not path.is_file():
+            raise FileNotFoundError(f"no model file {path.name} in {self.root}")
+        return path
+
+    def load_model(self, name: str, device: str | None = None) -> LoadedCollider:
+        """The repository's model ``name`` (a name only: :meth:`model_file`) loaded on ``device``
+        (None: CUDA if present), with its :func:`model_info`. Raises ValueError,
+        FileNotFoundError or ModelFileError."""
+        path = self.model_file(name)
+        size_bytes = path.stat().st_size  # read first: a file replaced meanwhile fails here
+        collider = load_collider(path, device)
+        return LoadedCollider(collider, model_info(name, collider.info, size_bytes, collider.device))
+
     def resolve(self, name_or_path: str) -> Path:
         """A model name in this repository, or a path to a model file (one that ends in
-        ``.safetensors`` or has a directory part). A bare name is always a repository name, even
-        when a file of that name happens to exist in the working directory."""
+        ``.safetensors`` or has a directory part), for the ``collider`` commands, which take
+        either. A bare name is always a repository name, even when a file of that name happens
+        to exist in the working directory. The service and the SDK take names only
+        (:meth:`load_model`)."""
         if name_or_path.endswith(SUFFIX) or Path(name_or_path).name != name_or_path:
             return Path(name_or_path)
         path = self.path(name_or_path)

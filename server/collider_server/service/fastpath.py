@@ -25,8 +25,8 @@ from .auth import require_token
 from .problems import Problem
 from .routers import models
 
-QUERY_PATH = re.compile(r"^/v1/models/([^/]+)/query$")
-ROUTE = SimpleNamespace(path="/v1/models/{name}/query")
+QUERY_PATH = re.compile(r"^/v1/models/(.+)/query$")  # as the route's {name:path}
+ROUTE = SimpleNamespace(path_format="/v1/models/{name}/query")
 
 
 #: The dependencies the shortcut runs, in order, exactly as the router declares them.
@@ -35,7 +35,7 @@ FAST_PATH_DEPENDENCIES = (require_token,)
 
 def check_equivalent(router=models.router) -> None:
     """RuntimeError unless the query route's dependencies are :data:`FAST_PATH_DEPENDENCIES`."""
-    route = next(r for r in router.routes if getattr(r, "path", "").endswith("/{name}/query"))
+    route = next(r for r in router.routes if getattr(r, "path_format", "").endswith("/{name}/query"))
     declared = tuple(d.dependency for d in route.dependencies)  # the router's come first
     if declared != FAST_PATH_DEPENDENCIES:
         names = [getattr(d, "__name__", repr(d)) for d in declared]

@@ -142,6 +142,6 @@ class RequestObserver:
             await problem.response()(scope, receive, send_and_record)
         finally:
             self.metrics.requests_in_flight.dec()
-            route = getattr(scope.get("route"), "path", None) or "unmatched"
+            route = getattr(scope.get("route"), "path_format", None) or "unmatched"
             self.metrics.requests.labels(scope["method"], route, str(status[0] or 500)).inc()
             self.metrics.request_seconds.labels(route).observe(time.perf_counter() - started)

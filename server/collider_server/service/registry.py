@@ -13,7 +13,7 @@ import numpy as np
 from collider_contract import ModelInfo
 
 from ..engine.collider import Collider
-from ..engine.repository import ModelRepository, check_name, model_info
+from ..engine.repository import LoadedCollider, ModelRepository
 from .batching import BatchPart, BatchSettings, DeviceWorkers, RowBatcher
 from .metrics import ServiceMetrics
 
@@ -80,14 +80,10 @@ class ModelRegistry:
         """Load (or reload) ``name`` from the repository in a thread; the old version, if any,
         answers its queued requests before it goes. Raises ValueError / FileNotFoundError /
         ModelFileError."""
-        check_name(name)
-        path = self.repository.path(name)
-        if not path.is_file():
-            raise FileNotFoundError(f"no model file {path.name} in {self.repository.root}")
-        collider, size_bytes = await asyncio.to_thread(self._load_and_warm, path)
+        self.repository.model_file(name)  # an invalid or absent name fails before the thread
+        collider, info = await asyncio.to_thread(self._load_and_warm, name)
         # Nothing may fail between creating the batcher (its loop task starts at once) and
         # registering it, or the task would be left running with no one to close it.
-        info = model_info(name, collider.info, size_bytes, collider.device)
         batcher = RowBatcher(functools.partial(self.answer_batch, collider, name), self.batch,
                              self.workers.executor(collider.device),
                              on_batch=self.metrics.batch_observer(name))
@@ -102,16 +98,13 @@ class ModelRegistry:
         log.info("loaded %s (%s on %s)", name, collider.info.kind, collider.device)
         return model
 
-    def _load_and_warm(self, path) -> tuple[Collider, int]:
-        """The collider in ``path``, warmed up, and the file's size in bytes (read first, so a
-        file replaced or removed meanwhile fails here, before any batcher exists)."""
-        from ..engine.modelfile import load_collider
-
-        size_bytes = path.stat().st_size
-        collider = load_collider(path, self.device)
+    def _load_and_warm(self, name: str) -> LoadedCollider:
+        """The repository's model ``name``, loaded (as the SDK's embedded backend loads it) and
+        warmed up; a file replaced or removed meanwhile fails here, before any batcher exists."""
+        loaded = self.repository.load_model(name, self.device)
         if self.warmup:
-            warm_up(collider)
-        return collider, size_bytes
+            warm_up(loaded.collider)
+        return loaded
 
     async def unload(self, name: str) -> bool:
         """Stop serving ``name``: new requests get 404 at once, queued ones are answered."""

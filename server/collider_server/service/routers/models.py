@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from fastapi import APIRouter, Depends, Request
 
+from ...engine.repository import served_models
 from ..answers import absolute_deadline, answer_query, unless_disconnected
 from ..auth import require_token
 from ..bodies import (
@@ -22,8 +23,7 @@ router = APIRouter(prefix="/v1/models", tags=["models"], dependencies=[Depends(r
 
 @router.get("", summary="the models being served", responses=problems(401))
 async def list_models(request: Request):
-    registry = get_state(request).registry
-    return {"models": [registry.models[name].info.to_dict() for name in sorted(registry.models)]}
+    return {"models": [info.to_dict() for info in served_models(get_state(request).registry.models)]}
 
 
 @router.get("/{name}", summary="one model: kind, units, domain box, size, recorded accuracy",
@@ -32,7 +32,9 @@ async def model_info(name: str, request: Request):
     return serving_model(get_state(request), name).info.to_dict()
 
 
-@router.post("/{name}/query", summary="distance / normal / contact / collides of points",
+# ``{name:path}``: a name with "/" in it (a file path given as a name) reaches the model lookup
+# and is refused as an unknown model, as the scene route and the SDK's embedded backend refuse it.
+@router.post("/{name:path}/query", summary="distance / normal / contact / collides of points",
              responses=query_responses({"model": {"type": "string"}}))
 async def query(name: str, request: Request):
     """Points in the world frame, an optional pose (collider -> world), the fields to return and
