@@ -74,7 +74,7 @@ def main() -> None:
                     distance = exact.signed_distance(local)
                     energy = sim.energy()
                     frames.append({"step": i, "t_s": sim.t, "finite": bool(np.isfinite(sim.x).all()),
-                                   "deepest_m": float(max(0.0, -distance.min())),
+                                   "deepest_inside_m": float(max(0.0, -distance.min())),
                                    "closest_m": float(distance.min()), "energy_j": energy,
                                    "colliding": sim.hook.stats.colliding_last})
                     if args.json:  # after every frame: a run stopped early keeps its figures
@@ -98,7 +98,7 @@ def write_json(path: Path, summary: dict, frames: list) -> None:
 def summarise(frames: list, start_energy: float, scene, args, wall: float) -> dict:
     """The run's figures over the frames so far."""
     steps = frames[-1]["step"]
-    worst = max(frames, key=lambda f: f["deepest_m"])
+    worst = max(frames, key=lambda f: f["deepest_inside_m"])
     energies = np.array([f["energy_j"]["total"] for f in frames])
     return {
         "steps": steps, "dt_s": scene.dt_s, "simulated_s": steps * scene.dt_s, "frames": len(frames),
@@ -107,7 +107,7 @@ def summarise(frames: list, start_energy: float, scene, args, wall: float) -> di
         "energy_start_j": start_energy, "energy_max_j": float(energies.max()),
         "energy_end_j": float(energies[-1]),
         "energy_rise_j": float(energies.max() - start_energy),
-        "deepest_inside_exact_mm": 1e3 * worst["deepest_m"], "deepest_at_step": worst["step"],
+        "deepest_inside_exact_mm": 1e3 * worst["deepest_inside_m"], "deepest_at_step": worst["step"],
         "closest_mm": 1e3 * min(f["closest_m"] for f in frames),
         "colliding_max": max(f["colliding"] for f in frames),
     }

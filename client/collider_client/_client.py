@@ -34,7 +34,7 @@ from ._base import (
     decode_query,
     refusal,
 )
-from ._exceptions import ConnectError, TimeoutError, TransportError
+from ._exceptions import ConnectError, RequestTimeoutError, TransportError
 
 DEFAULT_TIMEOUT_S = 30.0
 
@@ -113,7 +113,7 @@ def _failure(exc: httpx.TransportError) -> str:
 
 def _transport_error(exc: httpx.TransportError, url: str) -> TransportError:
     if isinstance(exc, httpx.TimeoutException):
-        return TimeoutError(f"{url}: timed out ({type(exc).__name__})")
+        return RequestTimeoutError(f"{url}: timed out ({type(exc).__name__})")
     if isinstance(exc, httpx.ConnectError):
         return ConnectError(f"{url}: cannot connect ({exc})")
     return TransportError(f"{url}: {type(exc).__name__}: {exc}")

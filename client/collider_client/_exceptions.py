@@ -5,7 +5,7 @@ The tree::
     ColliderError                  root: catch this to catch everything below
     ├── TransportError             no usable HTTP answer came back
     │   ├── ConnectError           the server could not be reached
-    │   └── TimeoutError           connect/read/write took longer than the client's timeout
+    │   └── RequestTimeoutError    a step of a request took longer than the client's timeout_s
     ├── ProtocolError              an answer that does not follow the wire format
     └── ServerError                the server answered with an error status (has .status, .title,
         │                          .detail, .type, .retry_after_s)
@@ -35,9 +35,9 @@ __all__ = [
     "PayloadTooLargeError",
     "ProtocolError",
     "QueueFullError",
+    "RequestTimeoutError",
     "ServerError",
     "ServiceUnavailableError",
-    "TimeoutError",
     "TransportError",
     "UnauthorizedError",
     "UnsupportedMediaTypeError",
@@ -57,8 +57,13 @@ class ConnectError(TransportError):
     """The server could not be reached at the client's URL."""
 
 
-class TimeoutError(TransportError):
-    """Connecting, sending or reading took longer than the client's ``timeout_s``."""
+class RequestTimeoutError(TransportError):
+    """One step of a request took longer than the client's ``timeout_s``: connecting, sending,
+    waiting for the answer's next bytes, or waiting for a free pooled connection (httpx's
+    ``TimeoutException``: ``ConnectTimeout``, ``WriteTimeout``, ``ReadTimeout``,
+    ``PoolTimeout``). Each step has the limit on its own, so a whole request may take longer.
+    Not retried: the server may still be at work. (Not Python's builtin ``TimeoutError``, which
+    this package does not shadow.)"""
 
 
 class ProtocolError(ColliderError):

@@ -198,7 +198,7 @@ class HookStats:
     queries: int = 0
     colliding_last: int = 0
     colliding_max: int = 0
-    deepest_m: float = 0.0  # most negative signed distance seen (<= 0): the worst penetration
+    deepest_penetration_m: float = 0.0  # most negative signed distance seen (<= 0): the worst penetration
     query_s: float = 0.0
     response_s: float = 0.0
     fields: list[str] = field(default_factory=list)
@@ -430,7 +430,8 @@ class CollisionHook:
         local_index = np.flatnonzero(hit)
         if not len(local_index):
             return hit, spent
-        self.stats.deepest_m = min(self.stats.deepest_m, float(np.min(result.distance[local_index])))
+        deepest = float(np.min(result.distance[local_index]))
+        self.stats.deepest_penetration_m = min(self.stats.deepest_penetration_m, deepest)
         contact = np.asarray(result.contact, dtype=np.float64)[local_index]
         # The surface's velocity at the contacts (world frame, m/s): the service's answer.
         if result.velocity is not None:

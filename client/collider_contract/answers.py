@@ -197,17 +197,18 @@ def finish_scene(query: SceneQuery, eps: Sequence[float], answers: Sequence) -> 
     """
     points, n = query.points, len(query.points)
     poses = [placed.pose for placed in query.colliders]
-    nearest = nearest_collider(np.stack([answer[0] * pose.scale for answer, pose in zip(answers, poses)]))
+    nearest = nearest_collider(np.stack([answer[0] * pose.scale
+                                         for answer, pose in zip(answers, poses, strict=True)]))
     dtypes = {"distance": np.float32, "normal": np.float32, "contact": points.dtype,
               "collides": np.bool_, "velocity": np.float32}
     out = {f: np.empty((n, 3) if f in ("normal", "contact", "velocity") else n, dtypes[f])
            for f in query.fields}
-    for i, answer in enumerate(answers):
+    for i, (answer, eps_i) in enumerate(zip(answers, eps, strict=True)):
         rows = np.flatnonzero(nearest == i)
         if not len(rows):
             continue
         own = query.of_collider(i)
-        part = finish(dataclasses.replace(own, points=points[rows]), eps[i],
+        part = finish(dataclasses.replace(own, points=points[rows]), eps_i,
                       *(None if a is None else a[rows] for a in answer))
         for name, values in part.fields().items():
             out[name][rows] = values
@@ -219,12 +220,15 @@ def finish_scene(query: SceneQuery, eps: Sequence[float], answers: Sequence) -> 
 def answer_scene_query(query: SceneQuery, meters_per_unit: Sequence[float],
                        evaluate: Sequence[Evaluate], animated: Sequence[bool] | None = None) -> QueryResult:
     """The fields of a scene query, its colliders' units, evaluations and whether each is
-    animated given in its order."""
-    for i, is_animated in enumerate(animated or ()):
-        require_time(query.of_collider(i), is_animated, f"model {query.colliders[i].model!r}")
-    evaluations = [prepare(query.of_collider(i), mpu) for i, mpu in enumerate(meters_per_unit)]
+    animated given in its order (one each: ValueError otherwise)."""
+    colliders = range(len(query.colliders))
+    if animated is not None:
+        for i, is_animated in zip(colliders, animated, strict=True):
+            require_time(query.of_collider(i), is_animated, f"model {query.colliders[i].model!r}")
+    evaluations = [prepare(query.of_collider(i), mpu)
+                   for i, mpu in zip(colliders, meters_per_unit, strict=True)]
     return finish_scene(query, [e.eps for e in evaluations],
-                        [e.run(f) for e, f in zip(evaluations, evaluate)])
+                        [e.run(f) for e, f in zip(evaluations, evaluate, strict=True)])
 
 
 def check_finite(result: QueryResult, points: np.ndarray, where: str, first_row: int = 0) -> None:

@@ -173,6 +173,24 @@ def test_refused_connection_is_a_connect_error():
         assert client.ready() is False
 
 
+def test_a_server_that_never_answers_is_a_request_timeout():
+    """A listening server that accepts the request and says nothing: after ``timeout_s`` the
+    client raises its own RequestTimeoutError (not Python's builtin TimeoutError)."""
+    import socket
+
+    with socket.socket() as listener:
+        listener.bind(("127.0.0.1", 0))
+        listener.listen()
+        port = listener.getsockname()[1]
+        with cc.Client(f"http://127.0.0.1:{port}", timeout_s=0.3) as client:
+            started = time.monotonic()
+            with pytest.raises(cc.RequestTimeoutError, match="timed out") as raised:
+                client.query("m", np.zeros((1, 3)))
+            assert time.monotonic() - started < 5.0
+    assert isinstance(raised.value, cc.TransportError)
+    assert not isinstance(raised.value, TimeoutError)
+
+
 def test_retry_policy_backoff_and_retry_after():
     policy = cc.RetryPolicy(max_retries=5, backoff_s=0.1, max_backoff_s=1.0)
     assert policy.delay_s(0, None) == pytest.approx(0.1)

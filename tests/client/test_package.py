@@ -23,6 +23,14 @@ def test_all_is_complete_and_importable():
         assert hasattr(collider_client, name), name
 
 
+def test_no_exported_name_shadows_a_builtin():
+    """``from collider_client import *`` leaves Python's own names alone (the SDK's timeout is
+    ``RequestTimeoutError``, not ``TimeoutError``)."""
+    import builtins
+
+    assert [name for name in collider_client.__all__ if hasattr(builtins, name)] == []
+
+
 def test_exception_tree_has_one_root():
     for name in collider_client.__all__:
         obj = getattr(collider_client, name)

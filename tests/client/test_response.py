@@ -461,7 +461,7 @@ def test_hook_sends_its_eps_fields_and_only_colliding(exact_client, two, only_co
     np.testing.assert_allclose(pos, expected, atol=1e-12)
     np.testing.assert_array_equal(vel, 0.0)
     np.testing.assert_array_equal(mask, [True, two, False])
-    assert hook.stats.deepest_m == pytest.approx(-3e-3, abs=1e-9)  # float32 distances
+    assert hook.stats.deepest_penetration_m == pytest.approx(-3e-3, abs=1e-9)  # float32 distances
     options = {"fields": ["distance", "contact", "collides", "normal"], "eps": 2e-3,
                "only_colliding": only_colliding}
     assert len(spy.calls) == 1
@@ -563,4 +563,4 @@ def test_hook_stats_add_up_over_calls(exact_client):
     assert [h[:6] for h in history] == [(1, 3, 2, 1, 1, 1), (2, 5, 2, 1, 0, 1), (3, 8, 4, 2, 1, 1)]
     assert 0 < history[0][6] == history[1][6] < history[2][6]  # query time adds up
     assert 0 < history[0][7] <= history[1][7] <= history[2][7]  # so does the response's
-    assert hook.stats.deepest_m == pytest.approx(-2e-3, abs=1e-9)
+    assert hook.stats.deepest_penetration_m == pytest.approx(-2e-3, abs=1e-9)

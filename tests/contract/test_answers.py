@@ -477,6 +477,19 @@ def test_a_scene_query_asks_only_the_fields_asked_for():
     assert result.collider.tolist() == [1] and result.distance is None and result.normal is None
 
 
+@pytest.mark.parametrize("units, evaluate, animated", [
+    ([1.0], [Sphere(1.0), Sphere(1.5)], None),  # one collider's units missing
+    ([1.0, 1.0], [Sphere(1.0)], None),  # one evaluation missing
+    ([1.0, 1.0, 1.0], [Sphere(1.0), Sphere(1.5), Sphere(2.0)], None),  # one too many
+    ([1.0, 1.0], [Sphere(1.0), Sphere(1.5)], [False]),  # one animated flag missing
+])
+def test_a_scene_query_needs_one_of_each_per_collider(units, evaluate, animated):
+    """Lists shorter or longer than the scene's colliders are an error, never a scene cut short."""
+    query = SceneQuery.build(np.array([[0.0, 0.0, 2.0]]), ["a", "b"], "distance")
+    with pytest.raises(ValueError, match="zip"):
+        answer_scene_query(query, units, evaluate, animated)
+
+
 def test_finish_scene_compares_world_distances_with_each_pose():
     # collider 0: distance 0.4 in units of a pose scaled 3 (1.2 m); collider 1: 1.0 unscaled
     points = np.zeros((1, 3))

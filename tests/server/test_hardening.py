@@ -107,8 +107,8 @@ def test_a_far_request_in_a_batch_fails_alone(repo, engine):
     """Coalesced with good requests, a request without a finite answer gets its 422; the others
     in the same batch get their answers (assembled in the compute thread, batch-wide)."""
     from collider_contract import ModelQuery, QueryError, as_pose
-    from collider_server.service.answers import QueryJob, answer_batch
     from collider_server.service.batching import BatchPart
+    from collider_server.service.query_jobs import QueryJob, answer_batch
 
     collider = engine["sphere"]
     fields = ("distance", "normal", "contact", "collides")

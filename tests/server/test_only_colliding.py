@@ -125,8 +125,8 @@ def test_a_batch_joins_collide_only_jobs_with_others(repo):
     colliding points."""
     from collider_contract import ModelQuery, as_pose
     from collider_server.engine.repository import ModelRepository
-    from collider_server.service.answers import QueryJob, answer_batch
     from collider_server.service.batching import BatchPart
+    from collider_server.service.query_jobs import QueryJob, answer_batch
 
     collider = ModelRepository(repo).load("sphere", "cpu")  # a fresh one: its method is wrapped
     calls = []

@@ -59,7 +59,7 @@ class SpringFamily:
 
     def add_forces(self, x: np.ndarray, forces: np.ndarray) -> None:
         """Add this family's spring forces (N) at positions ``x`` (H, W, 3) into ``forces``."""
-        for (a, b), rest in zip(self.slices, self.rest):
+        for (a, b), rest in zip(self.slices, self.rest, strict=True):
             d = x[b] - x[a]
             length = np.sqrt(np.einsum("...i,...i->...", d, d))
             # f = k (|d| - L) / |d| * d, pulling a towards b when stretched.
@@ -71,7 +71,7 @@ class SpringFamily:
     def energy(self, x: np.ndarray) -> float:
         """Elastic energy (J) ``sum k (|d| - L)^2 / 2`` of this family at positions ``x``."""
         total = 0.0
-        for (a, b), rest in zip(self.slices, self.rest):
+        for (a, b), rest in zip(self.slices, self.rest, strict=True):
             length = np.linalg.norm(x[b] - x[a], axis=-1)
             total += 0.5 * self.k * float(np.sum((length - rest) ** 2))
         return total

@@ -239,7 +239,7 @@ def run_scene(scene: Scene, client, out_dir: Path, *, show_progress: bool = True
         points_sent=stats.points_sent if stats else 0, queries=stats.queries if stats else 0,
         colliding_max=stats.colliding_max if stats else 0,
         colliding_last=stats.colliding_last if stats else 0,
-        deepest_penetration_m=stats.deepest_m if stats else 0.0,
+        deepest_penetration_m=stats.deepest_penetration_m if stats else 0.0,
         per_frame_colliding=per_frame_colliding,
     )
     if preview:

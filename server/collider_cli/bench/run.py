@@ -258,8 +258,8 @@ def time_all(candidates: list[Candidate], colliders: dict, devices, points: np.n
         per_point = {k: v / min(policy.warmup_points, len(points)) for k, v in warm.items()}
         expected = [per_point[c.name, c.timing.path, c.timing.device, c.timing.mode] * c.timing.points
                     for c in cells]
-        calls = sum(_expected_calls(c, e, policy) for c, e in zip(cells, expected))
-        estimate = sum(_expected_calls(c, e, policy) * e for c, e in zip(cells, expected))
+        calls = sum(_expected_calls(c, e, policy) for c, e in zip(cells, expected, strict=True))
+        estimate = sum(_expected_calls(c, e, policy) * e for c, e in zip(cells, expected, strict=True))
         say(f"bench: timing {len(cells)} cells in {policy.repeats} interleaved rounds, about "
             f"{format_duration(estimate)} (from the warm-up calls)")
         rounds = 0

@@ -1,7 +1,7 @@
 """The HTTP service (FastAPI): ``create_app(settings)`` and its settings.
 
 Layout: ``settings`` (typed settings), ``app`` (wiring), ``routers/`` (HTTP <-> plain calls),
-``bodies`` (wire decoding and validation), ``answers`` (queries through the batchers),
+``bodies`` (wire decoding and validation), ``query_jobs`` (queries as jobs on the batchers),
 ``registry`` (models loaded), ``metrics``, ``auth``, ``problems`` (problem+json errors),
 ``connections`` (the HTTP server's connection limits: ``uvicorn_config``).
 """

@@ -13,7 +13,6 @@ from fastapi.openapi.utils import get_openapi
 from ..engine.devices import resolve_device
 from ..engine.memory import hold_freed_memory
 from ..engine.repository import ModelRepository
-from .answers import answer_batch
 from .batching import DeviceWorkers
 from .connections import ConnectionGuard
 from .fastpath import QueryFastPath, check_equivalent
@@ -22,6 +21,7 @@ from .metrics import RequestObserver, ServiceMetrics
 from .openapi import add_security, query_body, scene_body
 from .openapi import router as docs_router
 from .problems import install_handlers
+from .query_jobs import answer_batch
 from .registry import ModelRegistry
 from .routers import admin, health, models, scene
 from .settings import ServiceSettings

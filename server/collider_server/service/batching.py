@@ -22,7 +22,7 @@ measured in rows (points), not requests:
   event loop.
 
 :class:`RowBatcher` is the queue; the service gives it its batch function
-(``collider_server.service.answers.answer_batch``).
+(``collider_server.service.query_jobs.answer_batch``).
 
 Only asyncio and numpy are used here: no HTTP. Policy (which status code "queue full" becomes) is
 the web layer's business. The clock is injected (``time.monotonic`` by default) and the loop
@@ -395,7 +395,7 @@ class RowBatcher:
         compute_s = max(self._clock() - started, 1e-9)
         self._points_per_second = n / compute_s if self._points_per_second == 0 else (
             0.8 * self._points_per_second + 0.2 * n / compute_s)
-        for part, answer in zip(parts, answers):
+        for part, answer in zip(parts, answers, strict=True):  # _check_answers checked
             _deliver(part, answer)
         if self._on_batch is not None:
             waits = tuple(started - p.request.enqueued_at for p in parts)
@@ -431,7 +431,7 @@ def _check_answers(answers, rows: list[int]) -> None:
         got = len(answers) if isinstance(answers, (list, tuple)) else type(answers).__name__
         raise BatchContractError(f"the batch function returned {got} answers for {len(rows)} "
                                  "parts")
-    for answer, n in zip(answers, rows):
+    for answer, n in zip(answers, rows, strict=True):
         if isinstance(answer, BaseException):
             continue
         for name, array in answer.items():

@@ -32,7 +32,7 @@ class LoadedModel:
 
 
 #: ``answer_batch(collider, name, parts) -> answers``: what a model's batcher runs per batch
-#: (the service's :func:`~.answers.answer_batch`, given to the registry by the app).
+#: (the service's :func:`~.query_jobs.answer_batch`, given to the registry by the app).
 AnswerBatch = Callable[[Collider, str, Sequence[BatchPart]], list]
 
 

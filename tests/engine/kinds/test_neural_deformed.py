@@ -21,7 +21,7 @@ from collider_server.engine.kinds import AnimatedNeuralCollider, grid_kernels
 from collider_server.engine.kinds.neural import ANIMATED_PRESETS, PRESETS, architecture_dict, build_network
 from collider_server.engine.kinds.neural_deformed import DeformedGridArchitecture, trilinear
 from collider_server.engine.kinds.neural_grid import GridArchitecture
-from collider_server.engine.kinds.neural_keyframes import keyframe_positions
+from collider_server.engine.kinds.neural_keyframes import keyframe_segments
 from collider_server.engine.modelfile import load_collider, save_collider
 
 LO, HI = np.array([-0.12, -0.1, -0.08]), np.array([0.12, 0.1, 0.08])
@@ -114,7 +114,7 @@ def test_the_normal_is_the_composed_gradient_and_the_velocity_moves_with_the_mat
     net.fused = False  # the reference: torch ops, autograd reaches the points
 
     def composed(p, time):  # f0(X(p)) at one time, differentiable
-        key, frac = keyframe_positions(np.full(len(p), time), DURATION, 4)
+        key, frac = keyframe_segments(np.full(len(p), time), DURATION, 4)
         u = (p - net.centre) / net.radius
         rest_u, _ = net.warp_at(u, torch.from_numpy(key), torch.from_numpy(frac))
         return rest_u, net.forward(net.centre + net.radius * rest_u)  # no time: the rest pose
@@ -138,7 +138,7 @@ def test_the_normal_is_the_composed_gradient_and_the_velocity_moves_with_the_mat
     exact = copy.deepcopy(net).double()
 
     def rest_point(p, time):
-        key, frac = keyframe_positions(np.full(len(p), time), DURATION, 4)
+        key, frac = keyframe_segments(np.full(len(p), time), DURATION, 4)
         u = (torch.from_numpy(p) - exact.centre) / exact.radius
         return exact.warp_at(u, torch.from_numpy(key), torch.from_numpy(frac))[0].numpy()
 

@@ -14,7 +14,7 @@ from collider_contract import Timeline
 from collider_server.engine.collider import ColliderInfo
 from collider_server.engine.kinds import AnimatedNeuralCollider, grid_kernels
 from collider_server.engine.kinds.neural import architecture_dict, architecture_from_dict, build_network
-from collider_server.engine.kinds.neural_keyframes import KeyframeGridArchitecture, keyframe_positions
+from collider_server.engine.kinds.neural_keyframes import KeyframeGridArchitecture, keyframe_segments
 from collider_server.engine.modelfile import ModelFileError, load_collider, save_collider
 
 LO, HI = np.array([-0.12, -0.1, -0.08]), np.array([0.12, 0.1, 0.08])
@@ -136,7 +136,7 @@ def test_fused_training_kernels_match_the_torch_reference():
     network = random_network()
     rng = np.random.default_rng(4)
     x = torch.from_numpy(points(500, 5).astype(np.float32))
-    key, frac = keyframe_positions(rng.uniform(0.0, DURATION, len(x)), DURATION, 4)
+    key, frac = keyframe_segments(rng.uniform(0.0, DURATION, len(x)), DURATION, 4)
     key, frac = torch.from_numpy(key), torch.from_numpy(frac)
     grads = []
     for fused in (True, False):
@@ -164,7 +164,7 @@ def test_cuda_answers_and_trains_as_the_cpu(cuda):
     for t in (0.0, 0.11, 0.3, 0.59):
         for a, b in zip(c.evaluate_at(x, True, t), g.evaluate_at(x, True, t)):
             np.testing.assert_allclose(b, a, atol=2e-5, rtol=1e-4)
-    key, frac = keyframe_positions(np.random.default_rng(8).uniform(0.0, DURATION, len(x)), DURATION, 4)
+    key, frac = keyframe_segments(np.random.default_rng(8).uniform(0.0, DURATION, len(x)), DURATION, 4)
     grads = []
     for network, device in ((c.network, "cpu"), (g.network, cuda)):
         network.table.requires_grad_(True)
@@ -179,8 +179,8 @@ def test_cuda_answers_and_trains_as_the_cpu(cuda):
         torch.testing.assert_close(b, a, atol=1e-4, rtol=1e-4)
 
 
-def test_keyframe_positions_span_the_duration():
-    key, frac = keyframe_positions(np.array([0.0, 0.1, 0.2, 0.59999, 0.6]), DURATION, 4)
+def test_keyframe_segments_span_the_duration():
+    key, frac = keyframe_segments(np.array([0.0, 0.1, 0.2, 0.59999, 0.6]), DURATION, 4)
     assert key.tolist() == [0, 0, 1, 2, 2]
     assert np.allclose(frac, [0.0, 0.5, 0.0, 1.0, 1.0], atol=1e-4)
 

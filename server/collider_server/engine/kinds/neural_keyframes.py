@@ -59,7 +59,7 @@ class KeyframeGridArchitecture(GridArchitecture):
         return super().parameter_count() + (self.keyframes - 1) * table
 
 
-def keyframe_positions(times, duration_s: float, keyframes: int):
+def keyframe_segments(times, duration_s: float, keyframes: int):
     """Keyframe segment (int64) and fraction (float32) of animation times ``times`` (seconds,
     numpy, in [0, duration_s]) with ``keyframes`` keyframes evenly spaced over the duration."""
     position = np.clip(np.asarray(times, np.float64) / duration_s, 0.0, 1.0) * (keyframes - 1)

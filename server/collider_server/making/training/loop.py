@@ -17,7 +17,7 @@ from ...engine.collider import ColliderInfo
 from ...engine.kinds.animated_neural import AnimatedNeuralCollider
 from ...engine.kinds.neural import ANIMATED_PRESETS, NeuralCollider, architecture_dict, build_network
 from ...engine.kinds.neural_deformed import DeformedGridArchitecture
-from ...engine.kinds.neural_keyframes import KeyframeGridArchitecture, keyframe_positions
+from ...engine.kinds.neural_keyframes import KeyframeGridArchitecture, keyframe_segments
 from ...engine.meshes import ExactSDF, Mesh
 from ..bake import animation_source, mesh_source, padded_box
 from .checkpoints import (
@@ -140,7 +140,7 @@ def train_animated_neural(animation: AnimatedMesh, name: str, config: TrainConfi
 
         if times is None:
             return ()
-        key, frac = keyframe_positions(times, duration, arch.keyframes)
+        key, frac = keyframe_segments(times, duration, arch.keyframes)
         return torch.from_numpy(key), torch.from_numpy(frac)
 
     def samples():

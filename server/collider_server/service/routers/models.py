@@ -5,7 +5,6 @@ from __future__ import annotations
 from fastapi import APIRouter, Depends, Request
 
 from ...engine.repository import served_models
-from ..answers import absolute_deadline, answer_query, unless_disconnected
 from ..auth import require_token
 from ..bodies import (
     encode_response,
@@ -16,6 +15,7 @@ from ..bodies import (
     response_media_type,
 )
 from ..openapi import problems, query_responses
+from ..query_jobs import absolute_deadline, answer_query, unless_disconnected
 from ..state import get_state, serving_model
 
 router = APIRouter(prefix="/v1/models", tags=["models"], dependencies=[Depends(require_token)])

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 from fastapi import APIRouter, Depends, Request
 
-from ..answers import absolute_deadline, answer_scene, unless_disconnected
 from ..auth import require_token
 from ..bodies import (
     encode_response,
@@ -15,6 +14,7 @@ from ..bodies import (
     response_media_type,
 )
 from ..openapi import query_responses
+from ..query_jobs import absolute_deadline, answer_scene, unless_disconnected
 from ..state import get_state, serving_model
 
 router = APIRouter(prefix="/v1/scene", tags=["scene"], dependencies=[Depends(require_token)])

@@ -87,13 +87,14 @@ def _answer_batch(collider: Collider, name: str, parts: Sequence[BatchPart]) -> 
     outputs: list = [None] * len(evaluations)
     for at, members_of_time in by_time.items():
         for g, output in zip(members_of_time, _evaluate_together(
-                collider, [evaluations[g] for g in members_of_time], at)):
+                collider, [evaluations[g] for g in members_of_time], at), strict=True):
             outputs[g] = output
     answers: list = [None] * len(parts)
-    for members, query, evaluation, output in zip(groups.values(), queries, evaluations, outputs):
+    for members, query, evaluation, output in zip(groups.values(), queries, evaluations, outputs,
+                                                  strict=True):
         if parts[members[0]].payload.local_only:
-            group = {name: value for name, value in zip(("distance", "normal", "velocity"), output)
-                     if value is not None}
+            group = {name: value for name, value
+                     in zip(("distance", "normal", "velocity"), output, strict=True) if value is not None}
         else:
             group = finish(query, evaluation.eps, *output).fields()
         start = 0
@@ -185,7 +186,7 @@ async def answer_scene(models: list[LoadedModel], query: SceneQuery,
         submit(model, QueryJob(query.of_collider(i), local_only=True), deadline)
         for i, model in enumerate(models)))
     eps = [resolve_eps(query.eps, model.collider.info.meters_per_unit, placed.pose)
-           for model, placed in zip(models, query.colliders)]
+           for model, placed in zip(models, query.colliders, strict=True)]
     with np.errstate(over="ignore", invalid="ignore"):
         return finish_scene(query, eps, [(a["distance"], a.get("normal"), a.get("velocity"))
                                          for a in answers])
