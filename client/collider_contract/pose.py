@@ -18,9 +18,10 @@ import numpy as np
 
 ORTHONORMAL_TOLERANCE = 1e-5
 #: The coordinate range, world units (metres for the shipped models): query points (checked by
-#: ``collider.check_points``), pose translations (checked here) and ``eps`` beyond
-#: +-MAX_COORDINATE_M, or non-finite, are refused with a ValueError naming the field and the row
-#: (the service answers 422). Inside it every answer is finite in float32: no Infinity, NaN or
+#: :func:`collider_contract.queries.check_points`: the first bad row named) and pose translations
+#: (checked here: :class:`PoseError`, row and column named) beyond +-MAX_COORDINATE_M, an ``eps``
+#: beyond it (:func:`collider_contract.queries.check_eps`), or any of them non-finite, are refused
+#: with a ValueError saying which (the service answers 422). Inside it every answer is finite in float32: no Infinity, NaN or
 #: zero normal. Why 1e6: a million model sizes away from any real collider, yet far from where
 #: float32 overflows (3.4e38; squared distances overflow near 1e19). float32 points resolve only
 #: 6 cm at 1e6: far scenes should send float64 points (poses are always float64).

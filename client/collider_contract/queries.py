@@ -63,7 +63,8 @@ def check_points(points) -> np.ndarray:
     except (TypeError, ValueError) as exc:  # ragged nested lists, objects numpy cannot convert
         raise QueryError(f"points must be an (n, 3) array of numbers: {exc}", code="bad-points") from None
     if array.dtype.kind not in "fiu":
-        raise QueryError(f"points must be float32 or float64, got {array.dtype}", code="bad-points")
+        raise QueryError(f"points must be float32, float64 or integers, got {array.dtype}",
+                         code="bad-points")
     if array.ndim == 1 and array.size == 0:
         array = array.reshape(0, 3)
     if array.ndim != 2 or array.shape[1] != 3:

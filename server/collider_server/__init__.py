@@ -2,8 +2,9 @@
 
 - :mod:`.engine`, the query core: for batches of points, the signed distance to an object, the
   outward normal and the contact point at a collision offset ``eps``, through one interface over
-  four kinds of collider: ``neural`` (the paper's network), ``voxel``, ``mesh`` (exact) and
-  ``kdtree`` (the paper's approximate baseline);
+  the kinds of :mod:`.engine.kinds`: ``neural`` (the paper's network and the grid networks),
+  ``voxel``, ``mesh`` (exact) and ``kdtree`` (the paper's approximate baseline), the first three
+  also animated (one collider for a whole animation);
 - :mod:`.making`, colliders made from meshes: baking, training, evaluation;
 - :mod:`.service`, the HTTP service over a model repository.
 

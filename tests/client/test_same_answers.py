@@ -199,6 +199,8 @@ def raw_body(method: str, args, kwargs) -> bytes | None:
     kwargs = dict(kwargs)
     try:
         points = np.asarray(args[0])
+        if points.dtype.kind not in "fiu":  # the SDK refuses them before they have a wire form
+            return None
         if points.dtype.kind in "iu":
             points = points.astype(np.float64)  # as the SDK sends them
         body = {"points": points, **{k: v for k, v in kwargs.items()

@@ -127,10 +127,10 @@ def test_no_points_is_an_empty_n_by_3_array(given):
 
 
 @pytest.mark.parametrize("given, message", [
-    (np.array([["a", "b", "c"]]), "points must be float32 or float64, got <U1"),
-    (np.array([[1 + 2j, 0, 0]]), "points must be float32 or float64, got complex128"),
-    (np.array([[True, False, True]]), "points must be float32 or float64, got bool"),
-    (np.array([[None, 0, 0]]), "points must be float32 or float64, got object"),
+    (np.array([["a", "b", "c"]]), "points must be float32, float64 or integers, got <U1"),
+    (np.array([[1 + 2j, 0, 0]]), "points must be float32, float64 or integers, got complex128"),
+    (np.array([[True, False, True]]), "points must be float32, float64 or integers, got bool"),
+    (np.array([[None, 0, 0]]), "points must be float32, float64 or integers, got object"),
     (np.zeros((4, 2)), "points must have shape (n, 3), got [4, 2]"),
     (np.zeros(3), "points must have shape (n, 3), got [3]"),
     (np.zeros((2, 3, 3)), "points must have shape (n, 3), got [2, 3, 3]"),

@@ -212,9 +212,9 @@ def test_float32_float64_and_list_points(shape_collider, kind):
         (np.zeros((4, 2)), r"shape \(n, 3\), got \[4, 2\]"),
         (np.zeros(3), r"shape \(n, 3\), got \[3\]"),
         (np.zeros((2, 3, 3)), r"shape \(n, 3\), got \[2, 3, 3\]"),
-        (np.array([["a", "b", "c"]]), "points must be float32 or float64, got "),
-        (np.array([[1 + 2j, 0, 0]]), "points must be float32 or float64, got "),
-        (np.array([[True, False, True]]), "points must be float32 or float64, got "),
+        (np.array([["a", "b", "c"]]), "points must be float32, float64 or integers, got "),
+        (np.array([[1 + 2j, 0, 0]]), "points must be float32, float64 or integers, got "),
+        (np.array([[True, False, True]]), "points must be float32, float64 or integers, got "),
     ],
 )
 def test_bad_points_are_rejected_with_a_clear_message(shape_collider, points, message):

@@ -10,8 +10,11 @@ Subclasses only evaluate the SDF (and its gradient when asked) on collider-frame
 their domain; this module adds chunking (bounded memory), the out-of-domain rule and the normal
 fallback where the gradient vanishes (:meth:`Collider.query_local`, the step a batching server
 coalesces). Only the fields asked for are computed: no gradient work is done for ``distance`` or
-``collides`` alone; in collide-only mode the gradient is evaluated in a second pass over just the
-points that collide, after a distance-only pass over all of them.
+``collides`` alone. In collide-only mode (``gradient_below``: the contract's gradient threshold,
+eps over the pose's scale raised by a relative 1e-9) each chunk's distances are evaluated first,
+then the gradient and velocity of only the points whose distance is below the threshold, in a
+second pass; a kind whose gradient costs little beside its distance (``gradient_in_one_pass``:
+the exact mesh kinds) evaluates both for the whole chunk in one pass and keeps the rows below it.
 """
 
 from __future__ import annotations
@@ -40,8 +43,11 @@ class ColliderInfo:
     settings : kind-specific settings (architecture, resolution, training or baking options)
     accuracy : the latest evaluation against the exact SDF (filled by ``collider eval``)
     approximate : True when the kind is not exact by construction (kdtree)
-    animation : empty for a static collider; for an animated one ``frames``, ``frame_rate_hz``,
-        ``duration_s`` and ``loop`` (True: time wraps around; False: it is clamped to the ends)
+    animation : empty for a static collider; for an animated one its timeline's wire form
+        (:meth:`collider_contract.Timeline.to_dict`): ``frames``, ``frame_rate_hz``,
+        ``duration_s``, ``loop`` (True: time wraps around; False: it is clamped to the ends) and
+        ``max_surface_speed`` (the fastest any point of the surface moves, collider units per
+        second; 0 when unknown)
     """
 
     name: str
