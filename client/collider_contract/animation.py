@@ -24,9 +24,6 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-#: The keys of ``ModelInfo.animation`` (and of a model file's ``animation``).
-ANIMATION_KEYS = ("frames", "frame_rate_hz", "duration_s", "loop", "max_surface_speed")
-
 
 @dataclass(frozen=True)
 class Timeline:

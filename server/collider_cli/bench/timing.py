@@ -118,10 +118,6 @@ class Timing:
     def spread(self) -> float | None:
         return spread(self.times_s)
 
-    @property
-    def seconds_per_point(self) -> float:
-        return self.median_s / self.points
-
     def stable(self, max_spread: float) -> bool:
         """A spread at most ``max_spread`` over at least three calls."""
         s = self.spread

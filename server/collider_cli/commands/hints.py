@@ -11,9 +11,6 @@ from __future__ import annotations
 import argparse
 import shlex
 
-#: The options that place a mesh (``commands.options.add_placement_arguments``) and take a value.
-PLACEMENT_VALUES = ("--scale", "--fit-size", "--units", "--meters-per-unit")
-
 
 def command(*words) -> str:
     """``collider WORD ...`` quoted for a POSIX shell."""

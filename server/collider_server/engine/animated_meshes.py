@@ -74,12 +74,6 @@ class AnimatedMesh:
         k, u, _ = self.timeline.locate(t)
         return interpolate(self.frames[k], self.frames[k + 1], u)
 
-    def vertex_velocities_at(self, t: float) -> np.ndarray:
-        """(v, 3) float64 vertex velocities at ``t``, units per second (zero where an end frame
-        is held)."""
-        k, _, rate = self.timeline.locate(t)
-        return (self.frames[k + 1] - self.frames[k]) * rate
-
     def mesh_at(self, t: float) -> Mesh:
         """The interpolated surface at ``t`` as a static :class:`Mesh`."""
         return Mesh(self.vertices_at(t), self.faces, self.name, self.sha256)
