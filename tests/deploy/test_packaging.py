@@ -1,11 +1,12 @@
-"""Packaging: the extras split (serve / train / sim), the images' pinned constraints, and the shipped
-models found by a normal (non-editable) ``pip install``."""
+"""Packaging: the extras split (serve / train / sim), the images' pinned constraints, the shipped
+models found by a normal (non-editable) ``pip install``, and the licence files in the wheel."""
 
 from __future__ import annotations
 
 import os
 import subprocess
 import sys
+import zipfile
 from pathlib import Path
 
 import pytest
@@ -80,6 +81,15 @@ def test_a_wheel_install_serves_the_shipped_models(tmp_path):
     subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation",
                     "--quiet", "-w", str(wheels), str(REPO)], check=True, cwd=tmp_path)
     (wheel,) = wheels.glob("neural_collider-*.whl")
+    # The licence and the third-party notice travel in the wheel, named by its metadata.
+    with zipfile.ZipFile(wheel) as archive:
+        (metadata,) = [n for n in archive.namelist() if n.endswith(".dist-info/METADATA")]
+        named = [line.split(":", 1)[1].strip() for line in archive.read(metadata).decode().splitlines()
+                 if line.startswith("License-File:")]
+        assert named == ["LICENSE", "THIRD_PARTY_NOTICES.md"]
+        for name in named:
+            (inside,) = [n for n in archive.namelist() if n.endswith(f".dist-info/licenses/{name}")]
+            assert archive.read(inside) == (REPO / name).read_bytes()
     prefix = tmp_path / "prefix"
     # --ignore-installed: without it pip uninstalls this venv's own (editable) neural-collider
     # before installing under the prefix, and every later test loses collider_server.
