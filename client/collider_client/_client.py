@@ -143,7 +143,7 @@ class Client:
         self._settings = _Settings(server, models, device, token, timeout_s, eps, fields, retry)
         self._http: httpx.Client | None = None
         self._embedded = None
-        if self._settings.remote:
+        if self._settings.server is not None:  # remote
             self._http = httpx.Client(base_url=self._settings.server, timeout=timeout_s,
                                       headers=self._settings.headers(), transport=transport)
         else:
@@ -215,7 +215,7 @@ class Client:
         if self._embedded is not None:
             return True
         try:
-            return self._http.get("/readyz").status_code == 200
+            return self._remote().get("/readyz").status_code == 200
         except httpx.TransportError:
             return False
 
@@ -234,14 +234,20 @@ class Client:
 
     # -- transport --------------------------------------------------------------------------------
 
+    def _remote(self) -> httpx.Client:
+        """The remote backend's connection pool (its calls come only when remote)."""
+        assert self._http is not None
+        return self._http
+
     def _post(self, path: str, body: dict, idempotent: bool) -> dict:
         return self._send("POST", path, wire.dumps(body, wire.MSGPACK), idempotent)
 
     def _send(self, method: str, path: str, content: bytes | None, idempotent: bool) -> dict:
-        attempts = Attempts(self._settings.retry, self._settings.server + path, idempotent)
+        http = self._remote()
+        attempts = Attempts(self._settings.retry, f"{self._settings.server}{path}", idempotent)
         while True:
             try:
-                response = self._http.request(method, path, content=content)
+                response = http.request(method, path, content=content)
             except httpx.TransportError as exc:
                 delay = attempts.after_transport_error(_failure(exc),
                                                        _transport_error(exc, attempts.url))
@@ -267,7 +273,7 @@ class AsyncClient:
         self._settings = _Settings(server, models, device, token, timeout_s, eps, fields, retry)
         self._http: httpx.AsyncClient | None = None
         self._embedded = None
-        if self._settings.remote:
+        if self._settings.server is not None:  # remote
             self._http = httpx.AsyncClient(base_url=self._settings.server, timeout=timeout_s,
                                            headers=self._settings.headers(), transport=transport)
         else:
@@ -318,7 +324,7 @@ class AsyncClient:
         if self._embedded is not None:
             return True
         try:
-            return (await self._http.get("/readyz")).status_code == 200
+            return (await self._remote().get("/readyz")).status_code == 200
         except httpx.TransportError:
             return False
 
@@ -334,15 +340,21 @@ class AsyncClient:
     async def __aexit__(self, *exc) -> None:
         await self.aclose()
 
+    def _remote(self) -> httpx.AsyncClient:
+        """The remote backend's connection pool (its calls come only when remote)."""
+        assert self._http is not None
+        return self._http
+
     async def _post(self, path: str, body: dict, idempotent: bool) -> dict:
         return await self._send("POST", path, wire.dumps(body, wire.MSGPACK), idempotent)
 
     async def _send(self, method: str, path: str, content: bytes | None,
                     idempotent: bool) -> dict:
-        attempts = Attempts(self._settings.retry, self._settings.server + path, idempotent)
+        http = self._remote()
+        attempts = Attempts(self._settings.retry, f"{self._settings.server}{path}", idempotent)
         while True:
             try:
-                response = await self._http.request(method, path, content=content)
+                response = await http.request(method, path, content=content)
             except httpx.TransportError as exc:
                 delay = attempts.after_transport_error(_failure(exc),
                                                        _transport_error(exc, attempts.url))

@@ -155,7 +155,10 @@ class ColliderPlacement:
                              f"False, got {self.loop!r}")
 
     def pose(self, t: float) -> np.ndarray:
-        return np.eye(4) if self.pose_at is None else np.asarray(self.pose_at(t), dtype=np.float64)
+        if self.pose_at is None:
+            return np.eye(4)
+        assert callable(self.pose_at)  # __post_init__ made a fixed pose a function
+        return np.asarray(self.pose_at(t), dtype=np.float64)
 
     def pose_velocity(self, t: float, dt: float) -> np.ndarray | None:
         """The pose's time derivative at ``t`` (4x4; 1/s and m/s), the backward difference over

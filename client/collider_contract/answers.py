@@ -37,6 +37,7 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -139,8 +140,10 @@ def finish(query: ModelQuery, eps: float, distance: np.ndarray, normal: np.ndarr
         if query.only_colliding:
             normal = np.where(collides[:, None], normal, 0.0)
     if "normal" in query.fields:
+        assert normal is not None  # these fields want the gradient: the evaluation gave it
         result.normal = normal.astype(np.float32)
     if "contact" in query.fields or "velocity" in query.fields:
+        assert normal is not None
         # In float64 (normal is); a zero normal leaves the point where it is, the documented
         # contact of a free point.
         contact = (eps - distance)[:, None] * normal
@@ -208,8 +211,8 @@ def finish_scene(query: SceneQuery, eps: Sequence[float], answers: Sequence) -> 
         if not len(rows):
             continue
         own = query.of_collider(i)
-        part = finish(dataclasses.replace(own, points=points[rows]), eps_i,
-                      *(None if a is None else a[rows] for a in answer))
+        rows_of: list[Any] = [None if a is None else a[rows] for a in answer]
+        part = finish(dataclasses.replace(own, points=points[rows]), eps_i, *rows_of)
         for name, values in part.fields().items():
             out[name][rows] = values
     result = QueryResult(**out, collider=nearest)

@@ -40,7 +40,7 @@ class PC2Frames:
 
 def write_preview(path: Path, frames: dict[int, np.ndarray], width: int, height: int,
                   times_s: dict[int, float], title: str,
-                  collider_points: list[np.ndarray] | None = None) -> None:
+                  collider_points: list[np.ndarray] | dict[int, list[np.ndarray]] | None = None) -> None:
     """PNG with one 3-D panel per chosen frame: the cloth surface (and collider surface points,
     world frame, when given). ``frames`` maps frame index -> (W*H, 3) positions;
     ``collider_points`` is one list of (m, 3) arrays for every panel, or a dict frame index ->
@@ -58,7 +58,7 @@ PREVIEW_DPI = 110
 
 def preview_figure(frames: dict[int, np.ndarray], width: int, height: int,
                    times_s: dict[int, float], title: str,
-                   collider_points: list[np.ndarray] | None = None):
+                   collider_points: list[np.ndarray] | dict[int, list[np.ndarray]] | None = None):
     """The matplotlib figure that :func:`write_preview` saves (same arguments, no path)."""
     import matplotlib
 

@@ -149,7 +149,7 @@ def duration_estimate(scene: Scene, sim: Simulator, done: int, total: int, elaps
 def run_scene(scene: Scene, client, out_dir: Path, *, show_progress: bool = True,
               steps: int | None = None, preview: bool = True, backend: str = "embedded",
               collider_points: dict[str, np.ndarray] | None = None,
-              on_step=None, on_estimate=None) -> tuple[RunReport, list]:
+              on_step=None, on_estimate=None) -> tuple[RunReport, PC2Frames]:
     """Simulate ``scene`` (``steps`` overrides its step count), writing into ``out_dir``:
     ``NAME.obj``, ``NAME.pc2``, ``NAME.png`` and ``NAME.report.json``.
 
@@ -245,7 +245,7 @@ def run_scene(scene: Scene, client, out_dir: Path, *, show_progress: bool = True
     if preview:
         chosen = sorted({i if i >= 0 else len(frames) + i for i in scene.preview_frames
                          if -len(frames) <= i < len(frames)})
-        shown = {i: [] for i in chosen}  # each panel shows the colliders at its frame's pose
+        shown: dict[int, list[np.ndarray]] = {i: [] for i in chosen}  # each panel shows the colliders at its frame's pose
         for spec in scene.colliders:
             pts = (collider_points or {}).get(spec.model)
             if pts is not None:

@@ -13,11 +13,7 @@ Every error names the file and the key (:mod:`.tables`); colliders' placement an
 from __future__ import annotations
 
 import math
-
-try:
-    import tomllib
-except ModuleNotFoundError:  # Python 3.10
-    import tomli as tomllib
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -26,6 +22,11 @@ import numpy as np
 
 from .motion import ColliderSpec, Motion
 from .tables import SceneError, Table
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # Python 3.10
+    import tomli as tomllib
 
 #: The scenes shipped with the package (``collider simulate NAME`` finds them).
 SCENES_DIR = Path(__file__).resolve().parents[1] / "scenes"
@@ -142,10 +143,10 @@ def load_scene(path: str | Path) -> Scene:
     effects_table = root.table("effects", required=True)
     effects: dict[str, dict[str, Any]] = {}
     for effect in EFFECTS:
-        t = effects_table.table(effect)
-        if t is not None:
-            effects[effect] = _EFFECT_READERS[effect](t, cloth)
-            t.done()
+        settings = effects_table.table(effect)
+        if settings is not None:
+            effects[effect] = _EFFECT_READERS[effect](settings, cloth)
+            settings.done()
     effects_table.done()
     root.done()
 

@@ -4,7 +4,9 @@ must be one of ...``), and refusing keys nobody read."""
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from pathlib import Path
+from typing import Literal, NoReturn, overload
 
 import numpy as np
 
@@ -19,12 +21,13 @@ class Table:
     def __init__(self, data: dict, where: str, path: Path):
         if not isinstance(data, dict):
             raise SceneError(f"{path}: [{where}] must be a table, got {type(data).__name__}")
-        self.data, self.where, self.path, self.used = data, where, path, set()
+        self.data, self.where, self.path = data, where, path
+        self.used: set[str] = set()
 
     def key(self, name: str) -> str:
         return f"{self.where}.{name}" if self.where else name
 
-    def fail(self, name: str, message: str):
+    def fail(self, name: str, message: str) -> NoReturn:
         raise SceneError(f"{self.path}: {self.key(name)}: {message}")
 
     def get(self, name: str, default=None, required: bool = False):
@@ -53,6 +56,15 @@ class Table:
         if maximum is not None and value > maximum:
             self.fail(name, f"must be <= {maximum}, got {value}")
         return value
+
+    @overload
+    def vector(self, name: str, default: Sequence[float], required: bool = ..., length: int = ...) -> np.ndarray:
+        ...
+
+    @overload
+    def vector(self, name: str, default: None = ..., required: bool = ..., length: int = ...
+               ) -> np.ndarray | None:
+        ...
 
     def vector(self, name, default=None, required=False, length=3) -> np.ndarray | None:
         value = self.get(name, default, required)
@@ -83,6 +95,14 @@ class Table:
         if not isinstance(value, bool):
             self.fail(name, f"must be true or false, got {type(value).__name__} {value!r}")
         return value
+
+    @overload
+    def table(self, name: str, required: Literal[True]) -> Table:
+        ...
+
+    @overload
+    def table(self, name: str, required: bool = ...) -> Table | None:
+        ...
 
     def table(self, name, required=False) -> Table | None:
         value = self.get(name, None, required)
