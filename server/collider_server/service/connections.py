@@ -25,6 +25,7 @@ parser itself refuses (bad request line, bad chunked encoding) are answered 400
 from __future__ import annotations
 
 import asyncio
+import http
 import logging
 from typing import Any
 
@@ -84,7 +85,9 @@ def raw_problem(problem: Problem) -> bytes:
     body = problem.document()
     headers = {"content-type": "application/problem+json", "content-length": str(len(body)),
                **{k.lower(): v for k, v in problem.headers.items()}, "connection": "close"}
-    head = f"HTTP/1.1 {problem.status} {problem.title}\r\n" + "".join(
+    # The status line's reason phrase is the standard one, as uvicorn writes it for every other
+    # answer (the problem's title is the body's own).
+    head = f"HTTP/1.1 {problem.status} {http.HTTPStatus(problem.status).phrase}\r\n" + "".join(
         f"{name}: {value}\r\n" for name, value in headers.items())
     return head.encode("latin-1") + b"\r\n" + body
 
