@@ -13,7 +13,6 @@ client likes, and a few thousand of them exhaust the process's descriptors. Here
   in :func:`~collider_server.service.bodies.read_body`.)
 - **connection bound**: beyond ``max_connections`` open connections a new one is answered 503
   ``too-many-connections`` (``Retry-After: 1``) and closed at once.
-
 - **shutdown**: on SIGTERM a connection whose request body is still arriving (nothing of it in
   compute) is answered 503 ``shutting-down`` and closed at once, instead of holding the shutdown
   for up to ``body_timeout_s``; requests whose bodies came are answered first, as uvicorn does.
