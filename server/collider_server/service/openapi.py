@@ -107,7 +107,7 @@ def _keys(properties: dict, keys: tuple[str, ...]) -> dict:
     allowed = (*keys, *sorted(TRANSPORT_KEYS))
     if set(properties) != set(allowed):
         raise RuntimeError(f"the schema's keys {sorted(properties)} are not the contract's "
-                             f"{sorted(allowed)}")
+                           f"{sorted(allowed)}")
     return {key: properties[key] for key in allowed}
 
 
@@ -207,7 +207,7 @@ _ANIMATION = {"type": "object", "description": "empty for a static model; an ani
 MODEL_INFO = {"type": "object", "required": ["name", "kind", "domain_min", "domain_max",
                                              "meters_per_unit", "animation"], "properties": {
     "name": {"type": "string"},
-    "kind": {"type": "string", "description": "neural, voxel or mesh (the exact one)"},
+    "kind": {"type": "string", "description": "neural, voxel, mesh (exact) or kdtree"},
     "units": {"type": "string", "description": "the collider's length unit (m for the shipped "
                                                "models)"},
     "meters_per_unit": {"type": "number", "exclusiveMinimum": 0},
@@ -215,8 +215,8 @@ MODEL_INFO = {"type": "object", "required": ["name", "kind", "domain_min", "doma
                                              "model is defined"},
     "domain_max": _VECTOR,
     "bytes": {"type": "integer", "minimum": 0, "description": "size of the model file"},
-    "approximate": {"type": "boolean", "description": "distances are learned or interpolated "
-                                                      "(neural, voxel), not exact"},
+    "approximate": {"type": "boolean", "description": "the kind is not a signed distance by "
+                    "construction (kdtree: the nearest vertex, not the nearest surface point)"},
     "accuracy": {"type": "object", "description": "figures `collider eval` stored (empty if "
                                                   "none)"},
     "source": {"type": "object", "description": "what the model was made from"},
