@@ -36,6 +36,13 @@ DEFAULT_FIELDS = ("distance",)
 MAX_POINTS = 200_000_000
 #: Keys of a wire body besides a query's own: the service reads ``deadline_ms``.
 TRANSPORT_KEYS = frozenset({"deadline_ms"})
+#: The keys of a model query's wire body (besides :data:`TRANSPORT_KEYS`), ``points`` required:
+#: the one list the reader, the OpenAPI schema and the refusals' messages follow.
+QUERY_KEYS = ("points", "fields", "pose", "eps", "only_colliding", "time", "pose_velocity")
+#: The keys of a scene query's wire body (besides :data:`TRANSPORT_KEYS`), the first two required.
+SCENE_KEYS = ("points", "colliders", "fields", "eps", "only_colliding", "time")
+#: The keys of a scene collider given as a map (the wire's only form), ``model`` required.
+COLLIDER_KEYS = ("model", "pose", "time", "pose_velocity")
 #: The largest ``|time|``, seconds (about 32 years): far beyond any animation, and where float64
 #: still resolves a nanosecond.
 MAX_TIME_S = 1e9
@@ -166,8 +173,14 @@ class Placed(NamedTuple):
     pose_velocity: np.ndarray | None = None
 
 
-#: The keys of a scene collider given as a map (the wire's only form).
-COLLIDER_KEYS = frozenset({"model", "pose", "time", "pose_velocity"})
+#: What a scene collider must be, for the refusals (from :data:`COLLIDER_KEYS`).
+COLLIDER_FORM = ('{"model": name} with optional '
+                 + ", ".join(f'"{key}"' for key in COLLIDER_KEYS if key != "model"))
+
+
+def _is_collider_map(item) -> bool:
+    return (isinstance(item, dict) and isinstance(item.get("model"), str)
+            and set(item) <= set(COLLIDER_KEYS))
 
 
 def check_colliders(items: Sequence, time=None) -> tuple[Placed, ...]:
@@ -175,8 +188,8 @@ def check_colliders(items: Sequence, time=None) -> tuple[Placed, ...]:
     ``{"model": name, "pose": 4x4, "time": s, "pose_velocity": 4x4}`` maps (all but ``model``
     optional) or bare model names; ``time`` is the time of those that give none."""
     if isinstance(items, (str, bytes, dict)) or not isinstance(items, Sequence) or not items:
-        raise QueryError("colliders must be a non-empty list of {\"model\": name, \"pose\": 4x4 "
-                         f"(optional)}}, got {items!r:.200}", code="bad-colliders")
+        raise QueryError(f"colliders must be a non-empty list of {COLLIDER_FORM}, got {items!r:.200}",
+                         code="bad-colliders")
     out = []
     for i, given in enumerate(items):
         item = given
@@ -187,8 +200,7 @@ def check_colliders(items: Sequence, time=None) -> tuple[Placed, ...]:
             item = {"model": item}
         elif isinstance(item, (tuple, list)) and len(item) == 2:
             item = {"model": item[0], "pose": item[1]}
-        if not (isinstance(item, dict) and isinstance(item.get("model"), str)
-                and not set(item) - COLLIDER_KEYS):
+        if not _is_collider_map(item):
             raise _bad_collider(i, given)  # named as the caller gave it
         own_time = check_time(item.get("time"), f"colliders[{i}].time")
         out.append(Placed(item["model"], check_pose(item.get("pose"), f"colliders[{i}].pose"),
@@ -199,8 +211,7 @@ def check_colliders(items: Sequence, time=None) -> tuple[Placed, ...]:
 
 def _bad_collider(index: int, item) -> QueryError:
     got = f"a map with keys {sorted(map(str, item))}" if isinstance(item, dict) else f"{item!r:.60}"
-    return QueryError(f"colliders[{index}] must be {{\"model\": name, \"pose\": 4x4 (optional)}}, "
-                      f"got {got}", code="bad-colliders")
+    return QueryError(f"colliders[{index}] must be {COLLIDER_FORM}, got {got}", code="bad-colliders")
 
 
 @dataclass(frozen=True)
@@ -255,8 +266,7 @@ class ModelQuery:
         """The query of a decoded wire body (:func:`~.wire.loads`); more than ``max_points``
         points is a 413. Checked in :meth:`build`'s order, then ``only_colliding``. Raises
         :class:`~.errors.QueryError`."""
-        _check_keys(body, {"points", "fields", "pose", "eps", "only_colliding", "time",
-                           "pose_velocity"}, ("points",))
+        _check_keys(body, QUERY_KEYS, ("points",))
         return cls(fields=_wire_fields(body), points=_wire_points(body["points"], max_points),
                    pose=_wire_pose(body, "pose"), eps=check_eps(_optional(body, "eps")),
                    time=check_time(_optional(body, "time")),
@@ -323,8 +333,7 @@ class SceneQuery:
                   max_colliders: int | None = None) -> SceneQuery:
         """As :meth:`ModelQuery.from_body`; more than ``max_colliders`` colliders is a 413. A
         top-level ``time`` is the time of the colliders that give none."""
-        _check_keys(body, {"points", "colliders", "fields", "eps", "only_colliding", "time"},
-                    ("points", "colliders"))
+        _check_keys(body, SCENE_KEYS, ("points", "colliders"))
         fields = _wire_fields(body)  # build's order: fields, time, colliders, points, eps
         time = check_time(_optional(body, "time"))
         items = body["colliders"]
@@ -337,8 +346,7 @@ class SceneQuery:
             check_colliders(items)
         colliders = []
         for i, item in enumerate(items):  # on the wire a collider is a map, its arrays wire arrays
-            if not (isinstance(item, dict) and isinstance(item.get("model"), str)
-                    and not set(item) - COLLIDER_KEYS):
+            if not _is_collider_map(item):
                 raise _bad_collider(i, item)
             own_time = check_time(_optional(item, "time", f"colliders[{i}].time"),
                                   f"colliders[{i}].time")
@@ -357,10 +365,10 @@ class SceneQuery:
 _ABSENT = object()
 
 
-def _check_keys(body: dict, allowed: set, required: tuple[str, ...]) -> None:
-    unknown = sorted(set(body) - allowed - TRANSPORT_KEYS)
+def _check_keys(body: dict, allowed: tuple[str, ...], required: tuple[str, ...]) -> None:
+    unknown = sorted(set(body) - set(allowed) - TRANSPORT_KEYS)
     if unknown:
-        raise QueryError(f"unknown key(s) {unknown}; valid keys are {sorted(allowed | TRANSPORT_KEYS)}",
+        raise QueryError(f"unknown key(s) {unknown}; valid keys are {sorted({*allowed, *TRANSPORT_KEYS})}",
                          code="unknown-key")
     for key in required:
         if key not in body:

@@ -2,27 +2,15 @@
 
 Bodies are msgpack maps (``application/msgpack``) or JSON objects (``application/json``).
 
-An array in msgpack is a map ``{"dtype": "<f4", "shape": [n, 3], "data": <bin>}``: ``data`` holds
-the raw C-order bytes, little-endian, of the numpy dtype string ``dtype`` (one of ``<f4``, ``<f8``,
-``|b1``, ``<i4``, ``<i8``), and ``len(data) == prod(shape) * itemsize``. It decodes with no copy
-(``numpy.frombuffer``). In JSON an array is a nested list of numbers (or booleans).
+An array in msgpack is a map of exactly three keys, ``{"dtype": "<f4", "shape": [n, 3], "data":
+<bin>}``: ``data`` holds the raw C-order bytes, little-endian, of the numpy dtype string ``dtype``
+(one of ``<f4``, ``<f8``, ``|b1``, ``<i4``, ``<i8``), and ``len(data) == prod(shape) * itemsize``.
+It decodes with no copy (``numpy.frombuffer``). In JSON an array is a nested list of numbers (or
+booleans).
 
-Query request (``POST /v1/models/{name}/query``), read and written by :mod:`.queries`:
-    points : array (n, 3) float32 or float64, world frame, the collider's units (metres)
-    fields : list of "distance", "normal", "contact", "collides" (default ["distance"])
-    pose : array (4, 4), collider frame -> world frame (default the identity)
-    eps : number in [0, 1e6], collision offset in world units (default 1 mm)
-    deadline_ms : number > 0, the time the caller will wait
-    only_colliding : boolean (default false): compute ``normal`` and ``contact`` only for the
-        points with ``distance < eps``; for the others ``normal`` is [0, 0, 0] and ``contact`` is
-        the point itself (``collides`` tells them apart)
-Every key but ``points`` may be left out for its default; none may be null. The scene query
-(``POST /v1/scene/query``) takes ``colliders`` (a list of ``{"model": name, "pose": 4x4}``, pose
-optional) instead of ``pose``.
-
-Query response (:mod:`.results`): one entry per field asked for, in the request's encoding:
-    distance (n,) float32, normal (n, 3) float32, contact (n, 3) dtype of points, collides (n,) bool;
-    plus ``"model"`` (a model query) or ``"collider"`` (n,) int32 (a scene query).
+The keys of query bodies and what each holds are :mod:`.queries`' (``QUERY_KEYS``,
+``SCENE_KEYS``, ``COLLIDER_KEYS``); the answers' are :mod:`.results`'. docs/service.md describes
+both for client writers.
 """
 
 from __future__ import annotations
@@ -38,6 +26,8 @@ MSGPACK_TYPES = ("application/msgpack", "application/x-msgpack", "application/vn
 MSGPACK = MSGPACK_TYPES[0]
 JSON = "application/json"
 ARRAY_DTYPES = ("<f4", "<f8", "|b1", "<i4", "<i8")
+#: The keys of an array map, all required, no other.
+ARRAY_MAP_KEYS = ("dtype", "shape", "data")
 
 #: Messages for parser errors that carry none.
 _REASONS = {"FormatError": "a byte that starts no msgpack value (e.g. 0xc1)",
@@ -71,9 +61,13 @@ def decode_array(value: Any, name: str) -> np.ndarray:
     msgpack arrays are read-only views on the body (no copy). Raises :class:`WireError`.
     """
     if isinstance(value, dict):
-        missing = {"dtype", "shape", "data"} - set(value)
+        missing = set(ARRAY_MAP_KEYS) - set(value)
         if missing:
             raise WireError(f"{name}: array map lacks {sorted(missing)}")
+        extra = set(value) - set(ARRAY_MAP_KEYS)
+        if extra:  # a misspelt or foreign key is a mistake to name, not to drop silently
+            raise WireError(f"{name}: array map has unknown key(s) {sorted(map(str, extra))}; "
+                            f"it holds exactly {list(ARRAY_MAP_KEYS)}")
         dtype, shape, data = value["dtype"], value["shape"], value["data"]
         if dtype not in ARRAY_DTYPES:
             raise WireError(f"{name}: dtype {dtype!r} not supported; use one of {list(ARRAY_DTYPES)}")

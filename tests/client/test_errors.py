@@ -197,5 +197,8 @@ def test_retry_policy_backoff_and_retry_after():
     assert policy.delay_s(2, None) == pytest.approx(0.4)
     assert policy.delay_s(0, 0.7) == pytest.approx(0.7)
     assert policy.delay_s(5, None) == pytest.approx(1.0)  # capped
+    # a longer Retry-After is cut to max_backoff_s too, as docs/client.md says
+    assert policy.delay_s(0, 14.0) == pytest.approx(1.0)
+    assert cc.RetryPolicy().delay_s(0, 60.0) == pytest.approx(5.0)
     with pytest.raises(ValueError):
         cc.RetryPolicy(max_retries=-1)

@@ -71,7 +71,7 @@ def test_the_fields_and_limits():
     assert FIELDS == ("distance", "normal", "contact", "collides", "velocity")
     assert GRADIENT_FIELDS == {"normal", "contact", "velocity"} and DEFAULT_FIELDS == ("distance",)
     assert MAX_POINTS == 200_000_000 and TRANSPORT_KEYS == {"deadline_ms"} and MAX_TIME_S == 1e9
-    assert COLLIDER_KEYS == {"model", "pose", "time", "pose_velocity"}
+    assert COLLIDER_KEYS == ("model", "pose", "time", "pose_velocity")
 
 
 # -- fields ------------------------------------------------------------------------------------
@@ -271,7 +271,8 @@ def test_every_form_of_collider_gives_a_name_and_a_validated_pose():
     assert check_colliders(("a",)) == (Placed("a", IDENTITY, None, None),)
 
 
-LIST_FORM = "colliders must be a non-empty list of {\"model\": name, \"pose\": 4x4 (optional)}, got "
+COLLIDER_FORM = '{"model": name} with optional "pose", "time", "pose_velocity"'
+LIST_FORM = f"colliders must be a non-empty list of {COLLIDER_FORM}, got "
 
 
 @pytest.mark.parametrize("given, got", [
@@ -284,7 +285,7 @@ def test_colliders_must_be_a_non_empty_list(given, got):
     assert refusal(check_colliders, given) == (LIST_FORM + got, 422, "bad-colliders")
 
 
-ITEM_FORM = "must be {\"model\": name, \"pose\": 4x4 (optional)}, got "
+ITEM_FORM = f"must be {COLLIDER_FORM}, got "
 
 
 @pytest.mark.parametrize("item, got", [

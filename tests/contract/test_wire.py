@@ -77,6 +77,11 @@ GOOD = {"dtype": "<f8", "shape": [1, 3], "data": bytes(24)}
 @pytest.mark.parametrize("value, message", [
     ({"dtype": "<f8"}, "points: array map lacks ['data', 'shape']"),
     ({"shape": [1], "data": b""}, "points: array map lacks ['dtype']"),
+    # the schema's additionalProperties: false, in the one reader every backend uses
+    ({**GOOD, "x": 1}, ("points: array map has unknown key(s) ['x']; it holds exactly "
+                        "['dtype', 'shape', 'data']")),
+    ({**GOOD, 7: 1, "Data": b""}, ("points: array map has unknown key(s) ['7', 'Data']; it holds "
+                                   "exactly ['dtype', 'shape', 'data']")),
     ({**GOOD, "dtype": "<f2"}, ("points: dtype '<f2' not supported; use one of "
                                "['<f4', '<f8', '|b1', '<i4', '<i8']")),
     ({**GOOD, "dtype": ">f8"}, ("points: dtype '>f8' not supported; use one of "

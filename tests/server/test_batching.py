@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import math
 import threading
 import time
 from collections.abc import Callable, Sequence
@@ -491,17 +492,11 @@ def test_queue_full_reports_its_numbers_and_message(workers):
     assert recorder.calls == [[(0, 0, 10)], [(1, 0, 80), (2, 0, 20)]]
 
 
-@pytest.mark.parametrize("history, in_flight, queued, points, max_queue_points, expected_s", [
-    # (rows, seconds) per finished batch; throughput is an average 0.8 old + 0.2 new:
-    # 100 / 2 s = 50/s, then 100 / 0.25 s = 400/s -> 0.8 * 50 + 0.2 * 400 = 120/s;
-    # backlog 100 in flight + 100 queued + 50 asked = 250 points -> ceil(250 / 120) = 3 s
-    ([(100, 2.0), (100, 0.25)], 100, 100, 50, 100, 3),
-    ([(100, 0.25)], 1, 99, 2, 100, 1),  # 102 points at 400/s: 0.26 s, rounded up to 1 s
-    ([(1, 2.0)], 1, 9, 2, 10, 24),  # 0.5 point/s (below 1/s): 12 points take 24 s
-    ([(1, 10.0)], 1, 9, 2, 10, 60),  # 0.1 point/s: 120 s, capped at 60 s
-])
-def test_queue_full_retry_after_comes_from_the_measured_throughput(
-        workers, history, in_flight, queued, points, max_queue_points, expected_s):
+def retry_after_after(workers, history, in_flight: int, queued: int, points: int,
+                      max_queue_points: int) -> QueueFull:
+    """The :class:`QueueFull` a batcher raises after batches of ``history`` ((rows, seconds) each,
+    on an injected clock), with ``in_flight`` rows computing and ``queued`` waiting, for a request
+    of ``points`` rows (batches of at most 1000 rows)."""
     clock = Clock()
     recorder = RowRecorder(gated=True, clock=clock, advance=[s for _, s in history])
 
@@ -511,22 +506,55 @@ def test_queue_full_retry_after_comes_from_the_measured_throughput(
         for payload, (rows, _) in enumerate(history):
             recorder.release()
             await batcher.submit_rows(payload, rows)
-        busy = asyncio.create_task(batcher.submit_rows(10, in_flight))
+        busy = asyncio.create_task(batcher.submit_rows(10_000, in_flight))
         await recorder.wait_calls(len(history) + 1)
-        waiting = asyncio.create_task(batcher.submit_rows(11, queued))
+        waiting = asyncio.create_task(batcher.submit_rows(10_001, queued))
         await settle()
         assert (batcher.in_flight_points, batcher.queued_points) == (in_flight, queued)
         with pytest.raises(QueueFull) as info:
-            await batcher.submit_rows(12, points)
-        recorder.release(2)
+            await batcher.submit_rows(10_002, points)
+        recorder.release(1 + math.ceil(queued / 1000))
         await asyncio.gather(busy, waiting)
         await batcher.drain()
         return info.value
 
     error = run(main())
-    assert error.retry_after_s == expected_s
     assert (error.points, error.queued_points, error.max_queue_points) == (
         points, queued, max_queue_points)
+    return error
+
+
+@pytest.mark.parametrize("history, in_flight, queued, points, max_queue_points, expected_s", [
+    # (rows, seconds) per finished batch; the throughput is the median of the batches' rates,
+    # each weighted by its rows (the lower one when the weights split evenly):
+    # 100 / 2 s = 50/s and 100 / 0.25 s = 400/s -> 50/s;
+    # backlog 100 in flight + 100 queued + 50 asked = 250 points -> ceil(250 / 50) = 5 s
+    ([(100, 2.0), (100, 0.25)], 100, 100, 50, 100, 5),
+    ([(100, 2.0), (100, 0.25), (100, 0.25)], 100, 100, 50, 100, 1),  # 400/s holds 2/3: 0.6 s
+    ([(100, 0.25)], 1, 99, 2, 100, 1),  # 102 points at 400/s: 0.26 s, rounded up to 1 s
+    ([(1, 2.0)], 1, 9, 2, 10, 24),  # 0.5 point/s (below 1/s): 12 points take 24 s
+    ([(1, 10.0)], 1, 9, 2, 10, 60),  # 0.1 point/s: 120 s, capped at 60 s
+])
+def test_queue_full_retry_after_comes_from_the_measured_throughput(
+        workers, history, in_flight, queued, points, max_queue_points, expected_s):
+    error = retry_after_after(workers, history, in_flight, queued, points, max_queue_points)
+    assert error.retry_after_s == expected_s
+
+
+FAST = (1000, 1.0)  # a batch of 1000 rows in 1 s: the queue drains at 1000 points/s
+
+
+@pytest.mark.parametrize("history", [
+    [(1000, 30.0), FAST, FAST],  # a stall first (a starved CPU, a cold start)
+    [FAST, FAST, (1000, 30.0), FAST, FAST],  # among fast ones
+    [FAST, FAST, FAST, FAST, (1000, 60.0)],  # the latest one
+    [(10, 0.1)] * 12 + [FAST] * 2,  # many tiny batches, mostly overhead (100 points/s)
+], ids=["slow-first", "slow-between", "slow-last", "tiny-batches"])
+def test_retry_after_stays_within_twice_the_true_drain_time(workers, history):
+    """Issue 35, item 2: the server sent Retry-After 60 s for a queue that drained in under a
+    second. Backlog 1000 in flight + 8000 queued + 1000 asked at 1000 points/s: 10 s."""
+    error = retry_after_after(workers, history, 1000, 8000, 1000, 8500)
+    assert 10 <= error.retry_after_s <= 20
 
 
 def test_batches_take_queued_rows_in_order_and_never_exceed_max_batch_points(workers):

@@ -164,7 +164,7 @@ def test_stalled_body_gets_408_and_the_connection_closes(timeout_server):
         while chunk := sock.recv(65536):  # ends when the server closes the connection
             answer += chunk
     head, _, payload = answer.partition(b"\r\n\r\n")
-    assert head.startswith(b"HTTP/1.1 408"), answer[:300]
+    assert head.startswith(b"HTTP/1.1 408 Request Timeout\r\n"), answer[:300]
     assert b"connection: close" in head.lower()
     problem = strict_json(payload)
     assert problem["type"] == "body-timeout" and "body_timeout_s=0.3" in problem["detail"]
@@ -406,3 +406,17 @@ def test_a_pose_with_huge_entries_is_refused_without_a_numpy_warning(server, rec
         assert response.status_code == 422 and response.json()["type"] == "bad-pose"
     scaled = np.diag([1e6, 1e6, 1e6, 1.0])  # the largest scale allowed is still accepted
     assert as_pose(scaled).scale == 1e6
+
+
+def test_an_array_map_with_a_key_besides_dtype_shape_and_data_is_refused_naming_it(server):
+    """Issue 35, item 4: the schema's ``additionalProperties: false``, answered as the embedded
+    backend would (the contract's reader refuses it)."""
+    points = {**wire.encode_array(np.zeros((2, 3), np.float32)), "x": 1}
+    for url, body in ((server.url + QUERY, {"points": points}),
+                      (server.url + "/v1/scene/query", {"points": points, "colliders": [{"model": "sphere"}]})):
+        response = httpx.post(url, content=msgpack.packb(body, use_bin_type=True),
+                              headers={"content-type": wire.MSGPACK})
+        assert response.status_code == 422, response.text
+        assert response.json()["type"] == "bad-points"
+        assert response.json()["detail"] == ("points: array map has unknown key(s) ['x']; it holds "
+                                             "exactly ['dtype', 'shape', 'data']")

@@ -438,3 +438,46 @@ def test_server_keeps_answering_while_a_batch_computes(tmp_path, tiny_neural_col
         assert response.status_code == 200
         np.testing.assert_array_equal(decode(response)["distance"],
                                       collider.query(points, ["distance"]).distance)
+
+
+def test_shutdown_closes_stalled_uploads_and_still_answers_the_query_in_compute(repo, engine):
+    """Issue 35, item 3: five connections that sent half a body held SIGTERM for the whole body
+    timeout (29.6 s). Now they are answered 503 shutting-down and closed at once, while a query
+    whose body had arrived (held 2 s by max_wait_ms) is still answered."""
+    process, url = serve_subprocess(repo, "--max-wait-ms", "2000", "--body-timeout-s", "60")
+    port = int(url.rsplit(":", 1)[1])
+    stalled = []
+    try:
+        for _ in range(5):
+            sock = socket.create_connection(("127.0.0.1", port), timeout=30)
+            sock.sendall(b"POST /v1/models/sphere/query HTTP/1.1\r\nHost: x\r\n"
+                         b"Content-Type: application/json\r\nContent-Length: 1000\r\n\r\n"
+                         b'{"points": [[0, 0, ')
+            stalled.append(sock)
+        points = sample_points(300, 7)
+        with ThreadPoolExecutor(1) as pool:
+            answer = pool.submit(post, f"{url}/v1/models/sphere/query", {"points": points})
+            end = time.monotonic() + 30
+            while metric(url, 'collider_queue_points{model="sphere"}') != len(points):
+                assert time.monotonic() < end, "the query never reached the queue"
+            process.send_signal(signal.SIGTERM)
+            signalled = time.monotonic()
+            assert process.wait(30) == -signal.SIGTERM
+            stopped_s = time.monotonic() - signalled
+            response = answer.result(30)
+        np.testing.assert_array_equal(decode(response)["distance"],
+                                      engine["sphere"].query(points).distance)
+        assert stopped_s < 10, f"SIGTERM took {stopped_s:.1f} s"  # the body timeout is 60 s
+        for sock in stalled:
+            answered = b""
+            while chunk := sock.recv(65536):  # ends when the server closes the connection
+                answered += chunk
+            head, _, body = answered.partition(b"\r\n\r\n")
+            assert head.startswith(b"HTTP/1.1 503 Service Unavailable\r\n"), answered[:200]
+            assert json.loads(body)["type"] == "shutting-down"
+    finally:
+        for sock in stalled:
+            sock.close()
+        if process.poll() is None:
+            process.kill()
+        process.communicate()

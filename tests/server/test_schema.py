@@ -148,3 +148,46 @@ def test_405_names_every_method_of_the_path(fuzzed_server):
 def test_metrics_are_declared_and_served_as_text(fuzzed_server):
     response = httpx.get(f"{fuzzed_server.url}/metrics", headers=AUTH)
     assert response.headers["content-type"].startswith("text/plain")
+
+
+def test_the_query_operations_offer_json_first_with_examples_that_are_answered(fuzzed_server):
+    """Issue 35, item 1: the /docs page sends the first media type and the examples as they are;
+    both must be JSON and valid (test_docs_page presses the buttons in Chromium)."""
+    schema = httpx.get(f"{fuzzed_server.url}/openapi.json", headers=AUTH).json()
+    (parameter,) = schema["paths"]["/v1/models/{name}/query"]["post"]["parameters"]
+    assert parameter["example"] == "small"  # the first model served
+    for path in ("/v1/models/{name}/query", "/v1/scene/query"):
+        content = schema["paths"][path]["post"]["requestBody"]["content"]
+        assert list(content) == ["application/json", "application/msgpack"]
+        url = fuzzed_server.url + path.replace("{name}", parameter["example"])
+        answer = httpx.post(url, json=content["application/json"]["example"], headers=AUTH)
+        assert answer.status_code == 200, answer.text
+
+
+def test_the_body_schemas_hold_the_contracts_keys():
+    from collider_contract.queries import COLLIDER_KEYS, QUERY_KEYS, SCENE_KEYS
+    from collider_server.service.openapi import query_body, scene_body
+
+    for body, keys in ((query_body(10), QUERY_KEYS), (scene_body(10, 2), SCENE_KEYS)):
+        for media in body["requestBody"]["content"].values():
+            assert list(media["schema"]["properties"]) == [*keys, "deadline_ms"]
+    collider = scene_body(10, 2)["requestBody"]["content"]["application/json"]["schema"]
+    assert list(collider["properties"]["colliders"]["items"]["properties"]) == list(COLLIDER_KEYS)
+
+
+def test_the_model_info_schema_is_what_the_server_answers(fuzzed_server):
+    """Issue 35, item 4: ``animation`` (and every other key of ModelInfo) is in the schema of
+    ``GET /v1/models/{name}``; the fuzzer checks the answers against it."""
+    import dataclasses
+
+    from collider_contract import ModelInfo
+    from collider_contract.animation import Timeline
+
+    schema = httpx.get(f"{fuzzed_server.url}/openapi.json", headers=AUTH).json()
+    info = schema["paths"]["/v1/models/{name}"]["get"]["responses"]["200"]["content"][
+        "application/json"]["schema"]
+    fields = [f.name for f in dataclasses.fields(ModelInfo) if f.name != "extra"]
+    assert list(info["properties"]) == fields
+    assert list(info["properties"]["animation"]["properties"]) == list(Timeline(2, 1.0, False).to_dict())
+    answer = httpx.get(f"{fuzzed_server.url}/v1/models/sphere", headers=AUTH).json()
+    assert list(answer) == fields and answer["animation"] == {}

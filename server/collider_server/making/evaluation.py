@@ -146,6 +146,11 @@ def reconstruction_chamfer_mm(collider: Collider, mesh: Mesh, resolution: int = 
     return float(0.5 * (recon_to_mesh.mean() + mesh_to_recon.mean()) * to_mm)
 
 
+#: Points the query time is measured on, the first of the +-1 mm band (where a cloth's colliding
+#: points are). A time per point depends on where the points are: docs/accuracy.md, "Query time".
+QUERY_POINTS = 50_000
+
+
 def query_seconds_per_million(collider: Collider, points: np.ndarray, repeats: int = 2,
                               at: float | None = None) -> float:
     """Best wall time of a distance + normal + contact query (at ``at`` seconds: an animated
@@ -173,7 +178,9 @@ def evaluate_collider(collider: Collider, mesh: Mesh, points: int = 100_000, see
         for name, set_points in sets.items():
             report[name] = error_figures(collider, sdf, set_points)
             bar.update(1)
-        report["query_seconds_per_million"] = query_seconds_per_million(collider, sets["band_1mm"][:50_000])
+        timed = sets["band_1mm"][:QUERY_POINTS]
+        report["query_seconds_per_million"] = query_seconds_per_million(collider, timed)
+        report["query_points"] = len(timed)
         bar.update(1)
         if reconstruction:
             report["chamfer_l1_mm"] = reconstruction_chamfer_mm(collider, mesh, seed=seed)
@@ -198,9 +205,9 @@ def evaluate_animated_collider(collider: Collider, animation: AnimatedMesh, poin
         report = animated_error_figures(collider, animation, at, per_time, seed,
                                         on_time=lambda: bar.update(1))
         probe = animation.mesh_at(float(at[0]))
-        report["query_seconds_per_million"] = query_seconds_per_million(
-            collider, band_sets(probe, min(per_time, 50_000), seed, collider.info.meters_per_unit)["band_1mm"],
-            at=float(at[0]))
+        timed = band_sets(probe, min(per_time, QUERY_POINTS), seed, collider.info.meters_per_unit)["band_1mm"]
+        report["query_seconds_per_million"] = query_seconds_per_million(collider, timed, at=float(at[0]))
+        report["query_points"] = len(timed)
         bar.update(1)
     return {**report, "times_s": at.tolist(), "duration_s": animation.timeline.duration_s,
             "points_per_time": per_time, "seed": seed, **_about(collider, path)}
@@ -288,8 +295,10 @@ def format_report(name: str, kind: str, report: dict) -> str:
     if "chamfer_l1_mm" in report:
         rows.append(f"reconstruction Chamfer-L1: {report['chamfer_l1_mm']:.4f} mm (marching cubes 128^3)")
     at = f" at t = {report['times_s'][0]:.4f} s" if report.get("times_s") else ""
+    # Which points were timed: a time per point depends on where the points are (docs/accuracy.md).
+    timed = f" ({report['query_points']:,} points of the +-1 mm band, best of 2)" if "query_points" in report else ""
     rows.append(f"query (distance+normal+contact){at}: {report['query_seconds_per_million']:.2f} s per 1M points "
-                f"on {report['device']}")
+                f"on {report['device']}{timed}")
     if report.get("file_bytes") is not None:
         rows.append(f"model file: {report['file_bytes']:,} bytes")
     if report.get("training_seconds") is not None:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import copy
 import functools
 import logging
 
@@ -18,7 +19,7 @@ from .connections import ConnectionGuard
 from .fastpath import QueryFastPath, check_equivalent
 from .heap import settle_heap
 from .metrics import RequestObserver, ServiceMetrics
-from .openapi import add_security, query_body, scene_body
+from .openapi import add_security, query_body, scene_body, with_examples
 from .openapi import router as docs_router
 from .problems import install_handlers
 from .query_jobs import answer_batch
@@ -45,7 +46,8 @@ def set_compute_threads(threads: int) -> None:
 
 
 def openapi_schema(app: FastAPI, settings: ServiceSettings) -> dict:
-    """The OpenAPI document, with the hand-written query bodies sized by ``settings``."""
+    """The OpenAPI document, with the hand-written query bodies sized by ``settings`` and, as
+    examples, the first model served now (models load and unload while the server runs)."""
     if app.openapi_schema is None:
         schema = get_openapi(title=app.title, version=app.version, description=app.description,
                              routes=app.routes)
@@ -55,7 +57,9 @@ def openapi_schema(app: FastAPI, settings: ServiceSettings) -> dict:
             scene_body(settings.max_request_points, settings.max_scene_colliders))
         add_security(schema)
         app.openapi_schema = schema
-    return app.openapi_schema
+    state = getattr(app.state, "collider", None)
+    served = sorted(state.registry.models) if state is not None else []
+    return with_examples(copy.deepcopy(app.openapi_schema), served[0] if served else None)
 
 
 def create_app(settings: ServiceSettings | None = None) -> FastAPI:

@@ -65,6 +65,10 @@ BatchFn = Callable[[Sequence[BatchPart]], "list[dict[str, np.ndarray] | BaseExce
 log = logging.getLogger(__name__)
 
 
+#: Batches the throughput estimate (:meth:`RowBatcher.points_per_second`) looks back on.
+RATE_WINDOW = 32
+
+
 class BatchingError(Exception):
     """Root of the batcher's errors."""
 
@@ -203,8 +207,8 @@ class RowBatcher:
         self._in_flight = 0
         self._wakeup = asyncio.Event()
         self._closing = False
-        # Recent throughput, points per second, for the Retry-After estimate.
-        self._points_per_second = 0.0
+        # (points, compute seconds) of the recent batches, for the Retry-After estimate.
+        self._recent: collections.deque[tuple[int, float]] = collections.deque(maxlen=RATE_WINDOW)
         self._task = asyncio.get_running_loop().create_task(self._run())
         self._task.add_done_callback(self._loop_ended)
 
@@ -285,12 +289,29 @@ class RowBatcher:
             return  # already fully handed to compute; its answers will be discarded
         self._queued_points -= request.size - request.taken
 
+    def points_per_second(self) -> float:
+        """The rate the queue drains at, points per second (0 before any batch): the median of the
+        last :data:`RATE_WINDOW` batches' rates, each batch weighted by its points. One slow batch
+        (a starved CPU, a stall) does not drag it, as it dragged an average of rates (Retry-After
+        60 s for a queue that drained in under a second), and tiny batches, whose time is mostly
+        overhead, weigh little."""
+        if not self._recent:
+            return 0.0
+        rates = sorted((n / seconds, n) for n, seconds in self._recent)
+        half, seen = sum(n for _, n in rates) / 2, 0
+        for rate, n in rates:
+            seen += n
+            if seen >= half:
+                return rate
+        return rates[-1][0]  # not reached: the weights sum to 2 * half
+
     def _retry_after_s(self, points: int) -> int:
-        """Whole seconds until the queue has likely drained enough to take ``points``."""
-        if self._points_per_second <= 0:
+        """Whole seconds (1 to 60) until the queue has likely drained enough to take ``points``."""
+        rate = self.points_per_second()
+        if rate <= 0:
             return 1
         backlog = self._queued_points + self._in_flight + points
-        return int(min(60, max(1, math.ceil(backlog / self._points_per_second))))
+        return int(min(60, max(1, math.ceil(backlog / rate))))
 
     # -- shutdown ------------------------------------------------------------------------------
 
@@ -393,8 +414,7 @@ class RowBatcher:
         finally:
             self._in_flight -= n
         compute_s = max(self._clock() - started, 1e-9)
-        self._points_per_second = n / compute_s if self._points_per_second == 0 else (
-            0.8 * self._points_per_second + 0.2 * n / compute_s)
+        self._recent.append((n, compute_s))
         for part, answer in zip(parts, answers, strict=True):  # _check_answers checked
             _deliver(part, answer)
         if self._on_batch is not None:

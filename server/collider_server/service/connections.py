@@ -1,4 +1,5 @@
-"""Connection limits uvicorn lacks: a header read timeout and a bound on open connections.
+"""Connection limits uvicorn lacks: a header read timeout, a bound on open connections, and
+stalled uploads closed on shutdown.
 
 uvicorn times out an idle keep-alive connection (5 s) but not a connection that sends nothing, or
 half a request line, or headers a byte at a time: each holds a file descriptor for as long as the
@@ -12,8 +13,11 @@ client likes, and a few thousand of them exhaust the process's descriptors. Here
   in :func:`~collider_server.service.bodies.read_body`.)
 - **connection bound**: beyond ``max_connections`` open connections a new one is answered 503
   ``too-many-connections`` (``Retry-After: 1``) and closed at once.
+- **shutdown**: on SIGTERM a connection whose request body is still arriving (nothing of it in
+  compute) is answered 503 ``shutting-down`` and closed at once, instead of holding the shutdown
+  for up to ``body_timeout_s``; requests whose bodies came are answered first, as uvicorn does.
 
-Both are counted in ``/metrics`` (``collider_connections_closed_total{reason}``, with the
+All three are counted in ``/metrics`` (``collider_connections_closed_total{reason}``, with the
 problem's type as the reason; ``collider_connections_open``). Malformed requests that the HTTP
 parser itself refuses (bad request line, bad chunked encoding) are answered 400
 ``malformed-request`` as a problem document instead of uvicorn's plain text.
@@ -25,6 +29,7 @@ parser itself refuses (bad request line, bad chunked encoding) are answered 400
 from __future__ import annotations
 
 import asyncio
+import http
 import logging
 from typing import Any
 
@@ -38,6 +43,7 @@ log = logging.getLogger("collider_server.service")
 HEADER_TIMEOUT = "header-timeout"
 TOO_MANY_CONNECTIONS = "too-many-connections"
 MALFORMED_REQUEST = "malformed-request"
+SHUTTING_DOWN = "shutting-down"
 
 
 class ConnectionGuard:
@@ -52,13 +58,16 @@ class ConnectionGuard:
         self.header_timeout_s = header_timeout_s
         self.open = 0
         self._closed = {reason: metrics.connections_closed.labels(reason)
-                        for reason in (HEADER_TIMEOUT, TOO_MANY_CONNECTIONS)}
+                        for reason in (HEADER_TIMEOUT, TOO_MANY_CONNECTIONS, SHUTTING_DOWN)}
         metrics.connections_open.set_function(lambda: self.open)
         # The answers are made once: thousands of connections refused or timed out together
         # should each cost the event loop as little as possible.
         self.refusal = raw_problem(Problem(
             503, TOO_MANY_CONNECTIONS, f"the server has max_connections={max_connections} "
             "connections open; retry shortly", {"Retry-After": "1"}))
+        self.shutting_down = raw_problem(Problem(
+            503, SHUTTING_DOWN, "the server is shutting down; the request body had not arrived "
+            "whole", {"Retry-After": "5"}))
         self.late_headers = raw_problem(Problem(
             408, HEADER_TIMEOUT, f"the request headers did not arrive within "
             f"header_timeout_s={header_timeout_s:g} s"))
@@ -84,7 +93,9 @@ def raw_problem(problem: Problem) -> bytes:
     body = problem.document()
     headers = {"content-type": "application/problem+json", "content-length": str(len(body)),
                **{k.lower(): v for k, v in problem.headers.items()}, "connection": "close"}
-    head = f"HTTP/1.1 {problem.status} {problem.title}\r\n" + "".join(
+    # The status line's reason phrase is the standard one, as uvicorn writes it for every other
+    # answer (the problem's title is the body's own).
+    head = f"HTTP/1.1 {problem.status} {http.HTTPStatus(problem.status).phrase}\r\n" + "".join(
         f"{name}: {value}\r\n" for name, value in headers.items())
     return head.encode("latin-1") + b"\r\n" + body
 
@@ -159,6 +170,22 @@ class GuardedProtocol(HttpToolsProtocol):
         if self._partial:  # part of a request came: say why it was not answered
             self.transport.write(self.guard.late_headers)
         self.transport.close()
+
+    # -- shutdown ------------------------------------------------------------------------------
+
+    def shutdown(self) -> None:
+        """On SIGTERM: a request whose body is still arriving has nothing in compute, so it is
+        answered 503 ``shutting-down`` and closed now (its reader sees a disconnect) instead of
+        holding the shutdown until its body timeout; uvicorn's own rule then covers the rest
+        (idle connections close, a request in compute is answered first)."""
+        cycle = self.cycle
+        if cycle is not None and not cycle.response_complete and cycle.more_body:
+            self.guard.count(SHUTTING_DOWN)
+            if not cycle.response_started:
+                self.transport.write(self.guard.shutting_down)
+            self.transport.close()
+            return
+        super().shutdown()
 
     # -- the HTTP parser's own refusals --------------------------------------------------------
 

@@ -68,7 +68,7 @@ class ServiceMetrics:
                                       registry=r)
         self.connections_closed = Counter("collider_connections_closed",
                                           "connections closed by a limit, by reason: "
-                                          "header-timeout, too-many-connections",
+                                          "header-timeout, too-many-connections, shutting-down",
                                           ["reason"], registry=r)
         self.request_seconds = Histogram("collider_request_seconds",
                                          "end-to-end latency of answered requests, seconds",

@@ -19,12 +19,14 @@ from fastapi import APIRouter, Depends, Request
 from starlette.responses import FileResponse, HTMLResponse, JSONResponse
 
 from collider_contract import FIELDS, MAX_COORDINATE_M, TITLES
-from collider_contract.queries import MAX_TIME_S
+from collider_contract.queries import COLLIDER_KEYS, MAX_TIME_S, QUERY_KEYS, SCENE_KEYS, TRANSPORT_KEYS
 
 from .auth import require_token
 from .problems import PROBLEM_JSON
 
-MSGPACK_AND_JSON = ("application/msgpack", "application/json")
+#: The request media types, JSON first: the /docs page's "Try it out" sends the first one, and
+#: it can write JSON text only (msgpack bodies come from clients).
+REQUEST_MEDIA = ("application/json", "application/msgpack")
 
 _COORDINATE = {"type": "number", "minimum": -MAX_COORDINATE_M, "maximum": MAX_COORDINATE_M}
 
@@ -99,29 +101,68 @@ def _common(max_points: int, msgpack: bool) -> dict:
     }
 
 
+def _keys(properties: dict, keys: tuple[str, ...]) -> dict:
+    """``properties`` in the order of the contract's ``keys`` (plus the transport keys): the
+    contract's reader is the one home of which keys a body may hold."""
+    allowed = (*keys, *sorted(TRANSPORT_KEYS))
+    if set(properties) != set(allowed):
+        raise RuntimeError(f"the schema's keys {sorted(properties)} are not the contract's "
+                           f"{sorted(allowed)}")
+    return {key: properties[key] for key in allowed}
+
+
+#: The examples' points (the origin and 0.5 above it, world units) at time 0 (a static model
+#: ignores it): valid for any model, so the /docs page's "Try it out" answers 200 as it is.
+EXAMPLE_POINTS = [[0.0, 0.0, 0.0], [0.0, 0.0, 0.5]]
+EXAMPLE_FIELDS = ["distance", "normal", "collides"]
+
+
 def query_body(max_points: int) -> dict:
-    return _body({media: {"type": "object", "required": ["points"], "additionalProperties": False,
-                          "properties": {**_common(max_points, media != "application/json"),
-                                         "pose": _pose(media != "application/json"),
-                                         "pose_velocity": _pose_velocity(media != "application/json"),
-                                         "time": _TIME}}
-                  for media in MSGPACK_AND_JSON})
+    def schema(msgpack: bool) -> dict:
+        properties = {**_common(max_points, msgpack), "pose": _pose(msgpack),
+                      "pose_velocity": _pose_velocity(msgpack), "time": _TIME}
+        return {"type": "object", "required": ["points"], "additionalProperties": False,
+                "properties": _keys(properties, QUERY_KEYS)}
+
+    body = _body({media: schema(media != "application/json") for media in REQUEST_MEDIA})
+    body["requestBody"]["content"]["application/json"]["example"] = {
+        "points": EXAMPLE_POINTS, "fields": EXAMPLE_FIELDS, "time": 0.0}
+    return body
 
 
 def scene_body(max_points: int, max_colliders: int) -> dict:
     def schema(msgpack: bool) -> dict:
+        collider = {"model": {"type": "string"}, "pose": _pose(msgpack),
+                    "pose_velocity": _pose_velocity(msgpack), "time": _TIME}
         collider = {"type": "object", "required": ["model"], "additionalProperties": False,
-                    "properties": {"model": {"type": "string"}, "pose": _pose(msgpack),
-                                   "pose_velocity": _pose_velocity(msgpack), "time": _TIME}}
+                    "properties": {key: collider[key] for key in COLLIDER_KEYS}}
+        properties = {**_common(max_points, msgpack),
+                      "time": {**_TIME, "description": "seconds: the time of the colliders that "
+                                                       "give none of their own"},
+                      "colliders": {"type": "array", "items": collider, "minItems": 1,
+                                    "maxItems": max_colliders}}
         return {"type": "object", "required": ["points", "colliders"],
-                "additionalProperties": False,
-                "properties": {**_common(max_points, msgpack),
-                               "time": {**_TIME, "description": "seconds: the time of the "
-                                        "colliders that give none of their own"},
-                               "colliders": {"type": "array", "items": collider, "minItems": 1,
-                                             "maxItems": max_colliders}}}
+                "additionalProperties": False, "properties": _keys(properties, SCENE_KEYS)}
 
-    return _body({media: schema(media != "application/json") for media in MSGPACK_AND_JSON})
+    return _body({media: schema(media != "application/json") for media in REQUEST_MEDIA})
+
+
+def with_examples(schema: dict, model: str | None) -> dict:
+    """``schema`` (a copy to change) with ``model`` as the example of the model name in paths and
+    in the scene query's body, so the /docs page's "Try it out" asks a model that is served
+    (None: no model is loaded; the examples are left out)."""
+    if model is None:
+        return schema
+    for path, operations in schema["paths"].items():
+        if path.startswith("/v1/models/{name}"):
+            for operation in operations.values():
+                for parameter in operation.get("parameters", []):
+                    if parameter["name"] == "name" and parameter["in"] == "path":
+                        parameter["example"] = model
+    scene = schema["paths"]["/v1/scene/query"]["post"]["requestBody"]["content"]["application/json"]
+    scene["example"] = {"points": EXAMPLE_POINTS, "fields": EXAMPLE_FIELDS, "time": 0.0,
+                        "colliders": [{"model": model}]}
+    return schema
 
 
 def _body(schemas: dict[str, dict]) -> dict:
@@ -146,6 +187,51 @@ _ROWS = {"type": "array", "items": {"type": "array", "items": {"type": "number"}
 _ANSWER = {"type": "object", "properties": {
     "distance": _FLOATS, "normal": _ROWS, "contact": _ROWS,
     "collides": {"type": "array", "items": {"type": "boolean"}}, "velocity": _ROWS}}
+
+_VECTOR = {"type": "array", "items": {"type": "number"}, "minItems": 3, "maxItems": 3}
+_ANIMATION = {"type": "object", "description": "empty for a static model; an animated one's "
+              "timeline (its queries must give a time)", "properties": {
+                  "frames": {"type": "integer", "minimum": 2,
+                             "description": "keyframes, evenly spaced in time"},
+                  "frame_rate_hz": {"type": "number", "exclusiveMinimum": 0,
+                                    "description": "keyframes per second"},
+                  "duration_s": {"type": "number", "minimum": 0,
+                                 "description": "seconds from the first frame to the last"},
+                  "loop": {"type": "boolean", "description": "beyond its ends the animation "
+                           "wraps (true) or holds the end frame (false)"},
+                  "max_surface_speed": {"type": "number", "minimum": 0,
+                                        "description": "fastest surface point, collider units "
+                                                       "per second (0: unknown)"}}}
+#: ``collider_contract.ModelInfo.to_dict()``: what ``GET /v1/models/{name}`` answers (keys a
+#: newer server adds are allowed).
+MODEL_INFO = {"type": "object", "required": ["name", "kind", "domain_min", "domain_max",
+                                             "meters_per_unit", "animation"], "properties": {
+    "name": {"type": "string"},
+    "kind": {"type": "string", "description": "neural, voxel, mesh (exact) or kdtree"},
+    "units": {"type": "string", "description": "the collider's length unit (m for the shipped "
+                                               "models)"},
+    "meters_per_unit": {"type": "number", "exclusiveMinimum": 0},
+    "domain_min": {**_VECTOR, "description": "collider frame and units: the box where the "
+                                             "model is defined"},
+    "domain_max": _VECTOR,
+    "bytes": {"type": "integer", "minimum": 0, "description": "size of the model file"},
+    "approximate": {"type": "boolean", "description": "the kind is not a signed distance by "
+                    "construction (kdtree: the nearest vertex, not the nearest surface point)"},
+    "accuracy": {"type": "object", "description": "figures `collider eval` stored (empty if "
+                                                  "none)"},
+    "source": {"type": "object", "description": "what the model was made from"},
+    "settings": {"type": "object", "description": "how it was made"},
+    "device": {"type": "string", "description": "where it computes (cpu, cuda)"},
+    "animation": _ANIMATION}}
+
+
+def model_info_responses(*codes: int, listed: bool = False) -> dict:
+    """``responses=`` of a route answering one model's info (``listed``: ``{"models": [...]}``)."""
+    schema = ({"type": "object", "required": ["models"],
+               "properties": {"models": {"type": "array", "items": MODEL_INFO}}}
+              if listed else MODEL_INFO)
+    return {200: {"description": "OK", "content": {"application/json": {"schema": schema}}},
+            **problems(*codes)}
 
 #: Statuses every body-reading query route can answer.
 QUERY_ERRORS = (400, 401, 404, 408, 413, 415, 422, 429, 503, 504)

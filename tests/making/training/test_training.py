@@ -182,6 +182,9 @@ def test_evaluation_reports_the_points_near_holes_apart(analytic_shape):
     assert box["clear_winding"]["sign_errors_percent"] == 0
     text = format_report("closed", "mesh", report)
     assert "  w clear " in text and f"box {box['ambiguous_winding_percent']:.2f} %" in text
+    # the query time says which points it timed (issue 35: a time per point depends on them)
+    assert report["query_points"] == 4000
+    assert "s per 1M points on cpu (4,000 points of the +-1 mm band, best of 2)" in text
     # A closed mesh has no hole: no "w clear" rows, 0 % ambiguous.
     whole = evaluate_collider(closed, sphere, points=2000, reconstruction=False, show_progress=False)
     assert whole["box"]["ambiguous_winding_percent"] == 0.0

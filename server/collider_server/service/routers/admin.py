@@ -6,7 +6,7 @@ from fastapi import APIRouter, Depends, Request
 
 from ...engine.modelfile import ModelFileError
 from ..auth import require_admin
-from ..openapi import problems
+from ..openapi import MODEL_INFO, problems
 from ..problems import Problem
 from ..state import get_state
 
@@ -14,7 +14,10 @@ router = APIRouter(prefix="/v1/admin", tags=["admin"], dependencies=[Depends(req
 
 
 @router.put("/models/{name}", summary="load (or reload) a model from the repository",
-            responses=problems(401, 403, 404, 422))
+            responses={200: {"description": "OK", "content": {"application/json": {"schema": {
+                "type": "object", "required": ["loaded", "info"],
+                "properties": {"loaded": {"type": "string"}, "info": MODEL_INFO}}}}},
+                **problems(401, 403, 404, 422)})
 async def load_model(name: str, request: Request):
     registry = get_state(request).registry
     try:

@@ -14,20 +14,20 @@ from ..bodies import (
     request_media_type,
     response_media_type,
 )
-from ..openapi import problems, query_responses
+from ..openapi import model_info_responses, query_responses
 from ..query_jobs import absolute_deadline, answer_query, unless_disconnected
 from ..state import get_state, serving_model
 
 router = APIRouter(prefix="/v1/models", tags=["models"], dependencies=[Depends(require_token)])
 
 
-@router.get("", summary="the models being served", responses=problems(401))
+@router.get("", summary="the models being served", responses=model_info_responses(401, listed=True))
 async def list_models(request: Request):
     return {"models": [info.to_dict() for info in served_models(get_state(request).registry.models)]}
 
 
-@router.get("/{name}", summary="one model: kind, units, domain box, size, recorded accuracy",
-            responses=problems(401, 404, 503))
+@router.get("/{name}", summary="one model: kind, units, domain box, size, recorded accuracy, "
+                               "animation", responses=model_info_responses(401, 404, 503))
 async def model_info(name: str, request: Request):
     return serving_model(get_state(request), name).info.to_dict()
 
