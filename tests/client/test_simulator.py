@@ -174,6 +174,28 @@ def test_moving_sphere_pushes_the_cloth(tmp_path, models_dir):
     assert top > 0.104  # lifted above where it started by the rising sphere
 
 
+def test_an_animated_collider_is_met_at_the_scene_time_plus_its_time_offset(tmp_path, models_dir):
+    """``time_offset_s`` = 0.25 s, a quarter of the pulsing sphere's period: the cloth falls on
+    the sphere as it is 0.25 s later (radius 0.12 m at x = +0.1 at t = 0; 0.25 s earlier it is
+    0.08 m at x = -0.1), and at every frame no vertex is inside that sphere beyond its 0.6 mm
+    tessellation gap. An offset applied the other way (t - 0.25) leaves the falling cloth
+    centimetres inside it."""
+    from collider_server.making.animations import pulsing_sphere
+
+    _, reference = pulsing_sphere()
+    offset = 0.25
+    path = tmp_path / "pulse.toml"
+    path.write_text(DROP.format(motion=f"time_offset_s = {offset}", friction="")
+                    .replace('model = "sphere"', 'model = "pulse"').replace("0.104]", "0.13]"))
+    scene = load_scene(path)
+    assert scene.colliders[0].time_offset_s == offset
+    with cc.Client(models=models_dir, device="cpu") as client:
+        report, frames = run_scene(scene, client, tmp_path / "out", show_progress=False, preview=False)
+    assert report.colliding_max > 20  # the cloth met the sphere
+    deepest = max(float(-reference.signed_distance(v, t + offset).min()) for t, v in frames)
+    assert deepest < 0.6e-3 + 1e-4, deepest
+
+
 def test_remote_and_embedded_runs_agree(tmp_path, models_dir, server_url):
     out = {}
     for backend in ("embedded", "remote"):
