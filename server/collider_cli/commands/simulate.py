@@ -99,10 +99,12 @@ def run_simulate(args: argparse.Namespace) -> int:
             threads = args.threads or max(1, (os.cpu_count() or 2) - 1)
             client = Client(models=args.models, device=args.device, threads=threads)
     placed = placed_meshes(client, checks, caches) if checks else {}
-    # The exact meshes also show the colliders in the PNG (a few thousand surface vertices, an
-    # animated one's at each panel's time).
+    # The PNG shows each collider's surface (a few thousand points, an animated one's at each
+    # panel's time): the exact mesh's where --check-mesh gives one, else the model's own.
     shown = {model: shown_points(mesh, spec) for model, mesh in placed.items()
              for spec in scene.colliders if spec.model == model}
+    if not args.no_preview and client is not None:
+        shown.update(model_surfaces(client, [spec for spec in scene.colliders if spec.model not in shown]))
     server = None
     try:
         on_step = None
@@ -235,6 +237,56 @@ def shown_points(mesh, spec, count: int = 4000):
     pick = np.random.default_rng(0).choice(mesh.vertex_count, min(count, mesh.vertex_count), replace=False)
     placement = ColliderPlacement(spec.model, None, spec.time_offset_s, spec.loop)
     return lambda t: mesh.vertices_at(animation_time(placement, mesh.timeline, t)[0])[pick]
+
+
+def model_surfaces(client, specs, resolution: int = 48, count: int = 4000) -> dict:
+    """Per model of the scene colliders ``specs``, its surface as the model itself answers it,
+    for the PNG: marching cubes (:mod:`collider_server.making.surface`) of the distance the
+    client answers on a ``resolution``^3 grid over the model's domain, ``count`` of its vertices
+    (m, 3), collider frame; for an animated model a function of the simulation time (its
+    animation time as the collision hook asks it). A model the scene names that the client
+    does not know is left out (the run refuses it)."""
+    from collider_client import ColliderError
+    from collider_client.response import ColliderPlacement, animation_time
+    from collider_server.making.surface import distance_grid, level_surface
+
+    if not specs:
+        return {}
+    try:
+        infos = {m.name: m for m in client.list_models()}
+    except ColliderError as exc:  # a server that is down: one line
+        client.close()
+        raise ValueError(str(exc)) from None
+
+    def surface(info, time):
+        def distance(points):
+            return client.query(info.name, points, fields=["distance"], time=time).distance
+
+        grid = distance_grid(distance, info.domain_min, info.domain_max, resolution)
+        mesh = level_surface(grid)
+        return surface_sample(mesh[0], count) if mesh is not None else None
+
+    shown = {}
+    for spec in specs:
+        info = infos.get(spec.model)
+        if info is None or spec.model in shown:
+            continue
+        if info.timeline is None:
+            points = surface(info, None)
+            if points is not None:
+                shown[spec.model] = points
+        else:
+            placement = ColliderPlacement(spec.model, None, spec.time_offset_s, spec.loop)
+            shown[spec.model] = (lambda t, info=info, placement=placement: _or_none(
+                surface(info, animation_time(placement, info.timeline, t)[0])))
+    return shown
+
+
+def _or_none(points):
+    """``points``, or an empty (0, 3) array where a surface was not found."""
+    import numpy as np
+
+    return np.zeros((0, 3)) if points is None else points
 
 
 def surface_sample(vertices, count: int = 4000):
