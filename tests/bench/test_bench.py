@@ -580,3 +580,23 @@ def test_figures_unstable_in_cpu_time_only_are_retimed_too():
     time_rounds(cells, TimingPolicy(repeats=4, cell_budget_s=100.0, retime_rounds=3), clock=clock)
     t = cells[0].timing
     assert t.stable(0.25) and not t.cpu_stable(0.25) and t.retimed == 3 and len(t.cpu_s) == 7
+
+
+def test_an_interrupted_budget_bake_says_where_its_measured_figures_are(tmp_path, capsys, monkeypatch):
+    """Issue 35: Ctrl-C during the budget bake's measuring said "the report holds what was
+    measured" without saying where: it names the files it wrote, in the cache's budget-NAME/."""
+    from collider_cli.bench import run as bench_run
+
+    def interrupt(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(bench_run, "build_all", interrupt)
+    cache = tmp_path / "cache"
+    code, _out, err = collider_here(capsys, "bake", REPO_ROOT / "examples/meshes/spot.obj", "--z-up", "--fit-size",
+                                   "0.2", "--name", "cut", "--models", tmp_path / "models", "--max-error",
+                                   "0.05mm", "--cache", cache, "--quiet")
+    assert code == 130, err
+    folder = cache / "budget-cut"
+    assert f"interrupted: {folder / 'bench.md'} and {folder / 'bench.json'} hold what was measured until then" in err
+    assert json.loads((folder / "bench.json").read_text())["interrupted"] is True
+    assert not (tmp_path / "models" / "cut.safetensors").exists()

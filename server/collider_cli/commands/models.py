@@ -286,12 +286,25 @@ def run_info(args) -> int:
     for key, value in info.settings.items():
         print(f"  {key:<11} {value}")
     if info.accuracy:
-        print("  accuracy")
-        for key, value in info.accuracy.items():
-            print(f"    {key}: {value}")
+        print(f"  accuracy    as `collider eval` measured it ({info.accuracy.get('evaluated', 'when: not recorded')})")
+        for line in accuracy_lines(info):
+            print(f"    {line}")
     else:
         print("  accuracy    not evaluated; " + eval_hint(info, path, args))
     return 0
+
+
+def accuracy_lines(info) -> list[str]:
+    """A model's stored evaluation as ``collider eval`` prints it (its table), less the model
+    file's size: the report measured the file before the figures were stored in it (the true
+    size heads ``collider info``). A report of another form is listed key by key."""
+    from collider_server.making.evaluation import format_report
+
+    report = {key: value for key, value in info.accuracy.items() if key != "file_bytes"}
+    try:
+        return format_report(info.name, info.kind, report).splitlines()[1:]
+    except (KeyError, TypeError, ValueError):  # stored by another version: shown as it is
+        return [f"{key}: {value}" for key, value in report.items()]
 
 
 def print_source_check(source: dict, accuracy: dict | None) -> None:
