@@ -120,13 +120,13 @@ def run_bake(args) -> int:
 
 
 def bake_estimate(mesh, resolution: int) -> str:
-    """How long a voxel bake will take: resolution^3 exact distances at the rate measured on a
-    few thousand points of this mesh's box, now."""
+    """How long a voxel bake will take: resolution^3 exact distances at the rate measured now on
+    slabs of that grid (:func:`~collider_server.making.bake.exact_seconds_per_point`)."""
     from collider_server.engine.meshes import ExactSDF
     from collider_server.making.bake import exact_seconds_per_point, padded_box
     from collider_server.making.progress import format_duration
 
-    per_point = exact_seconds_per_point(ExactSDF(mesh), *padded_box(mesh, 0.1))
+    per_point = exact_seconds_per_point(ExactSDF(mesh), *padded_box(mesh, 0.1), resolution)
     return (f"bake voxel {resolution}^3: {resolution ** 3:,} exact distances, about "
             f"{format_duration(resolution ** 3 * per_point)} ({per_point * 1e6:.1f} us per point measured here)")
 
