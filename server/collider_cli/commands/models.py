@@ -149,6 +149,12 @@ def run_bake_animation(args) -> int:
     check = check_animation(animation)
     for line in check.lines():
         print(line)
+    if args.kind == "voxel":  # said before the bake: the keyframes that would hold it
+        from collider_server.making.keyframe_check import check_keyframes
+
+        thin = check_keyframes(animation, args.keyframes or animation.timeline.frames)
+        if not thin.holds:
+            print(thin.warning(placement.meters_per_unit), file=sys.stderr, flush=True)
     collider = bake_animated_collider(
         animation, args.kind, args.name, resolution=args.resolution or 128,
         keyframes=args.keyframes, padding=args.padding, units=placement.units,
