@@ -600,3 +600,21 @@ def test_an_interrupted_budget_bake_says_where_its_measured_figures_are(tmp_path
     assert f"interrupted: {folder / 'bench.md'} and {folder / 'bench.json'} hold what was measured until then" in err
     assert json.loads((folder / "bench.json").read_text())["interrupted"] is True
     assert not (tmp_path / "models" / "cut.safetensors").exists()
+
+
+def test_the_readme_says_what_the_quick_bench_of_its_tour_measures(tmp_path):
+    """Issue 35: the tour said "every kind" of a quick bench that measures no neural collider
+    (four "not measured" lines). Its line names what the quick plan builds for spot and says the
+    networks are not measured."""
+    from collider_cli.bench import QUICK
+    from collider_server.making.mesh_files import load_mesh
+
+    (line,) = [line for line in (REPO_ROOT / "README.md").read_text().splitlines()
+               if line.startswith("collider bench ") and "--quick" in line]
+    plan = plan_candidates(load_mesh(REPO_ROOT / "examples/meshes/spot.obj"), np.eye(4), QUICK.plan, tmp_path)
+    comment = line.split("#", 1)[1]
+    built = [c.kind if c.kind != "voxel" else f"{c.settings['resolution']}^3" for c in plan.candidates]
+    assert built == ["kdtree", "mesh", "32^3", "64^3"]
+    assert all(name in comment for name in built), comment
+    assert {s["name"].split("-")[0] for s in plan.skipped} == {"neural"}
+    assert "every kind" not in comment and "neural presets are listed as not measured" in comment
