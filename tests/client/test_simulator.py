@@ -242,6 +242,11 @@ def test_check_mesh_places_the_mesh_as_the_model_was_made(tmp_path, monkeypatch)
     check = json.loads(text)["exact_check"]
     assert check["max_depth_m"] < 1e-3  # the raw 1 m file would put every vertex ~0.9 m inside
     assert check["min_distance_m"] < 3e-3  # and the cloth did reach the sphere
+    # Measured every step too: nothing crossed into the sphere, and the conservative advance
+    # measured far fewer exact distances than every vertex at every step.
+    assert check["crossed_points"] == 0 and check["steps"] == 299
+    assert check["max_depth_at_a_step_m"] < 1e-3
+    assert 256 <= check["exact_distances"] < 300 * 256 / 4
     # The preview's collider points: 4,000 distinct vertices of the file, placed as the model.
     (shown,) = seen
     points = shown["collider_points"]["sphere"]
@@ -887,6 +892,44 @@ def test_exact_penetration_measures_each_placed_collider_at_each_frame():
     check = penetration([(0.0, np.array([[1.0, 0.0, 0.05]]))],
                         [("box", exact_distance(_box_exact(2.0)), lambda t: scaled)])
     assert check["max_depth_m"] == pytest.approx(0.05, abs=1e-6)
+
+
+def test_surface_crossings_count_a_point_that_passes_through_a_thin_plate_between_frames():
+    """Issue 35: a cloth that falls through a thin part and ends outside again showed no depth
+    at the written frames. A point falls 1 mm a step through a plate 4 mm thick (z in
+    [-2, 2] mm; its frame and the world's): outside before it and after it, inside for four
+    steps. The per-step check counts it as crossed, and the one that stays above is not; the
+    resting one is measured again only when it could have reached the plate."""
+    pytest.importorskip("collider_server", reason="the engine (server extras) is not installed")
+    import trimesh
+
+    from collider_server.engine.meshes import ExactSDF, Mesh
+    from collider_server.making.evaluation import SurfaceCrossings, exact_distance, penetration
+
+    plate = trimesh.creation.box(extents=(0.2, 0.2, 0.004))
+    colliders = [("plate", exact_distance(ExactSDF(Mesh(np.asarray(plate.vertices), np.asarray(plate.faces)))),
+                  lambda t: np.eye(4))]
+    crossings = SurfaceCrossings(colliders)
+    steps = []
+    for i in range(13):  # z from +6 mm down to -6 mm, 1 mm a step; the other point rests at +3 mm
+        points = np.array([[0.0, 0.0, 0.006 - 0.001 * i], [0.05, 0.0, 0.003]])
+        crossings.step(i * 1e-3, points, [0.0])
+        steps.append((i * 1e-3, points))
+    result = crossings.result()
+    assert result["crossed_points"] == 1 and result["crossed_by_model"] == {"plate": 1}
+    assert result["inside_at_end"] == 0  # it left the plate below: outside again
+    assert result["max_depth_at_a_step_m"] == pytest.approx(0.002, abs=1e-9)
+    assert result["steps"] == 12
+    # The resting point (1 mm from the plate, still): measured once, not every step; the falling
+    # one about every other step (1 mm a step against its distance).
+    assert result["exact_distances"] < 2 + 12
+    # The written frames, first and last alone, see nothing: both outside.
+    assert penetration([steps[0], steps[-1]], colliders)["max_depth_m"] == 0.0
+    # A surface that moves (its bound given) makes the still point measured again.
+    moving = SurfaceCrossings(colliders)
+    for i in range(5):
+        moving.step(i * 1e-3, np.array([[0.05, 0.0, 0.003]]), [0.6e-3])
+    assert moving.result()["exact_distances"] == 3  # steps 0, 2 and 4: 2 x 0.6 mm >= its 1 mm
 
 
 def test_exact_penetration_without_meshes_measures_nothing():

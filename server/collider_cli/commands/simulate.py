@@ -106,10 +106,13 @@ def run_simulate(args: argparse.Namespace) -> int:
     if not args.no_preview and client is not None:
         shown.update(model_surfaces(client, [spec for spec in scene.colliders if spec.model not in shown]))
     server = None
+    crossings = None
     try:
         on_step = None
         if args.view:
             server, on_step = start_live_view(args, scene, client)
+        if placed:
+            crossings, on_step = crossing_check(scene, placed, on_step)
         report, frames = run_scene(
             scene, client, args.output, show_progress=not args.quiet, steps=args.steps,
             preview=not args.no_preview, backend="remote" if args.server else "embedded",
@@ -134,9 +137,10 @@ def run_simulate(args: argparse.Namespace) -> int:
         from collider_client.sim.motion import pose_function
         from collider_server.making.evaluation import penetration
 
-        report.exact_check = penetration(frames, [(spec.model, exact_check(placed[spec.model], spec),
-                                                   pose_function(spec))
-                                                  for spec in scene.colliders if spec.model in placed])
+        report.exact_check = {
+            **penetration(frames, [(spec.model, exact_check(placed[spec.model], spec), pose_function(spec))
+                                   for spec in scene.colliders if spec.model in placed]),
+            **crossings.result()}
         (args.output / f"{scene.path.stem}.report.json").write_text(
             json.dumps(report.to_dict(), indent=2, default=float))
     print(report.text())
@@ -153,6 +157,35 @@ def written_line(args, scene) -> str:
     stem = scene.path.stem
     written = ".pc2, .report.json" if args.no_preview else ".pc2, .png, .report.json"
     return f"wrote {args.output / (stem + '.obj')}, {written}"
+
+
+def crossing_check(scene, placed: dict, on_step=None):
+    """The per-step half of ``--check-mesh``: a
+    :class:`~collider_server.making.evaluation.SurfaceCrossings` of the placed exact meshes, and
+    the run's per-step callback that feeds it (after ``on_step``, the live view's, if any).
+    Each step it is told how far each collider's surface moved (the hook's bound; without
+    collisions, every point is measured every step)."""
+    import math
+
+    from collider_client.sim.motion import pose_function
+    from collider_server.making.evaluation import SurfaceCrossings
+
+    specs = [(k, spec) for k, spec in enumerate(scene.colliders) if spec.model in placed]
+    crossings = SurfaceCrossings([(spec.model, exact_check(placed[spec.model], spec), pose_function(spec))
+                                  for _, spec in specs])
+
+    def step(sim, i):
+        if on_step is not None:
+            on_step(sim, i)
+        hook = sim.hook
+        if hook is None:
+            moves = [math.inf] * len(specs)
+        else:
+            every = hook.collider_moves([c.pose(sim.t) for c in hook.colliders], sim.t, scene.dt_s)
+            moves = [every[k] for k, _ in specs]
+        crossings.step(sim.t, sim.vertices, moves)
+
+    return crossings, step
 
 
 def model_files(items: list[str], option: str, what: str) -> dict[str, Path]:
