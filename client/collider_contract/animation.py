@@ -24,13 +24,25 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+#: The highest frame rate an animation may have, frames per second. A surface's velocity is its
+#: displacement per frame times the rate and travels as float32: at 1e300 fps any motion overflows
+#: it (an answer with no finite velocity), while no simulation or capture runs near a million.
+MAX_FRAME_RATE_HZ = 1e6
+
+
+def is_frame_rate(value) -> bool:
+    """Whether ``value`` is a frame rate an animation may have: a number (not a bool) in
+    ``(0, MAX_FRAME_RATE_HZ]`` frames per second."""
+    return (not isinstance(value, bool) and isinstance(value, (int, float))
+            and 0 < value <= MAX_FRAME_RATE_HZ)
+
 
 @dataclass(frozen=True)
 class Timeline:
     """When an animated collider's frames are, and what happens beyond them.
 
     frames : F >= 2 keyframes
-    frame_rate_hz : keyframes per second (> 0, finite)
+    frame_rate_hz : keyframes per second, in (0, :data:`MAX_FRAME_RATE_HZ`]
     loop : wrap beyond the ends (True) or hold the end frames (False)
     max_surface_speed : the fastest any point of the surface moves, collider units per second (an
         upper bound: the fastest vertex of the animation); 0 when unknown
@@ -45,10 +57,9 @@ class Timeline:
         if isinstance(self.frames, bool) or not isinstance(self.frames, int) or self.frames < 2:
             raise ValueError(f"an animation needs at least 2 frames, got {self.frames!r}")
         rate = self.frame_rate_hz
-        if isinstance(rate, bool) or not isinstance(rate, (int, float)) or not (
-                math.isfinite(rate) and rate > 0):
-            raise ValueError(f"the frame rate must be a finite number of frames per second > 0, "
-                             f"got {rate!r}")
+        if not is_frame_rate(rate):
+            raise ValueError(f"the frame rate must be a number of frames per second in (0, "
+                             f"{MAX_FRAME_RATE_HZ:g}], got {rate!r}")
         if not isinstance(self.loop, bool):
             raise ValueError(f"loop must be true or false, got {self.loop!r}")
         speed = self.max_surface_speed

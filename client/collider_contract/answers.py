@@ -236,14 +236,19 @@ def answer_scene_query(query: SceneQuery, meters_per_unit: Sequence[float],
 
 def check_finite(result: QueryResult, points: np.ndarray, where: str, first_row: int = 0) -> None:
     """Refuse (422 ``out-of-range``) an answer that is not a finite number: the first such row of
-    ``points`` is named (counted from ``first_row``). Inside the coordinate range every answer is
-    finite; this guards the answer's encoding (the service never sends NaN or Infinity)."""
-    floats = [v for v in result.fields().values() if v.dtype.kind == "f"]
-    if all(np.isfinite(v).all() for v in floats):  # one cheap check per field, rows only if not
+    ``points`` (counted from ``first_row``) and its first field that is not finite are named.
+    Inside the coordinate range every distance, normal and contact is finite; a velocity is too
+    while the animation's frame rate and the pose's velocity are within their bounds. This guards
+    the answer's encoding (the service never sends NaN or Infinity)."""
+    floats = {name: v for name, v in result.fields().items() if v.dtype.kind == "f"}
+    if all(np.isfinite(v).all() for v in floats.values()):  # one cheap check per field, rows only if not
         return
-    bad = np.zeros(len(points), dtype=bool)
-    for values in floats:
-        bad |= ~(np.isfinite(values) if values.ndim == 1 else np.isfinite(values).all(axis=1))
-    row = int(np.flatnonzero(bad)[0])
-    raise QueryError(f"points row {first_row + row} ({points[row].tolist()}) has no finite answer: it "
-                     f"lies too far from {where} (world frame, with the pose given)", code="out-of-range")
+    bad = {name: ~(np.isfinite(v) if v.ndim == 1 else np.isfinite(v).all(axis=1))
+           for name, v in floats.items()}
+    row = int(np.flatnonzero(np.logical_or.reduce(list(bad.values())))[0])
+    field = next(name for name, rows in bad.items() if rows[row])
+    why = (f"the velocity of {where} there overflows float32 (world units per second, with the "
+           "pose and pose_velocity given)" if field == "velocity" else
+           f"it lies too far from {where} (world frame, with the pose given)")
+    raise QueryError(f"points row {first_row + row} ({points[row].tolist()}) has no finite {field}: "
+                     f"{why}", code="out-of-range")

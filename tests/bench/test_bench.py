@@ -580,3 +580,41 @@ def test_figures_unstable_in_cpu_time_only_are_retimed_too():
     time_rounds(cells, TimingPolicy(repeats=4, cell_budget_s=100.0, retime_rounds=3), clock=clock)
     t = cells[0].timing
     assert t.stable(0.25) and not t.cpu_stable(0.25) and t.retimed == 3 and len(t.cpu_s) == 7
+
+
+def test_an_interrupted_budget_bake_says_where_its_measured_figures_are(tmp_path, capsys, monkeypatch):
+    """Issue 35: Ctrl-C during the budget bake's measuring said "the report holds what was
+    measured" without saying where: it names the files it wrote, in the cache's budget-NAME/."""
+    from collider_cli.bench import run as bench_run
+
+    def interrupt(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(bench_run, "build_all", interrupt)
+    cache = tmp_path / "cache"
+    code, _out, err = collider_here(capsys, "bake", REPO_ROOT / "examples/meshes/spot.obj", "--z-up", "--fit-size",
+                                   "0.2", "--name", "cut", "--models", tmp_path / "models", "--max-error",
+                                   "0.05mm", "--cache", cache, "--quiet")
+    assert code == 130, err
+    folder = cache / "budget-cut"
+    assert f"interrupted: {folder / 'bench.md'} and {folder / 'bench.json'} hold what was measured until then" in err
+    assert json.loads((folder / "bench.json").read_text())["interrupted"] is True
+    assert not (tmp_path / "models" / "cut.safetensors").exists()
+
+
+def test_the_readme_says_what_the_quick_bench_of_its_tour_measures(tmp_path):
+    """Issue 35: the tour said "every kind" of a quick bench that measures no neural collider
+    (four "not measured" lines). Its line names what the quick plan builds for spot and says the
+    networks are not measured."""
+    from collider_cli.bench import QUICK
+    from collider_server.making.mesh_files import load_mesh
+
+    (line,) = [line for line in (REPO_ROOT / "README.md").read_text().splitlines()
+               if line.startswith("collider bench ") and "--quick" in line]
+    plan = plan_candidates(load_mesh(REPO_ROOT / "examples/meshes/spot.obj"), np.eye(4), QUICK.plan, tmp_path)
+    comment = line.split("#", 1)[1]
+    built = [c.kind if c.kind != "voxel" else f"{c.settings['resolution']}^3" for c in plan.candidates]
+    assert built == ["kdtree", "mesh", "32^3", "64^3"]
+    assert all(name in comment for name in built), comment
+    assert {s["name"].split("-")[0] for s in plan.skipped} == {"neural"}
+    assert "every kind" not in comment and "neural presets are listed as not measured" in comment

@@ -119,9 +119,12 @@ def malformed(tmp_path, arm_files, case):
         return base + ["--animation", write_pc2(tmp_path / "one.pc2", frames[:1]), "--fps", 24], \
             "one.pc2: 1 frame(s); an animation needs at least 2"
     if case == "zero fps":
-        return base + ["--animation", pc2, "--fps", 0], "--fps must be a finite number of frames per second > 0, got 0.0"
+        return base + ["--animation", pc2, "--fps", 0], "--fps must be a number of frames per second in (0, 1e+06], got 0.0"
     if case == "negative fps":
-        return base + ["--animation", pc2, "--fps", -24], "--fps must be a finite number of frames per second > 0"
+        return base + ["--animation", pc2, "--fps", -24], "--fps must be a number of frames per second in (0, 1e+06]"
+    if case == "huge fps":  # issue 35: accepted, then every velocity overflowed float32
+        return base + ["--animation", pc2, "--fps", 1e300], \
+            "--fps must be a number of frames per second in (0, 1e+06], got 1e+300"
     if case == "no fps":
         return base + ["--animation", pc2], "--animation needs --fps"
     if case == "truncated":
@@ -174,7 +177,7 @@ def malformed(tmp_path, arm_files, case):
     raise AssertionError(case)
 
 
-CASES = ["vertex count", "non-finite", "single frame", "zero fps", "negative fps", "no fps",
+CASES = ["vertex count", "non-finite", "single frame", "zero fps", "negative fps", "huge fps", "no fps",
          "truncated", "not a pc2", "header lies", "missing cache", "no frames match",
          "faces differ", "not an obj", "kdtree", "fps without animation", "one keyframe"]
 

@@ -49,11 +49,13 @@ def test_newton_cloth_drop_on_sphere_ends_outside(models_dir):
     assert depth.max() < 1e-3                        # no particle ends inside (1 mm tolerance)
 
 
-def test_newton_cloth_on_an_animated_sphere_is_asked_at_newtons_time(models_dir):
+@pytest.mark.parametrize("offset", [0.0, 0.25])
+def test_newton_cloth_on_an_animated_sphere_is_asked_at_newtons_time(models_dir, offset):
     """The adapter passes Newton's time: the cloth falls onto the pulsing, moving sphere
     (``pulse``, exact, animated; the analytic sphere of radius r(t) at c(t), within its 0.6 mm
     tessellation gap), and after every substep no particle is inside the sphere as it is at
-    that time."""
+    that time plus the placement's ``time_offset_s`` (0.25 s: a quarter period, the sphere
+    0.12 m at x = +0.1 at t = 0, where 0.25 s earlier it is 0.08 m at x = -0.1)."""
     import collider_client as cc
     from collider_client.adapters.newton import NewtonCollider
     from collider_server.making.animations import pulsing_sphere
@@ -72,7 +74,8 @@ def test_newton_cloth_on_an_animated_sphere_is_asked_at_newtons_time(models_dir)
     dt, t = 1e-3, 0.0
     deepest, contacts = 0.0, []
     with cc.Client(models=models_dir, device="cpu") as client:
-        hook = cc.CollisionHook(client, [cc.ColliderPlacement("pulse")], eps=1e-3, friction=0.3)
+        hook = cc.CollisionHook(client, [cc.ColliderPlacement("pulse", time_offset_s=offset)],
+                                eps=1e-3, friction=0.3)
         assert "velocity" in hook.fields
         adapter = NewtonCollider(model, hook)
         for _ in range(200):
@@ -82,7 +85,7 @@ def test_newton_cloth_on_an_animated_sphere_is_asked_at_newtons_time(models_dir)
             t += dt
             contacts.append(adapter.apply(state_0, t, dt))
             q = state_0.particle_q.numpy().astype(np.float64)
-            depth = -reference.signed_distance(q, t)
+            depth = -reference.signed_distance(q, t + offset)
             deepest = max(deepest, float(depth.max()))
     assert np.isfinite(state_0.particle_q.numpy()).all()
     assert max(contacts) > 10  # the cloth met the sphere, growing up into it from t = 0

@@ -174,6 +174,28 @@ def test_moving_sphere_pushes_the_cloth(tmp_path, models_dir):
     assert top > 0.104  # lifted above where it started by the rising sphere
 
 
+def test_an_animated_collider_is_met_at_the_scene_time_plus_its_time_offset(tmp_path, models_dir):
+    """``time_offset_s`` = 0.25 s, a quarter of the pulsing sphere's period: the cloth falls on
+    the sphere as it is 0.25 s later (radius 0.12 m at x = +0.1 at t = 0; 0.25 s earlier it is
+    0.08 m at x = -0.1), and at every frame no vertex is inside that sphere beyond its 0.6 mm
+    tessellation gap. An offset applied the other way (t - 0.25) leaves the falling cloth
+    centimetres inside it."""
+    from collider_server.making.animations import pulsing_sphere
+
+    _, reference = pulsing_sphere()
+    offset = 0.25
+    path = tmp_path / "pulse.toml"
+    path.write_text(DROP.format(motion=f"time_offset_s = {offset}", friction="")
+                    .replace('model = "sphere"', 'model = "pulse"').replace("0.104]", "0.13]"))
+    scene = load_scene(path)
+    assert scene.colliders[0].time_offset_s == offset
+    with cc.Client(models=models_dir, device="cpu") as client:
+        report, frames = run_scene(scene, client, tmp_path / "out", show_progress=False, preview=False)
+    assert report.colliding_max > 20  # the cloth met the sphere
+    deepest = max(float(-reference.signed_distance(v, t + offset).min()) for t, v in frames)
+    assert deepest < 0.6e-3 + 1e-4, deepest
+
+
 def test_remote_and_embedded_runs_agree(tmp_path, models_dir, server_url):
     out = {}
     for backend in ("embedded", "remote"):
@@ -220,6 +242,11 @@ def test_check_mesh_places_the_mesh_as_the_model_was_made(tmp_path, monkeypatch)
     check = json.loads(text)["exact_check"]
     assert check["max_depth_m"] < 1e-3  # the raw 1 m file would put every vertex ~0.9 m inside
     assert check["min_distance_m"] < 3e-3  # and the cloth did reach the sphere
+    # Measured every step too: nothing crossed into the sphere, and the conservative advance
+    # measured far fewer exact distances than every vertex at every step.
+    assert check["crossed_points"] == 0 and check["steps"] == 299
+    assert check["max_depth_at_a_step_m"] < 1e-3
+    assert 256 <= check["exact_distances"] < 300 * 256 / 4
     # The preview's collider points: 4,000 distinct vertices of the file, placed as the model.
     (shown,) = seen
     points = shown["collider_points"]["sphere"]
@@ -290,8 +317,8 @@ def test_preview_has_a_panel_per_frame_with_the_colliders_at_that_frames_pose():
         assert np.ptp(faces[:, 0]) > 0.01  # shaded: the faces differ
         np.testing.assert_allclose(surface.get_edgecolor()[0, :3], to_rgb("#1f4e79"))
         assert surface.get_alpha() == 0.9 and list(surface.get_linewidth()) == [0.2]
-        np.testing.assert_allclose(points.get_facecolor()[0], to_rgba("#c0392b", 0.4))
-        assert points.get_alpha() == 0.4 and list(points.get_sizes()) == [0.3]
+        np.testing.assert_allclose(points.get_facecolor()[0], to_rgba("#c0392b", 0.6))
+        assert points.get_alpha() == 0.6 and list(points.get_sizes()) == [1.0]
     # What each panel drew (its data limits): its own frame of the cloth, all 4 x 3 vertices,
     # and the collider at its own pose.
     np.testing.assert_allclose(first.xy_dataLim.get_points(), [[0.0, 0.0], [1.1, 0.2]])
@@ -314,6 +341,91 @@ def test_preview_draws_one_list_of_collider_points_in_every_panel_and_thins_a_la
         np.testing.assert_allclose(ax.zz_dataLim.intervalx, [-1.0, 1.18 ** 2])
     fig = preview_figure({0: cloth}, 120, 3, {0: 0.0}, "t")  # no colliders: the cloth only
     assert len(fig.axes[0].collections) == 1
+
+
+def test_the_preview_draws_the_scenes_up_axis_vertical():
+    """Issue 35: a scene with gravity along -y was drawn with z vertical, sideways. The panels'
+    vertical axis is the scene's up (minus gravity's direction), the world's axis names kept."""
+    from collider_client.sim.output import preview_figure, view_axes
+
+    for up, labels in (((0, 0, 1), ["x", "y", "z"]), ((0, 1, 0), ["z", "x", "y"]),
+                       ((1, 0, 0), ["y", "z", "x"]), ((0, -1, 0), ["x", "z", "-y"]),
+                       ((0, 0, -1), ["y", "x", "-z"])):
+        rows, names = view_axes(up)
+        assert names == [f"{label} (m)" for label in labels]
+        np.testing.assert_allclose(rows[2], up)
+        assert np.linalg.det(rows) == pytest.approx(1.0)  # right-handed: not a mirror image
+    rows, names = view_axes((0.0, 0.6, 0.8))
+    np.testing.assert_allclose(rows @ rows.T, np.eye(3), atol=1e-12)
+    assert np.linalg.det(rows) == pytest.approx(1.0) and names[2] == "along (0, 0.6, 0.8) (m)"
+    # A cloth hanging 1 m along -y below a collider point 2 m up: with y up, the panel's
+    # vertical holds the world's y.
+    cloth = _preview_cloth(4, 3)[:, [0, 2, 1]] * [1.0, -10.0, 1.0]  # y from 0 down to -0.9
+    fig = preview_figure({0: cloth}, 4, 3, {0: 0.0}, "y up", [np.array([[0.0, 2.0, 0.0]])],
+                         up=(0.0, 1.0, 0.0))
+    (ax,) = fig.axes
+    assert ax.zaxis.label.get_text() == "y (m)" and ax.xaxis.label.get_text() == "z (m)"
+    np.testing.assert_allclose(ax.zz_dataLim.intervalx, [-0.9, 2.0])
+
+
+def test_a_scenes_up_is_minus_gravity(tmp_path):
+    path = tmp_path / "up.toml"
+    base = "[scene]\nduration_s = 0.01\ndt_s = 1e-3\n[cloth]\nwidth = 2\nheight = 2\nspacing_m = 0.01\n"
+    path.write_text(base + "[effects.gravity]\nacceleration_m_s2 = [0.0, -9.81, 0.0]\n")
+    np.testing.assert_allclose(load_scene(path).up, [0.0, 1.0, 0.0])
+    path.write_text(base + "[effects.gravity]\n")  # the default: -z
+    np.testing.assert_allclose(load_scene(path).up, [0.0, 0.0, 1.0])
+    path.write_text(base + "[effects.damping]\ncoefficient_1_s = 1.0\n")  # no gravity: z up
+    np.testing.assert_allclose(load_scene(path).up, [0.0, 0.0, 1.0])
+
+
+def collider_pixels(png) -> int:
+    """How many pixels of a preview PNG are the colliders' red (#c0392b over white, blended):
+    red well above green and blue. The cloth is blue, the axes grey, the text black."""
+    import matplotlib.image
+
+    rgb = matplotlib.image.imread(png)[..., :3]
+    return int(((rgb[..., 0] > 0.6) & (rgb[..., 0] - rgb[..., 1] > 0.15)
+                & (rgb[..., 0] - rgb[..., 2] > 0.15)).sum())
+
+
+@pytest.mark.parametrize("gravity", ["z", "y"])
+def test_simulate_draws_the_colliders_from_the_model_in_the_png(tmp_path, models_dir, gravity):
+    """Issue 35: the tour's drape picture showed no bunny (colliders were drawn only with
+    --check-mesh). Without it the PNG shows the model's own surface (marching cubes of its
+    distance), here the voxel sphere's, in red; with gravity along -y too (the cloth in the
+    x-z plane, the picture drawn with y up)."""
+    from collider_cli import main
+    from collider_client.sim import run as run_module
+
+    path = scene_file(tmp_path)
+    if gravity == "y":
+        text = path.read_text().replace("[effects.gravity]", "[effects.gravity]\nacceleration_m_s2 = [0.0, -9.81, 0.0]")
+        path.write_text(text.replace("density_kg_m2", "axes = \"xz\"\ndensity_kg_m2")
+                        .replace("[-0.075, -0.075, 0.104]", "[-0.075, 0.104, -0.075]"))
+    out = tmp_path / "out"
+    shown, ups = [], []
+    real_run, real_write = run_module.run_scene, run_module.write_preview
+
+    def spy(*args, **kwargs):
+        shown.append(kwargs["collider_points"])
+        return real_run(*args, **kwargs)
+
+    def write_spy(*args):
+        ups.append(args[-1])
+        return real_write(*args)
+
+    import unittest.mock
+
+    with unittest.mock.patch.object(run_module, "run_scene", spy), \
+            unittest.mock.patch.object(run_module, "write_preview", write_spy):
+        assert main(["simulate", str(path), "--models", str(models_dir), "--steps", "20", "--quiet",
+                     "--output", str(out)]) == 0
+    np.testing.assert_allclose(ups[0], [0.0, 1.0, 0.0] if gravity == "y" else [0.0, 0.0, 1.0])
+    points = shown[0]["sphere"]  # the model's surface, collider frame
+    assert len(points) > 1000
+    np.testing.assert_allclose(np.linalg.norm(points, axis=1), SPHERE_RADIUS_M, atol=2e-3)
+    assert collider_pixels(out / "drop.png") > 500
 
 
 def test_write_preview_saves_a_png_of_462_x_484_pixels_a_panel(tmp_path):
@@ -782,6 +894,44 @@ def test_exact_penetration_measures_each_placed_collider_at_each_frame():
     assert check["max_depth_m"] == pytest.approx(0.05, abs=1e-6)
 
 
+def test_surface_crossings_count_a_point_that_passes_through_a_thin_plate_between_frames():
+    """Issue 35: a cloth that falls through a thin part and ends outside again showed no depth
+    at the written frames. A point falls 1 mm a step through a plate 4 mm thick (z in
+    [-2, 2] mm; its frame and the world's): outside before it and after it, inside for four
+    steps. The per-step check counts it as crossed, and the one that stays above is not; the
+    resting one is measured again only when it could have reached the plate."""
+    pytest.importorskip("collider_server", reason="the engine (server extras) is not installed")
+    import trimesh
+
+    from collider_server.engine.meshes import ExactSDF, Mesh
+    from collider_server.making.evaluation import SurfaceCrossings, exact_distance, penetration
+
+    plate = trimesh.creation.box(extents=(0.2, 0.2, 0.004))
+    colliders = [("plate", exact_distance(ExactSDF(Mesh(np.asarray(plate.vertices), np.asarray(plate.faces)))),
+                  lambda t: np.eye(4))]
+    crossings = SurfaceCrossings(colliders)
+    steps = []
+    for i in range(13):  # z from +6 mm down to -6 mm, 1 mm a step; the other point rests at +3 mm
+        points = np.array([[0.0, 0.0, 0.006 - 0.001 * i], [0.05, 0.0, 0.003]])
+        crossings.step(i * 1e-3, points, [0.0])
+        steps.append((i * 1e-3, points))
+    result = crossings.result()
+    assert result["crossed_points"] == 1 and result["crossed_by_model"] == {"plate": 1}
+    assert result["inside_at_end"] == 0  # it left the plate below: outside again
+    assert result["max_depth_at_a_step_m"] == pytest.approx(0.002, abs=1e-9)
+    assert result["steps"] == 12
+    # The resting point (1 mm from the plate, still): measured once, not every step; the falling
+    # one about every other step (1 mm a step against its distance).
+    assert result["exact_distances"] < 2 + 12
+    # The written frames, first and last alone, see nothing: both outside.
+    assert penetration([steps[0], steps[-1]], colliders)["max_depth_m"] == 0.0
+    # A surface that moves (its bound given) makes the still point measured again.
+    moving = SurfaceCrossings(colliders)
+    for i in range(5):
+        moving.step(i * 1e-3, np.array([[0.05, 0.0, 0.003]]), [0.6e-3])
+    assert moving.result()["exact_distances"] == 3  # steps 0, 2 and 4: 2 x 0.6 mm >= its 1 mm
+
+
 def test_exact_penetration_without_meshes_measures_nothing():
     pytest.importorskip("collider_server", reason="the engine (server extras) is not installed")
     from collider_server.making.evaluation import penetration
@@ -795,9 +945,9 @@ def test_preview_draws_a_moving_collider_at_each_frames_pose(tmp_path, models_di
 
     drawn, real_write_preview = [], run_module.write_preview
 
-    def spy(path, frames, width, height, times_s, title, collider_points=None):
+    def spy(path, frames, width, height, times_s, title, collider_points=None, up=(0.0, 0.0, 1.0)):
         drawn.append((times_s, collider_points))
-        return real_write_preview(path, frames, width, height, times_s, title, collider_points)
+        return real_write_preview(path, frames, width, height, times_s, title, collider_points, up)
 
     monkeypatch.setattr(run_module, "write_preview", spy)
     # The sphere rises at 0.5 m/s and turns at 90 deg/s about z: frames every 50 steps of 0.2 ms.

@@ -347,8 +347,9 @@ def test_an_answer_that_is_not_finite_is_refused_naming_the_first_bad_row():
             return distance, normal, velocity
 
     points = np.array([[0.0, 0.0, 2.0], [0.0, 3.0, 0.0], [4.0, 0.0, 0.0], [5.0, 0.0, 0.0]])
-    for fields, row in ((["distance"], 2), (["normal"], 1), (["contact"], 1), (["collides"], None),
-                        (["distance", "normal"], 1)):
+    for fields, row, field in ((["distance"], 2, "distance"), (["normal"], 1, "normal"),
+                               (["contact"], 1, "contact"), (["collides"], None, None),
+                               (["distance", "normal"], 1, "normal")):
         query = ModelQuery.build(points, fields)
         if row is None:  # booleans are always finite
             assert answer_model_query(query, 1.0, Overflowing(1.0)).collides.tolist() == [False] * 4
@@ -356,7 +357,7 @@ def test_an_answer_that_is_not_finite_is_refused_naming_the_first_bad_row():
         with pytest.raises(QueryError) as refused:
             answer_model_query(query, 1.0, Overflowing(1.0), where="model 'far'")
         assert str(refused.value) == (f"points row {row} ({points[row].tolist()}) has no finite "
-                                      "answer: it lies too far from model 'far' (world frame, with "
+                                      f"{field}: it lies too far from model 'far' (world frame, with "
                                       "the pose given)")
         assert (refused.value.status, refused.value.code) == (422, "out-of-range")
     with pytest.raises(QueryError, match=re.escape("lies too far from the collider (world")):
@@ -370,19 +371,38 @@ def test_check_finite_counts_rows_from_first_row():
                          collides=np.array([True, False]), collider=np.array([0, 1], np.int32))
     with pytest.raises(QueryError) as refused:
         check_finite(result, points, "the colliders", first_row=1000)
-    assert str(refused.value) == ("points row 1001 ([1.0, 2.0, 3.0]) has no finite answer: it lies "
+    assert str(refused.value) == ("points row 1001 ([1.0, 2.0, 3.0]) has no finite normal: it lies "
                                   "too far from the colliders (world frame, with the pose given)")
     result.normal[1, 0] = 0.0
     check_finite(result, points, "the colliders", first_row=1000)  # finite: nothing to say
     # every float field counts: a bad distance with finite normals
     result.distance[0] = np.nan
-    with pytest.raises(QueryError, match=r"^points row 1000 \(\[0\.0, 0\.0, 0\.0\]\) has no finite"):
+    with pytest.raises(QueryError, match=r"^points row 1000 \(\[0\.0, 0\.0, 0\.0\]\) has no finite distance"):
         check_finite(result, points, "the colliders", first_row=1000)
     result.normal[1, 2] = -np.inf
     with pytest.raises(QueryError, match=r"^points row 1000 "):
         check_finite(result, points, "the colliders", first_row=1000)
     check_finite(QueryResult(collides=np.array([True])), points[:1], "x")
     check_finite(QueryResult(distance=np.zeros(0, np.float32)), np.zeros((0, 3)), "x")
+
+
+@pytest.mark.filterwarnings("ignore:overflow encountered:RuntimeWarning")  # 1e300 -> float32
+def test_a_velocity_that_overflows_is_named_not_the_point():
+    # a surface so fast that its velocity overflows float32 (issue 35: --fps 1e300): the
+    # distance is fine, and the refusal says the velocity is what has no finite value
+    class Racing(Sphere):
+        def __call__(self, local, want_gradient, gradient_below, time):
+            distance, normal, _ = super().__call__(local, want_gradient, gradient_below, time)
+            return distance, normal, None if normal is None else normal * 1e300
+
+    points = np.array([[0.0, 0.0, 2.0], [0.0, 3.0, 0.0]])
+    with pytest.raises(QueryError) as refused:
+        answer_model_query(ModelQuery.build(points, ["distance", "velocity"], time=0.0), 1.0,
+                           Racing(1.0), where="model 'fast'")
+    assert str(refused.value) == ("points row 0 ([0.0, 0.0, 2.0]) has no finite velocity: the "
+                                  "velocity of model 'fast' there overflows float32 (world units "
+                                  "per second, with the pose and pose_velocity given)")
+    assert refused.value.code == "out-of-range"
 
 
 # -- the scene rule ----------------------------------------------------------------------------
@@ -507,7 +527,7 @@ def test_a_scene_answer_that_is_not_finite_is_refused():
     query = SceneQuery.build(points, ["a"], ["distance"])
     with pytest.raises(QueryError) as refused:
         finish_scene(query, [0.001], [(np.array([1.0, np.inf]), None)])
-    assert str(refused.value) == ("points row 1 ([0.0, 0.0, 3.0]) has no finite answer: it lies too "
+    assert str(refused.value) == ("points row 1 ([0.0, 0.0, 3.0]) has no finite distance: it lies too "
                                   "far from the colliders (world frame, with the pose given)")
     assert refused.value.code == "out-of-range"
 

@@ -4,6 +4,8 @@ velocity; its wire form and its refusals. Seconds; no torch."""
 
 from __future__ import annotations
 
+import re
+
 import pytest
 
 from collider_contract import ModelInfo, Timeline
@@ -58,15 +60,15 @@ def test_wire_form_round_trips_through_model_info():
 @pytest.mark.parametrize("args, message", [
     ((1, 24.0), "at least 2 frames"),
     ((True, 24.0), "at least 2 frames"),
-    ((5, 0.0), "frame rate must be a finite number"),
-    ((5, -24.0), "frame rate must be a finite number"),
-    ((5, float("nan")), "frame rate must be a finite number"),
-    ((5, float("inf")), "frame rate must be a finite number"),
+    ((5, 0.0), "frame rate must be a number of frames per second in (0, 1e+06]"),
+    ((5, -24.0), "frame rate must be a number of frames per second in (0, 1e+06]"),
+    ((5, float("nan")), "frame rate must be a number of frames per second in (0, 1e+06]"),
+    ((5, float("inf")), "frame rate must be a number of frames per second in (0, 1e+06]"),
     ((5, 24.0, "yes"), "loop must be true or false"),
     ((5, 24.0, False, -1.0), "max_surface_speed must be"),
 ])
 def test_refusals(args, message):
-    with pytest.raises(ValueError, match=message):
+    with pytest.raises(ValueError, match=re.escape(message)):
         Timeline(*args)
 
 
@@ -84,7 +86,8 @@ def test_the_smallest_animation_and_any_positive_rate_are_accepted():
 
 @pytest.mark.parametrize("frames, rate, speed, message", [
     (2.5, 1.0, 0.0, "an animation needs at least 2 frames, got 2.5"),
-    (2, "24", 0.0, "the frame rate must be a finite number of frames per second > 0, got '24'"),
+    (2, "24", 0.0, "the frame rate must be a number of frames per second in (0, 1e+06], got '24'"),
+    (2, 1e300, 0.0, "the frame rate must be a number of frames per second in (0, 1e+06], got 1e+300"),
     (2, 1.0, "1", "max_surface_speed must be a finite number >= 0, got '1'"),
 ])
 def test_numbers_of_the_wrong_type_are_refused_as_values(frames, rate, speed, message):

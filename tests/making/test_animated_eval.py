@@ -69,6 +69,18 @@ def test_eval_stores_the_figures_into_the_animated_model(capsys, arm_models):
     code, out, err = run(capsys, "info", "arm-voxel", "--models", arm_models, "--json")
     accuracy = json.loads(out)["accuracy"]
     assert len(accuracy["times_s"]) == 2 and accuracy["band_1mm"]["points"] == 1000
+    # Issue 35: the stored report's file size was the file's before the figures went in.
+    assert "file_bytes" not in accuracy
+    # The plain `collider info`: the stored figures as `collider eval` prints them, not raw
+    # dicts, and the file's true size.
+    code, out, err = run(capsys, "info", "arm-voxel", "--models", arm_models)
+    assert code == 0, err
+    size = (arm_models / "arm-voxel.safetensors").stat().st_size
+    assert out.startswith(f"arm-voxel  ({arm_models / 'arm-voxel.safetensors'}, {size:,} bytes)")
+    assert "{'" not in out and "file_bytes" not in out, out
+    table = out[out.index("  accuracy    as `collider eval` measured it (20"):]
+    assert "at 2 random times in [0, 1) s" in table and "    +-1mm " in table
+    assert "query (distance+normal+contact) at t = " in table
 
 
 def test_eval_refuses_a_missing_or_mismatched_animation_in_one_line(capsys, tmp_path, arm_models):

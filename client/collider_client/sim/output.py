@@ -40,14 +40,16 @@ class PC2Frames:
 
 def write_preview(path: Path, frames: dict[int, np.ndarray], width: int, height: int,
                   times_s: dict[int, float], title: str,
-                  collider_points: list[np.ndarray] | dict[int, list[np.ndarray]] | None = None) -> None:
+                  collider_points: list[np.ndarray] | dict[int, list[np.ndarray]] | None = None,
+                  up=(0.0, 0.0, 1.0)) -> None:
     """PNG with one 3-D panel per chosen frame: the cloth surface (and collider surface points,
-    world frame, when given). ``frames`` maps frame index -> (W*H, 3) positions;
-    ``collider_points`` is one list of (m, 3) arrays for every panel, or a dict frame index ->
-    list (moving colliders, drawn at each frame's pose)."""
+    world frame, when given), drawn with ``up`` (the scene's up, world frame) vertical.
+    ``frames`` maps frame index -> (W*H, 3) positions; ``collider_points`` is one list of
+    (m, 3) arrays for every panel, or a dict frame index -> list (moving colliders, drawn at
+    each frame's pose)."""
     import matplotlib.pyplot as plt
 
-    fig = preview_figure(frames, width, height, times_s, title, collider_points)
+    fig = preview_figure(frames, width, height, times_s, title, collider_points, up)
     fig.savefig(path, dpi=PREVIEW_DPI)
     plt.close(fig)
 
@@ -56,20 +58,54 @@ def write_preview(path: Path, frames: dict[int, np.ndarray], width: int, height:
 PREVIEW_DPI = 110
 
 
+def view_axes(up) -> tuple[np.ndarray, list[str]]:
+    """The preview's axes for a scene whose up is ``up`` (3,), world frame: (3, 3) float64 rows,
+    a right-handed orthonormal basis whose last row is ``up`` (a panel's x, y and vertical
+    axes, world frame), and their labels. An up along a world axis keeps the world's axis
+    names, cycled so that it is vertical (+y up draws z, x, y; -y up draws x, z, -y); any other
+    up gets axes named by their directions."""
+    up = np.asarray(up, dtype=np.float64)
+    up = up / np.linalg.norm(up)
+    names, eye = "xyz", np.eye(3)
+    k = int(np.argmax(np.abs(up)))
+    if np.allclose(np.abs(up), eye[k], atol=1e-12):
+        if up[k] > 0:  # cyclic: (k+1, k+2, k) is right-handed
+            rows = np.array([eye[(k + 1) % 3], eye[(k + 2) % 3], eye[k]])
+            labels = [names[(k + 1) % 3], names[(k + 2) % 3], names[k]]
+        else:  # (k+2, k+1, -k): e_{k+2} x e_{k+1} = -e_k
+            rows = np.array([eye[(k + 2) % 3], eye[(k + 1) % 3], -eye[k]])
+            labels = [names[(k + 2) % 3], names[(k + 1) % 3], f"-{names[k]}"]
+        return rows, [f"{label} (m)" for label in labels]
+    first = np.cross(eye[(k + 1) % 3], up)
+    first /= np.linalg.norm(first)
+    rows = np.array([first, np.cross(up, first), up])
+
+    def along(v):
+        return "along (" + ", ".join(f"{c:.2g}" for c in v + 0.0) + ") (m)"
+
+    return rows, [along(r) for r in rows]
+
+
 def preview_figure(frames: dict[int, np.ndarray], width: int, height: int,
                    times_s: dict[int, float], title: str,
-                   collider_points: list[np.ndarray] | dict[int, list[np.ndarray]] | None = None):
+                   collider_points: list[np.ndarray] | dict[int, list[np.ndarray]] | None = None,
+                   up=(0.0, 0.0, 1.0)):
     """The matplotlib figure that :func:`write_preview` saves (same arguments, no path)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    rows, labels = view_axes(up)
     count = len(frames)
     fig = plt.figure(figsize=(4.2 * count, 4.4))
     stride = max(1, max(width, height) // 60)  # plot_surface is slow above ~60 x 60 cells
     per_frame = (collider_points if isinstance(collider_points, dict)
                  else {i: collider_points or [] for i in frames})
+    # Everything in the panels' axes (world coordinates along rows): up is the vertical.
+    frames = {i: np.asarray(v, dtype=np.float64) @ rows.T for i, v in frames.items()}
+    per_frame = {i: [np.asarray(p, dtype=np.float64).reshape(-1, 3) @ rows.T for p in per_frame[i]]
+                 for i in frames}
     all_points = np.concatenate(list(frames.values()) + [p for i in frames for p in per_frame[i]])
     lo, hi = all_points.min(axis=0), all_points.max(axis=0)
     centre, half = (lo + hi) / 2, max(float((hi - lo).max()) / 2, 1e-6)
@@ -79,13 +115,13 @@ def preview_figure(frames: dict[int, np.ndarray], width: int, height: int,
         ax.plot_surface(grid[..., 0], grid[..., 1], grid[..., 2], color="#4a90d9",
                         edgecolor="#1f4e79", linewidth=0.2, alpha=0.9, shade=True)
         for pts in per_frame[index]:
-            ax.scatter(pts[:, 0], pts[:, 1], pts[:, 2], s=0.3, c="#c0392b", alpha=0.4)
+            ax.scatter(pts[:, 0], pts[:, 1], pts[:, 2], s=1.0, c="#c0392b", alpha=0.6)
         for axis, set_lim in zip(range(3), (ax.set_xlim, ax.set_ylim, ax.set_zlim)):
             set_lim(centre[axis] - half, centre[axis] + half)
         ax.set_title(f"frame {index}, t = {times_s[index]:.3f} s", fontsize=9)
-        ax.set_xlabel("x (m)", fontsize=7)
-        ax.set_ylabel("y (m)", fontsize=7)
-        ax.set_zlabel("z (m)", fontsize=7)
+        ax.set_xlabel(labels[0], fontsize=7)
+        ax.set_ylabel(labels[1], fontsize=7)
+        ax.set_zlabel(labels[2], fontsize=7)
         ax.tick_params(labelsize=6)
         # The default box fills the panel and pushes the z label past its right edge (cut off
         # in the PNG): a smaller box leaves it room.

@@ -254,7 +254,7 @@ def run_scene(scene: Scene, client, out_dir: Path, *, show_progress: bool = True
                     pose = pose_function(spec)(t)
                     shown[i].append(transform_points(pose, pts(t) if callable(pts) else pts))
         write_preview(out_dir / f"{stem}.png", {i: frames[i][1] for i in chosen}, c.width,
-                      c.height, {i: frames[i][0] for i in chosen}, f"{scene.name}", shown)
+                      c.height, {i: frames[i][0] for i in chosen}, f"{scene.name}", shown, scene.up)
     (out_dir / f"{stem}.report.json").write_text(json.dumps(report.to_dict(), indent=2,
                                                             default=float))
     if interrupt is not None:

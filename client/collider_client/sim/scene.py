@@ -85,6 +85,15 @@ class Scene:
     def has(self, effect: str) -> bool:
         return effect in self.effects
 
+    @property
+    def up(self) -> np.ndarray:
+        """(3,) float64 unit vector, world frame: the scene's up, minus gravity's direction
+        (+z when the scene declares no gravity, or a zero one). The PNG preview draws along it."""
+        g = np.asarray(self.effects.get("gravity", {}).get("acceleration_m_s2", (0.0, 0.0, 0.0)),
+                       dtype=np.float64)
+        norm = float(np.linalg.norm(g))
+        return -g / norm if norm > 0 else np.array([0.0, 0.0, 1.0])
+
 
 # -- the scene -----------------------------------------------------------------------------------
 

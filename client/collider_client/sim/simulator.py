@@ -98,7 +98,8 @@ class RunReport:
 def exact_check_text(check: dict) -> str:
     """:func:`collider_server.making.evaluation.penetration`'s figures in words: the deepest
     vertex inside the exact meshes (per collider when several), the closest approach, and over
-    how many frames."""
+    how many frames; and, measured every step (``SurfaceCrossings``), how many vertices crossed
+    into them during a step."""
     per_model = check.get("by_model") or {}
     text = f"deepest vertex {1e3 * check['max_depth_m']:.3f} mm inside the exact mesh"
     if len(per_model) > 1:
@@ -107,7 +108,12 @@ def exact_check_text(check: dict) -> str:
     if closest is not None and closest != float("inf"):
         where = "outside" if closest >= 0 else "inside"
         text += f", closest approach {1e3 * abs(closest):.3f} mm {where}"
-    return text + (f", over {check['frames']} frames" if "frames" in check else "")
+    text += f", over {check['frames']} frames" if "frames" in check else ""
+    if "crossed_points" in check:  # measured every step (collider simulate --check-mesh)
+        text += (f"; {check['crossed_points']:,} vertices crossed into it during a step "
+                 f"({check['inside_at_end']:,} of them inside at the end; deepest at a step "
+                 f"{1e3 * check['max_depth_at_a_step_m']:.3f} mm)")
+    return text
 
 
 class SimulationError(ValueError):

@@ -320,7 +320,6 @@ def build_estimate(candidates, animation: AnimatedMesh, first, cache: Path, tran
     from collider_server.engine.meshes import ExactSDF
     from collider_server.making.bake import exact_seconds_per_point, keyframe_positions, padded_box
 
-    per_point = exact_seconds_per_point(ExactSDF(first), *padded_box(animation, 0.1))
     key = animation_key(animation, transform, units, meters_per_unit)
     grids: dict[int, set] = {}
     for c in candidates:
@@ -328,6 +327,9 @@ def build_estimate(candidates, animation: AnimatedMesh, first, cache: Path, tran
             continue
         positions = keyframe_positions(animation.timeline.frames, c.settings["keyframes"])
         grids.setdefault(c.settings["resolution"], set()).update(float(p) for p in positions)
+    # Measured at the resolution that costs the most, as its bake will ask.
+    heaviest = max(grids, key=lambda r: r**3 * len(grids[r]), default=64)
+    per_point = exact_seconds_per_point(ExactSDF(first), *padded_box(animation, 0.1), heaviest)
     seconds = sum(r**3 * len(p) for r, p in grids.items()) * per_point
     training = sum(c.settings["train_minutes"] for c in candidates
                    if c.kind == "neural" and not candidate_path(c, key, cache).is_file())

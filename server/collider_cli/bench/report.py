@@ -446,6 +446,12 @@ def write_outputs(report: dict, directory: Path) -> dict[str, Path]:
     return paths
 
 
+def interrupted_line(paths: dict[str, Path]) -> str:
+    """What an interrupted run's report holds and where it is (``paths``: :func:`write_outputs`')."""
+    return (f"interrupted: {paths['markdown']} and {paths['json']} hold what was measured until "
+            "then")
+
+
 def plot(report: dict, output: Path, device: str = "cpu") -> Path:
     """Save :func:`figure` as a PNG at ``output``."""
     import matplotlib.pyplot as plt

@@ -131,9 +131,10 @@ def run_bench(mesh: Mesh, transform: np.ndarray, config: BenchConfig, *, units: 
 
 
 def interrupted(report: dict) -> None:
-    """Mark ``report`` as cut short (Ctrl-C or SIGTERM) and say so."""
+    """Mark ``report`` as cut short (Ctrl-C or SIGTERM) and say so; whoever writes the report
+    says where it is (:func:`~.report.interrupted_line`)."""
     report["interrupted"] = True
-    say("interrupted: the report holds what was measured until now")
+    say("interrupted: measuring stopped; writing what was measured until now")
 
 
 def finish_report(report: dict, rows: dict, load_at_start, started: float) -> dict:

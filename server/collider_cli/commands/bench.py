@@ -158,7 +158,7 @@ def animated_plan_config(args):
 
 def run_bench_command(args) -> int:
     from ..bench import run_bench
-    from ..bench.report import summary, write_outputs
+    from ..bench.report import interrupted_line, summary, write_outputs
 
     config = bench_config(args)
     config.check()
@@ -183,6 +183,7 @@ def run_bench_command(args) -> int:
     print(cache_size_line(cache))
     print(sign_line(report))
     if report.get("interrupted"):
+        print(interrupted_line(paths), file=sys.stderr)
         raise KeyboardInterrupt  # the exit status of an interrupted run, its figures written
     return 0
 

@@ -135,7 +135,7 @@ def _budget_report(args, budget, mesh, transform, units, meters_per_unit, device
     :data:`BUDGET_POINTS` points per call, the same interleaved timing as ``collider bench``),
     its figures written to the cache (``budget-NAME/``)."""
     from ..bench import BenchConfig, PlanConfig, TimingPolicy, run_bench
-    from ..bench.report import write_outputs
+    from ..bench.report import interrupted_line, write_outputs
     from .bench import add_hints
 
     if args.bench is not None:
@@ -164,6 +164,8 @@ def _budget_report(args, budget, mesh, transform, units, meters_per_unit, device
     add_hints(report, args)
     paths = write_outputs(report, cache / f"budget-{args.name}")
     print(f"measured figures: {paths['markdown']}, {paths['json']}")
+    if report.get("interrupted"):
+        print(interrupted_line(paths), file=sys.stderr)
     print(cache_size_line(cache))
     return report
 

@@ -120,13 +120,13 @@ def run_bake(args) -> int:
 
 
 def bake_estimate(mesh, resolution: int) -> str:
-    """How long a voxel bake will take: resolution^3 exact distances at the rate measured on a
-    few thousand points of this mesh's box, now."""
+    """How long a voxel bake will take: resolution^3 exact distances at the rate measured now on
+    slabs of that grid (:func:`~collider_server.making.bake.exact_seconds_per_point`)."""
     from collider_server.engine.meshes import ExactSDF
     from collider_server.making.bake import exact_seconds_per_point, padded_box
     from collider_server.making.progress import format_duration
 
-    per_point = exact_seconds_per_point(ExactSDF(mesh), *padded_box(mesh, 0.1))
+    per_point = exact_seconds_per_point(ExactSDF(mesh), *padded_box(mesh, 0.1), resolution)
     return (f"bake voxel {resolution}^3: {resolution ** 3:,} exact distances, about "
             f"{format_duration(resolution ** 3 * per_point)} ({per_point * 1e6:.1f} us per point measured here)")
 
@@ -149,6 +149,12 @@ def run_bake_animation(args) -> int:
     check = check_animation(animation)
     for line in check.lines():
         print(line)
+    if args.kind == "voxel":  # said before the bake: the keyframes that would hold it
+        from collider_server.making.keyframe_check import check_keyframes
+
+        thin = check_keyframes(animation, args.keyframes or animation.timeline.frames)
+        if not thin.holds:
+            print(thin.warning(placement.meters_per_unit), file=sys.stderr, flush=True)
     collider = bake_animated_collider(
         animation, args.kind, args.name, resolution=args.resolution or 128,
         keyframes=args.keyframes, padding=args.padding, units=placement.units,
@@ -286,12 +292,25 @@ def run_info(args) -> int:
     for key, value in info.settings.items():
         print(f"  {key:<11} {value}")
     if info.accuracy:
-        print("  accuracy")
-        for key, value in info.accuracy.items():
-            print(f"    {key}: {value}")
+        print(f"  accuracy    as `collider eval` measured it ({info.accuracy.get('evaluated', 'when: not recorded')})")
+        for line in accuracy_lines(info):
+            print(f"    {line}")
     else:
         print("  accuracy    not evaluated; " + eval_hint(info, path, args))
     return 0
+
+
+def accuracy_lines(info) -> list[str]:
+    """A model's stored evaluation as ``collider eval`` prints it (its table), less the model
+    file's size: the report measured the file before the figures were stored in it (the true
+    size heads ``collider info``). A report of another form is listed key by key."""
+    from collider_server.making.evaluation import format_report
+
+    report = {key: value for key, value in info.accuracy.items() if key != "file_bytes"}
+    try:
+        return format_report(info.name, info.kind, report).splitlines()[1:]
+    except (KeyError, TypeError, ValueError):  # stored by another version: shown as it is
+        return [f"{key}: {value}" for key, value in report.items()]
 
 
 def print_source_check(source: dict, accuracy: dict | None) -> None:

@@ -99,15 +99,20 @@ def run_simulate(args: argparse.Namespace) -> int:
             threads = args.threads or max(1, (os.cpu_count() or 2) - 1)
             client = Client(models=args.models, device=args.device, threads=threads)
     placed = placed_meshes(client, checks, caches) if checks else {}
-    # The exact meshes also show the colliders in the PNG (a few thousand surface vertices, an
-    # animated one's at each panel's time).
+    # The PNG shows each collider's surface (a few thousand points, an animated one's at each
+    # panel's time): the exact mesh's where --check-mesh gives one, else the model's own.
     shown = {model: shown_points(mesh, spec) for model, mesh in placed.items()
              for spec in scene.colliders if spec.model == model}
+    if not args.no_preview and client is not None:
+        shown.update(model_surfaces(client, [spec for spec in scene.colliders if spec.model not in shown]))
     server = None
+    crossings = None
     try:
         on_step = None
         if args.view:
             server, on_step = start_live_view(args, scene, client)
+        if placed:
+            crossings, on_step = crossing_check(scene, placed, on_step)
         report, frames = run_scene(
             scene, client, args.output, show_progress=not args.quiet, steps=args.steps,
             preview=not args.no_preview, backend="remote" if args.server else "embedded",
@@ -132,9 +137,10 @@ def run_simulate(args: argparse.Namespace) -> int:
         from collider_client.sim.motion import pose_function
         from collider_server.making.evaluation import penetration
 
-        report.exact_check = penetration(frames, [(spec.model, exact_check(placed[spec.model], spec),
-                                                   pose_function(spec))
-                                                  for spec in scene.colliders if spec.model in placed])
+        report.exact_check = {
+            **penetration(frames, [(spec.model, exact_check(placed[spec.model], spec), pose_function(spec))
+                                   for spec in scene.colliders if spec.model in placed]),
+            **crossings.result()}
         (args.output / f"{scene.path.stem}.report.json").write_text(
             json.dumps(report.to_dict(), indent=2, default=float))
     print(report.text())
@@ -151,6 +157,35 @@ def written_line(args, scene) -> str:
     stem = scene.path.stem
     written = ".pc2, .report.json" if args.no_preview else ".pc2, .png, .report.json"
     return f"wrote {args.output / (stem + '.obj')}, {written}"
+
+
+def crossing_check(scene, placed: dict, on_step=None):
+    """The per-step half of ``--check-mesh``: a
+    :class:`~collider_server.making.evaluation.SurfaceCrossings` of the placed exact meshes, and
+    the run's per-step callback that feeds it (after ``on_step``, the live view's, if any).
+    Each step it is told how far each collider's surface moved (the hook's bound; without
+    collisions, every point is measured every step)."""
+    import math
+
+    from collider_client.sim.motion import pose_function
+    from collider_server.making.evaluation import SurfaceCrossings
+
+    specs = [(k, spec) for k, spec in enumerate(scene.colliders) if spec.model in placed]
+    crossings = SurfaceCrossings([(spec.model, exact_check(placed[spec.model], spec), pose_function(spec))
+                                  for _, spec in specs])
+
+    def step(sim, i):
+        if on_step is not None:
+            on_step(sim, i)
+        hook = sim.hook
+        if hook is None:
+            moves = [math.inf] * len(specs)
+        else:
+            every = hook.collider_moves([c.pose(sim.t) for c in hook.colliders], sim.t, scene.dt_s)
+            moves = [every[k] for k, _ in specs]
+        crossings.step(sim.t, sim.vertices, moves)
+
+    return crossings, step
 
 
 def model_files(items: list[str], option: str, what: str) -> dict[str, Path]:
@@ -235,6 +270,56 @@ def shown_points(mesh, spec, count: int = 4000):
     pick = np.random.default_rng(0).choice(mesh.vertex_count, min(count, mesh.vertex_count), replace=False)
     placement = ColliderPlacement(spec.model, None, spec.time_offset_s, spec.loop)
     return lambda t: mesh.vertices_at(animation_time(placement, mesh.timeline, t)[0])[pick]
+
+
+def model_surfaces(client, specs, resolution: int = 48, count: int = 4000) -> dict:
+    """Per model of the scene colliders ``specs``, its surface as the model itself answers it,
+    for the PNG: marching cubes (:mod:`collider_server.making.surface`) of the distance the
+    client answers on a ``resolution``^3 grid over the model's domain, ``count`` of its vertices
+    (m, 3), collider frame; for an animated model a function of the simulation time (its
+    animation time as the collision hook asks it). A model the scene names that the client
+    does not know is left out (the run refuses it)."""
+    from collider_client import ColliderError
+    from collider_client.response import ColliderPlacement, animation_time
+    from collider_server.making.surface import distance_grid, level_surface
+
+    if not specs:
+        return {}
+    try:
+        infos = {m.name: m for m in client.list_models()}
+    except ColliderError as exc:  # a server that is down: one line
+        client.close()
+        raise ValueError(str(exc)) from None
+
+    def surface(info, time):
+        def distance(points):
+            return client.query(info.name, points, fields=["distance"], time=time).distance
+
+        grid = distance_grid(distance, info.domain_min, info.domain_max, resolution)
+        mesh = level_surface(grid)
+        return surface_sample(mesh[0], count) if mesh is not None else None
+
+    shown = {}
+    for spec in specs:
+        info = infos.get(spec.model)
+        if info is None or spec.model in shown:
+            continue
+        if info.timeline is None:
+            points = surface(info, None)
+            if points is not None:
+                shown[spec.model] = points
+        else:
+            placement = ColliderPlacement(spec.model, None, spec.time_offset_s, spec.loop)
+            shown[spec.model] = (lambda t, info=info, placement=placement: _or_none(
+                surface(info, animation_time(placement, info.timeline, t)[0])))
+    return shown
+
+
+def _or_none(points):
+    """``points``, or an empty (0, 3) array where a surface was not found."""
+    import numpy as np
+
+    return np.zeros((0, 3)) if points is None else points
 
 
 def surface_sample(vertices, count: int = 4000):

@@ -13,13 +13,13 @@ from __future__ import annotations
 
 import glob
 import hashlib
-import math
 import re
 from pathlib import Path
 
 import numpy as np
 
 from collider_contract import Timeline
+from collider_contract.animation import MAX_FRAME_RATE_HZ, is_frame_rate
 from collider_contract.point_cache import read_pc2
 
 from ..engine.animated_meshes import AnimatedMesh, max_surface_speed
@@ -32,11 +32,11 @@ class AnimationError(ValueError):
 
 
 def check_frame_rate(frame_rate_hz) -> float:
-    """``frame_rate_hz`` as a float: finite and > 0 (frames per second), else AnimationError."""
-    if isinstance(frame_rate_hz, bool) or not isinstance(frame_rate_hz, (int, float)) or not (
-            math.isfinite(frame_rate_hz) and frame_rate_hz > 0):
-        raise AnimationError(f"--fps must be a finite number of frames per second > 0, got "
-                             f"{frame_rate_hz!r}")
+    """``frame_rate_hz`` as a float: frames per second in ``(0, MAX_FRAME_RATE_HZ]`` (the
+    timeline's rule, :func:`collider_contract.animation.is_frame_rate`), else AnimationError."""
+    if not is_frame_rate(frame_rate_hz):
+        raise AnimationError(f"--fps must be a number of frames per second in (0, "
+                             f"{MAX_FRAME_RATE_HZ:g}], got {frame_rate_hz!r}")
     return float(frame_rate_hz)
 
 

@@ -249,6 +249,80 @@ def penetration(frames, colliders) -> dict:
             "frames": len(frames), "by_model": by_model}
 
 
+class SurfaceCrossings:
+    """Which simulated points crossed exact surfaces during a step, not only which are inside at
+    a written frame: a point that passes through a thin part and out again within a frame is
+    outside at both frames.
+
+    Fed every step (:meth:`step`), it keeps per point and collider the sign of its exact signed
+    distance and how far it may have come since that was measured (conservative advancement): a
+    point ``|d|`` from the surface cannot reach it before it and the surface have moved ``|d|``
+    between them, so it is measured again only once its own displacement plus the surface's
+    largest move (``moves``) since its last measure add up to ``|d|``. A point whose sign went
+    from outside to inside between two measures crossed the surface in that step.
+
+    colliders : ``(name, distance, pose_at)`` as :func:`penetration` takes them
+    """
+
+    def __init__(self, colliders):
+        self.colliders = list(colliders)
+        self.previous = None
+        self.sign: list[np.ndarray] = []
+        self.slack: list[np.ndarray] = []
+        self.crossed: list[np.ndarray] = []
+        self.deepest = [0.0] * len(self.colliders)
+        self.measured = 0  # exact distances computed (its cost)
+        self.steps = 0
+
+    def _measure(self, k: int, points: np.ndarray, t: float) -> np.ndarray:
+        from collider_contract import as_pose
+
+        _, distance_at, pose_at = self.colliders[k]
+        pose = as_pose(pose_at(t))
+        self.measured += len(points)
+        return distance_at(pose.to_local(points), t) * pose.scale  # world units
+
+    def step(self, t: float, points: np.ndarray, moves) -> None:
+        """After the step that ended at ``t`` (seconds): ``points`` (n, 3), world frame, and
+        ``moves``, per collider the largest displacement of any point of its surface over that
+        step (world units; the collision hook's ``collider_moves``)."""
+        points = np.asarray(points, dtype=np.float64)
+        if self.previous is None:  # the first measure: every point
+            for k in range(len(self.colliders)):
+                d = self._measure(k, points, t)
+                self.sign.append(d >= 0)
+                self.slack.append(np.abs(d))
+                self.crossed.append(np.zeros(len(points), dtype=bool))
+                self.deepest[k] = max(self.deepest[k], float(-d.min(initial=0.0)))
+            self.previous = points.copy()
+            return
+        self.steps += 1
+        travelled = np.linalg.norm(points - self.previous, axis=1)
+        for k in range(len(self.colliders)):
+            self.slack[k] -= travelled + moves[k]
+            due = np.flatnonzero(self.slack[k] <= 0.0)
+            if not len(due):
+                continue
+            d = self._measure(k, points[due], t)
+            outside = d >= 0
+            self.crossed[k][due] |= self.sign[k][due] & ~outside
+            self.sign[k][due] = outside
+            self.slack[k][due] = np.abs(d)
+            self.deepest[k] = max(self.deepest[k], float(-d.min(initial=0.0)))
+        self.previous = points.copy()
+
+    def result(self) -> dict:
+        """``{"crossed_points": ..., "crossed_by_model": {name: count}, "inside_at_end": ...,
+        "max_depth_at_a_step_m": ..., "steps": ..., "exact_distances": ...}``: how many points
+        crossed a surface from outside to inside during some step (a point counted once per
+        collider), how many of them are inside at the end, and the deepest any measure found."""
+        crossed = {name: int(c.sum()) for (name, _, _), c in zip(self.colliders, self.crossed)}
+        inside_end = sum(int((c & ~s).sum()) for c, s in zip(self.crossed, self.sign))
+        return {"crossed_points": sum(crossed.values()), "crossed_by_model": crossed,
+                "inside_at_end": inside_end, "max_depth_at_a_step_m": max(self.deepest, default=0.0),
+                "steps": self.steps, "exact_distances": self.measured}
+
+
 def exact_distance(exact, time_at=None):
     """``distance(points, t)`` for :func:`penetration`: an :class:`ExactSDF` (a still mesh), or
     an :class:`~collider_server.engine.animated_meshes.ExactAtTimes` (a deforming one) asked at

@@ -1,5 +1,6 @@
-"""Progress bars for long work (baking, training, benchmarks, simulation), on stderr, and how
-durations are written in the estimates those commands print up front."""
+"""Progress bars for long work (baking, training, benchmarks, simulation), on stderr, how
+durations are written in the estimates those commands print up front, and how a measured value
+is written beside the threshold it is judged against."""
 
 from __future__ import annotations
 
@@ -43,3 +44,17 @@ def format_duration(seconds: float) -> str:
     if seconds < 5400:
         return f"{seconds / 60:.1f} min"
     return f"{int(seconds // 3600)} h {int(seconds % 3600 // 60):02d} min"
+
+
+def format_against(value: float, threshold: float, decimals: int = 3) -> str:
+    """``value`` with at least ``decimals`` decimals, and as many more (up to 12) as it takes for
+    the text to compare with ``f"{threshold:g}"`` as ``value`` compares with ``threshold``: a
+    value just over its bound never reads as equal to it ("0.10003 mm, over 0.1 mm", not
+    "0.100 mm, over 0.1 mm"). Both in the same units."""
+    value, shown = float(value), float(f"{threshold:g}")
+    want = (value > threshold) - (value < threshold)
+    for places in range(decimals, 13):
+        text = f"{value:.{places}f}"
+        if (float(text) > shown) - (float(text) < shown) == want:
+            return text
+    return text

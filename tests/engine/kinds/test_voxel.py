@@ -227,3 +227,36 @@ def test_the_device_is_checked():
     with pytest.raises(ValueError, match=r"^unknown device 'abacus'"):
         VoxelCollider.from_tensors(info, {"grid": np.zeros(SHAPE)}, "abacus")
     assert VoxelCollider.from_tensors(info, {"grid": np.zeros(SHAPE)}, "cpu").device == "cpu"
+
+
+def test_the_bake_estimate_times_grid_slabs_after_the_trees_are_built():
+    """Issue 35: voxel bake estimates were 4-6x too long: the timed probe also built the mesh's
+    lookup trees (three probes in a row: 73, 41, 29 us per point) and asked scattered points,
+    which cost more than the grid's neighbouring ones. The timed call now asks whole x-slabs of
+    the grid being estimated, the winding number's hierarchy already built."""
+    import trimesh
+
+    from collider_server.engine.meshes import Mesh
+    from collider_server.making.bake import exact_seconds_per_point, grid_axes
+
+    ball = trimesh.creation.icosphere(subdivisions=2, radius=0.1)
+    sdf = ExactSDF(Mesh(np.asarray(ball.vertices), np.asarray(ball.faces)))
+    calls = []
+    real = sdf.signed_distance
+
+    def spy(points):
+        calls.append((np.array(points), sdf._winding is not None))
+        return real(points)
+
+    sdf.signed_distance = spy
+    lo, hi = padded_box(sdf.mesh, 0.1)
+    per_point = exact_seconds_per_point(sdf, lo, hi, 24)
+    assert 0 < per_point < 1e-2
+    (points, built) = calls[-1]  # the timed call
+    assert built and len(calls) == 2  # a first call built the trees, untimed
+    axes = grid_axes(lo, hi, 24)
+    assert len(points) == 4 * 24 * 24  # four whole x-slabs of the 24^3 grid
+    slabs = sorted(set(points[:, 0].tolist()))
+    assert slabs == [axes[0][i] for i in (3, 9, 15, 21)]  # evenly spread over x
+    for axis in (1, 2):
+        assert set(points[:, axis].tolist()) == set(axes[axis].tolist())

@@ -232,3 +232,17 @@ def test_train_without_a_preset_says_which_it_took_and_why(tmp_path):
     assert "preset keyframes: the deformation fields miss a frame by 0.177 mm (99th percentile, frame 2" in result.stdout
     assert "(keyframe tables)" in result.stdout
     assert load_collider(tmp_path / "models" / "arm-auto.safetensors").architecture.keyframes == 9
+
+
+def test_a_miss_just_over_its_bound_prints_the_digits_that_show_it():
+    # issue 35: "miss a frame by 0.100 mm ..., over 0.1 mm" read as equal to the bound
+    from collider_server.making.progress import format_against
+    from collider_server.making.training.deformation import DeformationFit
+
+    assert format_against(0.100034, 0.1) == "0.10003"
+    assert format_against(0.0999996, 0.1) == "0.0999996"
+    assert format_against(0.177, 0.1) == "0.177" and format_against(0.1, 0.1) == "0.100"
+    fit = DeformationFit(np.zeros((2, 1, 3), np.float32), np.array([0.0, 2e-4]),
+                         np.array([0.0, 1.00034e-4]), (0.0, 0.0, 0.0), 1.0, 4)
+    assert fit.summary(1.0, 0.1).startswith("0.10003 mm (99th percentile, frame 1; max 0.200 mm)")
+    assert fit.summary(1.0).startswith("0.100 mm (99th percentile, frame 1")

@@ -9,7 +9,7 @@ import numpy as np
 
 from ...engine.animated_meshes import AnimatedMesh
 from ...engine.kinds.neural_deformed import trilinear
-from ..progress import progress
+from ..progress import format_against, progress
 from .data import normalisation
 
 #: Weight of the fields' smoothness (squared second differences of the nodes) against the
@@ -39,11 +39,14 @@ class DeformationFit:
         return (self.resolution == resolution and len(self.fields) == frames and self.radius == float(radius)
                 and np.array_equal(np.asarray(self.centre), np.asarray(centre, np.float64)))
 
-    def summary(self, meters_per_unit: float) -> str:
-        """How far the fields miss, in millimetres: the worst frame's 99th percentile and the max."""
+    def summary(self, meters_per_unit: float, bound_mm: float | None = None) -> str:
+        """How far the fields miss, in millimetres: the worst frame's 99th percentile (written
+        with the digits that show how it compares with ``bound_mm``, when given) and the max."""
         worst = int(self.residual_p99.argmax())
         to_mm = 1000.0 * meters_per_unit
-        text = (f"{self.residual_p99[worst] * to_mm:.3f} mm (99th percentile, frame {worst}; max "
+        p99 = self.residual_p99[worst] * to_mm
+        shown = f"{p99:.3f}" if bound_mm is None else format_against(p99, bound_mm)
+        text = (f"{shown} mm (99th percentile, frame {worst}; max "
                 f"{self.residual_max.max() * to_mm:.3f} mm)")
         if self.unconverged:
             text += f"; the solve of {len(self.unconverged)} frames did not converge (first: {self.unconverged[0]})"
@@ -149,13 +152,14 @@ def choose_animated_preset(animation: AnimatedMesh, padding: float, meters_per_u
     # A motion the fields do not follow is known at its first such frame: the rest is not fitted.
     fit = fit_deformation(animation, *normalisation(animation, padding), resolution, show_progress,
                           stop_above=SMOOTH_ENOUGH_M / meters_per_unit)
-    bound = f"{SMOOTH_ENOUGH_M * 1000:g} mm"
+    bound_mm = SMOOTH_ENOUGH_M * 1000
+    bound = f"{bound_mm:g} mm"
     if fit.residual_p99.max() * meters_per_unit <= SMOOTH_ENOUGH_M and not fit.unconverged:
         size = fit.fields.size * 4 / 1e6
         return PresetChoice("deformed", fit, f"preset deformed: fields of {resolution}^3 ({size:.1f} MB for "
                                              f"{len(fit.fields)} frames) follow every frame within "
-                                             f"{fit.summary(meters_per_unit)}, under {bound} "
+                                             f"{fit.summary(meters_per_unit, bound_mm)}, under {bound} "
                                              "(--preset keyframes to choose)")
     return PresetChoice("keyframes", fit, f"preset keyframes: the deformation fields miss a frame by "
-                                          f"{fit.summary(meters_per_unit)}, over {bound}: no smooth field "
+                                          f"{fit.summary(meters_per_unit, bound_mm)}, over {bound}: no smooth field "
                                           "follows this motion (--preset to choose)")
