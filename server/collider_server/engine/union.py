@@ -95,8 +95,10 @@ def union_surface(vertices: np.ndarray, faces: np.ndarray, winding, edges: np.nd
     sample_faces = whole[sampled]
     sample_centre = tri[sample_faces].mean(axis=1)
     sample_step = 1e-4 * np.sqrt(double_area[sample_faces])
-    cells, cell_face, cell_step = _cells(tri, unit, crossings, np.flatnonzero(cut), scale)
-    cell_centre = np.array([c.mean(axis=0) for c in cells]).reshape(-1, 3)
+    corners, sizes, cell_face, cell_step = _cells(tri, unit, crossings, np.flatnonzero(cut), scale)
+    first_corner = np.cumsum(sizes) - sizes
+    cell_centre = (np.add.reduceat(corners, first_corner, axis=0) / sizes[:, None] if len(sizes)
+                   else np.zeros((0, 3)))
     centres = np.concatenate([sample_centre, cell_centre])
     normal = unit[np.concatenate([sample_faces, cell_face])]
     step = np.maximum(np.concatenate([sample_step, cell_step]), 1e-10 * scale)[:, None]
@@ -115,29 +117,23 @@ def union_surface(vertices: np.ndarray, faces: np.ndarray, winding, edges: np.nd
         return None
     if not len(kept_whole) and not len(kept_cells):
         return None
-    new_vertices = [vertices]
-    new_faces = [faces[kept_whole]]
-    source = [kept_whole]
-    base = len(vertices)
-    for c in kept_cells:
-        polygon = cells[c]
-        k = len(polygon)
-        fan = base + np.stack([np.zeros(k - 2, np.int64), np.arange(1, k - 1), np.arange(2, k)], axis=1)
-        new_vertices.append(polygon)
-        new_faces.append(fan)
-        source.append(np.full(k - 2, cell_face[c]))
-        base += k
+    # Fans over the kept cells' corners, appended after the mesh's vertices.
+    fans = sizes[kept_cells] - 2
+    start = len(vertices) + np.repeat(first_corner[kept_cells], fans)
+    corner = 1 + np.arange(fans.sum()) - np.repeat(np.cumsum(fans) - fans, fans)
+    triangles = np.stack([start, start + corner, start + corner + 1], axis=1)
     dropped = len(whole) - len(kept_whole) + int(cut.sum()) - len(np.unique(cell_face[kept_cells]))
-    return UnionSurface(np.concatenate(new_vertices), np.concatenate(new_faces).astype(np.int64),
-                        np.concatenate(source).astype(np.int64), len(crossings), int(cut.sum()), dropped)
+    return UnionSurface(np.concatenate([vertices, corners]), np.concatenate([faces[kept_whole], triangles]),
+                        np.concatenate([kept_whole, np.repeat(cell_face[kept_cells], fans)]), len(crossings),
+                        int(cut.sum()), dropped)
 
 
 def _cells(tri, unit, crossings: SelfIntersections, cut_faces: np.ndarray, scale: float):
     """The convex cells of each face of ``cut_faces``: its triangle cut by the lines of its
-    intersection segments (a coplanar partner: by that partner's edge lines). Returns the cells
-    (list of (k, 3) float64 polygons, wound as their face), each one's face (c,) int64 and the
-    step (c,) float64 off its plane at which its sides are tested: a tenth of its inradius times
-    the sine of the flattest angle at which another face crosses its face (so the step stays on
+    intersection segments (a coplanar partner: by that partner's edge lines). Returns the cells'
+    corners (n, 3) float64, cell after cell, each cell's corner count (c,) int64 (a convex
+    polygon wound as its face), its face (c,) int64 and the step (c,) float64 off its plane at
+    which its sides are tested: a tenth of its inradius times the sine of the flattest angle at which another face crosses its face (so the step stays on
     the cell's side of every crossing sheet)."""
     tol = RELATIVE_TOLERANCE * max(scale, 1e-300)
     pairs, segments, coplanar = crossings.pairs, crossings.segments, crossings.coplanar
@@ -145,72 +141,90 @@ def _cells(tri, unit, crossings: SelfIntersections, cut_faces: np.ndarray, scale
     other = np.concatenate([pairs[:, 1], pairs[:, 0]])
     segs = np.concatenate([segments, segments])
     flat = np.concatenate([coplanar, coplanar])
-    order = np.argsort(owner, kind="stable")
-    owner, other, segs, flat = owner[order], other[order], segs[order], flat[order]
-    starts = np.searchsorted(owner, cut_faces)
-    ends = np.searchsorted(owner, cut_faces, side="right")
+    # Each face's flattest crossing (coplanar partners do not count: the step leaves both alike).
+    sine = np.ones(len(tri))
+    crossing = ~flat
+    np.minimum.at(sine, owner[crossing], np.linalg.norm(np.cross(unit[owner[crossing]], unit[other[crossing]]), axis=1))
+    # Every cut line as (face, p, q): a segment, or a coplanar partner's three edges.
+    line_face = np.concatenate([owner[crossing]] + [owner[flat]] * 3)
+    p = np.concatenate([segs[crossing, 0]] + [tri[other[flat], k] for k in range(3)])
+    q = np.concatenate([segs[crossing, 1]] + [tri[other[flat], (k + 1) % 3] for k in range(3)])
+    # Plane coordinates of each face: origin its first corner, x along its first edge.
+    origin = tri[:, 0]
+    x_axis = tri[:, 1] - tri[:, 0]
+    x_axis /= np.maximum(np.linalg.norm(x_axis, axis=1, keepdims=True), 1e-300)
+    y_axis = np.cross(unit, x_axis)
+
+    def plane(points, faces):
+        offset = points - origin[faces]
+        return np.stack([(offset * x_axis[faces]).sum(1), (offset * y_axis[faces]).sum(1)], axis=1)
+
+    p2, q2 = plane(p, line_face), plane(q, line_face)
+    along = q2 - p2
+    length = np.hypot(along[:, 0], along[:, 1])
+    ok = length > tol
+    normal = np.stack([-along[:, 1], along[:, 0]], axis=1) / np.where(ok, length, 1.0)[:, None]
+    normal *= np.where((normal[:, 0] < 0) | ((normal[:, 0] == 0) & (normal[:, 1] < 0)), -1.0, 1.0)[:, None]
+    offset = (normal * p2).sum(1)
+    order = np.flatnonzero(ok)[np.argsort(line_face[ok], kind="stable")]
+    line_face, normal, offset = line_face[order], normal[order].tolist(), offset[order].tolist()
+    starts = np.searchsorted(line_face, cut_faces)
+    ends = np.searchsorted(line_face, cut_faces, side="right")
+    corners2 = [plane(tri[:, k][cut_faces], cut_faces) for k in range(3)]
     cells, cell_face, cell_step = [], [], []
-    for f, s, e in zip(cut_faces, starts, ends):
-        corners = tri[f]
-        origin = corners[0]
-        x_axis = corners[1] - origin
-        x_axis /= np.linalg.norm(x_axis)
-        y_axis = np.cross(unit[f], x_axis)
-        frame = np.stack([x_axis, y_axis], axis=1)  # (3, 2): plane coordinates are (p - origin) @ frame
-        lines = []
-        sines = [1.0]
-        for g, seg, is_flat in zip(other[s:e], segs[s:e], flat[s:e]):
-            if is_flat:
-                ends2 = [(tri[g][k], tri[g][(k + 1) % 3]) for k in range(3)]
-            else:
-                ends2 = [(seg[0], seg[1])]
-                sines.append(float(np.linalg.norm(np.cross(unit[f], unit[g]))))
-            for p, q in ends2:
-                p2, q2 = (p - origin) @ frame, (q - origin) @ frame
-                along = q2 - p2
-                length = float(np.hypot(*along))
-                if length <= tol:
-                    continue
-                normal = np.array([-along[1], along[0]]) / length
-                if normal[0] < 0 or (normal[0] == 0 and normal[1] < 0):
-                    normal = -normal
-                offset = float(normal @ p2)
-                if not any(abs(offset - c) <= tol and np.abs(normal - n).max() <= 1e-9 for n, c in lines):
-                    lines.append((normal, offset))
-        polygons = [(corners - origin) @ frame]
-        for normal, offset in lines:
-            polygons = [piece for poly in polygons for piece in _split(poly, normal, offset, tol)]
-        sine = min(sines)
+    for i, (f, s, e) in enumerate(zip(cut_faces.tolist(), starts.tolist(), ends.tolist())):
+        lines: list[tuple[float, float, float]] = []
+        for (nx, ny), c in zip(normal[s:e], offset[s:e]):
+            if not any(abs(c - c2) <= tol and abs(nx - mx) <= 1e-9 and abs(ny - my) <= 1e-9
+                       for mx, my, c2 in lines):
+                lines.append((nx, ny, c))
+        polygons = [[tuple(corners2[k][i]) for k in range(3)]]
+        for nx, ny, c in lines:
+            polygons = [piece for poly in polygons for piece in _split(poly, nx, ny, c, tol)]
         for poly in polygons:
-            edge = np.roll(poly, -1, axis=0) - poly
-            area = 0.5 * float(np.sum(poly[:, 0] * np.roll(poly[:, 1], -1) - np.roll(poly[:, 0], -1) * poly[:, 1]))
-            perimeter = float(np.hypot(edge[:, 0], edge[:, 1]).sum())
+            area, perimeter = _area_perimeter(poly)
             if area <= tol * perimeter:
                 continue  # a sliver along a cut: nothing a distance query would miss
-            cells.append(origin + poly[:, :1] * x_axis + poly[:, 1:] * y_axis)
+            cells.append(poly)
             cell_face.append(f)
-            cell_step.append(0.1 * (2.0 * area / perimeter) * sine)
-    return cells, np.asarray(cell_face, dtype=np.int64), np.asarray(cell_step, dtype=np.float64)
+            cell_step.append(0.1 * (2.0 * area / perimeter) * sine[f])
+    cell_face = np.asarray(cell_face, dtype=np.int64)
+    sizes = np.array([len(c) for c in cells], dtype=np.int64)
+    flat2 = np.array([xy for c in cells for xy in c], dtype=np.float64).reshape(-1, 2)
+    face = np.repeat(cell_face, sizes)
+    points = origin[face] + flat2[:, :1] * x_axis[face] + flat2[:, 1:] * y_axis[face]
+    return points.reshape(-1, 3), sizes, cell_face, np.asarray(cell_step, dtype=np.float64)
 
 
-def _split(poly: np.ndarray, normal: np.ndarray, offset: float, tol: float) -> list[np.ndarray]:
-    """A convex polygon (k, 2) (counter-clockwise) cut by the line ``normal . x = offset``: its
-    pieces on either side (one when the line misses it), each counter-clockwise."""
-    side = poly @ normal - offset
-    side = np.where(np.abs(side) <= tol, 0.0, side)
-    if (side >= 0).all() or (side <= 0).all():
+def _area_perimeter(poly: list[tuple[float, float]]) -> tuple[float, float]:
+    """Area and perimeter of a counter-clockwise polygon (plane coordinates)."""
+    area = perimeter = 0.0
+    for (x0, y0), (x1, y1) in zip(poly, poly[1:] + poly[:1]):
+        area += x0 * y1 - x1 * y0
+        perimeter += ((x1 - x0) ** 2 + (y1 - y0) ** 2) ** 0.5
+    return 0.5 * area, perimeter
+
+
+def _split(poly: list[tuple[float, float]], nx: float, ny: float, offset: float,
+           tol: float) -> list[list[tuple[float, float]]]:
+    """A convex polygon (counter-clockwise, plane coordinates) cut by the line ``(nx, ny) . x =
+    offset``: its pieces on either side (one when the line misses it), each counter-clockwise."""
+    side = [nx * x + ny * y - offset for x, y in poly]
+    side = [0.0 if abs(d) <= tol else d for d in side]
+    if all(d >= 0 for d in side) or all(d <= 0 for d in side):
         return [poly]
     below, above = [], []
     k = len(poly)
     for i in range(k):
-        p, sp = poly[i], side[i]
-        q, sq = poly[(i + 1) % k], side[(i + 1) % k]
+        (px, py), sp = poly[i], side[i]
+        (qx, qy), sq = poly[(i + 1) % k], side[(i + 1) % k]
         if sp <= 0:
-            below.append(p)
+            below.append((px, py))
         if sp >= 0:
-            above.append(p)
+            above.append((px, py))
         if sp * sq < 0:
-            x = p + (q - p) * (sp / (sp - sq))
+            u = sp / (sp - sq)
+            x = (px + (qx - px) * u, py + (qy - py) * u)
             below.append(x)
             above.append(x)
-    return [np.asarray(piece) for piece in (below, above) if len(piece) >= 3]
+    return [piece for piece in (below, above) if len(piece) >= 3]
