@@ -3,8 +3,11 @@
 The exact signed distance is the ground truth every other collider is measured against, and the
 ``mesh`` kind's answer: closest point on the triangles (libigl's AABB tree) and the sign from the
 fast generalised winding number, so that open meshes such as the Stanford bunny (holes in its
-base) still get a correct inside/outside. Sign convention: negative inside. Reading mesh files is
-model making's job (:mod:`collider_server.making.mesh_files`).
+base) still get a correct inside/outside. Sign convention: negative inside. Where the mesh passes
+through itself, or a piece lies buried in another, distance and closest point refer to the
+boundary of the region whose winding number exceeds 1/2 (:mod:`collider_server.engine.union`),
+so that a contact lands outside the body. Reading mesh files is model making's job
+(:mod:`collider_server.making.mesh_files`).
 """
 
 from __future__ import annotations
@@ -46,21 +49,21 @@ class Mesh:
 class ExactSDF:
     """Exact signed distance to a triangle mesh, in the mesh's units and frame (float64).
 
-    Builds libigl's AABB tree once; each query finds the closest point on the triangles and
-    takes the sign from the fast winding number (inside where it exceeds 0.5).
+    On first use, finds the faces that cross each other and the pieces buried in others
+    (:func:`~collider_server.engine.union.union_surface`; one self-intersection test when there
+    are none) and builds libigl's AABB tree over the boundary of the region whose winding number
+    exceeds 1/2: the mesh itself, or its union's boundary (:attr:`union`). Each query finds the
+    closest point on that boundary and takes the sign from the fast winding number of the mesh
+    (inside where it exceeds 0.5).
     """
 
     def __init__(self, mesh: Mesh, edges: np.ndarray | None = None):
         """``edges``: :func:`edge_index` of the mesh's faces when the caller has it (a deforming
         mesh keeps its topology: the index is computed once for every frame)."""
-        import igl
-
         self.mesh = mesh
         self._edges = edges
         self._vertices = np.ascontiguousarray(mesh.vertices, dtype=np.float64)
         self._faces = np.ascontiguousarray(mesh.faces, dtype=np.int64)
-        self._tree = igl.AABB()
-        self._tree.init(self._vertices, self._faces)
         normals = np.cross(
             self._vertices[self._faces[:, 1]] - self._vertices[self._faces[:, 0]],
             self._vertices[self._faces[:, 2]] - self._vertices[self._faces[:, 0]],
@@ -70,14 +73,48 @@ class ExactSDF:
         self._pseudo = None  # edge and vertex pseudo-normals, built on first use
         self._winding = None  # the winding number's hierarchy, built on first use
         self._winding_lock = threading.Lock()
+        self._surface = None  # (union or None, AABB tree, its vertices, faces), built on first use
+        self._surface_lock = threading.Lock()
+
+    @property
+    def union(self):
+        """The :class:`~collider_server.engine.union.UnionSurface` distances are measured to,
+        or None where that is the mesh itself (nothing crosses, no piece buried)."""
+        return self._distance_surface()[0]
+
+    def _distance_surface(self):
+        with self._surface_lock:
+            if self._surface is None:
+                import igl
+
+                from .union import union_surface
+
+                union = union_surface(self._vertices, self._faces, self.winding_number, self.edges)
+                vertices, faces = (self._vertices, self._faces) if union is None else (
+                    np.ascontiguousarray(union.vertices), np.ascontiguousarray(union.faces))
+                tree = igl.AABB()
+                tree.init(vertices, faces)
+                self._surface = (union, tree, vertices, faces)
+            return self._surface
+
+    @property
+    def edges(self) -> np.ndarray:
+        """(f, 3) int64 :func:`edge_index` of the mesh's faces (computed on first use)."""
+        if self._edges is None:
+            self._edges = edge_index(self._faces)
+        return self._edges
 
     def query(self, points: np.ndarray, chunk_points: int = 200_000):
         """Signed distance, closest point and closest face for (n, 3) float64 points, mesh
         units and frame.
 
         Returns ``(distance (n,) float64, closest (n, 3) float64, face (n,) int64)``, the same
-        units and frame; distance is negative inside.
+        units and frame; distance is negative inside. ``closest`` lies on the boundary of the
+        region whose winding number exceeds 1/2 (the mesh itself unless it crosses itself or
+        buries a piece: :attr:`union`), and ``face`` is the mesh's face it lies in (an index
+        into ``mesh.faces``; barycentric coordinates of ``closest`` in that face are valid).
         """
+        union, tree, vertices, faces = self._distance_surface()
         points = np.ascontiguousarray(points, dtype=np.float64)
         n = len(points)
         distance = np.empty(n)
@@ -85,11 +122,11 @@ class ExactSDF:
         face = np.empty(n, dtype=np.int64)
         for start in range(0, n, chunk_points):
             chunk = points[start : start + chunk_points]
-            sq, idx, c = self._tree.squared_distance(self._vertices, self._faces, chunk)
+            sq, idx, c = tree.squared_distance(vertices, faces, chunk)
             sign = np.where(self.winding_number(chunk) > 0.5, -1.0, 1.0)
             distance[start : start + len(chunk)] = sign * np.sqrt(np.maximum(sq, 0.0))
             closest[start : start + len(chunk)] = c
-            face[start : start + len(chunk)] = idx
+            face[start : start + len(chunk)] = idx if union is None else union.source[idx]
         return distance, closest, face
 
     def winding_number(self, points: np.ndarray) -> np.ndarray:
@@ -132,9 +169,7 @@ class ExactSDF:
         vertex normal at a vertex. A face normal alone at a concave crease points into the
         neighbouring face's solid: pushing a point there along it would move it inside."""
         if self._pseudo is None:
-            if self._edges is None:
-                self._edges = edge_index(self._faces)
-            self._pseudo = _pseudo_normals(self._vertices, self._faces, self._face_normals, self._edges)
+            self._pseudo = _pseudo_normals(self._vertices, self._faces, self._face_normals, self.edges)
         edge_normals, vertex_normals = self._pseudo
         tri = self._vertices[self._faces[face]]
         bary = barycentric(closest, tri)
@@ -173,9 +208,13 @@ def edge_index(faces: np.ndarray) -> np.ndarray:
     """(f, 3) int: per face and corner, the index of the edge opposite that corner among the
     mesh's distinct edges (two faces sharing an edge get the same index). Topology only."""
     # Edge opposite corner k joins corners k+1 and k+2; key it by its sorted vertex pair.
-    pairs = np.stack([faces[:, [1, 2]], faces[:, [2, 0]], faces[:, [0, 1]]], axis=1)  # (f, 3, 2)
-    keys = np.sort(pairs.reshape(-1, 2), axis=1)
-    _, inverse = np.unique(keys, axis=0, return_inverse=True)
+    pairs = np.stack([faces[:, [1, 2]], faces[:, [2, 0]], faces[:, [0, 1]]], axis=1).reshape(-1, 2)
+    low, high = pairs.min(axis=1), pairs.max(axis=1)
+    key = low * (int(faces.max(initial=0)) + 1) + high  # ordered as (low, high)
+    order = np.argsort(key, kind="stable")
+    new = np.r_[True, key[order][1:] != key[order][:-1]]
+    inverse = np.empty(len(key), dtype=np.int64)
+    inverse[order] = np.cumsum(new) - 1
     return inverse.reshape(len(faces), 3)
 
 

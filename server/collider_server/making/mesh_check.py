@@ -3,15 +3,18 @@ pieces, edges shared by more than two faces, faces wound against their neighbour
 that cross each other.
 
 Every collider takes its inside/outside from the exact SDF's sign, the fast generalised winding
-number (:class:`~collider_server.engine.meshes.ExactSDF`): exact for a closed, consistently wound,
-non-self-intersecting surface, a smooth guess elsewhere. ``collider bake``, ``train``, ``bench``
+number (:class:`~collider_server.engine.meshes.ExactSDF`): exact for a closed, consistently wound
+surface, a smooth guess near holes. Where the surface crosses itself or buries a piece, the exact
+SDF measures distances to the boundary of the region whose winding number exceeds 1/2
+(:mod:`collider_server.engine.union`). ``collider bake``, ``train``, ``bench``
 and ``info`` say what the mesh is and what that means for the sign (:meth:`MeshCheck.lines`),
 and the closing lines of the first three give the sign errors they measured.
 
 Topology is read on the vertices merged by position (OBJ files split vertices along texture
-seams; those are not holes). Self-intersections: libigl's CGAL-based
-``remesh_self_intersections`` in detect-only mode (exact predicates; pairs of faces that cross,
-not faces that only share an edge or a vertex). Units: those of the mesh.
+seams; those are not holes). Self-intersections: the project's own finder
+(:func:`collider_server.engine.intersections.self_intersections`, the one the union uses): pairs
+of faces whose interiors meet along a segment or, coplanar, over an area; not faces that only
+touch at a point or share an edge or a vertex. Units: those of the mesh.
 """
 
 from __future__ import annotations
@@ -20,10 +23,11 @@ from dataclasses import asdict, dataclass, replace
 
 import numpy as np
 
+from ..engine.intersections import self_intersections
 from ..engine.meshes import Mesh
 
-#: Above this many faces the self-intersection test is skipped (it is O(n log n) but CGAL's
-#: exact arithmetic needs about 1 KB per face); the others always run.
+#: Above this many faces the self-intersection test is skipped (its candidate pairs take about
+#: 1 KB per face); the others always run.
 MAX_FACES_INTERSECTIONS = 2_000_000
 
 
@@ -102,10 +106,13 @@ class MeshCheck:
                        "for the winding number: expect wrong signs near them (fix the winding in the file)")
         if self.pieces > 1:
             out.append(f"  {self.pieces} pieces: the inside is the union of the pieces (winding numbers add); "
-                       "a piece inside another counts as inside")
+                       "a piece buried inside another is inside and no part of the surface distances are "
+                       "measured to (one wound the other way is a cavity)")
         if self.intersecting_pairs:
-            out.append("  where the surface passes through itself, points between the layers have a "
-                       "winding number near 0.5 or 2: their sign is ambiguous")
+            out.append("  where the surface passes through itself, points inside both parts have a winding "
+                       "number near 2: they are inside, and distance, normal and contact refer to the boundary "
+                       "of the union (the parts of faces buried in the body are left out), so contacts land "
+                       "outside")
         return out
 
 
@@ -134,7 +141,7 @@ def check_mesh(mesh: Mesh, max_faces_intersections: int = MAX_FACES_INTERSECTION
         graph = coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(n, n))
         labels = connected_components(graph, directed=False)[1]
         pieces = len(np.unique(labels[np.unique(faces)]))
-    pairs, note = self_intersections(unique, faces, max_faces_intersections)
+    pairs, note = crossing_pairs(unique, faces, max_faces_intersections)
     return MeshCheck(faces=len(mesh.faces), vertices=int(n), boundary_edges=len(boundary),
                      holes=int(holes), non_manifold_edges=int((counts > 2).sum()), flipped_edges=flipped,
                      pieces=int(pieces), intersecting_pairs=pairs, intersections_note=note)
@@ -168,7 +175,7 @@ def check_animation(animation, max_faces_intersections: int = MAX_FACES_INTERSEC
     checked = np.unique(np.linspace(0, frames - 1, min(frames, MAX_FRAMES_INTERSECTIONS)).round().astype(int))
     worst, at = first.intersecting_pairs, 0
     for k in checked[1:]:
-        pairs, note = self_intersections(animation.frame(int(k)).vertices[index], faces, max_faces_intersections)
+        pairs, note = crossing_pairs(animation.frame(int(k)).vertices[index], faces, max_faces_intersections)
         if pairs is None:
             return replace(first, intersecting_pairs=None, intersections_note=f"frame {k}: {note}")
         if pairs > worst:
@@ -178,17 +185,9 @@ def check_animation(animation, max_faces_intersections: int = MAX_FACES_INTERSEC
     return replace(first, intersecting_pairs=worst, intersections_note=note)
 
 
-def self_intersections(vertices: np.ndarray, faces: np.ndarray, max_faces: int) -> tuple[int | None, str]:
-    """Pairs of faces that cross (exact, CGAL through libigl), or None and why not."""
+def crossing_pairs(vertices: np.ndarray, faces: np.ndarray, max_faces: int) -> tuple[int | None, str]:
+    """How many pairs of faces cross (:func:`~collider_server.engine.intersections.self_intersections`),
+    or None and why not."""
     if len(faces) > max_faces:
         return None, f"more than {max_faces:,} faces"
-    try:
-        from igl.copyleft.cgal import remesh_self_intersections
-    except ImportError:
-        return None, "libigl without its CGAL module"
-    try:
-        pairs = remesh_self_intersections(np.ascontiguousarray(vertices), np.ascontiguousarray(faces),
-                                          detect_only=True)[2]
-    except Exception as exc:  # noqa: BLE001 -- CGAL refuses some degenerate input; the other checks still stand
-        return None, f"libigl could not check: {type(exc).__name__}"
-    return len(pairs), ""
+    return len(self_intersections(vertices, faces)), ""

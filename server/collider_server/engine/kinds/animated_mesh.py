@@ -1,9 +1,10 @@
 """The exact collider of a deforming mesh (kind ``mesh`` with an ``animation``): at any time, the
 exact signed distance to the linearly interpolated vertices (libigl AABB tree built per distinct
 time and cached, :class:`~collider_server.engine.animated_meshes.ExactAtTimes`; the sign from the
-fast winding number) and the surface's velocity at each point's closest surface point: the
-interpolated vertex velocities weighted by the closest point's barycentric coordinates in its
-triangle (collider units per second, collider frame). Exact everywhere, no domain rule."""
+fast winding number; where the mesh crosses itself at that time, distances to its union's
+boundary) and the surface's velocity at each point's closest surface point: the interpolated
+vertex velocities weighted by the closest point's barycentric coordinates in the mesh's triangle
+it lies in (collider units per second, collider frame). Exact everywhere, no domain rule."""
 
 from __future__ import annotations
 

@@ -1,6 +1,8 @@
 """The exact collider: queries on the triangle mesh itself (libigl AABB tree, float64), the sign
-from the fast winding number so open meshes get a correct inside. Exact everywhere, so points
-outside the domain box need no special rule; slower per point than the voxel and neural kinds."""
+from the fast winding number so open meshes get a correct inside; where the mesh crosses itself
+or buries a part, distances to its union's boundary (:class:`~collider_server.engine.meshes.ExactSDF`).
+Exact everywhere, so points outside the domain box need no special rule; slower per point than
+the voxel and neural kinds."""
 
 from __future__ import annotations
 
