@@ -27,12 +27,17 @@ from .options import (
 
 def register(subparsers) -> None:
     bake = subparsers.add_parser(
-        "bake", help="make a voxel, mesh or kdtree collider from a mesh (or an animated one)",
+        "bake", help="make a voxel, mesh or kdtree collider from a mesh (or an animated one), "
+                     "or a skinned one from a character",
         description="Make a collider from MESH. With --animation, an animated collider of MESH's "
                     "frames: kind mesh (exact at any time) or voxel (one grid per keyframe); "
-                    "between frames the surface is the linear interpolation of the vertices.")
-    bake.add_argument("mesh", help="mesh file (OBJ, PLY, STL, OFF, GLB; an OBJ with --animation)")
-    bake.add_argument("--kind", choices=["voxel", "mesh", "kdtree"], default="voxel")
+                    "between frames the surface is the linear interpolation of the vertices. "
+                    "With --kind skinned, MESH is a character (glTF 2.0 .gltf/.glb, or USD with "
+                    "UsdSkel): its skin, skeleton and clips, answered exactly at any clip time or "
+                    "joint pose (--loop: a clip's time wraps beyond its ends, else clamps).")
+    bake.add_argument("mesh", help="mesh file (OBJ, PLY, STL, OFF, GLB; an OBJ with --animation; "
+                                   "a .gltf/.glb/.usd character with --kind skinned)")
+    bake.add_argument("--kind", choices=["voxel", "mesh", "kdtree", "skinned"], default="voxel")
     bake.add_argument("--name", required=True, help="model name (file NAME.safetensors)")
     bake.add_argument("--resolution", type=int, default=None,
                       help="voxel samples per axis (8..1024; default 256, 128 with --animation)")
@@ -80,6 +85,8 @@ def run_bake(args) -> int:
 
     check_name(args.name)
     budget = budget_from_args(args)
+    if args.kind == "skinned" and budget is None:
+        return run_bake_skinned(args)
     check_animation_arguments(args)
     if budget is not None:  # an error budget: bake picks the kind (commands.budget)
         if args.animation is not None:
@@ -164,6 +171,57 @@ def run_bake_animation(args) -> int:
     print("next: " + command("eval", args.name, "--mesh", args.mesh, "--animation", args.animation,
                              *models_options(args)))
     return 0
+
+
+def run_bake_skinned(args) -> int:
+    """``collider bake CHARACTER --kind skinned``: the exact skinned collider of a character."""
+    from collider_server.engine.modelfile import save_collider
+    from collider_server.engine.repository import ModelRepository
+    from collider_server.making.characters import skinned_from_file
+    from collider_server.making.mesh_check import MeshCheck
+
+    if args.animation is not None or args.fps is not None or args.keyframes is not None:
+        raise ValueError("--animation, --fps and --keyframes are for vertex caches; a skinned "
+                         "character brings its own clips")
+    if args.resolution is not None or args.cache is not None:
+        raise ValueError("--resolution and --cache are voxel and budget settings (kind skinned is exact)")
+    placement = placement_from_args(args)
+    repository = ModelRepository(args.models)
+    repository.check_writable()  # before the bake, not after
+    collider, read, _ = skinned_from_file(args.mesh, args.name, placement, loop=args.loop,
+                                          padding=args.padding)
+    for note in read.notes:
+        print(f"{args.mesh}: {note}")
+    for line in MeshCheck.from_dict(collider.info.source["check"]).lines():
+        print(line)
+    path = save_collider(collider, repository.path(args.name))
+    skeleton = collider.info.skeleton
+    print(f"wrote {path} ({path.stat().st_size:,} bytes, kind skinned: "
+          f"{len(skeleton['joints'])} joints, {describe_clips(skeleton)})")
+    return 0
+
+
+def describe_clips(skeleton: dict, channels: list | None = None) -> str:
+    """``2 clips (walk 1 s, wave 2 s), which loop``; with ``channels`` (the model's
+    ``settings["channels"]`` layout) each clip's channel count too."""
+    clips = skeleton.get("clips", [])
+    if not clips:
+        return "no clips (asked by joint transforms only)"
+    counts = [sum(1 for c in channels or [] if c[0] == i) for i in range(len(clips))]
+    listed = ", ".join(f"{c['name']} {c['duration_s']:g} s"
+                       + (f" ({counts[i]} channels)" if channels is not None else "")
+                       for i, c in enumerate(clips))
+    ends = "loop (the time wraps around)" if skeleton.get("loop") else "clamp (hold their ends)"
+    return f"{len(clips)} clip(s): {listed}; they {ends}"
+
+
+def skeleton_lines(skeleton: dict) -> list[str]:
+    """The joints as an indented tree, one line each (``pelvis``, ``  spine``, ...)."""
+    names, parents = skeleton.get("joints", []), skeleton.get("parents", [])
+    depth = []
+    for parent in parents:
+        depth.append(0 if parent < 0 else depth[parent] + 1)
+    return [f"{'  ' * d}{name}" for name, d in zip(names, depth, strict=True)]
 
 
 def describe_animation(animation: dict) -> str:
@@ -273,6 +331,11 @@ def run_info(args) -> int:
     if info.animation:
         print(f"  animation   {describe_animation(info.animation)}; surface speed at most "
               f"{info.animation.get('max_surface_speed', 0.0):.4g} {info.units}/s")
+    elif info.skeleton:
+        print(f"  clips       {describe_clips(info.skeleton, info.settings.get('channels'))}")
+        print(f"  skeleton    {len(info.skeleton['joints'])} joints (parents above children):")
+        for line in skeleton_lines(info.skeleton):
+            print(f"                {line}")
     else:
         print("  animation   none (static)")
     source = info.source
@@ -283,8 +346,11 @@ def run_info(args) -> int:
             print(f"  cache       {source['cache']} sha256 {str(source.get('cache_sha256', ''))[:16]} "
                   f"({source.get('frames', '?')} frames at {source.get('frame_rate_hz', '?')} fps)")
     print_source_check(source, info.accuracy)
+    for note in source.get("notes", []):
+        print(f"  read        {note}")
     for key, value in info.settings.items():
-        print(f"  {key:<11} {value}")
+        if key != "channels":  # a skinned model's channel layout: counted per clip above
+            print(f"  {key:<11} {value}")
     if info.accuracy:
         print("  accuracy")
         for key, value in info.accuracy.items():
@@ -319,6 +385,9 @@ def eval_hint(info, path, args) -> str:
 
     from .hints import command, models_options
 
+    if info.skeleton:
+        return ("kind skinned is exact: it answers with the distance to the mesh skinned at the "
+                "asked pose, so there is nothing to measure")
     if info.animation:
         return (f"`collider eval {info.name} --mesh OBJ --animation CACHE` measures it at random times "
                 f"against the frames it was made from ({info.source.get('mesh', '?')}.obj and "

@@ -326,3 +326,26 @@ def make_walker(spacing_m: float = 0.025) -> Walker:
     joints, weights = bone_weights(vertices)
     weights = _f32(weights)  # as stored: sums within float32 rounding of 1
     return Walker(vertices, mesh.faces, joints, weights, (walk_motion(), wave_motion()))
+
+
+def walk_animation(walker: Walker, frames: int | None = None):
+    """The walk as an animated mesh (what ``collider animate walker`` writes as OBJ + PC2):
+    ``frames`` frames over its second (default its 31 keyframes at 30 fps), the walker skinned
+    at each by the engine (equal to :meth:`Walker.reference_vertices` on the keyframes), turned
+    Z up like the project's other animations, looping."""
+    from collider_contract import Timeline
+
+    from ..engine.animated_meshes import AnimatedMesh, max_surface_speed
+    from ..engine.skinning import pose_at, skin_vertices
+    from .placement import Y_UP_TO_Z_UP
+
+    skin = walker.skin()
+    clip = skin.clip("walk")
+    frames = frames or len(walk_motion().times)
+    times = np.linspace(0.0, clip.duration_s, frames)
+    rotation = Y_UP_TO_Z_UP[:3, :3]
+    out = np.stack([skin_vertices(skin, pose_at(skin, "walk", t, "clamp")[0]) @ rotation.T
+                    for t in times])
+    rate = (frames - 1) / clip.duration_s
+    timeline = Timeline(frames, rate, True, max_surface_speed(out, rate))
+    return AnimatedMesh(out, skin.faces, timeline, "walker")
