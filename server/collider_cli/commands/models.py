@@ -35,8 +35,9 @@ def register(subparsers) -> None:
                     "With --kind skinned, MESH is a character (glTF 2.0 .gltf/.glb, or USD with "
                     "UsdSkel): its skin, skeleton and clips, answered exactly at any clip time or "
                     "joint pose (--loop: a clip's time wraps beyond its ends, else clamps).")
-    bake.add_argument("mesh", help="mesh file (OBJ, PLY, STL, OFF, GLB; an OBJ with --animation; "
-                                   "a .gltf/.glb/.usd character with --kind skinned)")
+    bake.add_argument("mesh", help="mesh file (OBJ, PLY, STL, OFF, GLB; an OBJ or a USD stage "
+                                   "with --animation; a .gltf/.glb/.usd character with --kind "
+                                   "skinned)")
     bake.add_argument("--kind", choices=["voxel", "mesh", "kdtree", "skinned"], default="voxel")
     bake.add_argument("--name", required=True, help="model name (file NAME.safetensors)")
     bake.add_argument("--resolution", type=int, default=None,

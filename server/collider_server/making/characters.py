@@ -8,10 +8,10 @@ from pathlib import Path
 
 from .gltf import GltfError, SkinFile, read_gltf
 from .placement import MeshPlacement
+from .usd import USD_SUFFIXES
 
-#: Suffixes of the files :func:`read_character` reads.
+#: Suffixes of the glTF files :func:`read_character` reads (USD: :data:`USD_SUFFIXES`).
 GLTF_SUFFIXES = (".gltf", ".glb")
-USD_SUFFIXES = (".usd", ".usda", ".usdc", ".usdz")
 
 
 def is_character_file(path: str | Path) -> bool:

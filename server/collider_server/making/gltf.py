@@ -40,6 +40,7 @@ import numpy as np
 from ..engine.meshes import Mesh
 from ..engine.skinning import Channel, Clip, Skeleton, Skin, trs_matrices, world_transforms
 from .mesh_files import MAX_FACES, check_has_volume, file_sha256
+from .transforms import matrix_trs
 
 
 class GltfError(ValueError):
@@ -399,21 +400,12 @@ class _Reader:
         return trs_matrices(t[None], r[None], s[None])[0]
 
     def decompose(self, m: np.ndarray, index: int):
-        """A node's matrix (4, 4) as translation, rotation (x, y, z, w) and scale; GltfError for
-        a shear or projection, which TRS cannot hold."""
-        linear = m[:3, :3]
-        scale = np.linalg.norm(linear, axis=0)
-        if np.any(scale <= 0):
-            raise self.fail(f"node {index}'s matrix is singular")
-        if np.linalg.det(linear) < 0:  # a reflection: one negative scale
-            scale[0] = -scale[0]
-        rotation = _matrix_quaternion(linear / scale)
-        t, s = m[:3, 3].copy(), scale
-        if not np.allclose(trs_matrices(t[None], rotation[None], s[None])[0], m,
-                           atol=1e-6 * max(1.0, np.abs(m).max())):
+        """A node's matrix (4, 4) as translation, rotation (x, y, z, w) and scale."""
+        try:
+            return matrix_trs(m)
+        except ValueError as exc:
             raise self.fail(f"node {index} ({_name(self.doc.nodes[index], 'node', index)}) has "
-                            "a matrix with shear or projection, which a joint's TRS cannot hold")
-        return t, rotation, s
+                            f"{exc}") from None
 
     def skeleton(self, gskin, skin_index, nodes, parents, root) -> Skeleton:
         trs = [self.local_trs(n) for n in nodes]
@@ -655,22 +647,3 @@ def _triangles(indices: np.ndarray, mode: int) -> np.ndarray:
         c = np.where(even, indices[k + 2], indices[k + 1])
         return np.stack([a, b, c], axis=1)
     return np.stack([np.full(len(k), indices[0]), indices[k + 1], indices[k + 2]], axis=1)
-
-
-def _matrix_quaternion(r: np.ndarray) -> np.ndarray:
-    """The unit quaternion (x, y, z, w) of a rotation matrix (3, 3) (Shepperd's method)."""
-    trace = np.trace(r)
-    if trace > 0:
-        s = 2.0 * np.sqrt(1.0 + trace)
-        q = [(r[2, 1] - r[1, 2]) / s, (r[0, 2] - r[2, 0]) / s, (r[1, 0] - r[0, 1]) / s, s / 4]
-    elif r[0, 0] > r[1, 1] and r[0, 0] > r[2, 2]:
-        s = 2.0 * np.sqrt(1.0 + r[0, 0] - r[1, 1] - r[2, 2])
-        q = [s / 4, (r[0, 1] + r[1, 0]) / s, (r[0, 2] + r[2, 0]) / s, (r[2, 1] - r[1, 2]) / s]
-    elif r[1, 1] > r[2, 2]:
-        s = 2.0 * np.sqrt(1.0 + r[1, 1] - r[0, 0] - r[2, 2])
-        q = [(r[0, 1] + r[1, 0]) / s, s / 4, (r[1, 2] + r[2, 1]) / s, (r[0, 2] - r[2, 0]) / s]
-    else:
-        s = 2.0 * np.sqrt(1.0 + r[2, 2] - r[0, 0] - r[1, 1])
-        q = [(r[0, 2] + r[2, 0]) / s, (r[1, 2] + r[2, 1]) / s, s / 4, (r[1, 0] - r[0, 1]) / s]
-    q = np.asarray(q, dtype=np.float64)
-    return q / np.linalg.norm(q)
