@@ -150,7 +150,8 @@ def require_skeleton_pose(pose: SkeletonPose | None, time: float | None, skeleto
     if not skeleton:
         if pose is not None:
             given = [k for k in SKELETON_KEYS if pose.to_body().get(k) is not None]
-            raise QueryError(f"{where} has no skeleton: {', '.join(given)} apply to skinned "
+            verb = "is" if len(given) == 1 else "are"
+            raise QueryError(f"{where} has no skeleton: {' and '.join(given)} {verb} for skinned "
                              f"models only", code="not-skinned")
         return
     joints = skeleton.get("joints", [])

@@ -63,6 +63,14 @@ def register(subparsers) -> None:
     query.add_argument("--time", type=float, default=None,
                        help="seconds: when an animated model is asked (required for one)")
     query.add_argument("--pose", type=Path, default=None, help=".npy or .json 4x4 pose, collider to world")
+    query.add_argument("--clip", default=None,
+                       help="a skinned model's clip, asked at --time (default: its first clip)")
+    query.add_argument("--joint-transforms", type=Path, default=None,
+                       help="a skinned model's pose instead of a clip: .npy or .json (J, 4, 4), "
+                            "the joints' world transforms in the collider frame")
+    query.add_argument("--joint-velocities", type=Path, default=None,
+                       help=".npy or .json (J, 4, 4): the joint transforms' time derivatives, for "
+                            "the velocity field (default: a still skeleton)")
     query.add_argument("--only-colliding", action="store_true",
                        help="normal and contact only for colliding points (others: normal 0, "
                             "contact = the point)")
@@ -245,7 +253,9 @@ def load_points(args) -> np.ndarray:
     return np.asarray(args.coords, dtype=np.float64).reshape(-1, 3)
 
 
-def load_pose(path: Path | None):
+def load_pose(path: Path | None, what: str = "pose"):
+    """The array in ``path`` (.json nested lists, else .npy), or None; a ValueError naming the
+    file and ``what`` it should hold. (The query validates its shape and values.)"""
     if path is None:
         return None
     try:
@@ -253,7 +263,7 @@ def load_pose(path: Path | None):
             return np.asarray(json.loads(path.read_text()), dtype=np.float64)
         return np.load(path, allow_pickle=False)
     except (OSError, ValueError) as exc:
-        raise ValueError(f"{path}: cannot read pose ({exc})") from None
+        raise ValueError(f"{path}: cannot read {what} ({exc})") from None
 
 
 def run_query(args) -> int:
@@ -263,7 +273,9 @@ def run_query(args) -> int:
     points = load_points(args)
     collider = ModelRepository(args.models).load(args.model, args.device)
     result = collider.query(points, fields, pose=load_pose(args.pose), eps=args.eps,
-                            only_colliding=args.only_colliding, time=args.time)
+                            only_colliding=args.only_colliding, time=args.time, clip=args.clip,
+                            joint_transforms=load_pose(args.joint_transforms, "joint transforms"),
+                            joint_velocities=load_pose(args.joint_velocities, "joint velocities"))
     values = result.fields()
     if args.output is not None:
         # np.savez appends ".npz" when it is missing; report the file it really writes.

@@ -20,6 +20,7 @@ from starlette.responses import FileResponse, HTMLResponse, JSONResponse
 
 from collider_contract import FIELDS, MAX_COORDINATE_M, TITLES
 from collider_contract.queries import MAX_TIME_S
+from collider_contract.skeleton import MAX_CLIP_NAME, MAX_JOINTS
 
 from .auth import require_token
 from .problems import PROBLEM_JSON
@@ -80,6 +81,33 @@ def _pose_velocity(msgpack: bool) -> dict:
     return {"title": title, **lists}
 
 
+def _joint_arrays(key: str, msgpack: bool) -> dict:
+    lists = {"type": "array", "minItems": 1, "maxItems": MAX_JOINTS,
+             "items": {"type": "array", "minItems": 4, "maxItems": 4,
+                       "items": {"type": "array", "items": _COORDINATE, "minItems": 4,
+                                 "maxItems": 4}}}
+    if key == "joint_transforms":
+        title = ("joint_transforms: (J, 4, 4) a skinned model's joints' world transforms in the "
+                 "collider frame (its skeleton's joint order), each a rotation times a uniform "
+                 "scale, translation within the coordinate range, bottom row 0 0 0 1")
+    else:
+        title = ("joint_velocities: (J, 4, 4) the joint transforms' time derivatives (1/s, "
+                 "collider units/s), bottom rows 0 0 0 0, for velocity (default: still)")
+    if msgpack:
+        return {"title": title, "oneOf": [lists, _array_map(["<f4", "<f8"], [None, 4, 4],
+                                                            "(J, 4, 4)")]}
+    return {"title": title, **lists}
+
+
+def _skeleton(msgpack: bool) -> dict:
+    """A skinned model's skeleton pose (:mod:`collider_contract.skeleton`)."""
+    return {"clip": {"type": "string", "minLength": 1, "maxLength": MAX_CLIP_NAME,
+                     "description": "a skinned model's clip, asked at time (default: its first "
+                                    "clip); a model without a skeleton answers 422 not-skinned"},
+            "joint_transforms": _joint_arrays("joint_transforms", msgpack),
+            "joint_velocities": _joint_arrays("joint_velocities", msgpack)}
+
+
 def _common(max_points: int, msgpack: bool) -> dict:
     return {
         "points": _points(max_points, msgpack),
@@ -104,7 +132,7 @@ def query_body(max_points: int) -> dict:
                           "properties": {**_common(max_points, media != "application/json"),
                                          "pose": _pose(media != "application/json"),
                                          "pose_velocity": _pose_velocity(media != "application/json"),
-                                         "time": _TIME}}
+                                         "time": _TIME, **_skeleton(media != "application/json")}}
                   for media in MSGPACK_AND_JSON})
 
 
@@ -112,7 +140,8 @@ def scene_body(max_points: int, max_colliders: int) -> dict:
     def schema(msgpack: bool) -> dict:
         collider = {"type": "object", "required": ["model"], "additionalProperties": False,
                     "properties": {"model": {"type": "string"}, "pose": _pose(msgpack),
-                                   "pose_velocity": _pose_velocity(msgpack), "time": _TIME}}
+                                   "pose_velocity": _pose_velocity(msgpack), "time": _TIME,
+                                   **_skeleton(msgpack)}}
         return {"type": "object", "required": ["points", "colliders"],
                 "additionalProperties": False,
                 "properties": {**_common(max_points, msgpack),
