@@ -83,6 +83,16 @@ def test_normalised_integer_weights_are_scaled(tmp_path):
     np.testing.assert_allclose(skin.weights, weights, atol=1.5 / 65535)
 
 
+def test_normalised_integer_rotations_are_scaled(tmp_path):
+    """Quantized keyframes (KHR_mesh_quantization): rotations as normalised shorts."""
+    doc = sample_document()
+    floats = read_gltf(SAMPLE).skin.clips[0].channels[4].values  # node 3's rotation
+    shorts = np.round(floats * 32767).astype(np.int16)
+    doc["animations"][0]["samplers"][4]["output"] = add_accessor(doc, shorts, 5122, "VEC4", normalized=True)
+    values = read_gltf(write(tmp_path, doc)).skin.clips[0].channels[4].values
+    np.testing.assert_allclose(values, floats, atol=1 / 32767)
+
+
 def test_sparse_weights_that_do_not_sum_to_one_are_normalised_and_said(tmp_path):
     doc = sample_document()
     rows = np.array([3, 10], dtype=np.uint16)
@@ -112,6 +122,7 @@ def test_vertices_split_at_seams_are_welded_and_differing_weights_said(tmp_path)
     second["indices"] = add_accessor(doc, faces[90:].reshape(-1).copy(), 5123, "SCALAR")
     read = read_gltf(write(tmp_path, doc))
     assert any(n.startswith("welded 96 vertices split at seams (192 -> 96)") for n in read.notes)
+    assert read.skin.vertices.shape == (96, 3) and read.skin.joints.shape == (96, 4)
     assert read.skin.faces.shape == (188, 3) and not any("boundary" in n for n in read.notes)
     # The copies' weights differ: the reader says so.
     other = np.tile(np.array([[0.5, 0.5, 0, 0]], np.float32), (96, 1))
@@ -120,8 +131,10 @@ def test_vertices_split_at_seams_are_welded_and_differing_weights_said(tmp_path)
     assert any("welded positions have different joints or weights" in n for n in notes), notes
 
 
-def test_placement_moves_the_whole_skin_at_every_pose():
-    skin = read_gltf(SAMPLE).skin
+def test_placement_moves_the_whole_skin_at_every_pose(tmp_path):
+    doc = sample_document()
+    doc["animations"][0]["channels"].pop(3)  # node 3's translation: its rest one is used
+    skin = read_gltf(write(tmp_path, doc)).skin
     placed, transform = MeshPlacement(z_up=True, fit_size=1.7).apply_to_skin(skin)
     assert np.ptp(placed.vertices, axis=0).max() == pytest.approx(1.7)
     for t in (0.0, 0.7, 1.9):
@@ -174,3 +187,13 @@ def test_not_a_gltf_file(tmp_path):
             read_gltf(tmp_path / name)
     with pytest.raises(GltfError, match="no such glTF file"):
         read_gltf(tmp_path / "missing.gltf")
+
+
+def test_strips_and_fans_become_triangles_wound_alike():
+    from collider_server.making.gltf import primitive_triangles
+
+    strip = primitive_triangles(np.arange(6), 5)
+    assert strip.tolist() == [[0, 1, 2], [1, 3, 2], [2, 3, 4], [3, 5, 4]]
+    fan = primitive_triangles(np.array([7, 1, 2, 3, 4]), 6)
+    assert fan.tolist() == [[7, 1, 2], [7, 2, 3], [7, 3, 4]]
+    assert primitive_triangles(np.arange(7), 4).tolist() == [[0, 1, 2], [3, 4, 5]]

@@ -477,7 +477,7 @@ class _Reader:
                     indices = self.accessor(prim.indices, f"{where} indices").reshape(-1).astype(np.int64)
                 if len(indices) and (indices.min() < 0 or indices.max() >= len(vertices)):
                     raise self.fail(f"{where}: an index beyond its {len(vertices)} vertices")
-                faces = _triangles(indices, mode)
+                faces = primitive_triangles(indices, mode)
                 parts.append((vertices, faces + offset, joint_slot[joints], weights))
                 offset += len(vertices)
         if ignored_modes:
@@ -633,7 +633,7 @@ class _Reader:
         return clips
 
 
-def _triangles(indices: np.ndarray, mode: int) -> np.ndarray:
+def primitive_triangles(indices: np.ndarray, mode: int) -> np.ndarray:
     """(F, 3) int64 triangles from a primitive's indices: a list (4), a strip (5: every other
     triangle flipped to keep the winding) or a fan (6)."""
     if mode == 4:
