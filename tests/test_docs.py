@@ -114,6 +114,8 @@ def _outputs(args) -> set[str]:
     made = {args.name} if getattr(args, "name", None) else set()
     if args.command == "animate":
         made |= {str(args.output / f"{args.name}.obj"), str(args.output / f"{args.name}.pc2")}
+        if args.name == "walker":  # also the character, and the skinned model with --bake skinned
+            made |= {str(args.output / "walker.glb"), "walker-skinned"}
     if args.command == "simulate":
         from collider_client.sim.scene import load_scene, resolve_scene
 

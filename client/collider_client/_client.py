@@ -71,12 +71,14 @@ class _Settings:
         return (self.fields if isinstance(fields, UseClientDefault) else fields,
                 self.eps if isinstance(eps, UseClientDefault) else eps)
 
-    def model_query(self, points, fields, pose, eps, only_colliding, time, pose_velocity) -> ModelQuery:
+    def model_query(self, points, fields, pose, eps, only_colliding, time, pose_velocity,
+                    clip=None, joint_transforms=None, joint_velocities=None) -> ModelQuery:
         """The call's query, validated by the contract (refused with the typed error the service
         would answer for it: the same by construction, whichever the backend)."""
         fields, eps = self._defaults(fields, eps)
         try:
-            return ModelQuery.build(points, fields, pose, eps, only_colliding, time, pose_velocity)
+            return ModelQuery.build(points, fields, pose, eps, only_colliding, time, pose_velocity,
+                                    clip, joint_transforms, joint_velocities)
         except QueryError as exc:
             raise refusal(exc) from None
 
@@ -161,7 +163,8 @@ class Client:
     def query(self, model: str, points, fields: Iterable[str] | UseClientDefault = USE_CLIENT_DEFAULT,
               pose=None, eps: float | None | UseClientDefault = USE_CLIENT_DEFAULT,
               deadline_ms: float | None = None, only_colliding: bool = False,
-              time: float | None = None, pose_velocity=None) -> QueryResult:
+              time: float | None = None, pose_velocity=None, clip: str | None = None,
+              joint_transforms=None, joint_velocities=None) -> QueryResult:
         """The ``fields`` of one collider at ``points``.
 
         points : (n, 3) float32/float64, world frame, metres
@@ -175,9 +178,13 @@ class Client:
             ignores it)
         pose_velocity : (4, 4) the pose's time derivative (d(s R)/dt in 1/s, translation rate
             in m/s, bottom row 0), for the ``velocity`` field of a moving collider; None: still
+        clip : a skinned collider's clip (None: its first), asked at ``time``
+        joint_transforms : (J, 4, 4) a skinned collider's joints' world transforms, collider
+            frame (instead of a clip); joint_velocities : (J, 4, 4) their time derivatives
+            (1/s, m/s), for ``velocity``; None: a still skeleton
         """
         query = self._settings.model_query(points, fields, pose, eps, only_colliding, time,
-                                           pose_velocity)
+                                           pose_velocity, clip, joint_transforms, joint_velocities)
         if self._embedded is not None:
             return self._embedded.query(model, query)
         body = self._post(f"/v1/models/{model}/query", _with_deadline(query.to_body(), deadline_ms),
@@ -193,7 +200,8 @@ class Client:
         distance) and ``collider``, its index in ``colliders``.
 
         colliders : model names, ``(model, pose)`` pairs, ``{"model", "pose", "time",
-            "pose_velocity"}`` dicts or :class:`SceneCollider`; poses are 4x4 collider -> world
+            "pose_velocity", "clip", "joint_transforms", "joint_velocities"}`` dicts or
+            :class:`SceneCollider`; poses are 4x4 collider -> world
         time : seconds, the time of the colliders that give none of their own
         only_colliding : as in :meth:`query`
         """
@@ -289,10 +297,11 @@ class AsyncClient:
                     fields: Iterable[str] | UseClientDefault = USE_CLIENT_DEFAULT, pose=None,
                     eps: float | None | UseClientDefault = USE_CLIENT_DEFAULT,
                     deadline_ms: float | None = None, only_colliding: bool = False,
-                    time: float | None = None, pose_velocity=None) -> QueryResult:
+                    time: float | None = None, pose_velocity=None, clip: str | None = None,
+                    joint_transforms=None, joint_velocities=None) -> QueryResult:
         """See :meth:`Client.query`."""
         query = self._settings.model_query(points, fields, pose, eps, only_colliding, time,
-                                           pose_velocity)
+                                           pose_velocity, clip, joint_transforms, joint_velocities)
         if self._embedded is not None:
             return await asyncio.to_thread(self._embedded.query, model, query)
         body = await self._post(f"/v1/models/{model}/query",

@@ -95,7 +95,8 @@ class EmbeddedBackend:
         collider = self.collider(model)
         try:
             result = answer_model_query(query, collider.info.meters_per_unit, collider.query_local,
-                                        f"model {model!r}", collider.animated)
+                                        f"model {model!r}", collider.animated,
+                                        collider.info.skeleton)
         except QueryError as exc:
             raise refusal(exc) from None
         result.model = model
@@ -105,7 +106,8 @@ class EmbeddedBackend:
         engines = [self.collider(placed.model) for placed in query.colliders]
         try:
             return answer_scene_query(query, [e.info.meters_per_unit for e in engines],
-                                      [e.query_local for e in engines], [e.animated for e in engines])
+                                      [e.query_local for e in engines], [e.animated for e in engines],
+                                      [e.info.skeleton for e in engines])
         except QueryError as exc:
             raise refusal(exc) from None
 

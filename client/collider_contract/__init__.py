@@ -12,6 +12,8 @@ the same by construction:
   that answer a model query or a scene query given a way to evaluate a collider;
 - :mod:`.results`: what an answer and a model description are;
 - :mod:`.animation`: how an animated collider runs in time (frames, rate, loop or clamp);
+- :mod:`.skeleton`: the pose of a skinned collider's skeleton in a query (a clip at a time, or
+  the joints' transforms);
 - :mod:`.point_cache`: the files animations travel in (OBJ + PC2 vertex cache);
 - :mod:`.errors`: :class:`QueryError`, every refusal's status, problem code and message.
 """
@@ -48,6 +50,12 @@ from .queries import (
                       check_time,
 )
 from .results import ModelInfo, QueryResult
+from .skeleton import (
+                      SkeletonPose,
+                      check_joint_transforms,
+                      check_joint_velocities,
+                      check_skeleton_pose,
+)
 from .wire import WireError
 
 __all__ = [
@@ -69,6 +77,7 @@ __all__ = [
                       "QueryResult",
                       "SceneCollider",
                       "SceneQuery",
+                      "SkeletonPose",
                       "Timeline",
                       "WireError",
                       "answer_model_query",
@@ -77,8 +86,11 @@ __all__ = [
                       "check_eps",
                       "check_fields",
                       "check_finite",
+                      "check_joint_transforms",
+                      "check_joint_velocities",
                       "check_points",
                       "check_pose_velocity",
+                      "check_skeleton_pose",
                       "check_time",
                       "default_eps",
                       "finish",

@@ -45,6 +45,7 @@ from .errors import QueryError
 from .pose import Pose, rotate_rows
 from .queries import ModelQuery, SceneQuery
 from .results import QueryResult
+from .skeleton import SkeletonPose, require_skeleton_pose
 
 #: The default collision offset: 1 mm, whatever the collider's units.
 DEFAULT_EPS_METERS = 1e-3
@@ -55,9 +56,9 @@ DEFAULT_EPS_METERS = 1e-3
 #: (m, 3) float64 and its surface's velocity in its own frame (m, 3) float64, collider units per
 #: second (None: still), both only where ``distance`` is below ``gradient_below`` (None:
 #: everywhere; a number or an (m,) array, collider units; the other rows zero). The engine's
-#: ``Collider.query_local``.
-Evaluate = Callable[[np.ndarray, bool, "float | np.ndarray | None", "float | None"],
-                    "tuple[np.ndarray, np.ndarray | None, np.ndarray | None]"]
+#: ``Collider.query_local``. A skinned collider's evaluation takes a fifth argument, the
+#: skeleton pose (:class:`~.skeleton.SkeletonPose`), given only when the query has one.
+Evaluate = Callable[..., "tuple[np.ndarray, np.ndarray | None, np.ndarray | None]"]
 
 
 def default_eps(meters_per_unit: float, pose: Pose) -> float:
@@ -90,6 +91,7 @@ class Evaluation:
         or None (everywhere, when ``want_gradient``)
     eps : the query's eps, world units (resolved: :func:`resolve_eps`)
     time : seconds, or None
+    skeleton : a skinned collider's skeleton pose, or None
     """
 
     local: np.ndarray
@@ -97,11 +99,15 @@ class Evaluation:
     gradient_below: float | None
     eps: float
     time: float | None = None
+    skeleton: SkeletonPose | None = None
 
     def run(self, evaluate: Evaluate) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
-        """``evaluate`` at these points and time: (distance (n,), normal (n, 3) or None, velocity
-        (n, 3) or None), collider frame."""
-        return evaluate(self.local, self.want_gradient, self.gradient_below, self.time)
+        """``evaluate`` at these points, time and skeleton pose: (distance (n,), normal (n, 3)
+        or None, velocity (n, 3) or None), collider frame."""
+        if self.skeleton is None:
+            return evaluate(self.local, self.want_gradient, self.gradient_below, self.time)
+        return evaluate(self.local, self.want_gradient, self.gradient_below, self.time,
+                        self.skeleton)
 
 
 def prepare(query: ModelQuery, meters_per_unit: float) -> Evaluation:
@@ -109,12 +115,16 @@ def prepare(query: ModelQuery, meters_per_unit: float) -> Evaluation:
     eps = resolve_eps(query.eps, meters_per_unit, query.pose)
     below = (gradient_threshold(eps, query.pose)
              if query.only_colliding and query.want_gradient else None)
-    return Evaluation(query.pose.to_local(query.points), query.want_gradient, below, eps, query.time)
+    return Evaluation(query.pose.to_local(query.points), query.want_gradient, below, eps, query.time,
+                      query.skeleton)
 
 
-def require_time(query: ModelQuery, animated: bool, where: str) -> None:
+def require_time(query: ModelQuery, animated: bool, where: str, skeleton: dict | None = None) -> None:
     """Refuse (422 ``missing-time``) a query without ``time`` of an animated collider ``where``
-    (a static collider answers with or without one)."""
+    (a static collider answers with or without one), and a skeleton pose that does not fit the
+    collider (``skeleton``: its ``ModelInfo.skeleton``, empty for a model without one;
+    :func:`~.skeleton.require_skeleton_pose`)."""
+    require_skeleton_pose(query.skeleton, query.time, skeleton, where)
     if animated and query.time is None:
         raise QueryError(f"{where} is animated: give the time (seconds) to ask it at",
                          code="missing-time")
@@ -166,11 +176,13 @@ def finish(query: ModelQuery, eps: float, distance: np.ndarray, normal: np.ndarr
 
 
 def answer_model_query(query: ModelQuery, meters_per_unit: float, evaluate: Evaluate,
-                       where: str = "the collider", animated: bool = False) -> QueryResult:
+                       where: str = "the collider", animated: bool = False,
+                       skeleton: dict | None = None) -> QueryResult:
     """The three steps: the fields of ``query`` from a collider (``evaluate``) of
-    ``meters_per_unit`` metres per unit, ``animated`` or not; ``where`` names it in a refusal
-    (:func:`require_time`, :func:`check_finite`)."""
-    require_time(query, animated, where)
+    ``meters_per_unit`` metres per unit, ``animated`` or not, with a ``skeleton`` or not (its
+    ``ModelInfo.skeleton``); ``where`` names it in a refusal (:func:`require_time`,
+    :func:`check_finite`)."""
+    require_time(query, animated, where, skeleton)
     evaluation = prepare(query, meters_per_unit)
     result = finish(query, evaluation.eps, *evaluation.run(evaluate))
     check_finite(result, query.points, where)
@@ -221,15 +233,17 @@ def finish_scene(query: SceneQuery, eps: Sequence[float], answers: Sequence) -> 
 
 
 def answer_scene_query(query: SceneQuery, meters_per_unit: Sequence[float],
-                       evaluate: Sequence[Evaluate], animated: Sequence[bool] | None = None) -> QueryResult:
-    """The fields of a scene query, its colliders' units, evaluations and whether each is
-    animated given in its order (one each: ValueError otherwise)."""
-    colliders = range(len(query.colliders))
-    if animated is not None:
-        for i, is_animated in zip(colliders, animated, strict=True):
-            require_time(query.of_collider(i), is_animated, f"model {query.colliders[i].model!r}")
+                       evaluate: Sequence[Evaluate], animated: Sequence[bool] | None = None,
+                       skeletons: Sequence[dict] | None = None) -> QueryResult:
+    """The fields of a scene query, its colliders' units, evaluations, whether each is animated
+    and each one's skeleton (``ModelInfo.skeleton``, empty for none) given in its order."""
+    animated = list(animated) if animated is not None else [False] * len(query.colliders)
+    skeletons = list(skeletons) if skeletons is not None else [{}] * len(query.colliders)
+    for i, (is_animated, skeleton) in enumerate(zip(animated, skeletons, strict=True)):
+        require_time(query.of_collider(i), is_animated, f"model {query.colliders[i].model!r}",
+                     skeleton)
     evaluations = [prepare(query.of_collider(i), mpu)
-                   for i, mpu in zip(colliders, meters_per_unit, strict=True)]
+                   for i, mpu in zip(range(len(query.colliders)), meters_per_unit, strict=True)]
     return finish_scene(query, [e.eps for e in evaluations],
                         [e.run(f) for e, f in zip(evaluations, evaluate, strict=True)])
 

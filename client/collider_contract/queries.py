@@ -11,6 +11,8 @@ maps the collider frame to the world frame; ``eps`` is in world units, ``None`` 
 collider's default (:func:`~.answers.default_eps`). ``time`` (seconds) says when an animated
 collider is asked (a static one ignores it); ``pose_velocity`` (the pose's time derivative, 4x4,
 1/s and world units/s) says how a moving collider's frame moves, for the ``velocity`` field.
+A skinned collider is asked at a skeleton pose (:mod:`.skeleton`): ``clip`` with ``time``, or
+``joint_transforms`` with optional ``joint_velocities``.
 """
 
 from __future__ import annotations
@@ -25,6 +27,7 @@ import numpy as np
 from . import wire
 from .errors import QueryError
 from .pose import IDENTITY, MAX_COORDINATE_M, Pose, PoseError, as_pose
+from .skeleton import SKELETON_KEYS, SkeletonPose, check_skeleton_pose
 
 #: The fields a query can ask for, in canonical order.
 FIELDS = ("distance", "normal", "contact", "collides", "velocity")
@@ -38,11 +41,11 @@ MAX_POINTS = 200_000_000
 TRANSPORT_KEYS = frozenset({"deadline_ms"})
 #: The keys of a model query's wire body (besides :data:`TRANSPORT_KEYS`), ``points`` required:
 #: the one list the reader, the OpenAPI schema and the refusals' messages follow.
-QUERY_KEYS = ("points", "fields", "pose", "eps", "only_colliding", "time", "pose_velocity")
+QUERY_KEYS = ("points", "fields", "pose", "eps", "only_colliding", "time", "pose_velocity", *SKELETON_KEYS)
 #: The keys of a scene query's wire body (besides :data:`TRANSPORT_KEYS`), the first two required.
 SCENE_KEYS = ("points", "colliders", "fields", "eps", "only_colliding", "time")
 #: The keys of a scene collider given as a map (the wire's only form), ``model`` required.
-COLLIDER_KEYS = ("model", "pose", "time", "pose_velocity")
+COLLIDER_KEYS = ("model", "pose", "time", "pose_velocity", *SKELETON_KEYS)
 #: The largest ``|time|``, seconds (about 32 years): far beyond any animation, and where float64
 #: still resolves a nanosecond.
 MAX_TIME_S = 1e9
@@ -130,24 +133,25 @@ def check_time(time, where: str = "time") -> float | None:
     return value
 
 
-def check_pose_velocity(value, where: str = "pose_velocity") -> np.ndarray | None:
+def check_pose_velocity(value, where: str = "pose_velocity",
+                        code: str = "bad-pose-velocity") -> np.ndarray | None:
     """The time derivative of a pose (4x4: d(s R)/dt in 1/s, dt/dt in world units/s, bottom row
     zero), or None (a pose that does not move). Its entries are bounded by the coordinate
-    range."""
+    range. (A joint's velocity follows the same rule, refused with its own ``code``.)"""
     if value is None:
         return None
     try:
         m = np.array(value, dtype=np.float64)
     except (TypeError, ValueError) as exc:
-        raise QueryError(f"{where} must be a 4x4 matrix of numbers: {exc}", code="bad-pose-velocity") from None
+        raise QueryError(f"{where} must be a 4x4 matrix of numbers: {exc}", code=code) from None
     if m.shape != (4, 4):
-        raise QueryError(f"{where} must be a 4x4 matrix, got shape {m.shape}", code="bad-pose-velocity")
+        raise QueryError(f"{where} must be a 4x4 matrix, got shape {m.shape}", code=code)
     if not (np.isfinite(m).all() and (np.abs(m) <= MAX_COORDINATE_M).all()):
         raise QueryError(f"{where} must hold finite numbers within +-{MAX_COORDINATE_M:g}",
-                         code="bad-pose-velocity")
+                         code=code)
     if m[3].any():
         raise QueryError(f"{where} bottom row must be [0, 0, 0, 0] (a pose's bottom row does not "
-                         f"change), got {m[3].tolist()}", code="bad-pose-velocity")
+                         f"change), got {m[3].tolist()}", code=code)
     return m
 
 
@@ -155,22 +159,28 @@ def check_pose_velocity(value, where: str = "pose_velocity") -> np.ndarray | Non
 class SceneCollider:
     """One collider of a scene query: a model name, its pose (4x4, collider -> world, or None for
     the identity) and, optionally, the time it is asked at (seconds; None: the scene query's
-    own) and its pose's velocity (4x4, see :func:`check_pose_velocity`)."""
+    own) and its pose's velocity (4x4, see :func:`check_pose_velocity`); a skinned model's
+    skeleton pose: ``clip`` or ``joint_transforms`` (J, 4, 4) with ``joint_velocities``
+    (:mod:`.skeleton`)."""
 
     model: str
     pose: Any = None
     time: float | None = None
     pose_velocity: Any = None
+    clip: str | None = None
+    joint_transforms: Any = None
+    joint_velocities: Any = None
 
 
 class Placed(NamedTuple):
-    """A validated scene collider: ``model`` name, ``pose``, ``time`` (seconds or None) and
-    ``pose_velocity`` ((4, 4) or None)."""
+    """A validated scene collider: ``model`` name, ``pose``, ``time`` (seconds or None),
+    ``pose_velocity`` ((4, 4) or None) and ``skeleton`` (a skinned model's pose, or None)."""
 
     model: str
     pose: Pose
     time: float | None = None
     pose_velocity: np.ndarray | None = None
+    skeleton: SkeletonPose | None = None
 
 
 #: What a scene collider must be, for the refusals (from :data:`COLLIDER_KEYS`).
@@ -195,7 +205,9 @@ def check_colliders(items: Sequence, time=None) -> tuple[Placed, ...]:
         item = given
         if isinstance(item, SceneCollider):
             item = {"model": item.model, "pose": item.pose, "time": item.time,
-                    "pose_velocity": item.pose_velocity}
+                    "pose_velocity": item.pose_velocity, "clip": item.clip,
+                    "joint_transforms": item.joint_transforms,
+                    "joint_velocities": item.joint_velocities}
         elif isinstance(item, str):
             item = {"model": item}
         elif isinstance(item, (tuple, list)) and len(item) == 2:
@@ -205,7 +217,9 @@ def check_colliders(items: Sequence, time=None) -> tuple[Placed, ...]:
         own_time = check_time(item.get("time"), f"colliders[{i}].time")
         out.append(Placed(item["model"], check_pose(item.get("pose"), f"colliders[{i}].pose"),
                           own_time if own_time is not None else time,
-                          check_pose_velocity(item.get("pose_velocity"), f"colliders[{i}].pose_velocity")))
+                          check_pose_velocity(item.get("pose_velocity"), f"colliders[{i}].pose_velocity"),
+                          check_skeleton_pose(**{k: item.get(k) for k in SKELETON_KEYS},
+                                              where=f"colliders[{i}].")))
     return tuple(out)
 
 
@@ -225,6 +239,7 @@ class ModelQuery:
     only_colliding : ``normal``, ``contact`` and ``velocity`` only where ``distance < eps``
     time : seconds, when an animated collider is asked (None: a static one)
     pose_velocity : (4, 4) the pose's time derivative, or None (a frame that does not move)
+    skeleton : a skinned collider's skeleton pose (:class:`~.skeleton.SkeletonPose`), or None
     """
 
     points: np.ndarray
@@ -234,15 +249,18 @@ class ModelQuery:
     only_colliding: bool = False
     time: float | None = None
     pose_velocity: np.ndarray | None = None
+    skeleton: SkeletonPose | None = None
 
     @classmethod
     def build(cls, points, fields: Iterable[str] | str = DEFAULT_FIELDS, pose=None, eps=None,
-              only_colliding: bool = False, time=None, pose_velocity=None) -> ModelQuery:
+              only_colliding: bool = False, time=None, pose_velocity=None, clip=None,
+              joint_transforms=None, joint_velocities=None) -> ModelQuery:
         """Validate the Python API's arguments (checked in this order: fields, points, pose,
-        eps, time, pose velocity); raises :class:`~.errors.QueryError`."""
+        eps, time, pose velocity, skeleton pose); raises :class:`~.errors.QueryError`."""
         return cls(fields=check_fields(fields), points=check_points(points), pose=check_pose(pose),
                    eps=check_eps(eps), only_colliding=bool(only_colliding), time=check_time(time),
-                   pose_velocity=check_pose_velocity(pose_velocity))
+                   pose_velocity=check_pose_velocity(pose_velocity),
+                   skeleton=check_skeleton_pose(clip, joint_transforms, joint_velocities))
 
     @property
     def want_gradient(self) -> bool:
@@ -259,6 +277,8 @@ class ModelQuery:
                 body[key] = getattr(self, key)
         if self.only_colliding:
             body["only_colliding"] = True
+        if self.skeleton is not None:
+            body.update(self.skeleton.to_body())
         return body
 
     @classmethod
@@ -271,6 +291,7 @@ class ModelQuery:
                    pose=_wire_pose(body, "pose"), eps=check_eps(_optional(body, "eps")),
                    time=check_time(_optional(body, "time")),
                    pose_velocity=_wire_pose_velocity(body, "pose_velocity"),
+                   skeleton=_wire_skeleton(body),
                    only_colliding=_wire_flag(body, "only_colliding"))
 
 
@@ -310,7 +331,7 @@ class SceneQuery:
         at its time."""
         placed = self.colliders[index]
         return ModelQuery(self.points, self.fields, placed.pose, self.eps, self.only_colliding,
-                          placed.time, placed.pose_velocity)
+                          placed.time, placed.pose_velocity, placed.skeleton)
 
     def to_body(self) -> dict[str, Any]:
         body = ModelQuery(self.points, self.fields, IDENTITY, self.eps, self.only_colliding).to_body()
@@ -324,6 +345,8 @@ class SceneQuery:
                 item["time"] = placed.time
             if placed.pose_velocity is not None:
                 item["pose_velocity"] = placed.pose_velocity.tolist()
+            if placed.skeleton is not None:
+                item.update(placed.skeleton.to_body(nested=True))
             colliders.append(item)
         body["colliders"] = colliders
         return body
@@ -353,7 +376,8 @@ class SceneQuery:
             colliders.append(Placed(
                 item["model"], _wire_pose(item, "pose", f"colliders[{i}].pose"),
                 own_time if own_time is not None else time,
-                _wire_pose_velocity(item, "pose_velocity", f"colliders[{i}].pose_velocity")))
+                _wire_pose_velocity(item, "pose_velocity", f"colliders[{i}].pose_velocity"),
+                _wire_skeleton(item, f"colliders[{i}].")))
         return cls(fields=fields, colliders=tuple(colliders),
                    points=_wire_points(body["points"], max_points),
                    eps=check_eps(_optional(body, "eps")),
@@ -465,6 +489,24 @@ def _wire_pose_velocity(body: dict, key: str, where: str | None = None) -> np.nd
     if matrix.dtype.kind == "b":
         raise QueryError(f"{where}: must hold numbers, got {matrix.dtype}", code="bad-pose-velocity")
     return check_pose_velocity(matrix, where)
+
+
+def _wire_skeleton(body: dict, where: str = "") -> SkeletonPose | None:
+    """The skeleton pose of a wire body (or scene collider map): ``clip`` a string, the joint
+    arrays wire arrays, then :func:`~.skeleton.check_skeleton_pose`."""
+    values = {}
+    for key in SKELETON_KEYS:
+        code = f"bad-{key.replace('_', '-')}"
+        value = _optional(body, key, f"{where}{key}")
+        if value is not None and key != "clip":
+            try:
+                value = wire.decode_array(value, f"{where}{key}")
+            except wire.WireError as exc:
+                raise QueryError(str(exc), code=code) from None
+            if value.dtype.kind == "b":
+                raise QueryError(f"{where}{key}: must hold numbers, got {value.dtype}", code=code)
+        values[key] = value
+    return check_skeleton_pose(**values, where=where)
 
 
 def _wire_flag(body: dict, key: str) -> bool:

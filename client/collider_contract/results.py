@@ -81,6 +81,9 @@ class ModelInfo:
     animation : empty for a static model; an animated one's ``frames``, ``frame_rate_hz``,
         ``duration_s``, ``loop`` and ``max_surface_speed`` (:mod:`.animation`; its queries must
         give a time)
+    skeleton : empty for a model without one; a skinned model's ``joints`` (names), ``parents``
+        (indices, -1 for a root), ``clips`` (each ``name`` and ``duration_s``) and ``loop``
+        (:mod:`.skeleton`; its queries give a clip and a time, or joint transforms)
     """
 
     name: str
@@ -96,6 +99,7 @@ class ModelInfo:
     settings: dict = field(default_factory=dict)
     device: str = "cpu"
     animation: dict = field(default_factory=dict)
+    skeleton: dict = field(default_factory=dict)
     #: keys a newer server sent that this client does not know (kept, not dropped)
     extra: dict = field(default_factory=dict)
 
@@ -103,6 +107,12 @@ class ModelInfo:
     def animated(self) -> bool:
         """Whether the model changes in time: its queries must give a time."""
         return bool(self.animation)
+
+    @property
+    def skinned(self) -> bool:
+        """Whether the model has a skeleton: its queries give a clip and a time, or joint
+        transforms."""
+        return bool(self.skeleton)
 
     @property
     def timeline(self) -> Timeline | None:

@@ -31,7 +31,7 @@ USER_ERRORS = (ValueError, FileNotFoundError, IsADirectoryError, PermissionError
 #: extra is not installed says what to install instead of showing an ImportError traceback.
 EXTRA_OF_MODULE = {"torch": "serve", "scipy": "serve", "igl": "serve", "safetensors": "serve",
                    "fastapi": "serve", "uvicorn": "serve", "trimesh": "train", "skimage": "train",
-                   "tqdm": "train", "matplotlib": "sim"}
+                   "tqdm": "train", "pygltflib": "train", "pxr": "train", "matplotlib": "sim"}
 
 
 #: Commands that run long enough to be stopped: SIGTERM ends them like Ctrl-C (what they made is

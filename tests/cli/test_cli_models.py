@@ -195,3 +195,38 @@ def test_bake_says_what_the_mesh_is_its_sign_errors_and_what_to_run_next(capsys,
     code, out, err = run(capsys, "eval", "ball", "--mesh", sphere_obj, "--units", "m", "--models", models,
                          "--points", "1000", "--no-reconstruction", "--no-save", "--quiet")
     assert code == 0, err  # the model's own unit is accepted
+
+
+def test_query_a_skinned_model_in_a_clip_or_at_joint_transforms(capsys, tmp_path, models):
+    from collider_server.engine.modelfile import save_collider
+    from collider_server.engine.skinning import pose_at
+    from collider_server.making.skinned import skinned_arm, skinned_collider
+
+    skin = skinned_arm()
+    collider = skinned_collider(skin, "arm")
+    save_collider(collider, tmp_path / "arm")
+    transforms, rates = pose_at(skin, "reach", 1.3)
+    (tmp_path / "joints.json").write_text(json.dumps(transforms.tolist()))
+    np.save(tmp_path / "rates.npy", rates)
+    point = [0.45, 0.0, 0.1]
+    expected = collider.query([point], ["distance", "velocity"], time=1.3, clip="reach")
+    for extra in (["--time", "1.3", "--clip", "reach"],
+                  ["--joint-transforms", tmp_path / "joints.json", "--joint-velocities",
+                   tmp_path / "rates.npy"]):
+        code, out, _ = run(capsys, "query", "arm", *point, "--fields", "distance,velocity",
+                           "--models", tmp_path, *extra)
+        assert code == 0
+        distance = float(re.search(r"distance=(\S+) m", out).group(1))
+        assert distance == pytest.approx(float(expected.distance[0]), abs=1e-7)
+        velocity = json.loads(re.search(r"velocity=(\[[^\]]*\])", out).group(1))
+        np.testing.assert_allclose(velocity, expected.velocity[0], atol=1e-6)
+    assert np.abs(expected.velocity).max() > 0.01
+    for argv, message in (
+            (["query", "arm", *point, "--time", "0.1", "--clip", "run", "--models", tmp_path],
+             "model 'arm' has no clip 'run'; its clips are ['wave', 'reach']"),
+            (["query", "arm", *point, "--models", tmp_path], "model 'arm' is skinned: give the time"),
+            (["query", "arm", *point, "--joint-transforms", tmp_path / "none.json", "--models",
+              tmp_path], "cannot read joint transforms"),
+            (["query", "sphere", "0", "0", "0", "--time", "0.1", "--clip", "wave", "--models", models],
+             "model 'sphere' has no skeleton: clip is for skinned models only")):
+        assert_user_error(capsys, argv, message)

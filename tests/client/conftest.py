@@ -44,16 +44,26 @@ def _bake_pulse(root: Path) -> None:
                                          show_progress=False), root / "pulse-voxel.safetensors")
 
 
+def _save_arm(root: Path) -> None:
+    """The project's generated skinned arm (3 joints, clips "wave" and "reach") as ``arm``
+    (kind ``skinned``, exact)."""
+    from collider_server.engine.modelfile import save_collider
+    from collider_server.making.skinned import skinned_arm, skinned_collider
+
+    save_collider(skinned_collider(skinned_arm(), "arm"), root / "arm.safetensors")
+
+
 @pytest.fixture(scope="session")
 def models_dir(tmp_path_factory) -> Path:
     """A model repository with ``sphere`` (radius 0.1 m at the origin) and ``box``
     (0.2 x 0.1 x 0.05 m at the origin), voxel colliders, and the animated ``pulse`` (exact) and
-    ``pulse-voxel`` (keyframe grids) of the pulsing sphere; metres."""
+    ``pulse-voxel`` (keyframe grids) of the pulsing sphere, and the skinned ``arm``; metres."""
     pytest.importorskip("collider_server", reason="the engine (server extras) is not installed")
     root = tmp_path_factory.mktemp("models")
     _bake("sphere", root)
     _bake("box", root)
     _bake_pulse(root)
+    _save_arm(root)
     return root
 
 

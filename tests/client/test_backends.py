@@ -163,9 +163,10 @@ def test_scene_fields_are_the_nearest_colliders_own(backend, request, points, fi
 def test_list_models_same(embedded, remote):
     a = {m.name: m for m in embedded.list_models()}
     b = {m.name: m for m in remote.list_models()}
-    assert sorted(a) == sorted(b) == ["box", "pulse", "pulse-voxel", "sphere"]
+    assert sorted(a) == sorted(b) == ["arm", "box", "pulse", "pulse-voxel", "sphere"]
+    kinds = {"pulse": "mesh", "arm": "skinned"}
     for name in a:
-        assert a[name].kind == b[name].kind == ("mesh" if name == "pulse" else "voxel")
+        assert a[name].kind == b[name].kind == kinds.get(name, "voxel")
         np.testing.assert_allclose(a[name].domain_min, b[name].domain_min)
         np.testing.assert_allclose(a[name].domain_max, b[name].domain_max)
         assert a[name].bytes == b[name].bytes > 0
@@ -176,6 +177,11 @@ def test_list_models_same(embedded, remote):
                                     "loop": True, "max_surface_speed": a["pulse"].animation["max_surface_speed"]}
     assert b["pulse-voxel"].timeline.frames == 5 and b["pulse-voxel"].timeline.duration_s == 1.0
     assert b["pulse"].source["cache_sha256"] == a["pulse"].source["cache_sha256"]
+    # The skeleton, over the wire as in process: joints, parents, clips, loop.
+    assert a["arm"].skeleton == b["arm"].skeleton == {
+        "joints": ["shoulder", "elbow", "wrist"], "parents": [-1, 0, 1], "loop": True,
+        "clips": [{"name": "wave", "duration_s": 1.0}, {"name": "reach", "duration_s": 2.0}]}
+    assert b["arm"].skinned and not b["pulse"].skinned
 
 
 @pytest.mark.parametrize("backend", ["embedded", "remote"])

@@ -115,3 +115,51 @@ def test_the_example_writes_its_output_under_out_not_into_the_working_folder(tmp
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
     assert np.load(tmp_path / "out" / "newton_cloth_drop.npy").shape == (25, 3)
     assert result.stdout.strip().endswith("wrote out/newton_cloth_drop.npy")
+
+
+def test_a_skinned_collider_follows_newtons_bodies(models_dir):
+    """Newton bodies placed and moving as the skinned arm's joints in clip "wave" at 0.3 s:
+    :func:`articulation_pose` gives back the clip's joint transforms and their exact time
+    derivatives (float32 state: to 1e-6), and a query at them answers as the clip does."""
+    from scipy.spatial.transform import Rotation
+
+    import collider_client as cc
+    from collider_client.adapters.newton import articulation_pose
+    from collider_server.engine.skinning import pose_at
+    from collider_server.making.skinned import skinned_arm
+
+    wp.config.quiet = True
+    transforms, rates = pose_at(skinned_arm(), "wave", 0.3)
+    coms = np.array([[0.1, 0.0, 0.0], [0.08, 0.01, 0.0], [0.03, 0.0, -0.01]])  # body frames
+    builder = newton.ModelBuilder()
+    for com in coms:
+        builder.add_body(com=wp.vec3(*com), mass=1.0)
+    model = builder.finalize(device="cpu")
+    state = model.state()
+    rotation = transforms[:, :3, :3]
+    # Newton's twist: the centre of mass's velocity and the angular velocity, world frame
+    omega_x = rates[:, :3, :3] @ rotation.transpose(0, 2, 1)
+    omega = np.stack([omega_x[:, 2, 1], omega_x[:, 0, 2], omega_x[:, 1, 0]], axis=1)
+    com_velocity = rates[:, :3, 3] + np.cross(omega, np.einsum("jab,jb->ja", rotation, coms))
+    body_q = np.concatenate([transforms[:, :3, 3], Rotation.from_matrix(rotation).as_quat()], axis=1)
+    state.body_q.assign(body_q.astype(np.float32))
+    state.body_qd.assign(np.concatenate([com_velocity, omega], axis=1).astype(np.float32))
+    got, got_rates = articulation_pose(model, state, [0, 1, 2])
+    np.testing.assert_allclose(got, transforms, atol=1e-6)
+    np.testing.assert_allclose(got_rates, rates, atol=2e-6)
+    assert np.abs(rates).max() > 0.5  # the arm moves: not 0 == 0
+    # a collider placed elsewhere in Newton's world: the transforms come back in its frame
+    placed = np.eye(4)
+    placed[:3, 3] = [1.0, 2.0, 0.5]
+    shifted = body_q.copy()
+    shifted[:, :3] += placed[:3, 3]
+    state.body_q.assign(shifted.astype(np.float32))
+    np.testing.assert_allclose(articulation_pose(model, state, [0, 1, 2], placed)[0], transforms,
+                               atol=1e-5)
+    points = np.random.default_rng(2).uniform([-0.1, -0.15, -0.1], [0.6, 0.15, 0.4], (200, 3))
+    with cc.Client(models=models_dir, device="cpu") as client:
+        by_clip = client.query("arm", points, fields=["distance", "velocity"], clip="wave", time=0.3)
+        by_bodies = client.query("arm", points, fields=["distance", "velocity"],
+                                 joint_transforms=got, joint_velocities=got_rates)
+    np.testing.assert_allclose(by_bodies.distance, by_clip.distance, atol=2e-6)
+    np.testing.assert_allclose(by_bodies.velocity, by_clip.velocity, atol=2e-5)

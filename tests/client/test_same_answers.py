@@ -44,6 +44,25 @@ def with_row(values, row, value, column=0, n=5):
 RATE = np.array([[0.0, -2.0, 0.0, 0.5], [2.0, 0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 0.0]])
 
 
+def _arm_pose():
+    """The skinned arm's pose in clip "wave" at 0.3 s, each joint turned a little more: (3, 4, 4)
+    joint transforms and their velocities, collider frame."""
+    from collider_server.engine.skinning import pose_at
+    from collider_server.making.skinned import skinned_arm
+
+    transforms, rates = pose_at(skinned_arm(), "wave", 0.3)
+    turn = pose(angle_deg=7.0)
+    transforms[1:] = turn @ transforms[1:]
+    sheared = transforms.copy()
+    sheared[2, 0, 1] += 0.4
+    return transforms, rates, sheared
+
+
+ARM_POSE, ARM_RATES, ARM_SHEARED = _arm_pose()
+#: Points around the skinned arm (0.5 m along +x, radius 0.04 m).
+ARM_POINTS = rng.uniform([-0.1, -0.15, -0.1], [0.6, 0.15, 0.4], size=(300, 3))
+
+
 def nan_pose():
     m = np.eye(4)
     m[1, 3] = np.nan
@@ -98,6 +117,19 @@ CASES = {
     "scene, animated colliders at the scene's time": ("scene", (NEAR,), {
         "colliders": [{"model": "pulse"}, {"model": "pulse-voxel", "time": 0.1}],
         "fields": ALL + ["velocity"], "time": 0.45}),
+    # a skinned collider: in a clip at a time, at joint transforms with their velocities
+    "skinned, a clip at a time": ("query", (ARM_POINTS,), {"model": "arm", "fields": ALL + ["velocity"],
+                                                           "time": 0.37, "clip": "wave"}),
+    "skinned, the first clip, looping": ("query", (ARM_POINTS,), {"model": "arm", "fields": ALL,
+                                                                  "time": 7.61}),
+    "skinned, joint transforms and velocities": ("query", (ARM_POINTS,), {
+        "model": "arm", "fields": ALL + ["velocity"], "joint_transforms": ARM_POSE,
+        "joint_velocities": ARM_RATES, "pose": pose((0.02, 0, 0.01), 1.5, 20), "pose_velocity": RATE}),
+    "scene, a skinned collider at a pose and a static one": ("scene", (ARM_POINTS,), {
+        "colliders": [cc.SceneCollider("arm", pose((0.01, 0, 0)), joint_transforms=ARM_POSE,
+                                       joint_velocities=ARM_RATES),
+                      {"model": "arm", "clip": "reach", "time": 1.2}, "box"],
+        "fields": ALL + ["velocity"]}),
     "scene, two colliders": ("scene", (NEAR,), {"colliders": ["sphere", ("box", pose((0.05, 0, 0)))],
                                                 "fields": ALL}),
     "scene, a tie (the same collider twice)": ("scene", (NEAR,), {"colliders": ["sphere", "sphere"],
@@ -156,6 +188,15 @@ CASES = {
     "animated, time Inf": ("query", (NEAR[:2],), {"model": "pulse", "time": float("inf")}),
     "scene, an animated collider without a time": ("scene", (NEAR[:2],), {"colliders": ["sphere", "pulse"]}),
     "no field": ("query", (NEAR[:2],), {"fields": []}),
+    "skinned without a time": ("query", (NEAR[:2],), {"model": "arm"}),
+    "skinned, an unknown clip": ("query", (NEAR[:2],), {"model": "arm", "time": 0.1, "clip": "run"}),
+    "skinned, too few joints": ("query", (NEAR[:2],), {"model": "arm", "joint_transforms": ARM_POSE[:2]}),
+    "skinned, a sheared joint": ("query", (NEAR[:2],), {"model": "arm", "joint_transforms": ARM_SHEARED}),
+    "skinned, joint velocities alone": ("query", (NEAR[:2],), {"model": "arm",
+                                                               "joint_velocities": ARM_RATES}),
+    "a clip for a model without a skeleton": ("query", (NEAR[:2],), {"time": 0.1, "clip": "wave"}),
+    "scene, joint transforms for a model without a skeleton": ("scene", (NEAR[:2],), {
+        "colliders": [{"model": "sphere", "joint_transforms": ARM_POSE}]}),
     # refusals: models, scenes
     "unknown model": ("query", (NEAR[:2],), {"model": "teapot"}),
     "scene without colliders": ("scene", (NEAR[:2],), {"colliders": []}),
@@ -204,9 +245,10 @@ def raw_body(method: str, args, kwargs) -> bytes | None:
         if points.dtype.kind in "iu":
             points = points.astype(np.float64)  # as the SDK sends them
         body = {"points": points, **{k: v for k, v in kwargs.items()
-                                     if k in ("eps", "only_colliding", "time")}}
-        if "pose_velocity" in kwargs:
-            body["pose_velocity"] = np.asarray(kwargs["pose_velocity"], dtype=np.float64)
+                                     if k in ("eps", "only_colliding", "time", "clip")}}
+        for key in ("pose_velocity", "joint_transforms", "joint_velocities"):
+            if key in kwargs:
+                body[key] = np.asarray(kwargs[key], dtype=np.float64)
         fields = kwargs.get("fields", ["distance"])
         body["fields"] = [fields] if isinstance(fields, str) else list(fields)
         if "pose" in kwargs:
@@ -217,7 +259,9 @@ def raw_body(method: str, args, kwargs) -> bytes | None:
                 colliders = [{"model": c} if isinstance(c, str)
                              else {"model": c[0], "pose": np.asarray(c[1], float).tolist()}
                              if isinstance(c, tuple)
-                             else {k: np.asarray(v).tolist() if k in ("pose", "pose_velocity") else v
+                             else {k: np.asarray(v).tolist()
+                                   if k in ("pose", "pose_velocity", "joint_transforms",
+                                            "joint_velocities") else v
                                    for k, v in c.items()}
                              if isinstance(c, dict) else c for c in colliders]
             body["colliders"] = colliders
@@ -268,7 +312,7 @@ def test_a_file_path_given_as_a_model_name_is_refused_alike(backends, server_url
     error = outcome(backends[0], method, (NEAR[:2],), kwargs)
     assert error[:3] == ("error", cc.ModelNotFoundError, "unknown-model"), error
     assert error[3] == (f"404 Not found: no model named {path!r} "
-                        "(models: box, pulse, pulse-voxel, sphere)")
+                        "(models: arm, box, pulse, pulse-voxel, sphere)")
 
 
 def test_an_embedded_client_of_an_empty_folder_refuses_a_file_path(tmp_path, models_dir):
@@ -283,7 +327,7 @@ def test_an_embedded_client_of_an_empty_folder_refuses_a_file_path(tmp_path, mod
 
 def test_embedded_and_remote_list_the_same_models(backends):
     embedded, remote = ([m.to_dict() for m in client.list_models()] for client in backends)
-    assert [m["name"] for m in embedded] == ["box", "pulse", "pulse-voxel", "sphere"]
+    assert [m["name"] for m in embedded] == ["arm", "box", "pulse", "pulse-voxel", "sphere"]
     assert json.dumps(embedded, sort_keys=True) == json.dumps(remote, sort_keys=True)
 
 
@@ -315,7 +359,8 @@ def test_the_cases_cover_answers_and_every_refusal(backends):
             codes.add(result[2])
     assert kinds == {"answer", "error"}
     assert codes == {"bad-points", "bad-pose", "eps-out-of-range", "bad-eps", "unknown-field",
-                     "unknown-model", "bad-colliders", "bad-time", "bad-pose-velocity", "missing-time"}
+                     "unknown-model", "bad-colliders", "bad-time", "bad-pose-velocity", "missing-time",
+                     "unknown-clip", "bad-joint-transforms", "bad-joint-velocities", "not-skinned"}
 
 
 @pytest.mark.parametrize("backend", [0, 1], ids=["embedded", "remote"])
@@ -337,3 +382,23 @@ def test_the_velocity_of_a_moving_frame_is_its_rigid_motion_at_the_contact(backe
     assert only.collides.any() and not only.collides.all()
     np.testing.assert_array_equal(only.velocity[~only.collides], 0.0)
     np.testing.assert_allclose(only.velocity[only.collides], result.velocity[only.collides], atol=1e-7)
+
+
+def test_a_skinned_pose_travels_in_json_as_in_msgpack_and_the_model_says_its_skeleton(backends, server_url):
+    """The service's JSON body (nested lists) and the SDK's msgpack body (array maps) of the same
+    skeleton pose get the same answer; ``GET /v1/models/arm`` names the joints and clips."""
+    embedded, _ = backends
+    expected = embedded.query("arm", ARM_POINTS, fields=["distance", "velocity"],
+                              joint_transforms=ARM_POSE, joint_velocities=ARM_RATES)
+    body = {"points": ARM_POINTS.tolist(), "fields": ["distance", "velocity"],
+            "joint_transforms": ARM_POSE.tolist(), "joint_velocities": ARM_RATES.tolist()}
+    response = httpx.post(f"{server_url}/v1/models/arm/query", json=body)
+    assert response.status_code == 200, response.text
+    answer = response.json()
+    np.testing.assert_array_equal(np.float32(answer["distance"]), expected.distance)
+    np.testing.assert_array_equal(np.float32(answer["velocity"]), expected.velocity)
+    assert np.abs(expected.velocity).max() > 0.01
+    model = httpx.get(f"{server_url}/v1/models/arm").json()
+    assert model["kind"] == "skinned"
+    assert model["skeleton"]["joints"] == ["shoulder", "elbow", "wrist"]
+    assert [c["name"] for c in model["skeleton"]["clips"]] == ["wave", "reach"]

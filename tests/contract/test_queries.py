@@ -71,7 +71,8 @@ def test_the_fields_and_limits():
     assert FIELDS == ("distance", "normal", "contact", "collides", "velocity")
     assert GRADIENT_FIELDS == {"normal", "contact", "velocity"} and DEFAULT_FIELDS == ("distance",)
     assert MAX_POINTS == 200_000_000 and TRANSPORT_KEYS == {"deadline_ms"} and MAX_TIME_S == 1e9
-    assert COLLIDER_KEYS == ("model", "pose", "time", "pose_velocity")
+    assert COLLIDER_KEYS == ("model", "pose", "time", "pose_velocity", "clip", "joint_transforms",
+                             "joint_velocities")
 
 
 # -- fields ------------------------------------------------------------------------------------
@@ -271,7 +272,8 @@ def test_every_form_of_collider_gives_a_name_and_a_validated_pose():
     assert check_colliders(("a",)) == (Placed("a", IDENTITY, None, None),)
 
 
-COLLIDER_FORM = '{"model": name} with optional "pose", "time", "pose_velocity"'
+COLLIDER_FORM = ('{"model": name} with optional "pose", "time", "pose_velocity", "clip", "joint_transforms", '
+                 '"joint_velocities"')
 LIST_FORM = f"colliders must be a non-empty list of {COLLIDER_FORM}, got "
 
 
@@ -416,12 +418,14 @@ def test_from_body_reads_eps_pose_and_mode():
 
 @pytest.mark.parametrize("body, message, status, code", [
     ({"points": POINTS, "pose_": 1, "Eps": 2},
-     ("unknown key(s) ['Eps', 'pose_']; valid keys are ['deadline_ms', 'eps', 'fields', "
-     "'only_colliding', 'points', 'pose', 'pose_velocity', 'time']"), 422,
+     ("unknown key(s) ['Eps', 'pose_']; valid keys are ['clip', 'deadline_ms', 'eps', 'fields', "
+     "'joint_transforms', 'joint_velocities', 'only_colliding', 'points', 'pose', 'pose_velocity', "
+     "'time']"), 422,
      "unknown-key"),
     ({"fields": ["distance"]}, "the body has no 'points'", 422, "missing-points"),
-    ({"colliders": []}, ("unknown key(s) ['colliders']; valid keys are ['deadline_ms', 'eps', 'fields', "
-                        "'only_colliding', 'points', 'pose', 'pose_velocity', 'time']"), 422,
+    ({"colliders": []}, ("unknown key(s) ['colliders']; valid keys are ['clip', 'deadline_ms', 'eps', "
+                        "'fields', 'joint_transforms', 'joint_velocities', 'only_colliding', 'points', "
+                        "'pose', 'pose_velocity', 'time']"), 422,
      "unknown-key"),
     # null is not absent
     ({"points": POINTS, "fields": None}, "fields must not be null (leave it out for its default)",

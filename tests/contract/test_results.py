@@ -130,7 +130,8 @@ def test_model_info_to_dict_is_json_ready_and_from_dict_reads_it_back():
                     "domain_max": [1.0, 2.0, 3.0], "bytes": 1234, "approximate": True,
                     "accuracy": {"mae_m": 1e-4}, "source": {"mesh": "bunny.obj"},
                     "settings": {"grid": 64}, "device": "cuda",
-                    "animation": {"frames": 24, "frame_rate_hz": 24.0, "duration_s": 1.0, "loop": True}}
+                    "animation": {"frames": 24, "frame_rate_hz": 24.0, "duration_s": 1.0, "loop": True},
+                    "skeleton": {}}
     # integer bounds are written as floats
     assert [type(v) for v in data["domain_min"] + data["domain_max"]] == [float] * 6
     back = ModelInfo.from_dict(wire.loads(wire.dumps(data, wire.JSON), wire.JSON))

@@ -66,6 +66,13 @@ def adapt(case) -> None:
     if not isinstance(body, dict):
         return
     positive = case.meta is not None and case.meta.generation.mode.is_positive
+    # The fuzzed models have no skeleton: a skeleton pose is valid only for a skinned model, which
+    # JSON Schema cannot say (such a pose is 422 not-skinned, tested in test_queries).
+    for target in [body, *(c for c in body.get("colliders", []) if isinstance(c, dict))] \
+            if isinstance(body.get("colliders", []), list) else [body]:
+        for key in ("clip", "joint_transforms", "joint_velocities"):
+            if positive:
+                target.pop(key, None)
     if positive and "pose" in body:
         body["pose"] = rigid(body["pose"])
     if positive and "pose_velocity" in body:
@@ -190,4 +197,4 @@ def test_the_model_info_schema_is_what_the_server_answers(fuzzed_server):
     assert list(info["properties"]) == fields
     assert list(info["properties"]["animation"]["properties"]) == list(Timeline(2, 1.0, False).to_dict())
     answer = httpx.get(f"{fuzzed_server.url}/v1/models/sphere", headers=AUTH).json()
-    assert list(answer) == fields and answer["animation"] == {}
+    assert list(answer) == fields and answer["animation"] == {} and answer["skeleton"] == {}

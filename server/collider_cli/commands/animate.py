@@ -1,5 +1,7 @@
 """``collider animate NAME``: write one of the project's generated animations (OBJ + PC2), and
-optionally bake it into animated colliders (:mod:`collider_server.making.animations`)."""
+optionally bake it into animated colliders (:mod:`collider_server.making.animations`); the walker
+also as a skinned glTF character (:mod:`collider_server.making.walker`), baked as kind
+``skinned``."""
 
 from __future__ import annotations
 
@@ -17,7 +19,8 @@ def register(subparsers) -> None:
         "animate", help="write a generated animation (OBJ + PC2) and bake it",
         description=f"Write NAME.obj and NAME.pc2 (metres, z up) into --output. {listed}. "
                     "With --bake, also bake them into the model repository (kind mesh: model "
-                    "NAME; kind voxel: model NAME-voxel).")
+                    "NAME; kind voxel: model NAME-voxel; kind skinned, the walker only: model "
+                    "NAME-skinned from NAME.glb, z up like the others).")
     p.add_argument("name", choices=sorted(GENERATED), help="which animation")
     p.add_argument("--output", type=Path, default=Path("out/animations"),
                    help="folder of NAME.obj and NAME.pc2 (default out/animations)")
@@ -27,7 +30,7 @@ def register(subparsers) -> None:
                    help="frames over the same motion and duration (default: as above; e.g. "
                         "twisting-bunny --frames 61 is 61 frames at 30 fps over its 2 s)")
     p.add_argument("--bake", default=None, metavar="KINDS",
-                   help="also bake: mesh, voxel or mesh,voxel")
+                   help="also bake: some of mesh, voxel (and skinned for the walker), e.g. mesh,voxel")
     p.add_argument("--resolution", type=int, default=128, help="voxel samples per axis (default 128)")
     p.add_argument("--keyframes", type=int, default=None,
                    help="voxel grids over the animation (default: one per frame)")
@@ -43,6 +46,10 @@ def make_animation(name: str, mesh: Path, frames: int | None = None):
     from collider_server.making import animations
     from collider_server.making.animation_files import read_obj
 
+    if name == "walker":
+        from collider_server.making.walker import make_walker, walk_animation
+
+        return walk_animation(make_walker(), frames)
     function = {"arm": animations.bending_arm, "pulsing-sphere": animations.pulsing_sphere,
                 "twisting-bunny": animations.twisting_bunny}[name]
     timing = {}
@@ -66,9 +73,10 @@ def run_animate(args) -> int:
     if args.frames is not None and args.frames < 2:
         raise ValueError(f"--frames must be an integer >= 2, got {args.frames}")
     kinds = [] if args.bake is None else [k.strip() for k in args.bake.split(",") if k.strip()]
-    unknown = sorted(set(kinds) - set(ANIMATED_KINDS))
+    bakeable = list(ANIMATED_KINDS) + (["skinned"] if args.name == "walker" else [])
+    unknown = sorted(set(kinds) - set(bakeable))
     if unknown or (args.bake is not None and not kinds):
-        raise ValueError(f"--bake takes some of {list(ANIMATED_KINDS)}, got {args.bake!r}")
+        raise ValueError(f"--bake takes some of {bakeable} for {args.name}, got {args.bake!r}")
     repository = ModelRepository(args.models)
     if kinds:
         repository.check_writable()
@@ -77,6 +85,11 @@ def run_animate(args) -> int:
     obj, pc2 = write_animation(animation, args.output, args.name)
     print(f"wrote {obj} and {pc2}: {timeline.frames} frames at {timeline.frame_rate_hz:g} fps "
           f"({timeline.duration_s:g} s, looping), {animation.vertex_count:,} vertices, metres")
+    if args.name == "walker":
+        character = write_walker_character(args.output)
+    if "skinned" in kinds:
+        bake_walker_skinned(character, repository, f"{args.name}-skinned")
+        kinds.remove("skinned")
     # Baked from the files just written, as `collider bake` would: the model records them.
     written = load_animation(obj, pc2, timeline.frame_rate_hz, timeline.loop)
     for kind in kinds:
@@ -92,3 +105,33 @@ def run_animate(args) -> int:
                                                        if args.keyframes else "")
                  if kind == "voxel" else ""))
     return 0
+
+
+def write_walker_character(folder: Path) -> Path:
+    """``folder/walker.glb``: the walker as a skinned glTF character (metres, Y up), its body cut
+    into a left and a right primitive (a seam down the middle the reader welds)."""
+    import numpy as np
+
+    from collider_server.making.gltf_writer import write_gltf
+    from collider_server.making.walker import make_walker
+
+    skin = make_walker().skin()
+    centres = skin.vertices[skin.faces].mean(axis=1)[:, 0]
+    path = write_gltf(skin, Path(folder) / "walker.glb", name="walker",
+                      parts=[np.flatnonzero(centres >= 0), np.flatnonzero(centres < 0)])
+    clips = ", ".join(f"{c.name} ({c.duration_s:g} s)" for c in skin.clips)
+    print(f"wrote {path} ({path.stat().st_size:,} bytes): the skinned character, "
+          f"{skin.skeleton.joint_count} joints, clips {clips}, metres, Y up")
+    return path
+
+
+def bake_walker_skinned(character: Path, repository, name: str) -> None:
+    """The ``skinned`` model ``name`` of ``character``, z up like the walk's OBJ + PC2."""
+    from collider_server.engine.modelfile import save_collider
+    from collider_server.making.characters import skinned_from_file
+    from collider_server.making.placement import MeshPlacement
+
+    collider, _, _ = skinned_from_file(character, name, MeshPlacement(z_up=True), loop=True)
+    path = save_collider(collider, repository.path(name))
+    print(f"wrote {path} ({path.stat().st_size:,} bytes, kind skinned); the same as: collider bake "
+          f"{character} --kind skinned --z-up --loop --name {name}")

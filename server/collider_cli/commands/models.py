@@ -27,12 +27,18 @@ from .options import (
 
 def register(subparsers) -> None:
     bake = subparsers.add_parser(
-        "bake", help="make a voxel, mesh or kdtree collider from a mesh (or an animated one)",
+        "bake", help="make a voxel, mesh or kdtree collider from a mesh (or an animated one), "
+                     "or a skinned one from a character",
         description="Make a collider from MESH. With --animation, an animated collider of MESH's "
                     "frames: kind mesh (exact at any time) or voxel (one grid per keyframe); "
-                    "between frames the surface is the linear interpolation of the vertices.")
-    bake.add_argument("mesh", help="mesh file (OBJ, PLY, STL, OFF, GLB; an OBJ with --animation)")
-    bake.add_argument("--kind", choices=["voxel", "mesh", "kdtree"], default="voxel")
+                    "between frames the surface is the linear interpolation of the vertices. "
+                    "With --kind skinned, MESH is a character (glTF 2.0 .gltf/.glb, or USD with "
+                    "UsdSkel): its skin, skeleton and clips, answered exactly at any clip time or "
+                    "joint pose (--loop: a clip's time wraps beyond its ends, else clamps).")
+    bake.add_argument("mesh", help="mesh file (OBJ, PLY, STL, OFF, GLB; an OBJ or a USD stage "
+                                   "with --animation; a .gltf/.glb/.usd character with --kind "
+                                   "skinned)")
+    bake.add_argument("--kind", choices=["voxel", "mesh", "kdtree", "skinned"], default="voxel")
     bake.add_argument("--name", required=True, help="model name (file NAME.safetensors)")
     bake.add_argument("--resolution", type=int, default=None,
                       help="voxel samples per axis (8..1024; default 256, 128 with --animation)")
@@ -57,6 +63,14 @@ def register(subparsers) -> None:
     query.add_argument("--time", type=float, default=None,
                        help="seconds: when an animated model is asked (required for one)")
     query.add_argument("--pose", type=Path, default=None, help=".npy or .json 4x4 pose, collider to world")
+    query.add_argument("--clip", default=None,
+                       help="a skinned model's clip, asked at --time (default: its first clip)")
+    query.add_argument("--joint-transforms", type=Path, default=None,
+                       help="a skinned model's pose instead of a clip: .npy or .json (J, 4, 4), "
+                            "the joints' world transforms in the collider frame")
+    query.add_argument("--joint-velocities", type=Path, default=None,
+                       help=".npy or .json (J, 4, 4): the joint transforms' time derivatives, for "
+                            "the velocity field (default: a still skeleton)")
     query.add_argument("--only-colliding", action="store_true",
                        help="normal and contact only for colliding points (others: normal 0, "
                             "contact = the point)")
@@ -80,6 +94,8 @@ def run_bake(args) -> int:
 
     check_name(args.name)
     budget = budget_from_args(args)
+    if args.kind == "skinned" and budget is None:
+        return run_bake_skinned(args)
     check_animation_arguments(args)
     if budget is not None:  # an error budget: bake picks the kind (commands.budget)
         if args.animation is not None:
@@ -172,6 +188,57 @@ def run_bake_animation(args) -> int:
     return 0
 
 
+def run_bake_skinned(args) -> int:
+    """``collider bake CHARACTER --kind skinned``: the exact skinned collider of a character."""
+    from collider_server.engine.modelfile import save_collider
+    from collider_server.engine.repository import ModelRepository
+    from collider_server.making.characters import skinned_from_file
+    from collider_server.making.mesh_check import MeshCheck
+
+    if args.animation is not None or args.fps is not None or args.keyframes is not None:
+        raise ValueError("--animation, --fps and --keyframes are for vertex caches; a skinned "
+                         "character brings its own clips")
+    if args.resolution is not None or args.cache is not None:
+        raise ValueError("--resolution and --cache are voxel and budget settings (kind skinned is exact)")
+    placement = placement_from_args(args)
+    repository = ModelRepository(args.models)
+    repository.check_writable()  # before the bake, not after
+    collider, read, _ = skinned_from_file(args.mesh, args.name, placement, loop=args.loop,
+                                          padding=args.padding)
+    for note in read.notes:
+        print(f"{args.mesh}: {note}")
+    for line in MeshCheck.from_dict(collider.info.source["check"]).lines():
+        print(line)
+    path = save_collider(collider, repository.path(args.name))
+    skeleton = collider.info.skeleton
+    print(f"wrote {path} ({path.stat().st_size:,} bytes, kind skinned: "
+          f"{len(skeleton['joints'])} joints, {describe_clips(skeleton)})")
+    return 0
+
+
+def describe_clips(skeleton: dict, channels: list | None = None) -> str:
+    """``2 clips (walk 1 s, wave 2 s), which loop``; with ``channels`` (the model's
+    ``settings["channels"]`` layout) each clip's channel count too."""
+    clips = skeleton.get("clips", [])
+    if not clips:
+        return "no clips (asked by joint transforms only)"
+    counts = [sum(1 for c in channels or [] if c[0] == i) for i in range(len(clips))]
+    listed = ", ".join(f"{c['name']} {c['duration_s']:g} s"
+                       + (f" ({counts[i]} channels)" if channels is not None else "")
+                       for i, c in enumerate(clips))
+    ends = "loop (the time wraps around)" if skeleton.get("loop") else "clamp (hold their ends)"
+    return f"{len(clips)} clip(s): {listed}; they {ends}"
+
+
+def skeleton_lines(skeleton: dict) -> list[str]:
+    """The joints as an indented tree, one line each (``pelvis``, ``  spine``, ...)."""
+    names, parents = skeleton.get("joints", []), skeleton.get("parents", [])
+    depth = []
+    for parent in parents:
+        depth.append(0 if parent < 0 else depth[parent] + 1)
+    return [f"{'  ' * d}{name}" for name, d in zip(names, depth, strict=True)]
+
+
 def describe_animation(animation: dict) -> str:
     """One line: frames, rate, duration and what happens beyond the ends."""
     ends = "loops (the time wraps around)" if animation["loop"] else "clamps (holds the end frames)"
@@ -192,7 +259,9 @@ def load_points(args) -> np.ndarray:
     return np.asarray(args.coords, dtype=np.float64).reshape(-1, 3)
 
 
-def load_pose(path: Path | None):
+def load_pose(path: Path | None, what: str = "pose"):
+    """The array in ``path`` (.json nested lists, else .npy), or None; a ValueError naming the
+    file and ``what`` it should hold. (The query validates its shape and values.)"""
     if path is None:
         return None
     try:
@@ -200,7 +269,7 @@ def load_pose(path: Path | None):
             return np.asarray(json.loads(path.read_text()), dtype=np.float64)
         return np.load(path, allow_pickle=False)
     except (OSError, ValueError) as exc:
-        raise ValueError(f"{path}: cannot read pose ({exc})") from None
+        raise ValueError(f"{path}: cannot read {what} ({exc})") from None
 
 
 def run_query(args) -> int:
@@ -210,7 +279,9 @@ def run_query(args) -> int:
     points = load_points(args)
     collider = ModelRepository(args.models).load(args.model, args.device)
     result = collider.query(points, fields, pose=load_pose(args.pose), eps=args.eps,
-                            only_colliding=args.only_colliding, time=args.time)
+                            only_colliding=args.only_colliding, time=args.time, clip=args.clip,
+                            joint_transforms=load_pose(args.joint_transforms, "joint transforms"),
+                            joint_velocities=load_pose(args.joint_velocities, "joint velocities"))
     values = result.fields()
     if args.output is not None:
         # np.savez appends ".npz" when it is missing; report the file it really writes.
@@ -279,6 +350,11 @@ def run_info(args) -> int:
     if info.animation:
         print(f"  animation   {describe_animation(info.animation)}; surface speed at most "
               f"{info.animation.get('max_surface_speed', 0.0):.4g} {info.units}/s")
+    elif info.skeleton:
+        print(f"  clips       {describe_clips(info.skeleton, info.settings.get('channels'))}")
+        print(f"  skeleton    {len(info.skeleton['joints'])} joints (parents above children):")
+        for line in skeleton_lines(info.skeleton):
+            print(f"                {line}")
     else:
         print("  animation   none (static)")
     source = info.source
@@ -289,8 +365,11 @@ def run_info(args) -> int:
             print(f"  cache       {source['cache']} sha256 {str(source.get('cache_sha256', ''))[:16]} "
                   f"({source.get('frames', '?')} frames at {source.get('frame_rate_hz', '?')} fps)")
     print_source_check(source, info.accuracy)
+    for note in source.get("notes", []):
+        print(f"  read        {note}")
     for key, value in info.settings.items():
-        print(f"  {key:<11} {value}")
+        if key != "channels":  # a skinned model's channel layout: counted per clip above
+            print(f"  {key:<11} {value}")
     if info.accuracy:
         print(f"  accuracy    as `collider eval` measured it ({info.accuracy.get('evaluated', 'when: not recorded')})")
         for line in accuracy_lines(info):
@@ -338,6 +417,9 @@ def eval_hint(info, path, args) -> str:
 
     from .hints import command, models_options
 
+    if info.skeleton:
+        return ("kind skinned is exact: it answers with the distance to the mesh skinned at the "
+                "asked pose, so there is nothing to measure")
     if info.animation:
         return (f"`collider eval {info.name} --mesh OBJ --animation CACHE` measures it at random times "
                 f"against the frames it was made from ({info.source.get('mesh', '?')}.obj and "

@@ -129,7 +129,9 @@ def add_animation_arguments(parser: argparse.ArgumentParser, keyframes_help: str
     animation.add_argument("--animation", default=None, metavar="CACHE",
                            help="MESH's frames: a PC2 vertex cache (FILE.pc2, as `collider simulate` "
                                 "and Blender write), or a quoted pattern of OBJ files with MESH's "
-                                "faces ('frames/*.obj', ordered by the number in their names)")
+                                "faces ('frames/*.obj', ordered by the number in their names); "
+                                "for a USD stage MESH (.usd, .usda, .usdc), MESH itself: its "
+                                "meshes' time-sampled points")
     animation.add_argument("--fps", type=float, default=None,
                            help="frames per second of --animation (required with it)")
     ends = animation.add_mutually_exclusive_group()

@@ -27,7 +27,8 @@ def register(subparsers) -> None:
                     "collider's surface coloured by its error against the exact mesh (mm), the "
                     "mesh as a wireframe, the domain box, a level slider (eps offset surface), a "
                     "probe. An animated model adds a time slider and play (its exact mesh: "
-                    "--mesh OBJ --animation CACHE, the files it was baked from). "
+                    "--mesh OBJ --animation CACHE, the files it was baked from). A skinned model "
+                    "shows its skinned mesh and bones, posed by a clip and a time. "
                     "`collider view --replay out/SCENE`: replay a `collider simulate` "
                     "output (OBJ + PC2). Ctrl-C stops it.")
     view.add_argument("model", nargs="?", help="model name in the repository, or a .safetensors path")
@@ -85,6 +86,8 @@ def run_collider_view(args: argparse.Namespace) -> int:
 
     collider = ModelRepository(args.models).load(args.model, args.device)
     info = collider.info
+    if collider.skinned:
+        return run_skinned_view(args, collider)
     if not collider.animated and (args.animation, args.fps) != (None, None):
         raise ValueError(f"{info.name} is static: --animation and --fps are for animated models")
     if args.animation is not None and args.mesh is None:
@@ -113,6 +116,23 @@ def run_collider_view(args: argparse.Namespace) -> int:
     page = serve_collider_view(collider, mesh, host=args.host, port=args.port,
                                resolution=resolution, up=up, clip_mm=args.clip_mm,
                                show_progress=not args.quiet)
+    wait_until_interrupted(page.server, f"view of {collider.info.name} at {url_of(page.server)}  "
+                                        "(Ctrl-C to stop)")
+    return 0
+
+
+def run_skinned_view(args: argparse.Namespace, collider) -> int:
+    """A skinned model: the character posed by a clip and a time (:mod:`..views.skinned`)."""
+    from ..views.page import url_of, wait_until_interrupted
+    from ..views.skinned import serve_skinned_view
+
+    given = [f"--{name.replace('_', '-')}" for name in ("mesh", "animation", "fps", "resolution", "clip_mm")
+             if getattr(args, name) is not None]
+    if given:
+        raise ValueError(f"{collider.info.name} is skinned: its surface is the skinned mesh itself; "
+                         f"{', '.join(given)} {'is' if len(given) == 1 else 'are'} for the other kinds")
+    stored = np.asarray(collider.info.source.get("transform", np.eye(4)), dtype=np.float64)
+    page = serve_skinned_view(collider, host=args.host, port=args.port, up=args.up or view_up(stored))
     wait_until_interrupted(page.server, f"view of {collider.info.name} at {url_of(page.server)}  "
                                         "(Ctrl-C to stop)")
     return 0

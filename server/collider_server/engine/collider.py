@@ -35,7 +35,7 @@ class ColliderInfo:
     """What a collider is; stored as JSON in its model file.
 
     name : model name (the file stem in a model repository)
-    kind : "neural", "voxel", "mesh" or "kdtree"
+    kind : "neural", "voxel", "mesh", "kdtree" or "skinned"
     units : length unit of the collider frame, e.g. "m"
     meters_per_unit : metres in one unit (1.0 for metres); sets the default eps of 1 mm
     domain_min, domain_max : (3,) corners of the box, collider frame, where the model is defined
@@ -48,6 +48,8 @@ class ColliderInfo:
         ``duration_s``, ``loop`` (True: time wraps around; False: it is clamped to the ends) and
         ``max_surface_speed`` (the fastest any point of the surface moves, collider units per
         second; 0 when unknown)
+    skeleton : empty unless skinned; a skinned collider's ``joints``, ``parents``, ``clips``
+        (``name``, ``duration_s``) and ``loop`` (:mod:`collider_contract.skeleton`)
     """
 
     name: str
@@ -61,6 +63,7 @@ class ColliderInfo:
     accuracy: dict = field(default_factory=dict)
     approximate: bool = False
     animation: dict = field(default_factory=dict)
+    skeleton: dict = field(default_factory=dict)
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
@@ -137,7 +140,8 @@ class Collider(abc.ABC):
         """:meth:`evaluate` at ``time`` seconds, with the surface's velocity: ``(distance,
         gradient or None, velocity (m, 3) collider units per second, or None: still)``. A static
         kind ignores ``time``; an animated one overrides this (``info.animation`` says how it
-        runs)."""
+        runs). A skinned kind takes a fourth argument, the query's skeleton pose
+        (:class:`~collider_contract.SkeletonPose`), passed only when a query gives one."""
         distance, gradient = self.evaluate(local, want_gradient)
         return distance, gradient, None
 
@@ -159,6 +163,12 @@ class Collider(abc.ABC):
         """Whether the collider changes in time: its queries must give a time."""
         return bool(self.info.animation)
 
+    @property
+    def skinned(self) -> bool:
+        """Whether the collider has a skeleton: its queries give a pose of it (a clip and a
+        time, or joint transforms)."""
+        return bool(self.info.skeleton)
+
     def nbytes(self) -> int:
         """Memory of the collider's arrays in bytes."""
         return sum(int(a.nbytes) for a in self.tensors().values())
@@ -168,7 +178,8 @@ class Collider(abc.ABC):
     def query(self, points, fields: Iterable[str] | str = ("distance",),
               pose: Pose | np.ndarray | None = None, eps: float | None = None,
               only_colliding: bool = False, time: float | None = None,
-              pose_velocity=None) -> QueryResult:
+              pose_velocity=None, clip: str | None = None, joint_transforms=None,
+              joint_velocities=None) -> QueryResult:
         """Answer ``fields`` for world-frame ``points``.
 
         points : (n, 3) float32 or float64, world units and frame (n may be 0)
@@ -182,15 +193,19 @@ class Collider(abc.ABC):
             ``contact`` equal to the point
         time : seconds (required for an animated collider; a static one ignores it)
         pose_velocity : (4, 4) the pose's time derivative, for ``velocity`` (None: still)
+        clip, joint_transforms, joint_velocities : a skinned collider's skeleton pose
+            (:mod:`collider_contract.skeleton`): ``clip`` (None: the first) at ``time``, or
+            ``joint_transforms`` (J, 4, 4), collider frame, with ``joint_velocities`` (J, 4, 4)
         Returns a :class:`QueryResult` holding exactly the fields asked for, world frame.
         Raises :class:`collider_contract.QueryError` (a ValueError) naming what is wrong.
         """
-        query = ModelQuery.build(points, fields, pose, eps, only_colliding, time, pose_velocity)
+        query = ModelQuery.build(points, fields, pose, eps, only_colliding, time, pose_velocity,
+                                 clip, joint_transforms, joint_velocities)
         return answer_model_query(query, self.info.meters_per_unit, self.query_local,
-                                  f"model {self.info.name!r}", self.animated)
+                                  f"model {self.info.name!r}", self.animated, self.info.skeleton)
 
     def query_local(self, local: np.ndarray, want_gradient: bool, gradient_below=None,
-                    time: float | None = None):
+                    time: float | None = None, skeleton=None):
         """Distance, unit normal and surface velocity at collider-frame points, in chunks
         (bounded memory).
 
@@ -201,6 +216,7 @@ class Collider(abc.ABC):
             ``velocity``) are zero. An array lets a batch join requests with different eps and
             poses (+inf: every point; -inf: none).
         time : seconds (an animated collider; a static one ignores it)
+        skeleton : a skinned collider's :class:`~collider_contract.SkeletonPose`, or None
         Returns ``(distance (n,) float64, normal (n, 3) float64 unit or None, velocity (n, 3)
         float64 collider units per second or None: still)``, collider frame. This is the
         contract's :data:`~collider_contract.Evaluate`, the step a batching server coalesces
@@ -217,10 +233,10 @@ class Collider(abc.ABC):
             chunk = local[start:stop]
             if not want_gradient or gradient_below is None:
                 rows = slice(None)
-                d, g, v = self._evaluate_anywhere(chunk, want_gradient, time)
+                d, g, v = self._evaluate_anywhere(chunk, want_gradient, time, skeleton)
                 distance[start:stop] = d
             elif self.gradient_in_one_pass:
-                d, g, v = self._evaluate_anywhere(chunk, True, time)
+                d, g, v = self._evaluate_anywhere(chunk, True, time, skeleton)
                 distance[start:stop] = d
                 normal[start:stop] = 0.0
                 rows = np.flatnonzero(d < gradient_below[start:stop])
@@ -230,13 +246,13 @@ class Collider(abc.ABC):
                 v = None if v is None else v[rows]
             else:
                 # Collide-only: distances of all, then the gradient pass over those below the bar.
-                d, _, _ = self._evaluate_anywhere(chunk, False, time)
+                d, _, _ = self._evaluate_anywhere(chunk, False, time, skeleton)
                 distance[start:stop] = d
                 normal[start:stop] = 0.0
                 rows = np.flatnonzero(d < gradient_below[start:stop])
                 if not len(rows):
                     continue
-                _, g, v = self._evaluate_anywhere(chunk[rows], True, time)
+                _, g, v = self._evaluate_anywhere(chunk[rows], True, time, skeleton)
             if want_gradient:
                 normal[start:stop][rows] = self._unit_normals(g, chunk[rows])
                 if v is not None:
@@ -245,7 +261,8 @@ class Collider(abc.ABC):
                     velocity[start:stop][rows] = v
         return distance, normal, velocity
 
-    def _evaluate_anywhere(self, local: np.ndarray, want_gradient: bool, time: float | None):
+    def _evaluate_anywhere(self, local: np.ndarray, want_gradient: bool, time: float | None,
+                           skeleton=None):
         """:meth:`evaluate_at` extended outside the domain box by a conservative rule.
 
         With ``c`` the point clamped into the box and ``f(c)`` the model's value there:
@@ -254,6 +271,8 @@ class Collider(abc.ABC):
         normal is the direction to ``p`` from ``c - f(c) n(c)``, the surface point that ``c``'s
         own answer suggests: equal to ``n(c)`` on the box, so continuous with the inside, and
         tending to the direction away from the object far from it. The velocity is ``c``'s."""
+        if skeleton is not None:  # (only a skinned kind is given one: it does not clamp)
+            return self.evaluate_at(local, want_gradient, time, skeleton)
         if not self.clamps_to_domain or self._inside_domain(local):
             return self.evaluate_at(local, want_gradient, time)  # (all inside: no copy, no clamp)
         clamped = np.clip(local, self.domain_min, self.domain_max)

@@ -92,7 +92,8 @@ def model_info(name: str, info: ColliderInfo, size_bytes: int, device: str) -> M
                      domain_min=np.asarray(info.domain_min, dtype=np.float64),
                      domain_max=np.asarray(info.domain_max, dtype=np.float64), bytes=size_bytes,
                      approximate=info.approximate, accuracy=info.accuracy, source=info.source,
-                     settings=info.settings, device=device, animation=info.animation)
+                     settings=info.settings, device=device, animation=info.animation,
+                     skeleton=info.skeleton)
 
 
 class LoadedCollider(NamedTuple):

@@ -1,6 +1,7 @@
 """Animated mesh files: an OBJ (the topology, vertices in file order) with a PC2 vertex cache
 (the format ``collider simulate`` writes and Blender's Mesh Cache modifier and Houdini read), or
-a numbered sequence of OBJ files with the same faces.
+a numbered sequence of OBJ files with the same faces, or a USD stage with time-sampled points
+(:mod:`collider_server.making.usd`).
 
 A vertex cache indexes the OBJ's ``v`` lines in file order, so the OBJ is read here as written
 (no merged or dropped vertices, which a general mesh reader may do). Every problem is an
@@ -13,6 +14,7 @@ from __future__ import annotations
 
 import glob
 import hashlib
+import math
 import re
 from pathlib import Path
 
@@ -25,6 +27,7 @@ from collider_contract.point_cache import read_pc2
 from ..engine.animated_meshes import AnimatedMesh, max_surface_speed
 from ..engine.meshes import Mesh
 from .mesh_files import MAX_FACES, check_has_volume, file_sha256
+from .usd import USD_SUFFIXES
 
 
 class AnimationError(ValueError):
@@ -165,6 +168,8 @@ def load_animation(mesh_path: str | Path, cache: str | Path, frame_rate_hz: floa
     a PC2 file's own sample rate counts scene frames, not seconds."""
     rate = check_frame_rate(frame_rate_hz)
     mesh_path = Path(mesh_path)
+    if mesh_path.suffix.lower() in USD_SUFFIXES:
+        return _load_usd_animation(mesh_path, Path(str(cache)), rate, loop)
     if mesh_path.suffix.lower() != ".obj":
         raise AnimationError(f"{mesh_path}: an animated mesh is an OBJ file (its vertex order is "
                              "the cache's)")
@@ -180,6 +185,24 @@ def load_animation(mesh_path: str | Path, cache: str | Path, frame_rate_hz: floa
     timeline = Timeline(len(frames), rate, bool(loop), max_surface_speed(frames, rate))
     return AnimatedMesh(frames, faces, timeline, mesh.name, mesh.sha256, Path(str(cache)).name,
                         cache_sha)
+
+
+def _load_usd_animation(stage: Path, cache: Path, rate: float, loop: bool) -> AnimatedMesh:
+    """A USD stage's time-sampled points (:func:`~collider_server.making.usd.read_usd_animation`):
+    the stage holds its frames (``cache`` must be the stage itself) and its own rate (``rate``
+    must be it)."""
+    from .usd import read_usd_animation
+
+    if cache.resolve() != stage.resolve():
+        raise AnimationError(f"{cache}: a USD stage holds its own frames: give the stage itself "
+                             f"as the animation (--animation {stage})")
+    animation = read_usd_animation(stage, loop)
+    stage_rate = animation.timeline.frame_rate_hz
+    if not math.isclose(stage_rate, rate, rel_tol=1e-9):
+        raise AnimationError(f"{stage}: its frames play at {stage_rate:g} per second "
+                             f"(timeCodesPerSecond and the samples' spacing), not {rate:g}: give "
+                             f"--fps {stage_rate:g}")
+    return animation
 
 
 def write_animation(animation: AnimatedMesh, folder: str | Path, name: str) -> tuple[Path, Path]:

@@ -16,6 +16,7 @@ import numpy as np
 
 from ..engine.animated_meshes import AnimatedMesh
 from ..engine.meshes import Mesh
+from ..engine.skinning import Channel, Clip, Skeleton, Skin
 
 #: Rotation taking a Y-up mesh to Z-up (x stays, y becomes z, z becomes -y).
 Y_UP_TO_Z_UP = np.array([[1, 0, 0, 0], [0, 0, -1, 0], [0, 1, 0, 0], [0, 0, 0, 1]], dtype=np.float64)
@@ -90,6 +91,14 @@ class MeshPlacement:
             return mesh, np.eye(4)
         return mesh.transformed(transform), transform
 
+    def apply_to_skin(self, skin: Skin) -> tuple[Skin, np.ndarray]:
+        """``skin`` placed by one transform (``fit_size`` measures the bind pose), and that
+        transform: every pose of the placed skin is the placed pose of the file's skin."""
+        transform = self.transform(Mesh(skin.vertices, skin.faces))
+        if np.allclose(transform, np.eye(4)):
+            return skin, np.eye(4)
+        return transformed_skin(skin, transform), transform
+
     def apply_to_animation(self, animation: AnimatedMesh) -> tuple[AnimatedMesh, np.ndarray]:
         """Every frame of ``animation`` placed by one transform (``fit_size`` measures the first
         frame), and that transform."""
@@ -97,3 +106,29 @@ class MeshPlacement:
         if np.allclose(transform, np.eye(4)):
             return animation, np.eye(4)
         return animation.transformed(transform), transform
+
+
+def transformed_skin(skin: Skin, matrix: np.ndarray) -> Skin:
+    """``skin`` moved by the similarity ``matrix`` (4, 4) = ``[s R | t]``: its vertices, and a
+    skeleton whose every pose skins to ``matrix`` applied to the original's.
+
+    The uniform scale ``s`` goes into the translations (rest and keyframed), so the joints'
+    world transforms stay rigid (``M W S^-1`` for a world transform ``W``, ``S`` the scale):
+    ``root -> M root S^-1``, a local ``L -> S L S^-1`` (its translation times ``s``), an inverse
+    bind ``B -> S B M^-1``; then ``(M W S^-1)(S B M^-1) = M (W B) M^-1``. A reflection (a
+    negative determinant) turns the faces over."""
+    m = np.asarray(matrix, dtype=np.float64)
+    scale = float(np.cbrt(np.linalg.det(m[:3, :3])))
+    s_matrix, s_inverse = np.diag([scale, scale, scale, 1.0]), np.diag([1 / scale] * 3 + [1.0])
+    skeleton = skin.skeleton
+    placed = Skeleton(skeleton.names, skeleton.parents, skeleton.rest_translation * scale,
+                      skeleton.rest_rotation, skeleton.rest_scale,
+                      s_matrix @ skeleton.inverse_bind @ np.linalg.inv(m),
+                      m @ skeleton.root @ s_inverse)
+    clips = tuple(Clip(c.name, tuple(
+        Channel(ch.joint, ch.path, ch.interpolation, ch.times,
+                ch.values * scale if ch.path == "translation" else ch.values)
+        for ch in c.channels), c.duration_s) for c in skin.clips)
+    vertices = skin.vertices @ m[:3, :3].T + m[:3, 3]
+    faces = skin.faces if scale > 0 else skin.faces[:, ::-1].copy()
+    return Skin(vertices, faces, skin.joints, skin.weights, placed, clips)

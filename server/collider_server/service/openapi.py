@@ -20,6 +20,7 @@ from starlette.responses import FileResponse, HTMLResponse, JSONResponse
 
 from collider_contract import FIELDS, MAX_COORDINATE_M, TITLES
 from collider_contract.queries import COLLIDER_KEYS, MAX_TIME_S, QUERY_KEYS, SCENE_KEYS, TRANSPORT_KEYS
+from collider_contract.skeleton import MAX_CLIP_NAME, MAX_JOINTS
 
 from .auth import require_token
 from .problems import PROBLEM_JSON
@@ -82,6 +83,33 @@ def _pose_velocity(msgpack: bool) -> dict:
     return {"title": title, **lists}
 
 
+def _joint_arrays(key: str, msgpack: bool) -> dict:
+    lists = {"type": "array", "minItems": 1, "maxItems": MAX_JOINTS,
+             "items": {"type": "array", "minItems": 4, "maxItems": 4,
+                       "items": {"type": "array", "items": _COORDINATE, "minItems": 4,
+                                 "maxItems": 4}}}
+    if key == "joint_transforms":
+        title = ("joint_transforms: (J, 4, 4) a skinned model's joints' world transforms in the "
+                 "collider frame (its skeleton's joint order), each a rotation times a uniform "
+                 "scale, translation within the coordinate range, bottom row 0 0 0 1")
+    else:
+        title = ("joint_velocities: (J, 4, 4) the joint transforms' time derivatives (1/s, "
+                 "collider units/s), bottom rows 0 0 0 0, for velocity (default: still)")
+    if msgpack:
+        return {"title": title, "oneOf": [lists, _array_map(["<f4", "<f8"], [None, 4, 4],
+                                                            "(J, 4, 4)")]}
+    return {"title": title, **lists}
+
+
+def _skeleton(msgpack: bool) -> dict:
+    """A skinned model's skeleton pose (:mod:`collider_contract.skeleton`)."""
+    return {"clip": {"type": "string", "minLength": 1, "maxLength": MAX_CLIP_NAME,
+                     "description": "a skinned model's clip, asked at time (default: its first "
+                                    "clip); a model without a skeleton answers 422 not-skinned"},
+            "joint_transforms": _joint_arrays("joint_transforms", msgpack),
+            "joint_velocities": _joint_arrays("joint_velocities", msgpack)}
+
+
 def _common(max_points: int, msgpack: bool) -> dict:
     return {
         "points": _points(max_points, msgpack),
@@ -120,7 +148,8 @@ EXAMPLE_FIELDS = ["distance", "normal", "collides"]
 def query_body(max_points: int) -> dict:
     def schema(msgpack: bool) -> dict:
         properties = {**_common(max_points, msgpack), "pose": _pose(msgpack),
-                      "pose_velocity": _pose_velocity(msgpack), "time": _TIME}
+                      "pose_velocity": _pose_velocity(msgpack), "time": _TIME,
+                      **_skeleton(msgpack)}
         return {"type": "object", "required": ["points"], "additionalProperties": False,
                 "properties": _keys(properties, QUERY_KEYS)}
 
@@ -133,7 +162,7 @@ def query_body(max_points: int) -> dict:
 def scene_body(max_points: int, max_colliders: int) -> dict:
     def schema(msgpack: bool) -> dict:
         collider = {"model": {"type": "string"}, "pose": _pose(msgpack),
-                    "pose_velocity": _pose_velocity(msgpack), "time": _TIME}
+                    "pose_velocity": _pose_velocity(msgpack), "time": _TIME, **_skeleton(msgpack)}
         collider = {"type": "object", "required": ["model"], "additionalProperties": False,
                     "properties": {key: collider[key] for key in COLLIDER_KEYS}}
         properties = {**_common(max_points, msgpack),
@@ -202,6 +231,18 @@ _ANIMATION = {"type": "object", "description": "empty for a static model; an ani
                   "max_surface_speed": {"type": "number", "minimum": 0,
                                         "description": "fastest surface point, collider units "
                                                        "per second (0: unknown)"}}}
+_SKELETON = {"type": "object", "description": "empty for a model without one; a skinned model's "
+             "skeleton (its queries give a clip and a time, or joint transforms)", "properties": {
+                 "joints": {"type": "array", "items": {"type": "string"},
+                            "description": "joint names, in the order of joint_transforms"},
+                 "parents": {"type": "array", "items": {"type": "integer", "minimum": -1},
+                             "description": "each joint's parent index, -1 for a root"},
+                 "clips": {"type": "array", "description": "the model's clips", "items": {
+                     "type": "object", "properties": {
+                         "name": {"type": "string"},
+                         "duration_s": {"type": "number", "minimum": 0}}}},
+                 "loop": {"type": "boolean", "description": "beyond a clip's ends time wraps "
+                          "(true) or holds the end pose (false)"}}}
 #: ``collider_contract.ModelInfo.to_dict()``: what ``GET /v1/models/{name}`` answers (keys a
 #: newer server adds are allowed).
 MODEL_INFO = {"type": "object", "required": ["name", "kind", "domain_min", "domain_max",
@@ -222,7 +263,8 @@ MODEL_INFO = {"type": "object", "required": ["name", "kind", "domain_min", "doma
     "source": {"type": "object", "description": "what the model was made from"},
     "settings": {"type": "object", "description": "how it was made"},
     "device": {"type": "string", "description": "where it computes (cpu, cuda)"},
-    "animation": _ANIMATION}}
+    "animation": _ANIMATION,
+    "skeleton": _SKELETON}}
 
 
 def model_info_responses(*codes: int, listed: bool = False) -> dict:

@@ -55,7 +55,8 @@ class QueryJob:
         q = self.query
         return (q.pose.rotation.tobytes(), q.pose.translation.tobytes(), q.pose.scale, q.eps,
                 q.fields, q.points.dtype.str, q.only_colliding, q.time,
-                None if q.pose_velocity is None else q.pose_velocity.tobytes(), self.local_only)
+                None if q.pose_velocity is None else q.pose_velocity.tobytes(),
+                None if q.skeleton is None else q.skeleton.key(), self.local_only)
 
 
 def answer_batch(collider: Collider, name: str,
@@ -80,14 +81,19 @@ def _answer_batch(collider: Collider, name: str, parts: Sequence[BatchPart]) -> 
         query = dataclasses.replace(job.query, points=_rows(parts, members))
         queries.append(query)
         evaluations.append(prepare(query, collider.info.meters_per_unit))
-    # One evaluation per time asked (a static collider ignores time: one for the whole batch).
+    # One evaluation per time (and skeleton pose) asked: a static collider ignores time, one
+    # evaluation for the whole batch.
     by_time: dict = {}
     for g, evaluation in enumerate(evaluations):
-        by_time.setdefault(evaluation.time if collider.animated else None, []).append(g)
+        key = None
+        if collider.animated or collider.skinned:
+            key = (evaluation.time,
+                   None if evaluation.skeleton is None else evaluation.skeleton.key())
+        by_time.setdefault(key, []).append(g)
     outputs: list = [None] * len(evaluations)
-    for at, members_of_time in by_time.items():
-        for g, output in zip(members_of_time, _evaluate_together(
-                collider, [evaluations[g] for g in members_of_time], at), strict=True):
+    for members_of_time in by_time.values():
+        together = [evaluations[g] for g in members_of_time]
+        for g, output in zip(members_of_time, _evaluate_together(collider, together), strict=True):
             outputs[g] = output
     answers: list = [None] * len(parts)
     for members, query, evaluation, output in zip(groups.values(), queries, evaluations, outputs,
@@ -112,9 +118,9 @@ def _answer_batch(collider: Collider, name: str, parts: Sequence[BatchPart]) -> 
     return answers
 
 
-def _evaluate_together(collider: Collider, evaluations: list, time) -> list[tuple]:
-    """``evaluations``' points in one ``query_local`` call at ``time``, cut back into one
-    ``(distance, normal, velocity)`` per evaluation."""
+def _evaluate_together(collider: Collider, evaluations: list) -> list[tuple]:
+    """``evaluations``' points in one ``query_local`` call at their (shared) time and skeleton
+    pose, cut back into one ``(distance, normal, velocity)`` per evaluation."""
     local = np.concatenate([e.local for e in evaluations]) if len(evaluations) > 1 else evaluations[0].local
     want_gradient = any(e.want_gradient for e in evaluations)
     below = None
@@ -122,7 +128,11 @@ def _evaluate_together(collider: Collider, evaluations: list, time) -> list[tupl
         # Collide-only jobs: a normal only for their colliding points; the batch's other jobs
         # keep theirs (+inf: every point, -inf: none), one threshold per point in group order.
         below = np.concatenate([np.full(len(e.local), _threshold(e)) for e in evaluations])
-    outputs = collider.query_local(local, want_gradient, below, time)
+    at = evaluations[0]
+    if at.skeleton is None:
+        outputs = collider.query_local(local, want_gradient, below, at.time)
+    else:
+        outputs = collider.query_local(local, want_gradient, below, at.time, at.skeleton)
     cut, offset = [], 0
     for evaluation in evaluations:
         rows = slice(offset, offset + len(evaluation.local))
@@ -172,7 +182,7 @@ async def answer_query(model: LoadedModel, query: ModelQuery,
                        deadline: float | None) -> dict[str, np.ndarray]:
     """The fields of one model query by name (world frame, see :class:`QueryResult`);
     ``deadline`` is a ``time.monotonic`` time or None."""
-    require_time(query, model.info.animated, f"model {model.name!r}")
+    require_time(query, model.info.animated, f"model {model.name!r}", model.info.skeleton)
     return await submit(model, QueryJob(query), deadline)
 
 
@@ -181,7 +191,8 @@ async def answer_scene(models: list[LoadedModel], query: SceneQuery,
     """Per point, the fields of the collider with the smallest world-frame signed distance and
     ``collider``, its index into ``query.colliders`` (the contract's scene rule)."""
     for i, model in enumerate(models):
-        require_time(query.of_collider(i), model.info.animated, f"model {model.name!r}")
+        require_time(query.of_collider(i), model.info.animated, f"model {model.name!r}",
+                     model.info.skeleton)
     answers = await asyncio.gather(*(
         submit(model, QueryJob(query.of_collider(i), local_only=True), deadline)
         for i, model in enumerate(models)))

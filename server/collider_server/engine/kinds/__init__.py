@@ -7,9 +7,11 @@ from .animated_voxel import AnimatedVoxelCollider
 from .kdtree import KDTreeCollider
 from .mesh import MeshCollider
 from .neural import NeuralCollider
+from .skinned import SkinnedCollider
 from .voxel import VoxelCollider
 
-KINDS = {cls.kind: cls for cls in (NeuralCollider, VoxelCollider, MeshCollider, KDTreeCollider)}
+KINDS = {cls.kind: cls for cls in (NeuralCollider, VoxelCollider, MeshCollider, KDTreeCollider,
+                                   SkinnedCollider)}
 #: The kinds that can be animated, and the class of an animated model of each.
 ANIMATED_KINDS = {cls.kind: cls for cls in (AnimatedMeshCollider, AnimatedVoxelCollider, AnimatedNeuralCollider)}
 
@@ -28,4 +30,4 @@ def kind_class(info):
 
 
 __all__ = ["ANIMATED_KINDS", "KINDS", "AnimatedMeshCollider", "AnimatedNeuralCollider", "AnimatedVoxelCollider",
-           "KDTreeCollider", "MeshCollider", "NeuralCollider", "VoxelCollider", "kind_class"]
+           "KDTreeCollider", "MeshCollider", "NeuralCollider", "SkinnedCollider", "VoxelCollider", "kind_class"]
