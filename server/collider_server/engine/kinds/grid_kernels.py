@@ -9,23 +9,19 @@ two threads write the same row). The torch encoding in :mod:`.neural_grid` is th
 are tested against, and the path on CUDA.
 
 Layout (shared with the torch code): ``u`` (n, 3) normalised coordinates; ``table`` (rows, F)
-float32, level ``l`` at rows ``offset[l] : offset[l] + rows[l]``; a dense level of resolution r
-indexes corner (i, j, k) as ``i + (r + 1) * (j + (r + 1) * k)``, a hashed level as
-``(i * P0 ^ j * P1 ^ k * P2) & (rows - 1)``.
+float32, level ``l`` at rows ``offset[l] : offset[l] + rows[l]``; a level's cells, corner rows
+(dense or hashed) and weights follow :mod:`.grid_cells` (its numba helpers, compiled from the same
+rules as the torch code's).
 """
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
-try:
-    import numba
-except ImportError:  # the engine still works (pure torch), only slower on a CPU
-    numba = None
+from .grid_cells import numba
 
-P0, P1, P2 = 1, 2_654_435_761, 805_459_861
+if numba is not None:
+    from .grid_cells import axis_jit, cell_rows_jit, corner_jit, trilerp_jit
 
 
 def available() -> bool:
@@ -48,132 +44,6 @@ if numba is not None:
     _jit = numba.njit(cache=True, fastmath=False, nogil=True)
     _pjit = numba.njit(cache=True, fastmath=False, nogil=True, parallel=True)
 
-    @_jit
-    def _axis(value, resolution, smooth):
-        """Cell index, high-corner weight and its derivative d weight / d u along one axis."""
-        inside = 1.0
-        if value < -1.0:
-            value, inside = -1.0, 0.0
-        elif value > 1.0:
-            value, inside = 1.0, 0.0
-        position = (value + 1.0) * 0.5 * resolution
-        cell = math.floor(position)
-        cell = min(cell, resolution - 1)
-        t = position - cell
-        if smooth:
-            w = t * t * (3.0 - 2.0 * t)
-            dw = 6.0 * t * (1.0 - t)
-        else:
-            w = t
-            dw = 1.0
-        return np.int64(cell), w, dw * 0.5 * resolution * inside
-
-    @_jit
-    def _row(i, j, k, resolution, rows, dense):
-        if dense:
-            side = resolution + 1
-            return i + side * (j + side * k)
-        return ((i * P0) ^ (j * P1) ^ (k * P2)) & (rows - 1)
-
-    @_jit
-    def _corner(corner, cx, cy, cz, wx, wy, wz, dx, dy, dz, r, rows, dense):
-        """Corner ``corner`` (0..7, bits x, y, z) of the cell at (cx, cy, cz) of a level of
-        resolution ``r``: its row in the level, its trilinear (or smoothstep) weight, and the
-        weight's derivatives along u (from the per-axis weights ``w*`` and derivatives ``d*``)."""
-        bx, by, bz = corner & 1, (corner >> 1) & 1, (corner >> 2) & 1
-        ax = wx if bx else 1.0 - wx
-        ay = wy if by else 1.0 - wy
-        az = wz if bz else 1.0 - wz
-        row = _row(cx + bx, cy + by, cz + bz, r, rows, dense)
-        gx = (dx if bx else -dx) * ay * az
-        gy = ax * (dy if by else -dy) * az
-        gz = ax * ay * (dz if bz else -dz)
-        return row, ax * ay * az, gx, gy, gz
-
-    @_jit
-    def _cell_rows(cx, cy, cz, r, rows, dense):
-        """The rows of the 8 corners of cell (cx, cy, cz) in a level, ordered as ``_corner``'s
-        (bits x, y, z): ``_row`` of each corner, its per-axis terms computed once."""
-        if dense:
-            side = r + 1
-            x0, y0, z0 = cx, side * cy, side * side * cz
-            x1, y1, z1 = x0 + 1, y0 + side, z0 + side * side
-            return (x0 + y0 + z0, x1 + y0 + z0, x0 + y1 + z0, x1 + y1 + z0,
-                    x0 + y0 + z1, x1 + y0 + z1, x0 + y1 + z1, x1 + y1 + z1)
-        mask = rows - 1
-        x0, y0, z0 = cx * P0, cy * P1, cz * P2
-        x1, y1, z1 = (cx + 1) * P0, (cy + 1) * P1, (cz + 1) * P2
-        return ((x0 ^ y0 ^ z0) & mask, (x1 ^ y0 ^ z0) & mask, (x0 ^ y1 ^ z0) & mask, (x1 ^ y1 ^ z0) & mask,
-                (x0 ^ y0 ^ z1) & mask, (x1 ^ y0 ^ z1) & mask, (x0 ^ y1 ^ z1) & mask, (x1 ^ y1 ^ z1) & mask)
-
-    @numba.njit(cache=True, fastmath=True, nogil=True)
-    def _trilerp(v000, v100, v010, v110, v001, v101, v011, v111, wx, wy, wz):
-        """The corners' values (``vXYZ``, X, Y, Z the corner's bits) interpolated with per-axis
-        weights ``w*`` (of the high corner), one axis after another, and the result's derivatives
-        with respect to ``wx``, ``wy``, ``wz``: (value, d/dwx, d/dwy, d/dwz)."""
-        ex00, ex10, ex01, ex11 = v100 - v000, v110 - v010, v101 - v001, v111 - v011  # along x
-        e00, e10, e01, e11 = v000 + wx * ex00, v010 + wx * ex10, v001 + wx * ex01, v011 + wx * ex11
-        ey0, ey1 = e10 - e00, e11 - e01  # along y, at z0 and z1
-        e0, e1 = e00 + wy * ey0, e01 + wy * ey1
-        gx0, gx1 = ex00 + wy * (ex10 - ex00), ex01 + wy * (ex11 - ex01)
-        return (e0 + wz * (e1 - e0), gx0 + wz * (gx1 - gx0), ey0 + wz * (ey1 - ey0), e1 - e0)
-
-    @_pjit
-    def encode(u, table, resolution, offset, rows, dense, smooth, want_jacobian, features, jacobian):
-        """Fill ``features`` (n, L, F) and, when ``want_jacobian``, ``jacobian`` (n, L, F, 3)
-        (d features / d u); both are overwritten."""
-        n = u.shape[0]
-        levels = resolution.shape[0]
-        width = table.shape[1]
-        for p in numba.prange(n):
-            for level in range(levels):
-                r = resolution[level]
-                cx, wx, dx = _axis(u[p, 0], r, smooth)
-                cy, wy, dy = _axis(u[p, 1], r, smooth)
-                cz, wz, dz = _axis(u[p, 2], r, smooth)
-                for f in range(width):
-                    features[p, level, f] = 0.0
-                    if want_jacobian:
-                        jacobian[p, level, f, 0] = 0.0
-                        jacobian[p, level, f, 1] = 0.0
-                        jacobian[p, level, f, 2] = 0.0
-                for corner in range(8):
-                    row, weight, gx, gy, gz = _corner(corner, cx, cy, cz, wx, wy, wz, dx, dy, dz, r,
-                                                      rows[level], dense[level])
-                    row += offset[level]
-                    for f in range(width):
-                        v = table[row, f]
-                        features[p, level, f] += weight * v
-                        if want_jacobian:
-                            jacobian[p, level, f, 0] += gx * v
-                            jacobian[p, level, f, 1] += gy * v
-                            jacobian[p, level, f, 2] += gz * v
-
-    @_pjit
-    def encode_backward(u, resolution, offset, rows, dense, smooth, grad_features, grad_jacobian,
-                        has_jacobian, grad_table):
-        """Add to ``grad_table`` (rows, F) the gradient of a loss whose gradients with respect to
-        the features (n, L, F) and, when ``has_jacobian``, the Jacobian (n, L, F, 3) are given."""
-        n = u.shape[0]
-        levels = resolution.shape[0]
-        width = grad_table.shape[1]
-        for level in numba.prange(levels):  # one level per thread: disjoint rows, no races
-            r = resolution[level]
-            for p in range(n):
-                cx, wx, dx = _axis(u[p, 0], r, smooth)
-                cy, wy, dy = _axis(u[p, 1], r, smooth)
-                cz, wz, dz = _axis(u[p, 2], r, smooth)
-                for corner in range(8):
-                    row, weight, gx, gy, gz = _corner(corner, cx, cy, cz, wx, wy, wz, dx, dy, dz, r,
-                                                      rows[level], dense[level])
-                    row += offset[level]
-                    for f in range(width):
-                        g = weight * grad_features[p, level, f]
-                        if has_jacobian:
-                            g += (gx * grad_jacobian[p, level, f, 0] + gy * grad_jacobian[p, level, f, 1]
-                                  + gz * grad_jacobian[p, level, f, 2])
-                        grad_table[row, f] += g
-
     @numba.njit(cache=True, fastmath=True, nogil=True)
     def _encode_block(ub, m, table, dtable, resolution, offset, rows, dense, smooth, want_jacobian,
                       corner_rows, weights, feature, jac, dfeature):
@@ -192,18 +62,18 @@ if numba is not None:
             o, level_rows, level_dense = offset[level], rows[level], dense[level]
             for q in range(m):
                 # float64 here: a float32 cell position would cost the gradient ~1e-4 of itself
-                cx, wx, dx = _axis(ub[0, q], r, smooth)
-                cy, wy, dy = _axis(ub[1, q], r, smooth)
-                cz, wz, dz = _axis(ub[2, q], r, smooth)
+                cx, wx, dx = axis_jit(ub[0, q], r, smooth)
+                cy, wy, dy = axis_jit(ub[1, q], r, smooth)
+                cz, wz, dz = axis_jit(ub[2, q], r, smooth)
                 weights[0, q], weights[1, q], weights[2, q] = wx, wy, wz
                 weights[3, q], weights[4, q], weights[5, q] = dx, dy, dz
-                c0, c1, c2, c3, c4, c5, c6, c7 = _cell_rows(cx, cy, cz, r, level_rows, level_dense)
+                c0, c1, c2, c3, c4, c5, c6, c7 = cell_rows_jit(cx, cy, cz, r, level_rows, level_dense)
                 corner_rows[0, q], corner_rows[1, q], corner_rows[2, q], corner_rows[3, q] = o + c0, o + c1, o + c2, o + c3
                 corner_rows[4, q], corner_rows[5, q], corner_rows[6, q], corner_rows[7, q] = o + c4, o + c5, o + c6, o + c7
             for f in range(width):
                 i = level * width + f
                 for q in range(m):
-                    value, gx, gy, gz = _trilerp(
+                    value, gx, gy, gz = trilerp_jit(
                         table[corner_rows[0, q], f], table[corner_rows[1, q], f], table[corner_rows[2, q], f],
                         table[corner_rows[3, q], f], table[corner_rows[4, q], f], table[corner_rows[5, q], f],
                         table[corner_rows[6, q], f], table[corner_rows[7, q], f],
@@ -215,7 +85,7 @@ if numba is not None:
                         jac[2, i, q] = gz * weights[5, q]
                 if timed:
                     for q in range(m):
-                        dfeature[i, q] = _trilerp(
+                        dfeature[i, q] = trilerp_jit(
                             dtable[corner_rows[0, q], f], dtable[corner_rows[1, q], f], dtable[corner_rows[2, q], f],
                             dtable[corner_rows[3, q], f], dtable[corner_rows[4, q], f], dtable[corner_rows[5, q], f],
                             dtable[corner_rows[6, q], f], dtable[corner_rows[7, q], f],
@@ -398,12 +268,30 @@ if numba is not None:
                             dense, smooth, weights, biases, w_out, b_out, scale, want_gradient, distance,
                             gradient, np.zeros(0, np.float32))
 
+    def encode(u, table, resolution, offset, rows, dense, smooth, want_jacobian, features, jacobian):
+        """Fill ``features`` (n, L, F) of normalised points ``u`` (n, 3) in ``table`` (rows, F)
+        and, when ``want_jacobian``, ``jacobian`` (n, L, F, 3) (d features / d u); both are
+        overwritten. :func:`encode_keyframes` of one table (every point at its frame 0)."""
+        n = len(u)
+        encode_keyframes(u, np.zeros(n, np.int64), np.zeros(n, np.float32), table[None], resolution, offset,
+                         rows, dense, smooth, want_jacobian, features, jacobian)
+
+    def encode_backward(u, resolution, offset, rows, dense, smooth, grad_features, grad_jacobian,
+                        has_jacobian, grad_table):
+        """Add to ``grad_table`` (rows, F) the gradient of a loss whose gradients with respect to
+        the features (n, L, F) and, when ``has_jacobian``, the Jacobian (n, L, F, 3) of
+        :func:`encode` are given: :func:`encode_keyframes_backward` of one table."""
+        n = len(u)
+        encode_keyframes_backward(u, np.zeros(n, np.int64), np.zeros(n, np.float32), resolution, offset, rows,
+                                  dense, smooth, grad_features, grad_jacobian, has_jacobian, grad_table[None])
+
     @_pjit
     def encode_keyframes(u, key, frac, tables, resolution, offset, rows, dense, smooth, want_jacobian,
                          features, jacobian):
-        """``encode`` of keyframe tables (K, rows, F), each point at its own time: the features
+        """The encoding of keyframe tables (K, rows, F), each point at its own time: the features
         of point p are ``(1 - frac[p])`` times those of table ``key[p]`` plus ``frac[p]`` times
-        those of table ``key[p] + 1`` (its Jacobian likewise). ``features`` (n, L, F) and, when
+        those of table ``key[p] + 1`` (only table ``key[p]`` is read where ``frac[p]`` is 0),
+        its Jacobian d features / d u likewise. ``features`` (n, L, F) and, when
         ``want_jacobian``, ``jacobian`` (n, L, F, 3) are overwritten."""
         n = u.shape[0]
         levels = resolution.shape[0]
@@ -414,9 +302,9 @@ if numba is not None:
             a = 1.0 - b
             for level in range(levels):
                 r = resolution[level]
-                cx, wx, dx = _axis(u[p, 0], r, smooth)
-                cy, wy, dy = _axis(u[p, 1], r, smooth)
-                cz, wz, dz = _axis(u[p, 2], r, smooth)
+                cx, wx, dx = axis_jit(u[p, 0], r, smooth)
+                cy, wy, dy = axis_jit(u[p, 1], r, smooth)
+                cz, wz, dz = axis_jit(u[p, 2], r, smooth)
                 for f in range(width):
                     features[p, level, f] = 0.0
                     if want_jacobian:
@@ -424,11 +312,13 @@ if numba is not None:
                         jacobian[p, level, f, 1] = 0.0
                         jacobian[p, level, f, 2] = 0.0
                 for corner in range(8):
-                    row, weight, gx, gy, gz = _corner(corner, cx, cy, cz, wx, wy, wz, dx, dy, dz, r,
-                                                      rows[level], dense[level])
+                    row, weight, gx, gy, gz = corner_jit(corner, cx, cy, cz, wx, wy, wz, dx, dy, dz, r,
+                                                         rows[level], dense[level])
                     row += offset[level]
                     for f in range(width):
-                        v = a * tables[k, row, f] + b * tables[k + 1, row, f]
+                        v = tables[k, row, f]
+                        if b != 0.0:
+                            v = a * v + b * tables[k + 1, row, f]
                         features[p, level, f] += weight * v
                         if want_jacobian:
                             jacobian[p, level, f, 0] += gx * v
@@ -438,9 +328,10 @@ if numba is not None:
     @_pjit
     def encode_keyframes_backward(u, key, frac, resolution, offset, rows, dense, smooth, grad_features,
                                   grad_jacobian, has_jacobian, grad_tables):
-        """``encode_backward`` of ``encode_keyframes``: adds to ``grad_tables`` (K, rows, F), one
-        level per thread (a level's rows are disjoint from every other level's in every
-        keyframe table)."""
+        """The backward pass of :func:`encode_keyframes`: adds to ``grad_tables`` (K, rows, F) the
+        gradient of a loss whose gradients with respect to the features (n, L, F) and, when
+        ``has_jacobian``, the Jacobian (n, L, F, 3) are given; one level per thread (a level's
+        rows are disjoint from every other level's in every keyframe table: no races)."""
         n = u.shape[0]
         levels = resolution.shape[0]
         width = grad_tables.shape[2]
@@ -450,12 +341,12 @@ if numba is not None:
                 k = key[p]
                 b = frac[p]
                 a = 1.0 - b
-                cx, wx, dx = _axis(u[p, 0], r, smooth)
-                cy, wy, dy = _axis(u[p, 1], r, smooth)
-                cz, wz, dz = _axis(u[p, 2], r, smooth)
+                cx, wx, dx = axis_jit(u[p, 0], r, smooth)
+                cy, wy, dy = axis_jit(u[p, 1], r, smooth)
+                cz, wz, dz = axis_jit(u[p, 2], r, smooth)
                 for corner in range(8):
-                    row, weight, gx, gy, gz = _corner(corner, cx, cy, cz, wx, wy, wz, dx, dy, dz, r,
-                                                      rows[level], dense[level])
+                    row, weight, gx, gy, gz = corner_jit(corner, cx, cy, cz, wx, wy, wz, dx, dy, dz, r,
+                                                         rows[level], dense[level])
                     row += offset[level]
                     for f in range(width):
                         g = weight * grad_features[p, level, f]
@@ -463,7 +354,8 @@ if numba is not None:
                             g += (gx * grad_jacobian[p, level, f, 0] + gy * grad_jacobian[p, level, f, 1]
                                   + gz * grad_jacobian[p, level, f, 2])
                         grad_tables[k, row, f] += a * g
-                        grad_tables[k + 1, row, f] += b * g
+                        if b != 0.0:
+                            grad_tables[k + 1, row, f] += b * g
 
     @_pjit
     def warp(u, field, dfield, resolution, want_velocity, rest, jacobian, velocity):
@@ -475,15 +367,15 @@ if numba is not None:
         units per second). Outputs overwritten."""
         n = u.shape[0]
         for p in numba.prange(n):
-            cx, wx, dx = _axis(u[p, 0], resolution, False)
-            cy, wy, dy = _axis(u[p, 1], resolution, False)
-            cz, wz, dz = _axis(u[p, 2], resolution, False)
-            c0, c1, c2, c3, c4, c5, c6, c7 = _cell_rows(cx, cy, cz, resolution, 0, True)
-            o0, j00, j01, j02 = _trilerp(field[c0, 0], field[c1, 0], field[c2, 0], field[c3, 0],
+            cx, wx, dx = axis_jit(u[p, 0], resolution, False)
+            cy, wy, dy = axis_jit(u[p, 1], resolution, False)
+            cz, wz, dz = axis_jit(u[p, 2], resolution, False)
+            c0, c1, c2, c3, c4, c5, c6, c7 = cell_rows_jit(cx, cy, cz, resolution, 0, True)
+            o0, j00, j01, j02 = trilerp_jit(field[c0, 0], field[c1, 0], field[c2, 0], field[c3, 0],
                                          field[c4, 0], field[c5, 0], field[c6, 0], field[c7, 0], wx, wy, wz)
-            o1, j10, j11, j12 = _trilerp(field[c0, 1], field[c1, 1], field[c2, 1], field[c3, 1],
+            o1, j10, j11, j12 = trilerp_jit(field[c0, 1], field[c1, 1], field[c2, 1], field[c3, 1],
                                          field[c4, 1], field[c5, 1], field[c6, 1], field[c7, 1], wx, wy, wz)
-            o2, j20, j21, j22 = _trilerp(field[c0, 2], field[c1, 2], field[c2, 2], field[c3, 2],
+            o2, j20, j21, j22 = trilerp_jit(field[c0, 2], field[c1, 2], field[c2, 2], field[c3, 2],
                                          field[c4, 2], field[c5, 2], field[c6, 2], field[c7, 2], wx, wy, wz)
             # d/dw to d/du: the weights' derivatives along each axis
             j00, j01, j02 = j00 * dx, j01 * dy, j02 * dz
@@ -491,11 +383,11 @@ if numba is not None:
             j20, j21, j22 = j20 * dx, j21 * dy, j22 * dz
             r0 = r1 = r2 = 0.0
             if want_velocity:
-                r0 = _trilerp(dfield[c0, 0], dfield[c1, 0], dfield[c2, 0], dfield[c3, 0],
+                r0 = trilerp_jit(dfield[c0, 0], dfield[c1, 0], dfield[c2, 0], dfield[c3, 0],
                               dfield[c4, 0], dfield[c5, 0], dfield[c6, 0], dfield[c7, 0], wx, wy, wz)[0]
-                r1 = _trilerp(dfield[c0, 1], dfield[c1, 1], dfield[c2, 1], dfield[c3, 1],
+                r1 = trilerp_jit(dfield[c0, 1], dfield[c1, 1], dfield[c2, 1], dfield[c3, 1],
                               dfield[c4, 1], dfield[c5, 1], dfield[c6, 1], dfield[c7, 1], wx, wy, wz)[0]
-                r2 = _trilerp(dfield[c0, 2], dfield[c1, 2], dfield[c2, 2], dfield[c3, 2],
+                r2 = trilerp_jit(dfield[c0, 2], dfield[c1, 2], dfield[c2, 2], dfield[c3, 2],
                               dfield[c4, 2], dfield[c5, 2], dfield[c6, 2], dfield[c7, 2], wx, wy, wz)[0]
             rest[p, 0] = u[p, 0] + o0
             rest[p, 1] = u[p, 1] + o1

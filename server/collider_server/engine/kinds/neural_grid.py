@@ -28,14 +28,7 @@ from typing import ClassVar
 import numpy as np
 
 from . import grid_kernels
-
-#: The 8 corners of a cell as 0/1 offsets along x, y, z (bit 0: x): (8, 3).
-CORNERS = np.array([[(c >> 0) & 1, (c >> 1) & 1, (c >> 2) & 1] for c in range(8)], dtype=np.int64)
-
-#: Primes of the spatial hash (Teschner et al. 2003, as in instant-NGP); the first is 1 so that
-#: neighbouring cells along x land in neighbouring rows.
-HASH_PRIMES = (1, 2_654_435_761, 805_459_861)
-
+from .grid_cells import cell_corners, dense_row, hashed_row
 
 #: How a model file may store the feature table (``GridArchitecture.table_dtype``).
 TABLE_DTYPES = ("float16", "float32", "int8")
@@ -303,8 +296,6 @@ def grid_network_class(arch: GridArchitecture):
             self.register_buffer("level_offset", torch.tensor(offsets, dtype=torch.int64), persistent=False)
             self.register_buffer("level_rows", torch.tensor(rows, dtype=torch.int64), persistent=False)
             self.register_buffer("dense", torch.tensor(dense), persistent=False)
-            self.register_buffer("corners", torch.from_numpy(CORNERS), persistent=False)
-            self.register_buffer("primes", torch.tensor(HASH_PRIMES, dtype=torch.int64), persistent=False)
             # Small initial features (instant-NGP): the MLP starts from a near-constant input.
             self.table = nn.Parameter(torch.empty(sum(rows), arch.features).uniform_(-1e-4, 1e-4))
             layers: list[nn.Module] = []
@@ -328,35 +319,11 @@ def grid_network_class(arch: GridArchitecture):
             u : (n, 3) normalised coordinates (clamped into [-1, 1])
             Returns rows (n, L, 8) int64, weight (n, L, 8), dweight (n, L, 8, 3) (d weight / d u).
             """
-            # [-1, 1] -> [0, r] grid coordinates of every level: (n, L, 3).
-            unit = ((u.clamp(-1.0, 1.0) + 1.0) * 0.5)[:, None, :]
-            position = unit * self.resolution[None, :, None]
-            cell = position.floor().clamp_(max=self.resolution[None, :, None] - 1)
-            t = position - cell
-            if arch.smooth:  # smoothstep: C1 across cell faces
-                w1 = t * t * (3.0 - 2.0 * t)
-                dw1 = 6.0 * t * (1.0 - t)
-            else:
-                w1 = t
-                dw1 = torch.ones_like(t)
-            dw1 = dw1 * (0.5 * self.resolution)[None, :, None]  # d position / d u
-            # Per axis, weight of the low (0) and high (1) corner: (n, L, 3, 2).
-            w = torch.stack([1.0 - w1, w1], dim=-1)
-            dw = torch.stack([-dw1, dw1], dim=-1)
-            ox, oy, oz = self.corners[:, 0], self.corners[:, 1], self.corners[:, 2]
-            wx, wy, wz = w[:, :, 0, ox], w[:, :, 1, oy], w[:, :, 2, oz]  # (n, L, 8)
-            weight = wx * wy * wz
-            dweight = torch.stack([dw[:, :, 0, ox] * wy * wz, wx * dw[:, :, 1, oy] * wz,
-                                   wx * wy * dw[:, :, 2, oz]], dim=-1)
-            # Integer corner coordinates (n, L, 8, 3) and their rows, dense or hashed.
-            ijk = cell.long()[:, :, None, :] + self.corners[None, None]
-            side = (self.resolution.long() + 1)[None, :, None]
-            dense_row = ijk[..., 0] + side * (ijk[..., 1] + side * ijk[..., 2])
-            hashed = (ijk[..., 0] * self.primes[0]) ^ (ijk[..., 1] * self.primes[1]) ^ (ijk[..., 2] * self.primes[2])
-            hashed = hashed & (self.level_rows[None, :, None] - 1)
-            rows = torch.where(self.dense[None, :, None], dense_row, hashed) + self.level_offset[None, :, None]
-            # Clamped axes do not move the encoding: their derivative is 0 (as autograd has it).
-            dweight = dweight * (u.abs() <= 1.0).to(u.dtype)[:, None, None, :]
+            ijk, weight, dweight = cell_corners(u, self.resolution, arch.smooth)
+            i, j, k = ijk[..., 0], ijk[..., 1], ijk[..., 2]
+            dense_rows = dense_row(i, j, k, (self.resolution.long() + 1)[None, :, None])
+            hashed_rows = hashed_row(i, j, k, self.level_rows[None, :, None])
+            rows = torch.where(self.dense[None, :, None], dense_rows, hashed_rows) + self.level_offset[None, :, None]
             return rows, weight, dweight
 
         def encode_parts(self, u, want_jacobian: bool):
