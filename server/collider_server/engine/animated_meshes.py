@@ -17,6 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from collider_contract import Timeline
+from collider_contract.animation import segment_at
 
 from .meshes import ExactSDF, Mesh, edge_index
 
@@ -64,8 +65,7 @@ class AnimatedMesh:
     def at_frame(self, position: float) -> Mesh:
         """The surface at a fractional frame ``position`` in ``[0, F - 1]`` (frame k at k),
         whatever the timeline's loop rule (a looping animation's last frame included)."""
-        k = min(int(np.floor(position)), len(self.frames) - 2)
-        u = min(max(position - k, 0.0), 1.0)
+        k, u = segment_at(position, len(self.frames))
         return Mesh(interpolate(self.frames[k], self.frames[k + 1], u), self.faces, self.name,
                     self.sha256)
 
