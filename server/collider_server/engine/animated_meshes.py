@@ -31,6 +31,8 @@ class AnimatedMesh:
     timeline : when the frames are (rate, loop or clamp)
     name : the mesh file's stem; sha256 : the mesh file's digest ("" for a generated one)
     cache, cache_sha256 : the vertex cache's file name (a PC2 file or an OBJ pattern) and digest
+    cache_timing : a PC2 cache's header: (start frame, sample rate), recorded, not applied (the
+        frames play at ``timeline.frame_rate_hz``; docs/animation.md); None for other sources
     """
 
     frames: np.ndarray
@@ -40,6 +42,7 @@ class AnimatedMesh:
     sha256: str = ""
     cache: str = ""
     cache_sha256: str = ""
+    cache_timing: tuple[float, float] | None = None
 
     def __post_init__(self):
         frames = np.asarray(self.frames)
@@ -93,7 +96,7 @@ class AnimatedMesh:
         timeline = Timeline(self.timeline.frames, self.timeline.frame_rate_hz, self.timeline.loop,
                             self.timeline.max_surface_speed * scale)
         return AnimatedMesh(frames, faces, timeline, self.name, self.sha256, self.cache,
-                            self.cache_sha256)
+                            self.cache_sha256, self.cache_timing)
 
 
 def max_surface_speed(frames: np.ndarray, frame_rate_hz: float) -> float:
