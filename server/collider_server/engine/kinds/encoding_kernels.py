@@ -1,12 +1,10 @@
 """The fused CPU encoding kernels (numba) of the grid networks, for training: the features and
-their Jacobian at every level (:func:`encode`, of keyframe tables :func:`encode_keyframes`) and
-the backward passes that scatter gradients into the tables. The torch encoding in
+their Jacobian at every level of keyframe tables (:func:`encode_keyframes`; a static network's one
+table is K = 1) and the backward pass that scatters gradients into the tables. The torch encoding in
 :mod:`.neural_grid` is their reference. Part of the kernels :mod:`.grid_kernels` gathers; the
 cells' rules are :mod:`.grid_cells`'."""
 
 from __future__ import annotations
-
-import numpy as np
 
 from .grid_cells import numba
 
@@ -14,23 +12,6 @@ if numba is not None:
     from .grid_cells import axis_jit, corner_jit
 
     _pjit = numba.njit(cache=True, fastmath=False, nogil=True, parallel=True)
-
-    def encode(u, table, resolution, offset, rows, dense, smooth, want_jacobian, features, jacobian):
-        """Fill ``features`` (n, L, F) of normalised points ``u`` (n, 3) in ``table`` (rows, F)
-        and, when ``want_jacobian``, ``jacobian`` (n, L, F, 3) (d features / d u); both are
-        overwritten. :func:`encode_keyframes` of one table (every point at its frame 0)."""
-        n = len(u)
-        encode_keyframes(u, np.zeros(n, np.int64), np.zeros(n, np.float32), table[None], resolution, offset,
-                         rows, dense, smooth, want_jacobian, features, jacobian)
-
-    def encode_backward(u, resolution, offset, rows, dense, smooth, grad_features, grad_jacobian,
-                        has_jacobian, grad_table):
-        """Add to ``grad_table`` (rows, F) the gradient of a loss whose gradients with respect to
-        the features (n, L, F) and, when ``has_jacobian``, the Jacobian (n, L, F, 3) of
-        :func:`encode` are given: :func:`encode_keyframes_backward` of one table."""
-        n = len(u)
-        encode_keyframes_backward(u, np.zeros(n, np.int64), np.zeros(n, np.float32), resolution, offset, rows,
-                                  dense, smooth, grad_features, grad_jacobian, has_jacobian, grad_table[None])
 
     @_pjit
     def encode_keyframes(u, key, frac, tables, resolution, offset, rows, dense, smooth, want_jacobian,

@@ -23,11 +23,11 @@ from .grid_cells import numba
 __all__ = ["available", "set_threads", "threads"]
 
 if numba is not None:  # the kernels, gathered here (callers use grid_kernels.NAME)
-    from .encoding_kernels import encode, encode_backward, encode_keyframes, encode_keyframes_backward
+    from .encoding_kernels import encode_keyframes, encode_keyframes_backward
     from .query_kernel import QUERY_BLOCK, QUERY_BUCKETS, network_query, network_query_timed
     from .warp_kernel import warp
 
-    __all__ += ["QUERY_BLOCK", "QUERY_BUCKETS", "encode", "encode_backward", "encode_keyframes",
+    __all__ += ["QUERY_BLOCK", "QUERY_BUCKETS", "encode_keyframes",
                 "encode_keyframes_backward", "network_query", "network_query_timed", "warp"]
 
 
