@@ -386,10 +386,14 @@ def test_live_view_blocks_the_run_while_paused(world, server):
     assert resumed[2].wait(30)
     click(controls.step)  # while running: pauses (after at most one more step)
     assert controls.play.label in ("play", "finished")
-    time.sleep(0.3)  # the step in flight when clicked ends (the last one never waits: it finishes)
+    # The step in flight when clicked ends, then the run is held (the last one never waits: it
+    # finishes): wait for either, however slow the machine.
+    deadline = time.monotonic() + 30
+    while not (controls.held.is_set() or resumed[5].is_set()) and time.monotonic() < deadline:
+        resumed[5].wait(0.01)
     held = len(steps)
     if held < 5:
-        assert not resumed[5].wait(0.3) and len(steps) == held  # paused: not one step more
+        assert controls.held.is_set() and len(steps) == held  # paused: held in on_step, not one step more
         click(controls.play)
     assert resumed[5].wait(30)
     assert steps == [1, 2, 3, 4, 5] and controls.play.label == "finished"

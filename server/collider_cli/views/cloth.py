@@ -147,6 +147,8 @@ class LiveControls:
             self._running.set()
         self._step_once = False
         self._wake = threading.Event()  # set by "play" and "step": the paused run looks again
+        #: Set while the run is held in :meth:`on_step` by a pause (what a caller can wait on).
+        self.held = threading.Event()
         self._last_step = 0
         self._last_time = self._shown = clock()
         gui = server.gui
@@ -195,12 +197,18 @@ class LiveControls:
             self._last_step, self._last_time = i, self.clock()
 
     def _wait_if_paused(self) -> None:
-        while not self._running.is_set():
-            self._wake.wait()
-            self._wake.clear()
-            if self._step_once:
-                self._step_once = False
-                return
+        try:
+            while not self._running.is_set():
+                if not self._wake.is_set():  # (a "step" already given passes straight through)
+                    self.held.set()
+                self._wake.wait()
+                self.held.clear()
+                self._wake.clear()
+                if self._step_once:
+                    self._step_once = False
+                    return
+        finally:
+            self.held.clear()
 
 
 @dataclass

@@ -25,7 +25,7 @@ from __future__ import annotations
 import threading
 import time
 from collections import OrderedDict
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -221,6 +221,7 @@ class ColliderPage:
     play: object | None = None  # checkbox: run the time slider on in real time
     time_label: object | None = None  # markdown: the time and the frame
     grids: TimeGrids | None = None  # the animated collider's grids per time step
+    players: list = field(default_factory=list)  # the threads "play" started, the latest last
 
 
 def serve_collider_view(collider: Collider, mesh: Mesh | AnimatedMesh | None, *, host: str,
@@ -273,7 +274,8 @@ def serve_collider_view(collider: Collider, mesh: Mesh | AnimatedMesh | None, *,
     if mesh is not None:
         show_wire = gui.add_checkbox("exact mesh wireframe", False)
         show_wire.on_update(lambda _: setattr(wire, "visible", show_wire.value))
-    state = {"clip": clip_mm, "drawn": None, "wire_at": None, "probed": False, "player": None}
+    state = {"clip": clip_mm, "drawn": None, "wire_at": None, "probed": False}
+    players: list[threading.Thread] = []
     lock = threading.Lock()
 
     def now() -> float | None:
@@ -364,18 +366,16 @@ def serve_collider_view(collider: Collider, mesh: Mesh | AnimatedMesh | None, *,
                 probe(np.asarray(probe_point.value, np.float64))
 
         def play_toggled(_) -> None:
-            player = state["player"]
-            if play.value and (player is None or not player.is_alive()):
-                state["player"] = threading.Thread(target=run_time, args=(time_slider, play),
-                                                   daemon=True)
-                state["player"].start()
+            if play.value and (not players or not players[-1].is_alive()):
+                players.append(threading.Thread(target=run_time, args=(time_slider, play), daemon=True))
+                players[-1].start()
 
         time_slider.on_update(time_moved)
         play.on_update(play_toggled)
 
     draw_surface()
     return ColliderPage(server, title, level, eps_button, status, bar, show_wire, probe_point,
-                        probe_button, probe_out, time_slider, play, time_label, grids)
+                        probe_button, probe_out, time_slider, play, time_label, grids, players)
 
 
 def run_time(time_slider, play) -> None:
