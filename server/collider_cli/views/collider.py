@@ -116,27 +116,44 @@ def serve_collider_view(collider: Collider, mesh: Mesh | AnimatedMesh | None, *,
         raise ValueError(f"{info.name} is {'animated' if animated else 'static'}: the exact mesh "
                          f"must be {'animated' if animated else 'static'} too")
     if animated:
-        timeline = Timeline.from_dict(info.animation)
         grids = TimeGrids(collider, resolution, time_step_s(collider))
         grid = grids.at(0.0, show_progress)  # the page's first; later ones say "computing"
         exact = ExactAtTimes(mesh) if mesh is not None else None
     else:
         grids, grid = None, collider_grid(collider, resolution, show_progress)
         exact = ExactSDF(mesh) if mesh is not None else None
-    mm = 1e3 * info.meters_per_unit
-    eps = info.default_eps
     server = start_server(host, port, label=f"collider {info.name} ({info.kind})")
     server.scene.set_up_direction(up)
-    lo, hi = grid.lo, grid.hi
-    look_at_box(server, lo, hi, up)
-    scene, gui = server.scene, server.gui
-    scene.add_line_segments("/domain", box_segments(lo, hi), BOX_COLOR,
-                            thickness=1.5, thickness_units="screen")
-    title = gui.add_markdown(f"**{info.name}**: {info.kind} collider, {info.units} "
-                     f"({info.meters_per_unit:g} m per unit), collider frame; "
-                     f"grid {resolution}^3 over the domain box")
-    time_slider = play = time_label = None
+    look_at_box(server, grid.lo, grid.hi, up)
+    server.scene.add_line_segments("/domain", box_segments(grid.lo, grid.hi), BOX_COLOR,
+                                   thickness=1.5, thickness_units="screen")
+    page = _add_controls(server, collider, grids, grid, resolution, with_mesh=mesh is not None)
+    view = _ColliderDrawing(page, collider, mesh, exact, grid, clip_mm)
+    page.probe_button.on_click(lambda _: view.probe(np.asarray(page.probe_point.value, np.float64)))
+    page.eps_button.on_click(lambda _: setattr(page.level, "value", info.default_eps * view.mm))
+    page.level.on_update(view.draw_surface)
+    server.scene.on_pointer_event("click")(view.clicked)
+    if page.show_wire is not None:
+        page.show_wire.on_update(lambda _: view.show_wire())
     if animated:
+        page.time.on_update(view.time_moved)
+        page.play.on_update(view.play_toggled)
+    view.draw_surface()
+    return page
+
+
+def _add_controls(server, collider: Collider, grids: TimeGrids | None, grid, resolution: int,
+                  with_mesh: bool) -> ColliderPage:
+    """The page's controls, in their order on the page, unwired: its :class:`ColliderPage`."""
+    info = collider.info
+    gui = server.gui
+    mm, eps = 1e3 * info.meters_per_unit, info.default_eps
+    title = gui.add_markdown(f"**{info.name}**: {info.kind} collider, {info.units} "
+                             f"({info.meters_per_unit:g} m per unit), collider frame; "
+                             f"grid {resolution}^3 over the domain box")
+    time_slider = play = time_label = None
+    if collider.animated:
+        timeline = Timeline.from_dict(info.animation)
         duration = timeline.duration_s
         time_slider = gui.add_slider("time (s)", 0.0, duration, grids.step_s, 0.0,
                                      hint=f"seconds, 0 to {duration:g}; a step is 1/"
@@ -149,75 +166,92 @@ def serve_collider_view(collider: Collider, mesh: Mesh | AnimatedMesh | None, *,
                                 "the offset surface contacts are projected to")
     eps_button = gui.add_button(f"level = eps ({eps * mm:g} mm)")
     status = gui.add_markdown("")
-    bar = gui.add_html("") if exact is not None else None
-    show_wire = wire = None
-    if mesh is not None:
-        show_wire = gui.add_checkbox("exact mesh wireframe", False)
-        show_wire.on_update(lambda _: setattr(wire, "visible", show_wire.value))
-    state = {"clip": clip_mm, "drawn": None, "wire_at": None, "probed": False}
-    players: list[threading.Thread] = []
-    lock = threading.Lock()
+    bar = gui.add_html("") if with_mesh else None
+    show_wire = gui.add_checkbox("exact mesh wireframe", False) if with_mesh else None
+    probe_point = gui.add_vector3("probe point", tuple(0.5 * (grid.lo + grid.hi)), step=1e-4,
+                                  hint=f"collider frame, {info.units}; or click the surface")
+    probe_button = gui.add_button("query probe")
+    probe_out = gui.add_markdown("click the surface or type a point")
+    return ColliderPage(server, title, level, eps_button, status, bar, show_wire, probe_point,
+                        probe_button, probe_out, time_slider, play, time_label, grids)
 
-    def now() -> float | None:
+
+class _ColliderDrawing:
+    """What the page's controls do: draw the level surface (coloured by its error against the
+    exact mesh, when given) and the exact wireframe at the time shown, answer the probe, follow
+    the time slider and start the player. Callbacks run in viser's threads: one draw at a time."""
+
+    def __init__(self, page: ColliderPage, collider: Collider, mesh, exact, grid, clip_mm: float | None):
+        self.page, self.collider, self.mesh, self.exact, self.grid = page, collider, mesh, exact, grid
+        info = collider.info
+        self.mm, self.eps = 1e3 * info.meters_per_unit, info.default_eps
+        self.timeline = Timeline.from_dict(info.animation) if collider.animated else None
+        self.clip, self.drawn, self.wire, self.wire_at, self.probed = clip_mm, None, None, None, False
+        self.lock = threading.Lock()
+
+    def now(self) -> float | None:
         """The time shown, seconds: the slider's value on its step (a browser rounds it)."""
-        return grids.step_of(float(time_slider.value)) * grids.step_s if animated else None
+        grids = self.page.grids
+        return grids.step_of(float(self.page.time.value)) * grids.step_s if self.collider.animated else None
 
-    def draw_wire(t: float | None) -> None:
-        nonlocal wire
-        if mesh is None or (wire is not None and state["wire_at"] == t):
+    def show_wire(self) -> None:
+        if self.wire is not None:
+            self.wire.visible = self.page.show_wire.value
+
+    def draw_wire(self, t: float | None) -> None:
+        mesh = self.mesh
+        if mesh is None or (self.wire is not None and self.wire_at == t):
             return
-        vertices = mesh.vertices_at(t) if animated else mesh.vertices
-        wire = scene.add_mesh_simple("/exact_mesh", vertices.astype(np.float32),
-                                     mesh.faces.astype(np.uint32), color=WIRE_COLOR,
-                                     wireframe=True, opacity=0.35, visible=show_wire.value)
-        state["wire_at"] = t
+        vertices = mesh.vertices_at(t) if self.collider.animated else mesh.vertices
+        self.wire = self.page.server.scene.add_mesh_simple(
+            "/exact_mesh", vertices.astype(np.float32), mesh.faces.astype(np.uint32), color=WIRE_COLOR,
+            wireframe=True, opacity=0.35, visible=self.page.show_wire.value)
+        self.wire_at = t
 
-    def draw_surface(_=None) -> None:
+    def draw_surface(self, _=None) -> None:
         import trimesh
 
-        with lock:
+        page, animated, mm = self.page, self.collider.animated, self.mm
+        with self.lock:
             # Callbacks from a dragged slider queue up: draw the slider's latest value once.
-            t, value = now(), float(level.value) / mm
-            if state["drawn"] == (t, value):
+            t, value = self.now(), float(page.level.value) / mm
+            if self.drawn == (t, value):
                 return
-            state["drawn"] = (t, value)
+            self.drawn = (t, value)
             if animated:
-                time_label.content = time_text(timeline, t)
-                if not grids.has(t):
-                    status.content = f"computing the {resolution}^3 grid at t = {t:.4g} s ..."
-            draw_wire(t)
-            surface = level_surface(grids.at(t) if animated else grid, value)
+                page.time_label.content = time_text(self.timeline, t)
+                if not page.grids.has(t):
+                    page.status.content = f"computing the {page.grids.resolution}^3 grid at t = {t:.4g} s ..."
+            self.draw_wire(t)
+            surface = level_surface(page.grids.at(t) if animated else self.grid, value)
             if surface is None:
-                status.content = f"no surface at level {level.value:.3g} mm in the domain"
+                page.status.content = f"no surface at level {page.level.value:.3g} mm in the domain"
                 return
             verts, faces = surface
             shown = trimesh.Trimesh(verts, faces, process=False)
-            text = f"surface at level {level.value:.3g} mm: {len(faces):,} triangles"
-            if exact is not None:
-                sdf = exact.at(t)[0] if animated else exact
-                error = surface_error_mm(sdf, verts, value, info.meters_per_unit)
-                if state["clip"] is None:  # fixed from the first surface so colours compare
-                    state["clip"] = max(float(np.percentile(np.abs(error), 95)), 1e-3)
-                shown.visual.vertex_colors = np.c_[error_colors(error, state["clip"]),
+            text = f"surface at level {page.level.value:.3g} mm: {len(faces):,} triangles"
+            if self.exact is not None:
+                sdf = self.exact.at(t)[0] if animated else self.exact
+                error = surface_error_mm(sdf, verts, value, self.collider.info.meters_per_unit)
+                if self.clip is None:  # fixed from the first surface so colours compare
+                    self.clip = max(float(np.percentile(np.abs(error), 95)), 1e-3)
+                shown.visual.vertex_colors = np.c_[error_colors(error, self.clip),
                                                    np.full(len(verts), 255, np.uint8)]
-                bar.content = colour_bar_html(state["clip"])
+                page.bar.content = colour_bar_html(self.clip)
                 text += (f"  \nerror vs exact mesh: mean |e| {np.abs(error).mean():.3g} mm, "
                          f"max {np.abs(error).max():.3g} mm")
             else:
                 shown.visual.vertex_colors = np.array([*PLAIN_COLOR, 255], np.uint8)
-            scene.add_mesh_trimesh("/surface", shown)
-            status.content = text
+            page.server.scene.add_mesh_trimesh("/surface", shown)
+            page.status.content = text
 
-    probe_point = gui.add_vector3("probe point", tuple(0.5 * (lo + hi)), step=1e-4,
-                                  hint=f"collider frame, {info.units}; or click the surface")
-    probe_button = gui.add_button("query probe")
-    probe_out = gui.add_markdown("click the surface or type a point")
-
-    def probe(point: np.ndarray) -> None:
-        text, fields = probe_text(collider, point, eps, now())
-        probe_out.content = text
-        state["probed"] = True
+    def probe(self, point: np.ndarray) -> None:
+        text, fields = probe_text(self.collider, point, self.eps, self.now())
+        self.page.probe_out.content = text
+        self.probed = True
+        lo, hi = self.grid.lo, self.grid.hi
         arrow = float(np.max(hi - lo)) * 0.15
+        scene = self.page.server.scene
         scene.add_line_segments(
             "/probe/normal", np.array([[point, point + arrow * fields["normal"]]], np.float32),
             PROBE_COLOR, thickness=3.0, thickness_units="screen")
@@ -225,37 +259,26 @@ def serve_collider_view(collider: Collider, mesh: Mesh | AnimatedMesh | None, *,
                               np.array([PROBE_COLOR, (20, 160, 60)], np.uint8),
                               point_size=0.01 * float(np.max(hi - lo)), point_shape="circle")
 
-    probe_button.on_click(lambda _: probe(np.asarray(probe_point.value, np.float64)))
-    eps_button.on_click(lambda _: setattr(level, "value", eps * mm))
-    level.on_update(draw_surface)
-
-    @scene.on_pointer_event("click")
-    def _(event) -> None:
-        hit = sphere_trace(collider, np.asarray(event.ray_origin, np.float64),
-                           np.asarray(event.ray_direction, np.float64), time=now())
+    def clicked(self, event) -> None:
+        """A click on the canvas: the ray traced to the surface at the time shown, probed there."""
+        hit = sphere_trace(self.collider, np.asarray(event.ray_origin, np.float64),
+                           np.asarray(event.ray_direction, np.float64), time=self.now())
         if hit is None:
-            probe_out.content = "the click missed the collider"
+            self.page.probe_out.content = "the click missed the collider"
             return
-        probe_point.value = tuple(hit)
-        probe(hit)
+        self.page.probe_point.value = tuple(hit)
+        self.probe(hit)
 
-    if animated:
-        def time_moved(_) -> None:
-            draw_surface()
-            if state["probed"]:  # a probe shown: answer it at the new time
-                probe(np.asarray(probe_point.value, np.float64))
+    def time_moved(self, _) -> None:
+        self.draw_surface()
+        if self.probed:  # a probe shown: answer it at the new time
+            self.probe(np.asarray(self.page.probe_point.value, np.float64))
 
-        def play_toggled(_) -> None:
-            if play.value and (not players or not players[-1].is_alive()):
-                players.append(threading.Thread(target=run_time, args=(time_slider, play), daemon=True))
-                players[-1].start()
-
-        time_slider.on_update(time_moved)
-        play.on_update(play_toggled)
-
-    draw_surface()
-    return ColliderPage(server, title, level, eps_button, status, bar, show_wire, probe_point,
-                        probe_button, probe_out, time_slider, play, time_label, grids, players)
+    def play_toggled(self, _) -> None:
+        players, play = self.page.players, self.page.play
+        if play.value and (not players or not players[-1].is_alive()):
+            players.append(threading.Thread(target=run_time, args=(self.page.time, play), daemon=True))
+            players[-1].start()
 
 
 def run_time(time_slider, play) -> None:
