@@ -37,6 +37,14 @@ __all__ = ["CORNERS", "HASH_PRIMES", "cell_corners", "dense_row", "hashed_row", 
            "trilerp"]
 
 
+def shared_rule(function):
+    """Marks a rule that torch calls as it is and numba compiles (the ``*_jit`` below); returns it
+    unchanged. (Decorated, so mutation testing leaves it as it is: mutmut wraps an undecorated
+    function in a trampoline numba cannot compile; the torch paths' tests check the rule.)"""
+    return function
+
+
+@shared_rule
 def high_weight(t, smooth: bool):
     """The weight of a cell's high corner along one axis at ``t`` in [0, 1] (the point's place in
     the cell) and its derivative d weight / d t: smoothstep ``t^2 (3 - 2 t)`` (C1 across cell
@@ -47,16 +55,19 @@ def high_weight(t, smooth: bool):
     return t, t * 0.0 + 1.0
 
 
+@shared_rule
 def dense_row(i, j, k, side):
     """The row of corner ``(i, j, k)`` in a dense table of ``side^3`` rows (``side = r + 1``)."""
     return i + side * (j + side * k)
 
 
+@shared_rule
 def hashed_row(i, j, k, rows):
     """The row of corner ``(i, j, k)`` in a hashed table of ``rows`` rows (a power of two)."""
     return ((i * _P0) ^ (j * _P1) ^ (k * _P2)) & (rows - 1)
 
 
+@shared_rule
 def trilerp(v000, v100, v010, v110, v001, v101, v011, v111, wx, wy, wz):
     """The corners' values (``vXYZ``, X, Y, Z the corner's bits) interpolated with per-axis
     weights ``w*`` (of the high corner), one axis after another (x, then y, then z), and the
@@ -89,7 +100,7 @@ def cell_corners(u, resolution, smooth: bool):
     # Per axis, weight of the low (0) and high (1) corner: (n, L, 3, 2).
     w = torch.stack([1.0 - w1, w1], dim=-1)
     dw = torch.stack([-dw1, dw1], dim=-1)
-    corners = torch.from_numpy(CORNERS).to(u.device)
+    corners = torch.tensor(CORNERS, device=u.device)  # a copy: CORNERS is read-only
     ox, oy, oz = corners[:, 0], corners[:, 1], corners[:, 2]
     wx, wy, wz = w[:, :, 0, ox], w[:, :, 1, oy], w[:, :, 2, oz]  # (n, L, 8)
     dweight = torch.stack([dw[:, :, 0, ox] * wy * wz, wx * dw[:, :, 1, oy] * wz,
