@@ -14,6 +14,7 @@ the issue's targets name.
     python benchmarks/neural_query.py                      # shipped bunny vs mesh, 1M points
     python benchmarks/neural_query.py --model out/b.safetensors --points 200000 --threads 2
     git show 3853465^:server/collider_server/engine/kinds/grid_kernels.py > /tmp/kernel_before.py
+    #   (since the kernels' split: git show REV:server/collider_server/engine/kinds/query_kernel.py)
     python benchmarks/neural_query.py --kernel-from /tmp/kernel_before.py --rounds 7
     python benchmarks/neural_query.py --device cuda        # the networks on a GPU, the mesh on the CPU
 """

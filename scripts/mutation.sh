@@ -28,7 +28,7 @@ MODULES=(
   "collider|server/collider_server/engine/collider.py|tests/engine/test_collider.py tests/engine/test_only_colliding.py tests/engine/test_modelfile.py tests/hard_cases/test_engine_hard_cases.py tests/client/test_backends.py"
   "kinds|server/collider_server/engine/kinds/*|tests/engine/kinds tests/engine/test_modelfile.py tests/engine/test_analytic.py tests/engine/test_only_colliding.py tests/hard_cases/test_engine_hard_cases.py"
   "batching|server/collider_server/service/batching.py|tests/server/test_batching.py"
-  "response|client/collider_client/response.py|tests/client/test_response.py tests/client/test_newton_adapter.py tests/hard_cases/test_simulator_hard_cases.py"
+  "response|client/collider_client/response.py client/collider_client/physics.py client/collider_client/placement.py|tests/client/test_response.py tests/client/test_newton_adapter.py tests/hard_cases/test_simulator_hard_cases.py"
   "sim|$SIM/cloth.py $SIM/output.py $SIM/run.py $SIM/scene.py $SIM/simulator.py|tests/hard_cases/test_simulator_hard_cases.py tests/client/test_scene.py tests/client/test_simulator.py"
   # The browser views (viser): their pages are built on a real viser server and driven through
   # their controls' callbacks in process; the page itself is also checked in a real browser

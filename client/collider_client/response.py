@@ -3,12 +3,11 @@
 All arrays are world frame, metres (velocities in m/s). ``mask`` arrays select the colliding
 points (``collides`` from a query, or ``distance < eps``).
 
-- :func:`project_to_contacts` moves colliding points onto their contact points;
-- :func:`respond_velocities` removes the normal velocity into the collider (times ``1 +
-  restitution``) and applies Coulomb friction to the tangential part, relative to the velocity
-  of the collider's surface (moving and animated colliders);
-- :func:`collider_velocity` is a rigidly moving collider's velocity, from two successive poses;
-- :class:`CollisionHook` puts them together with the SDK: positions and velocities in, responded
+- the physics (:mod:`.physics`): :func:`project_to_contacts`, :func:`respond_velocities`,
+  :func:`collider_velocity`;
+- where each collider is and when (:mod:`.placement`): :class:`ColliderPlacement`,
+  :func:`animation_time`, :func:`world_box`;
+- :class:`CollisionHook` (here, with its state) puts them together with the SDK: positions and velocities in, responded
   positions and velocities out. It asks each collider at its animation time with its pose's
   velocity, and uses the surface ``velocity`` the service answers. It is what an adapter for
   another simulator calls.
@@ -17,12 +16,15 @@ points (``collides`` from a query, or ``distance < eps``).
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from collider_contract import ModelInfo, SceneCollider, Timeline, transform_points
+from collider_contract import ModelInfo, SceneCollider, transform_points
+
+from .physics import collider_velocity, project_to_contacts, respond_velocities, unit_rows
+from .placement import ColliderPlacement, animation_time, world_box
 
 __all__ = [
     "ColliderPlacement",
@@ -35,155 +37,6 @@ __all__ = [
     "respond_velocities",
     "world_box",
 ]
-
-
-def project_to_contacts(positions: np.ndarray, contact: np.ndarray, mask: np.ndarray) -> np.ndarray:
-    """``positions`` with the rows in ``mask`` replaced by ``contact`` (a new array).
-
-    positions, contact : (n, 3) float, world frame, metres; mask : (n,) bool
-    """
-    out = np.array(positions, dtype=np.result_type(positions, np.float32), copy=True)
-    out[mask] = contact[mask]
-    return out
-
-
-def respond_velocities(velocities: np.ndarray, normal: np.ndarray, mask: np.ndarray,
-                       friction: float = 0.0, restitution: float = 0.0,
-                       collider_velocity: np.ndarray | None = None) -> np.ndarray:
-    """Velocities after contact with a collider (a new array).
-
-    velocities : (n, 3) float, m/s, world frame; normal : (n, 3) unit outward normal, world frame
-    mask : (n,) bool, the points in contact
-    friction : Coulomb coefficient mu >= 0; restitution : 0 (inelastic) .. 1 (elastic)
-    collider_velocity : (n, 3) or (3,) m/s, velocity of the collider's surface at the points
-        (None = static)
-
-    Per point in contact, with ``u`` the velocity relative to the collider and ``u_n = u . n``:
-    when ``u_n < 0`` (approaching), the normal part becomes ``-restitution * u_n``, a change of
-    ``dv_n = -(1 + restitution) u_n``; the tangential part ``u_t`` sticks (becomes 0) when
-    ``|u_t| <= mu dv_n`` and otherwise shrinks by ``mu dv_n`` (sliding). Separating points keep
-    their velocity.
-    """
-    if friction < 0:
-        raise ValueError(f"friction must be >= 0, got {friction}")
-    if not 0.0 <= restitution <= 1.0:
-        raise ValueError(f"restitution must be in [0, 1], got {restitution}")
-    out = np.array(velocities, dtype=np.float64, copy=True)
-    index = np.flatnonzero(mask)
-    if not len(index):
-        return out
-    n = np.asarray(normal, dtype=np.float64)[index]
-    base = 0.0 if collider_velocity is None else np.broadcast_to(
-        np.asarray(collider_velocity, dtype=np.float64), out.shape)[index]
-    u = out[index] - base
-    u_n = np.einsum("ij,ij->i", u, n)
-    approaching = u_n < 0
-    u_t = u - u_n[:, None] * n
-    dv_n = np.where(approaching, -(1.0 + restitution) * u_n, 0.0)
-    t_len = np.linalg.norm(u_t, axis=1)
-    # Coulomb: the friction impulse is bounded by mu times the normal impulse.
-    shrink = np.where(t_len > friction * dv_n,
-                      1.0 - friction * dv_n / np.where(t_len > 0, t_len, 1.0), 0.0)
-    new_n = np.where(approaching, -restitution * u_n, u_n)
-    new_t = np.where(approaching[:, None], u_t * shrink[:, None], u_t)
-    out[index] = base + new_t + new_n[:, None] * n
-    return out
-
-
-def collider_velocity(pose_before: np.ndarray, pose_after: np.ndarray, points: np.ndarray,
-                      dt: float) -> np.ndarray:
-    """Velocity (n, 3) m/s of the collider's material at world ``points`` (taken at
-    ``pose_after``), from its poses (4x4, collider -> world) ``dt`` seconds apart."""
-    if not dt > 0:
-        raise ValueError(f"dt must be > 0, got {dt}")
-    points = np.asarray(points, dtype=np.float64)
-    # Carry each point back with the collider: where was that material point one step ago?
-    relative = np.asarray(pose_before, dtype=np.float64) @ np.linalg.inv(
-        np.asarray(pose_after, dtype=np.float64))
-    before = transform_points(relative, points)
-    return (points - before) / dt
-
-
-def world_box(info: ModelInfo, pose: np.ndarray | None, margin: float) -> tuple[np.ndarray, np.ndarray]:
-    """World-frame axis-aligned box (lo, hi) holding the model's domain box moved by ``pose``
-    and grown by ``margin`` metres on every side. Outside it no point can collide."""
-    corners = info.domain_corners()
-    if pose is not None:
-        corners = transform_points(pose, corners)
-    return corners.min(axis=0) - margin, corners.max(axis=0) + margin
-
-
-def _unit_rows(vectors: np.ndarray) -> np.ndarray:
-    """Rows scaled to unit length; zero rows stay zero."""
-    length = np.linalg.norm(vectors, axis=1, keepdims=True)
-    return vectors / np.where(length > 0, length, 1.0)
-
-
-@dataclass
-class ColliderPlacement:
-    """A collider in a simulation: a model name, its pose over time and, for an animated model,
-    how the simulation's time maps to the animation's.
-
-    pose_at : function of time (s) -> (4, 4) collider -> world; or a fixed (4, 4) pose (array or
-        nested lists) for a static collider; or None for the identity
-    time_offset_s : an animated model is asked at the simulation time plus this (seconds)
-    loop : None: the model's own loop or clamp; True / False: loop or clamp it here whatever it
-        was baked with (:class:`~collider_contract.Timeline`)
-    """
-
-    model: str
-    pose_at: Callable[[float], np.ndarray] | np.ndarray | None = None
-    time_offset_s: float = 0.0
-    loop: bool | None = None
-
-    def __post_init__(self):
-        if self.pose_at is not None and not callable(self.pose_at):
-            fixed = np.asarray(self.pose_at, dtype=np.float64)
-            if fixed.shape != (4, 4) or not np.isfinite(fixed).all():
-                raise ValueError(f"ColliderPlacement({self.model!r}): pose must be a function of "
-                                 f"time or a finite 4x4 matrix, got shape {fixed.shape}")
-            self.pose_at = lambda t, _fixed=fixed: _fixed
-            self.static = True
-        else:
-            self.static = self.pose_at is None
-        offset = self.time_offset_s
-        if isinstance(offset, bool) or not isinstance(offset, (int, float)) or not np.isfinite(offset):
-            raise ValueError(f"ColliderPlacement({self.model!r}): time_offset_s must be a finite "
-                             f"number of seconds, got {offset!r}")
-        if self.loop is not None and not isinstance(self.loop, bool):
-            raise ValueError(f"ColliderPlacement({self.model!r}): loop must be None, True or "
-                             f"False, got {self.loop!r}")
-
-    def pose(self, t: float) -> np.ndarray:
-        if self.pose_at is None:
-            return np.eye(4)
-        assert callable(self.pose_at)  # __post_init__ made a fixed pose a function
-        return np.asarray(self.pose_at(t), dtype=np.float64)
-
-    def pose_velocity(self, t: float, dt: float) -> np.ndarray | None:
-        """The pose's time derivative at ``t`` (4x4; 1/s and m/s), the backward difference over
-        ``dt``; None for a static collider."""
-        if self.static:
-            return None
-        return (self.pose(t) - self.pose(t - dt)) / dt
-
-
-def animation_time(placement: ColliderPlacement, timeline: Timeline | None,
-                   t: float) -> tuple[float | None, bool]:
-    """When ``placement``'s model is asked at simulation time ``t``: ``(time, held)``, the
-    animation's time in seconds (None: a static model) and whether an end frame is held there
-    (clamped beyond the ends: the surface's own velocity is zero). ``timeline`` is the model's
-    (``ModelInfo.timeline``), the placement's ``loop`` overrides its loop."""
-    if timeline is None:
-        return None, False
-    raw = t + placement.time_offset_s
-    own = timeline.with_loop(placement.loop)
-    local, held = own.local_time(raw), own.held(raw)
-    if held and timeline.loop and local >= own.duration_s:
-        # Clamped here but looping in the model, which starts over at its duration: ask it a
-        # hair before (1e-12 of the animation: far below any length that matters).
-        local = own.duration_s * (1.0 - 1e-12)
-    return local, held
 
 
 class TunnellingError(ValueError):
@@ -258,14 +111,14 @@ class CollisionHook:
         self.infos = infos
         #: Per collider, its model's timeline (None: static).
         self.timelines = [infos[c.model].timeline for c in self.colliders]
-        for placement, timeline in zip(self.colliders, self.timelines):
+        for placement, timeline in zip(self.colliders, self.timelines, strict=True):
             if timeline is None and (placement.time_offset_s or placement.loop is not None):
                 raise ValueError(f"ColliderPlacement({placement.model!r}): time_offset_s and "
                                  "loop apply to animated models; this one is static")
         #: Whether a collider moves or deforms: its surface's velocity is asked for, and a point
         #: caught part-way through a step is checked again at the step's later checks.
         self.moving = any(not c.static or line is not None
-                          for c, line in zip(self.colliders, self.timelines))
+                          for c, line in zip(self.colliders, self.timelines, strict=True))
         moving = self.moving
         # distance gives the penetration; contact moves them out; collides (one byte a point)
         # decides who collides, exactly as the service decided whose contact and normal to
@@ -285,7 +138,7 @@ class CollisionHook:
         surface point's own travel (``max_surface_speed`` times the pose's scale and ``dt``);
         0 for static colliders."""
         moves = []
-        for placement, pose, timeline in zip(self.colliders, poses, self.timelines):
+        for placement, pose, timeline in zip(self.colliders, poses, self.timelines, strict=True):
             move = 0.0
             if not placement.static:
                 corners = self.infos[placement.model].domain_corners()
@@ -388,7 +241,7 @@ class CollisionHook:
         if not self.cull:
             return np.ones(n, dtype=bool)
         near = np.zeros(n, dtype=bool)
-        for k, (placement, pose) in enumerate(zip(self.colliders, poses)):
+        for k, (placement, pose) in enumerate(zip(self.colliders, poses, strict=True)):
             grow = margin + moves[k]
             lo, hi = world_box(self.infos[placement.model], pose, grow)
             if sweep is None:
@@ -402,7 +255,7 @@ class CollisionHook:
     def _query(self, points, poses, t: float, dt: float):
         """The SDK call at ``t``: each collider at its animation time with its pose's velocity.
         Returns ``(result, which collider per point or None, held per collider)``."""
-        times = [animation_time(c, line, t) for c, line in zip(self.colliders, self.timelines)]
+        times = [animation_time(c, line, t) for c, line in zip(self.colliders, self.timelines, strict=True)]
         rates = [c.pose_velocity(t, dt) for c in self.colliders]
         if len(self.colliders) == 1:
             placement = self.colliders[0]
@@ -412,7 +265,7 @@ class CollisionHook:
             return result, None, [times[0][1]]
         result = self.client.scene_query(
             [SceneCollider(c.model, p, at, rate) for c, p, (at, _), rate in
-             zip(self.colliders, poses, times, rates)],
+             zip(self.colliders, poses, times, rates, strict=True)],
             points, fields=self.fields, eps=self.eps, only_colliding=self.only_colliding)
         return result, np.asarray(result.collider), [held for _, held in times]
 
@@ -459,7 +312,7 @@ class CollisionHook:
         # was set; the response changed the velocity, so take the tangential part of the
         # change back from that stretch too: a contact that sticks does not creep (it slid
         # g sin(theta) dt^2 per step on a slope). The normal part is the projection's job.
-        normal = _unit_rows(contact - points[local_index])
+        normal = unit_rows(contact - points[local_index])
         change = (v_after - v_before) * (travelled_s - since[rows])[:, None]
         change -= np.einsum("ij,ij->i", change, normal)[:, None] * normal
         positions[rows] = contact + change + v_after * remaining_s

@@ -97,9 +97,8 @@ class Timeline:
         Positions are ``(1 - u) x_k + u x_{k+1}``, velocities ``rate (x_{k+1} - x_k)``."""
         if self.held(t):
             return (0, 0.0, 0.0) if t < 0.0 else (self.frames - 2, 1.0, 0.0)
-        position = self.local_time(t) * self.frame_rate_hz  # in frames, [0, frames - 1)
-        k = min(int(math.floor(position)), self.frames - 2)
-        return k, min(max(position - k, 0.0), 1.0), float(self.frame_rate_hz)
+        k, u = segment_at(self.local_time(t) * self.frame_rate_hz, self.frames)
+        return k, u, float(self.frame_rate_hz)
 
     def to_dict(self) -> dict:
         """The wire form: ``ModelInfo.animation``."""
@@ -118,3 +117,11 @@ class Timeline:
             raise ValueError(f"animation lacks {missing}")
         return cls(data["frames"], data["frame_rate_hz"], data["loop"],
                    data.get("max_surface_speed", 0.0))
+
+
+def segment_at(position: float, frames: int) -> tuple[int, float]:
+    """The segment of a fractional frame ``position`` (frame k at k) of an animation of
+    ``frames`` frames: ``(k, u)``, ``k`` in ``0 .. frames - 2`` and ``u`` in ``[0, 1]`` of the way
+    from frame ``k`` to ``k + 1`` (the last frame is segment ``frames - 2`` at ``u = 1``)."""
+    k = min(int(math.floor(position)), frames - 2)
+    return k, min(max(position - k, 0.0), 1.0)

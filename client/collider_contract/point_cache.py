@@ -12,6 +12,7 @@ metres, world frame; an animated collider: the units and rate given to `collider
 from __future__ import annotations
 
 import struct
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -63,10 +64,23 @@ class PC2Writer:
 PC2_HEADER = struct.Struct("<12siiffi")
 
 
-def read_pc2(path: Path) -> np.ndarray:
-    """(frames, n, 3) float32 from a PC2 file, memory-mapped. A file that is not a PC2 cache, or
+@dataclass(frozen=True)
+class PC2Header:
+    """What a PC2 file's header says: ``points`` per frame, ``samples`` (frames), and the scene
+    frame of the first sample (``start_frame``) and the scene frames between samples
+    (``sample_rate``), which this project writes as 0 and 1 (docs/animation.md: what they
+    mean here)."""
+
+    points: int
+    samples: int
+    start_frame: float
+    sample_rate: float
+
+
+def read_pc2_header(path: Path) -> PC2Header:
+    """The header of a PC2 file, checked against the file: a file that is not a PC2 cache, or
     holds fewer bytes than its header promises (a truncated copy), or more, is a ValueError
-    naming the file and what is wrong; finiteness is the reader's to check."""
+    naming the file and what is wrong (the frames it holds, with their fraction)."""
     path = Path(path)
     if path.is_dir():
         raise ValueError(f"{path}: is a directory, not a PC2 file")
@@ -77,18 +91,39 @@ def read_pc2(path: Path) -> np.ndarray:
         head = fh.read(PC2_HEADER.size)
     if len(head) < PC2_HEADER.size or not head.startswith(PC2_MAGIC):
         raise ValueError(f"{path}: not a PC2 file (no POINTCACHE2 header)")
-    _magic, version, points, _start, _rate, samples = PC2_HEADER.unpack(head)
+    _magic, version, points, start, rate, samples = PC2_HEADER.unpack(head)
     if version != 1 or points < 1 or samples < 0:
         raise ValueError(f"{path}: PC2 header is malformed (version {version}, {points} points, "
                          f"{samples} samples)")
     expected = PC2_HEADER.size + samples * points * 12
     if size != expected:
-        held = (size - PC2_HEADER.size) / (points * 12)
         what = "truncated" if size < expected else "longer than its header says"
         raise ValueError(f"{path}: {what}: the header promises {samples} frames of {points} "
                          f"points ({expected:,} bytes), the file has {size:,} bytes "
-                         f"({held:.4g} frames)")
-    if samples == 0:
-        return np.zeros((0, points, 3), dtype=np.float32)
+                         f"({_frames_held(size - PC2_HEADER.size, points)})")
+    return PC2Header(points, samples, float(start), float(rate))
+
+
+def _frames_held(data_bytes: int, points: int) -> str:
+    """The frames that ``data_bytes`` of positions hold, with enough digits to tell a part of a
+    frame from a whole: "3 frames", "61.997 frames: the file is 100 bytes short of 62",
+    "3.5 frames: 12 bytes beyond 3"."""
+    frame_bytes = points * 12
+    whole, part = divmod(data_bytes, frame_bytes)
+    if part == 0:
+        return f"{whole} frames"
+    held = data_bytes / frame_bytes
+    digits = 1
+    while round(held, digits) in (whole, whole + 1) and digits < 15:
+        digits += 1
+    return f"{held:.{digits}f} frames: the file is {frame_bytes - part:,} bytes short of {whole + 1}"
+
+
+def read_pc2(path: Path) -> np.ndarray:
+    """(frames, n, 3) float32 from a PC2 file, memory-mapped (read-only), after
+    :func:`read_pc2_header`'s checks; finiteness is the reader's to check."""
+    header = read_pc2_header(path)
+    if header.samples == 0:
+        return np.zeros((0, header.points, 3), dtype=np.float32)
     return np.memmap(path, dtype="<f4", mode="r", offset=PC2_HEADER.size,
-                     shape=(samples, points, 3))
+                     shape=(header.samples, header.points, 3))

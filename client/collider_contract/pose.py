@@ -102,11 +102,18 @@ def rotate_rows(vectors: np.ndarray, matrix: np.ndarray) -> np.ndarray:
 IDENTITY = Pose(np.eye(3), np.zeros(3), 1.0)
 
 
+#: The 8 corners of a box or cell as 0/1 offsets along x, y, z, (8, 3) int64: corner ``k`` takes
+#: the high side on axis x if bit 0 of k is set, y if bit 1, z if bit 2. The one corner order of
+#: the project (:func:`box_corners`, the grid networks' cells and their kernels).
+CORNERS = np.array([[(c >> 0) & 1, (c >> 1) & 1, (c >> 2) & 1] for c in range(8)], dtype=np.int64)
+CORNERS.flags.writeable = False
+
+
 def box_corners(lo, hi) -> np.ndarray:
-    """(8, 3) float64: the corners of the axis-aligned box ``lo``..``hi``; corner ``k`` takes
-    ``hi`` on axis x if bit 2 of k is set, y if bit 1, z if bit 0."""
+    """(8, 3) float64: the corners of the axis-aligned box ``lo``..``hi`` in :data:`CORNERS`'
+    order (corner ``k`` takes ``hi`` on axis x if bit 0 of k is set, y if bit 1, z if bit 2)."""
     lo, hi = np.asarray(lo, dtype=np.float64), np.asarray(hi, dtype=np.float64)
-    return np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+    return np.where(CORNERS == 1, hi, lo)
 
 
 def transform_points(matrix, points) -> np.ndarray:

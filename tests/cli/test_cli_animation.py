@@ -198,3 +198,33 @@ def test_a_nan_frame_rate_is_refused_by_the_option_itself(capsys, tmp_path, arm_
                          "--models", tmp_path)
     assert code == 2 and "Traceback" not in err
     assert "argument --fps: 'nan' is not a finite number" in err.strip().splitlines()[-1]
+
+
+def test_a_pc2_header_timing_is_recorded_shown_and_warned_about_when_not_the_default(capsys, tmp_path, arm_files):
+    """A PC2 header's start frame and sample rate are not applied (sample k plays at k / fps s):
+    the bake says so in a warning when they are not 0 and 1, the model records them, and
+    `collider info` shows them; the default header gives no warning."""
+    import json
+
+    obj, pc2 = arm_files
+    data = bytearray(pc2.read_bytes())
+    data[20:28] = struct.pack("<ff", 10.0, 2.0)  # start frame 10, a sample every 2 scene frames
+    shifted = tmp_path / "shifted.pc2"
+    shifted.write_bytes(bytes(data))
+    code, out, err = run(capsys, "bake", obj, "--animation", shifted, "--fps", 24, "--kind", "mesh",
+                         "--name", "shifted", "--models", tmp_path, "--quiet")
+    assert code == 0, err
+    assert ("warning: shifted.pc2: its header says start frame 10, sample rate 2; neither is applied: "
+            "sample k plays at k / fps seconds from 0") in err
+    assert "animated: 25 frames at 24 fps, 1 s" in out  # the frames' timing is --fps alone
+    code, out, err = run(capsys, "info", "shifted", "--models", tmp_path)
+    assert code == 0, err
+    assert "pc2 header  start frame 10, sample rate 2 (recorded, not applied" in out
+    code, out, err = run(capsys, "info", "shifted", "--models", tmp_path, "--json")
+    source = json.loads(out)["source"]
+    assert (source["cache_start_frame"], source["cache_sample_rate"]) == (10.0, 2.0)
+    code, out, err = run(capsys, "bake", obj, "--animation", pc2, "--fps", 24, "--kind", "mesh",
+                         "--name", "plain", "--models", tmp_path, "--quiet")
+    assert code == 0 and "warning" not in err, err
+    code, out, err = run(capsys, "info", "plain", "--models", tmp_path)
+    assert "pc2 header  start frame 0, sample rate 1 (recorded, not applied" in out

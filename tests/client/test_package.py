@@ -17,7 +17,7 @@ def test_import_does_not_load_torch_or_the_engine():
 def test_all_is_complete_and_importable():
     public = {name for name in dir(collider_client) if not name.startswith("_")}
     # Submodules are reachable as attributes but are not API members.
-    modules = {"response", "wire", "sim", "adapters"}
+    modules = {"response", "physics", "placement", "wire", "sim", "adapters"}
     assert public - modules - set(collider_client.__all__) == set()
     for name in collider_client.__all__:
         assert hasattr(collider_client, name), name

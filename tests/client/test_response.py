@@ -224,11 +224,11 @@ def test_a_head_on_contact_without_tangential_velocity_raises_no_numpy_warning()
 def test_unit_rows_keeps_zero_rows_zero_without_warning():
     import warnings
 
-    from collider_client.response import _unit_rows
+    from collider_client.physics import unit_rows
 
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        out = _unit_rows(np.array([[0.0, 0.0, 0.0], [0.0, 3.0, 4.0]]))
+        out = unit_rows(np.array([[0.0, 0.0, 0.0], [0.0, 3.0, 4.0]]))
     np.testing.assert_allclose(out, [[0.0, 0.0, 0.0], [0.0, 0.6, 0.8]])
 
 

@@ -66,9 +66,9 @@ def _header(version=1, points=2, samples=3):
     ("no points", "{path}: PC2 header is malformed (version 1, 0 points, 3 samples)"),
     ("negative samples", "{path}: PC2 header is malformed (version 1, 2 points, -1 samples)"),
     ("truncated", ("{path}: truncated: the header promises 3 frames of 2 points (104 bytes), the "
-                  "file has 92 bytes (2.5 frames)")),
+                  "file has 92 bytes (2.5 frames: the file is 12 bytes short of 3)")),
     ("longer", ("{path}: longer than its header says: the header promises 3 frames of 2 points "
-               "(104 bytes), the file has 116 bytes (3.5 frames)")),
+               "(104 bytes), the file has 116 bytes (3.5 frames: the file is 12 bytes short of 4)")),
 ])
 def test_a_malformed_cache_is_refused_naming_the_file_and_the_fault(tmp_path, case, message):
     path = tmp_path / "c.pc2"
@@ -103,3 +103,15 @@ def test_a_single_frame_of_a_single_point_reads_back_read_only(tmp_path):
     empty = tmp_path / "empty.pc2"
     PC2Writer(empty, 1).close()
     assert read_pc2(empty).dtype == np.float32
+
+
+def test_a_cache_a_few_bytes_short_shows_the_part_of_a_frame_it_holds(tmp_path):
+    """100 bytes short of 62 frames of 2,530 points is not "62 frames" (nor 61): the message shows
+    the fraction with the digits that tell it from a whole frame, and the bytes missing."""
+    path = tmp_path / "short.pc2"
+    frame_bytes = 2530 * 12
+    path.write_bytes(_header(points=2530, samples=62) + bytes(62 * frame_bytes - 100))
+    with pytest.raises(ValueError) as info:
+        read_pc2(path)
+    assert str(info.value).endswith(f"the file has {32 + 62 * frame_bytes - 100:,} bytes "
+                                    "(61.997 frames: the file is 100 bytes short of 62)")

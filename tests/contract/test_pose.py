@@ -210,8 +210,8 @@ def test_box_corners_take_hi_by_the_bits_of_their_index():
     corners = box_corners([0, 1, 2], (10, 11, 12))
     assert corners.dtype == np.float64 and corners.shape == (8, 3)
     assert corners.tolist() == [
-        [0.0, 1.0, 2.0], [0.0, 1.0, 12.0], [0.0, 11.0, 2.0], [0.0, 11.0, 12.0],
-        [10.0, 1.0, 2.0], [10.0, 1.0, 12.0], [10.0, 11.0, 2.0], [10.0, 11.0, 12.0]]
+        [0.0, 1.0, 2.0], [10.0, 1.0, 2.0], [0.0, 11.0, 2.0], [10.0, 11.0, 2.0],
+        [0.0, 1.0, 12.0], [10.0, 1.0, 12.0], [0.0, 11.0, 12.0], [10.0, 11.0, 12.0]]
 
 
 def test_transform_points_applies_any_affine_map_unvalidated():

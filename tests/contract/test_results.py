@@ -164,5 +164,6 @@ def test_the_domain_corners_are_the_boxes_eight_corners():
     info = ModelInfo("box", "mesh", domain_min=np.array([-1.0, -2.0, -3.0]), domain_max=np.array([1.0, 2.0, 3.0]))
     corners = info.domain_corners()
     assert corners.dtype == np.float64
-    assert corners.tolist() == [[-1.0, -2.0, -3.0], [-1.0, -2.0, 3.0], [-1.0, 2.0, -3.0], [-1.0, 2.0, 3.0],
-                                [1.0, -2.0, -3.0], [1.0, -2.0, 3.0], [1.0, 2.0, -3.0], [1.0, 2.0, 3.0]]
+    # In the one corner order (collider_contract.pose.CORNERS): x in bit 0, y in bit 1, z in bit 2.
+    assert corners.tolist() == [[-1.0, -2.0, -3.0], [1.0, -2.0, -3.0], [-1.0, 2.0, -3.0], [1.0, 2.0, -3.0],
+                                [-1.0, -2.0, 3.0], [1.0, -2.0, 3.0], [-1.0, 2.0, 3.0], [1.0, 2.0, 3.0]]

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from collider_contract.point_cache import PC2_HEADER
+from collider_contract.point_cache import read_pc2
 
 
 class PC2Frames:
@@ -22,6 +22,10 @@ class PC2Frames:
 
     def __init__(self, path: Path, times_s: list[float], points: int):
         self.path, self.times_s, self.points = Path(path), list(times_s), points
+        self._frames = read_pc2(self.path)  # memory-mapped; checked against its header
+        if self._frames.shape[:2] != (len(self.times_s), points):
+            raise ValueError(f"{self.path}: holds {self._frames.shape[0]} frames of {self._frames.shape[1]} "
+                             f"points, the run wrote {len(self.times_s)} of {points}")
 
     def __len__(self) -> int:
         return len(self.times_s)
@@ -30,9 +34,7 @@ class PC2Frames:
         if not -len(self) <= i < len(self):
             raise IndexError(f"frame {i} of {len(self)}")
         i %= len(self)
-        data = np.memmap(self.path, dtype="<f4", mode="r", offset=PC2_HEADER.size + i * self.points * 12,
-                         shape=(self.points, 3))
-        return self.times_s[i], np.array(data)
+        return self.times_s[i], np.array(self._frames[i])
 
     def __iter__(self):
         return (self[i] for i in range(len(self)))

@@ -364,6 +364,9 @@ def run_info(args) -> int:
         if source.get("cache"):
             print(f"  cache       {source['cache']} sha256 {str(source.get('cache_sha256', ''))[:16]} "
                   f"({source.get('frames', '?')} frames at {source.get('frame_rate_hz', '?')} fps)")
+            if "cache_start_frame" in source:
+                print(f"  pc2 header  start frame {source['cache_start_frame']:g}, sample rate "
+                      f"{source['cache_sample_rate']:g} (recorded, not applied: sample k plays at k / fps s)")
     print_source_check(source, info.accuracy)
     for note in source.get("notes", []):
         print(f"  read        {note}")

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import sys
 from pathlib import Path
 
 from collider_server.making.placement import MeshPlacement
@@ -158,9 +159,13 @@ def check_animation_arguments(args: argparse.Namespace) -> None:
 
 def load_placed_animation(args: argparse.Namespace, placement: MeshPlacement):
     """MESH's ``--animation`` at ``--fps``, placed: ``(AnimatedMesh, transform)``."""
-    from collider_server.making.animation_files import load_animation
+    from collider_server.making.animation_files import cache_timing_warning, load_animation
 
-    return placement.apply_to_animation(load_animation(args.mesh, args.animation, args.fps, args.loop))
+    animation = load_animation(args.mesh, args.animation, args.fps, args.loop)
+    warning = cache_timing_warning(animation)
+    if warning:
+        print(f"warning: {warning}", file=sys.stderr)
+    return placement.apply_to_animation(animation)
 
 
 def load_animated_source(info, args):

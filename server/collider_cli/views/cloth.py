@@ -23,6 +23,7 @@ from collider_client.sim.cloth import quad_faces
 from collider_client.sim.motion import pose_function
 from collider_client.sim.scene import Scene
 from collider_contract import transform_points
+from collider_contract.point_cache import read_pc2
 from collider_server.making.surface import distance_grid, level_surface
 
 from .page import look_at_box, start_server
@@ -146,6 +147,8 @@ class LiveControls:
             self._running.set()
         self._step_once = False
         self._wake = threading.Event()  # set by "play" and "step": the paused run looks again
+        #: Set while the run is held in :meth:`on_step` by a pause (what a caller can wait on).
+        self.held = threading.Event()
         self._last_step = 0
         self._last_time = self._shown = clock()
         gui = server.gui
@@ -194,12 +197,18 @@ class LiveControls:
             self._last_step, self._last_time = i, self.clock()
 
     def _wait_if_paused(self) -> None:
-        while not self._running.is_set():
-            self._wake.wait()
-            self._wake.clear()
-            if self._step_once:
-                self._step_once = False
-                return
+        try:
+            while not self._running.is_set():
+                if not self._wake.is_set():  # (a "step" already given passes straight through)
+                    self.held.set()
+                self._wake.wait()
+                self.held.clear()
+                self._wake.clear()
+                if self._step_once:
+                    self._step_once = False
+                    return
+        finally:
+            self.held.clear()
 
 
 @dataclass
@@ -228,7 +237,7 @@ def serve_replay(out_prefix: Path, host: str, port: int, scene: Scene | None = N
         if not path.is_file():
             raise FileNotFoundError(f"{path}: no such file (run `collider simulate` first; "
                                     "--replay takes the output prefix, e.g. out/drape_bunny)")
-    frames = _pc2_frames(pc2)
+    frames = read_pc2(pc2)  # memory-mapped: a long run's cache can be GBs
     if len(frames) == 0:
         raise ValueError(f"{pc2}: holds no frames")
     times = _frame_times(scene, len(frames), report) if scene is not None else None
@@ -285,26 +294,6 @@ def _frame_times(scene: Scene, count: int, report: Path) -> np.ndarray:
     if done.get("frames") == count and isinstance(done.get("steps"), int):
         steps[-1] = done["steps"]
     return steps * scene.dt_s
-
-
-def _pc2_frames(path: Path) -> np.ndarray:
-    """(frames, n, 3) float32 of a PC2 file, memory-mapped (a long run's cache can be GBs)."""
-    import struct
-
-    from collider_contract.point_cache import PC2_MAGIC
-
-    with open(path, "rb") as fh:
-        header = fh.read(32)
-    if len(header) < 32 or header[:12] != PC2_MAGIC:
-        raise ValueError(f"{path}: not a PC2 file")
-    _, _, points, _, _, samples = struct.unpack("<12siiffi", header)
-    if samples <= 0 or points <= 0:
-        return np.zeros((0, max(points, 0), 3), np.float32)
-    size, needed = path.stat().st_size, 32 + samples * points * 12
-    if size < needed:
-        raise ValueError(f"{path}: cut short: its header says {samples} frames of {points} "
-                         f"points ({needed} bytes), the file has {size} bytes")
-    return np.memmap(path, dtype="<f4", mode="r", offset=32, shape=(samples, points, 3))
 
 
 def _grid_from_obj(obj: Path, n: int) -> tuple[int, int]:

@@ -15,8 +15,9 @@ Everything is shown in the **collider frame and units** (identity pose):
   that time (given its frames), the wireframe and the probe (with the surface's ``velocity``) all
   follow the time. Each time step's grid is computed once and kept (:class:`TimeGrids`).
 
-The grid and the colours are plain functions (:func:`collider_grid`, :func:`level_surface`,
-:func:`error_colors`), testable without a browser; :func:`serve_collider_view` builds the scene and
+The grid, the time steps, the errors, the ray and the probe's text are plain functions in
+:mod:`.collider_numerics` (their names importable from here), the colours here
+(:func:`error_colors`), all testable without a browser; :func:`serve_collider_view` builds the scene and
 returns its :class:`ColliderPage` (the server and the controls a user drives).
 """
 
@@ -24,8 +25,7 @@ from __future__ import annotations
 
 import threading
 import time
-from collections import OrderedDict
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -33,97 +33,29 @@ from collider_contract import Timeline
 from collider_server.engine.animated_meshes import AnimatedMesh, ExactAtTimes
 from collider_server.engine.collider import Collider
 from collider_server.engine.meshes import ExactSDF, Mesh
-from collider_server.making.surface import Grid, distance_grid, level_surface
+from collider_server.making.surface import level_surface
 
+from .collider_numerics import (
+    STEPS_PER_FRAME,
+    TIME_GRIDS_BYTES,
+    TimeGrids,
+    collider_grid,
+    probe_text,
+    sphere_trace,
+    surface_error_mm,
+    time_step_s,
+    time_text,
+)
 from .page import box_edges, look_at_box, start_server
+
+__all__ = ["STEPS_PER_FRAME", "TIME_GRIDS_BYTES", "ColliderPage", "TimeGrids", "collider_grid", "colour_bar_html",
+           "error_colors", "probe_text", "run_time", "serve_collider_view", "sphere_trace", "surface_error_mm",
+           "time_step_s", "time_text"]
 
 BOX_COLOR = (60, 60, 60)
 WIRE_COLOR = (40, 40, 40)
 PLAIN_COLOR = (170, 190, 210)
 PROBE_COLOR = (250, 140, 0)
-
-
-#: Time slider steps per frame of an animated collider.
-STEPS_PER_FRAME = 4
-#: Memory the kept grids of an animated collider's time steps may take (bytes).
-TIME_GRIDS_BYTES = 512 * 2 ** 20
-
-
-def collider_grid(collider: Collider, resolution: int, show_progress: bool = True,
-                  time: float | None = None) -> Grid:
-    """``collider``'s distance on ``resolution``^3 points spanning its domain box, at ``time``
-    seconds (an animated collider; a static one ignores it)."""
-    if not 8 <= resolution <= 512:
-        raise ValueError(f"--resolution must be between 8 and 512, got {resolution}")
-    at = "" if time is None else f" t={time:.4g}s"
-    return distance_grid(lambda points: collider.query(points, ["distance"], time=time).distance,
-                         collider.domain_min, collider.domain_max, resolution,
-                         desc=f"{collider.info.name} grid{at}", show_progress=show_progress)
-
-
-def time_step_s(collider: Collider) -> float:
-    """The time slider's step, seconds: a quarter of the shortest frame interval the collider
-    knows (its own frames, or the animation it was made from when that has more)."""
-    rate = max(collider.info.animation["frame_rate_hz"],
-               float(collider.info.source.get("frame_rate_hz", 0.0)))
-    return 1.0 / (STEPS_PER_FRAME * rate)
-
-
-def time_text(timeline: Timeline, t: float) -> str:
-    """Markdown: the time and where it falls among the collider's frames (frame k is at
-    k / frame_rate_hz seconds; between two frames, the fraction)."""
-    k, u, _ = timeline.locate(t)
-    ends = "loops" if timeline.loop else "clamps"
-    return (f"**t = {t:.4g} s**: frame {k + u:.2f} of 0..{timeline.frames - 1} "
-            f"({timeline.frame_rate_hz:g} fps, {timeline.duration_s:g} s, {ends})")
-
-
-class TimeGrids:
-    """An animated collider's distance grids at the time slider's steps (step ``i`` at
-    ``i * step_s`` seconds): each computed on first use and kept, the least recently used
-    dropped beyond ``budget_bytes``. Thread-safe: one grid is computed at a time.
-
-    ``computed`` counts the grids computed and ``compute_s`` the seconds they took."""
-
-    def __init__(self, collider: Collider, resolution: int, step_s: float,
-                 budget_bytes: int = TIME_GRIDS_BYTES):
-        self.collider, self.resolution, self.step_s = collider, resolution, step_s
-        self.keep = max(2, budget_bytes // (4 * resolution ** 3))
-        self._grids: OrderedDict[int, Grid] = OrderedDict()
-        self._lock = threading.Lock()
-        self.computed = 0
-        self.compute_s = 0.0
-
-    def step_of(self, t: float) -> int:
-        return int(round(t / self.step_s))
-
-    def has(self, t: float) -> bool:
-        return self.step_of(t) in self._grids
-
-    def at(self, t: float, show_progress: bool = False) -> Grid:
-        """The grid at the step nearest ``t`` seconds (``show_progress``: a progress bar on
-        stderr while it is computed)."""
-        step = self.step_of(t)
-        with self._lock:
-            grid = self._grids.get(step)
-            if grid is None:
-                started = time.perf_counter()
-                grid = collider_grid(self.collider, self.resolution, show_progress,
-                                     time=step * self.step_s)
-                self.computed += 1
-                self.compute_s += time.perf_counter() - started
-                self._grids[step] = grid
-                while len(self._grids) > self.keep:
-                    self._grids.popitem(last=False)
-            self._grids.move_to_end(step)
-            return grid
-
-
-def surface_error_mm(sdf: ExactSDF, vertices: np.ndarray, level: float,
-                     meters_per_unit: float) -> np.ndarray:
-    """(v,) float64 mm: exact signed distance of each surface vertex minus ``level`` (0 where the
-    collider's level set lies exactly at that distance from the mesh; > 0 outside)."""
-    return (sdf.signed_distance(vertices) - level) * 1e3 * meters_per_unit
 
 
 def error_colors(error_mm: np.ndarray, clip_mm: float) -> np.ndarray:
@@ -149,58 +81,6 @@ def box_segments(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     return box_edges(lo, hi).astype(np.float32)
 
 
-def sphere_trace(collider: Collider, origin: np.ndarray, direction: np.ndarray,
-                 max_steps: int = 200, time: float | None = None) -> np.ndarray | None:
-    """First point where the ray ``origin + s * direction`` (collider frame) reaches the
-    collider's surface (at ``time`` seconds, an animated collider), marching by the distance
-    itself; None when it misses the domain."""
-    lo, hi = collider.domain_min, collider.domain_max
-    direction = direction / np.linalg.norm(direction)
-    # Start where the ray enters the domain box (slab test).
-    with np.errstate(divide="ignore"):
-        inv = 1.0 / direction
-    t0, t1 = (lo - origin) * inv, (hi - origin) * inv
-    near, far = np.minimum(t0, t1).max(), np.maximum(t0, t1).min()
-    if not far > max(near, 0.0):
-        return None
-    s = max(near, 0.0)
-    tolerance = 1e-5 * float(np.max(hi - lo))
-    for _ in range(max_steps):
-        p = origin + s * direction
-        d = float(collider.query(p[None], ["distance"], time=time).distance[0])
-        if d < tolerance:
-            return p
-        s += d
-        if s > far:
-            return None
-    return None
-
-
-def probe_text(collider: Collider, point: np.ndarray, eps: float,
-               time: float | None = None) -> tuple[str, dict]:
-    """Markdown with distance / normal / contact / collides at ``point`` (collider frame and
-    units) and the raw fields; an animated collider is asked at ``time`` seconds and also says
-    the surface's ``velocity`` there (collider units per second)."""
-    names = ["distance", "normal", "contact", "collides"] + (["velocity"] if collider.animated else [])
-    r = collider.query(point[None], names, eps=eps, time=time)
-    mm = 1e3 * collider.info.meters_per_unit
-    fields = {"distance": float(r.distance[0]), "normal": r.normal[0].astype(float),
-              "contact": r.contact[0].astype(float), "collides": bool(r.collides[0])}
-    fmt = lambda v: "(" + ", ".join(f"{x:.5g}" for x in v) + ")"
-    units = collider.info.units
-    at = f" at t = {time:.4g} s" if collider.animated else ""
-    text = (f"**probe** {fmt(point)} {units}{at}  \n"
-            f"distance **{fields['distance'] * mm:.4g} mm**  \n"
-            f"normal {fmt(fields['normal'])}  \n"
-            f"contact {fmt(fields['contact'])}  \n"
-            f"collides **{fields['collides']}** (eps {eps * mm:.3g} mm)")
-    if collider.animated:
-        fields["velocity"] = r.velocity[0].astype(float)
-        speed = float(np.linalg.norm(fields["velocity"])) * mm
-        text += f"  \nvelocity {fmt(fields['velocity'])} {units}/s ({speed:.4g} mm/s)"
-    return text, fields
-
-
 @dataclass
 class ColliderPage:
     """The view of one collider: its started viser server and the controls on its page (viser
@@ -221,6 +101,7 @@ class ColliderPage:
     play: object | None = None  # checkbox: run the time slider on in real time
     time_label: object | None = None  # markdown: the time and the frame
     grids: TimeGrids | None = None  # the animated collider's grids per time step
+    players: list = field(default_factory=list)  # the threads "play" started, the latest last
 
 
 def serve_collider_view(collider: Collider, mesh: Mesh | AnimatedMesh | None, *, host: str,
@@ -235,27 +116,44 @@ def serve_collider_view(collider: Collider, mesh: Mesh | AnimatedMesh | None, *,
         raise ValueError(f"{info.name} is {'animated' if animated else 'static'}: the exact mesh "
                          f"must be {'animated' if animated else 'static'} too")
     if animated:
-        timeline = Timeline.from_dict(info.animation)
         grids = TimeGrids(collider, resolution, time_step_s(collider))
         grid = grids.at(0.0, show_progress)  # the page's first; later ones say "computing"
         exact = ExactAtTimes(mesh) if mesh is not None else None
     else:
         grids, grid = None, collider_grid(collider, resolution, show_progress)
         exact = ExactSDF(mesh) if mesh is not None else None
-    mm = 1e3 * info.meters_per_unit
-    eps = info.default_eps
     server = start_server(host, port, label=f"collider {info.name} ({info.kind})")
     server.scene.set_up_direction(up)
-    lo, hi = grid.lo, grid.hi
-    look_at_box(server, lo, hi, up)
-    scene, gui = server.scene, server.gui
-    scene.add_line_segments("/domain", box_segments(lo, hi), BOX_COLOR,
-                            thickness=1.5, thickness_units="screen")
-    title = gui.add_markdown(f"**{info.name}**: {info.kind} collider, {info.units} "
-                     f"({info.meters_per_unit:g} m per unit), collider frame; "
-                     f"grid {resolution}^3 over the domain box")
-    time_slider = play = time_label = None
+    look_at_box(server, grid.lo, grid.hi, up)
+    server.scene.add_line_segments("/domain", box_segments(grid.lo, grid.hi), BOX_COLOR,
+                                   thickness=1.5, thickness_units="screen")
+    page = _add_controls(server, collider, grids, grid, resolution, with_mesh=mesh is not None)
+    view = _ColliderDrawing(page, collider, mesh, exact, grid, clip_mm)
+    page.probe_button.on_click(lambda _: view.probe(np.asarray(page.probe_point.value, np.float64)))
+    page.eps_button.on_click(lambda _: setattr(page.level, "value", info.default_eps * view.mm))
+    page.level.on_update(view.draw_surface)
+    server.scene.on_pointer_event("click")(view.clicked)
+    if page.show_wire is not None:
+        page.show_wire.on_update(lambda _: view.show_wire())
     if animated:
+        page.time.on_update(view.time_moved)
+        page.play.on_update(view.play_toggled)
+    view.draw_surface()
+    return page
+
+
+def _add_controls(server, collider: Collider, grids: TimeGrids | None, grid, resolution: int,
+                  with_mesh: bool) -> ColliderPage:
+    """The page's controls, in their order on the page, unwired: its :class:`ColliderPage`."""
+    info = collider.info
+    gui = server.gui
+    mm, eps = 1e3 * info.meters_per_unit, info.default_eps
+    title = gui.add_markdown(f"**{info.name}**: {info.kind} collider, {info.units} "
+                             f"({info.meters_per_unit:g} m per unit), collider frame; "
+                             f"grid {resolution}^3 over the domain box")
+    time_slider = play = time_label = None
+    if collider.animated:
+        timeline = Timeline.from_dict(info.animation)
         duration = timeline.duration_s
         time_slider = gui.add_slider("time (s)", 0.0, duration, grids.step_s, 0.0,
                                      hint=f"seconds, 0 to {duration:g}; a step is 1/"
@@ -268,74 +166,92 @@ def serve_collider_view(collider: Collider, mesh: Mesh | AnimatedMesh | None, *,
                                 "the offset surface contacts are projected to")
     eps_button = gui.add_button(f"level = eps ({eps * mm:g} mm)")
     status = gui.add_markdown("")
-    bar = gui.add_html("") if exact is not None else None
-    show_wire = wire = None
-    if mesh is not None:
-        show_wire = gui.add_checkbox("exact mesh wireframe", False)
-        show_wire.on_update(lambda _: setattr(wire, "visible", show_wire.value))
-    state = {"clip": clip_mm, "drawn": None, "wire_at": None, "probed": False, "player": None}
-    lock = threading.Lock()
+    bar = gui.add_html("") if with_mesh else None
+    show_wire = gui.add_checkbox("exact mesh wireframe", False) if with_mesh else None
+    probe_point = gui.add_vector3("probe point", tuple(0.5 * (grid.lo + grid.hi)), step=1e-4,
+                                  hint=f"collider frame, {info.units}; or click the surface")
+    probe_button = gui.add_button("query probe")
+    probe_out = gui.add_markdown("click the surface or type a point")
+    return ColliderPage(server, title, level, eps_button, status, bar, show_wire, probe_point,
+                        probe_button, probe_out, time_slider, play, time_label, grids)
 
-    def now() -> float | None:
+
+class _ColliderDrawing:
+    """What the page's controls do: draw the level surface (coloured by its error against the
+    exact mesh, when given) and the exact wireframe at the time shown, answer the probe, follow
+    the time slider and start the player. Callbacks run in viser's threads: one draw at a time."""
+
+    def __init__(self, page: ColliderPage, collider: Collider, mesh, exact, grid, clip_mm: float | None):
+        self.page, self.collider, self.mesh, self.exact, self.grid = page, collider, mesh, exact, grid
+        info = collider.info
+        self.mm, self.eps = 1e3 * info.meters_per_unit, info.default_eps
+        self.timeline = Timeline.from_dict(info.animation) if collider.animated else None
+        self.clip, self.drawn, self.wire, self.wire_at, self.probed = clip_mm, None, None, None, False
+        self.lock = threading.Lock()
+
+    def now(self) -> float | None:
         """The time shown, seconds: the slider's value on its step (a browser rounds it)."""
-        return grids.step_of(float(time_slider.value)) * grids.step_s if animated else None
+        grids = self.page.grids
+        return grids.step_of(float(self.page.time.value)) * grids.step_s if self.collider.animated else None
 
-    def draw_wire(t: float | None) -> None:
-        nonlocal wire
-        if mesh is None or (wire is not None and state["wire_at"] == t):
+    def show_wire(self) -> None:
+        if self.wire is not None:
+            self.wire.visible = self.page.show_wire.value
+
+    def draw_wire(self, t: float | None) -> None:
+        mesh = self.mesh
+        if mesh is None or (self.wire is not None and self.wire_at == t):
             return
-        vertices = mesh.vertices_at(t) if animated else mesh.vertices
-        wire = scene.add_mesh_simple("/exact_mesh", vertices.astype(np.float32),
-                                     mesh.faces.astype(np.uint32), color=WIRE_COLOR,
-                                     wireframe=True, opacity=0.35, visible=show_wire.value)
-        state["wire_at"] = t
+        vertices = mesh.vertices_at(t) if self.collider.animated else mesh.vertices
+        self.wire = self.page.server.scene.add_mesh_simple(
+            "/exact_mesh", vertices.astype(np.float32), mesh.faces.astype(np.uint32), color=WIRE_COLOR,
+            wireframe=True, opacity=0.35, visible=self.page.show_wire.value)
+        self.wire_at = t
 
-    def draw_surface(_=None) -> None:
+    def draw_surface(self, _=None) -> None:
         import trimesh
 
-        with lock:
+        page, animated, mm = self.page, self.collider.animated, self.mm
+        with self.lock:
             # Callbacks from a dragged slider queue up: draw the slider's latest value once.
-            t, value = now(), float(level.value) / mm
-            if state["drawn"] == (t, value):
+            t, value = self.now(), float(page.level.value) / mm
+            if self.drawn == (t, value):
                 return
-            state["drawn"] = (t, value)
+            self.drawn = (t, value)
             if animated:
-                time_label.content = time_text(timeline, t)
-                if not grids.has(t):
-                    status.content = f"computing the {resolution}^3 grid at t = {t:.4g} s ..."
-            draw_wire(t)
-            surface = level_surface(grids.at(t) if animated else grid, value)
+                page.time_label.content = time_text(self.timeline, t)
+                if not page.grids.has(t):
+                    page.status.content = f"computing the {page.grids.resolution}^3 grid at t = {t:.4g} s ..."
+            self.draw_wire(t)
+            surface = level_surface(page.grids.at(t) if animated else self.grid, value)
             if surface is None:
-                status.content = f"no surface at level {level.value:.3g} mm in the domain"
+                page.status.content = f"no surface at level {page.level.value:.3g} mm in the domain"
                 return
             verts, faces = surface
             shown = trimesh.Trimesh(verts, faces, process=False)
-            text = f"surface at level {level.value:.3g} mm: {len(faces):,} triangles"
-            if exact is not None:
-                sdf = exact.at(t)[0] if animated else exact
-                error = surface_error_mm(sdf, verts, value, info.meters_per_unit)
-                if state["clip"] is None:  # fixed from the first surface so colours compare
-                    state["clip"] = max(float(np.percentile(np.abs(error), 95)), 1e-3)
-                shown.visual.vertex_colors = np.c_[error_colors(error, state["clip"]),
+            text = f"surface at level {page.level.value:.3g} mm: {len(faces):,} triangles"
+            if self.exact is not None:
+                sdf = self.exact.at(t)[0] if animated else self.exact
+                error = surface_error_mm(sdf, verts, value, self.collider.info.meters_per_unit)
+                if self.clip is None:  # fixed from the first surface so colours compare
+                    self.clip = max(float(np.percentile(np.abs(error), 95)), 1e-3)
+                shown.visual.vertex_colors = np.c_[error_colors(error, self.clip),
                                                    np.full(len(verts), 255, np.uint8)]
-                bar.content = colour_bar_html(state["clip"])
+                page.bar.content = colour_bar_html(self.clip)
                 text += (f"  \nerror vs exact mesh: mean |e| {np.abs(error).mean():.3g} mm, "
                          f"max {np.abs(error).max():.3g} mm")
             else:
                 shown.visual.vertex_colors = np.array([*PLAIN_COLOR, 255], np.uint8)
-            scene.add_mesh_trimesh("/surface", shown)
-            status.content = text
+            page.server.scene.add_mesh_trimesh("/surface", shown)
+            page.status.content = text
 
-    probe_point = gui.add_vector3("probe point", tuple(0.5 * (lo + hi)), step=1e-4,
-                                  hint=f"collider frame, {info.units}; or click the surface")
-    probe_button = gui.add_button("query probe")
-    probe_out = gui.add_markdown("click the surface or type a point")
-
-    def probe(point: np.ndarray) -> None:
-        text, fields = probe_text(collider, point, eps, now())
-        probe_out.content = text
-        state["probed"] = True
+    def probe(self, point: np.ndarray) -> None:
+        text, fields = probe_text(self.collider, point, self.eps, self.now())
+        self.page.probe_out.content = text
+        self.probed = True
+        lo, hi = self.grid.lo, self.grid.hi
         arrow = float(np.max(hi - lo)) * 0.15
+        scene = self.page.server.scene
         scene.add_line_segments(
             "/probe/normal", np.array([[point, point + arrow * fields["normal"]]], np.float32),
             PROBE_COLOR, thickness=3.0, thickness_units="screen")
@@ -343,39 +259,26 @@ def serve_collider_view(collider: Collider, mesh: Mesh | AnimatedMesh | None, *,
                               np.array([PROBE_COLOR, (20, 160, 60)], np.uint8),
                               point_size=0.01 * float(np.max(hi - lo)), point_shape="circle")
 
-    probe_button.on_click(lambda _: probe(np.asarray(probe_point.value, np.float64)))
-    eps_button.on_click(lambda _: setattr(level, "value", eps * mm))
-    level.on_update(draw_surface)
-
-    @scene.on_pointer_event("click")
-    def _(event) -> None:
-        hit = sphere_trace(collider, np.asarray(event.ray_origin, np.float64),
-                           np.asarray(event.ray_direction, np.float64), time=now())
+    def clicked(self, event) -> None:
+        """A click on the canvas: the ray traced to the surface at the time shown, probed there."""
+        hit = sphere_trace(self.collider, np.asarray(event.ray_origin, np.float64),
+                           np.asarray(event.ray_direction, np.float64), time=self.now())
         if hit is None:
-            probe_out.content = "the click missed the collider"
+            self.page.probe_out.content = "the click missed the collider"
             return
-        probe_point.value = tuple(hit)
-        probe(hit)
+        self.page.probe_point.value = tuple(hit)
+        self.probe(hit)
 
-    if animated:
-        def time_moved(_) -> None:
-            draw_surface()
-            if state["probed"]:  # a probe shown: answer it at the new time
-                probe(np.asarray(probe_point.value, np.float64))
+    def time_moved(self, _) -> None:
+        self.draw_surface()
+        if self.probed:  # a probe shown: answer it at the new time
+            self.probe(np.asarray(self.page.probe_point.value, np.float64))
 
-        def play_toggled(_) -> None:
-            player = state["player"]
-            if play.value and (player is None or not player.is_alive()):
-                state["player"] = threading.Thread(target=run_time, args=(time_slider, play),
-                                                   daemon=True)
-                state["player"].start()
-
-        time_slider.on_update(time_moved)
-        play.on_update(play_toggled)
-
-    draw_surface()
-    return ColliderPage(server, title, level, eps_button, status, bar, show_wire, probe_point,
-                        probe_button, probe_out, time_slider, play, time_label, grids)
+    def play_toggled(self, _) -> None:
+        players, play = self.page.players, self.page.play
+        if play.value and (not players or not players[-1].is_alive()):
+            players.append(threading.Thread(target=run_time, args=(self.page.time, play), daemon=True))
+            players[-1].start()
 
 
 def run_time(time_slider, play) -> None:

@@ -17,6 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from collider_contract import Timeline
+from collider_contract.animation import segment_at
 
 from .meshes import ExactSDF, Mesh, edge_index
 
@@ -30,6 +31,8 @@ class AnimatedMesh:
     timeline : when the frames are (rate, loop or clamp)
     name : the mesh file's stem; sha256 : the mesh file's digest ("" for a generated one)
     cache, cache_sha256 : the vertex cache's file name (a PC2 file or an OBJ pattern) and digest
+    cache_timing : a PC2 cache's header: (start frame, sample rate), recorded, not applied (the
+        frames play at ``timeline.frame_rate_hz``; docs/animation.md); None for other sources
     """
 
     frames: np.ndarray
@@ -39,6 +42,7 @@ class AnimatedMesh:
     sha256: str = ""
     cache: str = ""
     cache_sha256: str = ""
+    cache_timing: tuple[float, float] | None = None
 
     def __post_init__(self):
         frames = np.asarray(self.frames)
@@ -64,8 +68,7 @@ class AnimatedMesh:
     def at_frame(self, position: float) -> Mesh:
         """The surface at a fractional frame ``position`` in ``[0, F - 1]`` (frame k at k),
         whatever the timeline's loop rule (a looping animation's last frame included)."""
-        k = min(int(np.floor(position)), len(self.frames) - 2)
-        u = min(max(position - k, 0.0), 1.0)
+        k, u = segment_at(position, len(self.frames))
         return Mesh(interpolate(self.frames[k], self.frames[k + 1], u), self.faces, self.name,
                     self.sha256)
 
@@ -87,7 +90,7 @@ class AnimatedMesh:
         timeline = Timeline(self.timeline.frames, self.timeline.frame_rate_hz, self.timeline.loop,
                             self.timeline.max_surface_speed * scale)
         return AnimatedMesh(frames, faces, timeline, self.name, self.sha256, self.cache,
-                            self.cache_sha256)
+                            self.cache_sha256, self.cache_timing)
 
 
 def max_surface_speed(frames: np.ndarray, frame_rate_hz: float) -> float:

@@ -27,7 +27,7 @@ from typing import ClassVar
 
 import numpy as np
 
-from collider_contract import DEFAULT_EPS_METERS, ModelQuery, Pose, QueryResult, answer_model_query
+from collider_contract import IDENTITY, ModelQuery, Pose, QueryResult, answer_model_query, default_eps
 
 
 @dataclass
@@ -78,9 +78,9 @@ class ColliderInfo:
 
     @property
     def default_eps(self) -> float:
-        """1 mm expressed in the collider's units (the contract's default eps under an
-        unscaled pose)."""
-        return DEFAULT_EPS_METERS / self.meters_per_unit
+        """1 mm expressed in the collider's units: the contract's default eps
+        (:func:`collider_contract.default_eps`) under an unscaled pose."""
+        return default_eps(self.meters_per_unit, IDENTITY)
 
 
 def unit_vectors(vectors: np.ndarray, fallback: np.ndarray) -> np.ndarray:

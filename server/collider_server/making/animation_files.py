@@ -22,7 +22,7 @@ import numpy as np
 
 from collider_contract import Timeline
 from collider_contract.animation import MAX_FRAME_RATE_HZ, is_frame_rate
-from collider_contract.point_cache import read_pc2
+from collider_contract.point_cache import read_pc2, read_pc2_header
 
 from ..engine.animated_meshes import AnimatedMesh, max_surface_speed
 from ..engine.meshes import Mesh
@@ -100,9 +100,10 @@ def _parse_obj(path: Path, want_faces: bool) -> tuple[np.ndarray, np.ndarray | N
     return vertices, np.array(triangles, dtype=np.int64)
 
 
-def read_cache(cache: str | Path, mesh: Mesh) -> tuple[np.ndarray, str]:
-    """The frames of ``cache`` for ``mesh`` (read by :func:`read_obj`): (F, v, 3) float64 and
-    the cache's sha256 (a sequence: over its files' digests in order).
+def read_cache(cache: str | Path, mesh: Mesh) -> tuple[np.ndarray, str, tuple[float, float] | None]:
+    """The frames of ``cache`` for ``mesh`` (read by :func:`read_obj`): (F, v, 3) float64, the
+    cache's sha256 (a sequence: over its files' digests in order) and a PC2 file's header
+    (start frame, sample rate), None for a sequence.
 
     cache : a ``.pc2`` file, or a glob pattern of OBJ files (``'frames/*.obj'``; the files are
         ordered by the last number in their names) whose faces are ``mesh``'s"""
@@ -114,6 +115,7 @@ def read_cache(cache: str | Path, mesh: Mesh) -> tuple[np.ndarray, str]:
         raise AnimationError(f"{path}: an animation is a .pc2 vertex cache or a pattern of OBJ "
                              "files such as 'frames/*.obj'")
     try:
+        header = read_pc2_header(path)
         frames = read_pc2(path)
     except ValueError as exc:
         raise AnimationError(str(exc)) from None
@@ -122,7 +124,7 @@ def read_cache(cache: str | Path, mesh: Mesh) -> tuple[np.ndarray, str]:
                              f"has {len(mesh.vertices):,} vertices: it is not a cache of this mesh")
     frames = np.asarray(frames, dtype=np.float64)
     _check_frames(frames, path)
-    return frames, file_sha256(path)
+    return frames, file_sha256(path), (header.start_frame, header.sample_rate)
 
 
 def _read_sequence(pattern: str, mesh: Mesh) -> tuple[np.ndarray, str]:
@@ -142,7 +144,7 @@ def _read_sequence(pattern: str, mesh: Mesh) -> tuple[np.ndarray, str]:
         frames[i] = vertices
         digest.update(file_sha256(path).encode())
     _check_frames(frames, pattern)
-    return frames, digest.hexdigest()
+    return frames, digest.hexdigest(), None
 
 
 def _frame_order(path: Path):
@@ -174,7 +176,7 @@ def load_animation(mesh_path: str | Path, cache: str | Path, frame_rate_hz: floa
         raise AnimationError(f"{mesh_path}: an animated mesh is an OBJ file (its vertex order is "
                              "the cache's)")
     mesh = read_obj(mesh_path)
-    frames, cache_sha = read_cache(cache, mesh)
+    frames, cache_sha, cache_timing = read_cache(cache, mesh)
     faces = mesh.faces
     try:
         volume = check_has_volume(Mesh(frames[0], faces), f"{cache} (frame 0)")
@@ -184,7 +186,24 @@ def load_animation(mesh_path: str | Path, cache: str | Path, frame_rate_hz: floa
         faces = faces[:, ::-1].copy()
     timeline = Timeline(len(frames), rate, bool(loop), max_surface_speed(frames, rate))
     return AnimatedMesh(frames, faces, timeline, mesh.name, mesh.sha256, Path(str(cache)).name,
-                        cache_sha)
+                        cache_sha, cache_timing)
+
+
+#: What this project writes in a PC2 header and expects: the first sample at scene frame 0, one
+#: sample per scene frame.
+PC2_DEFAULT_TIMING = (0.0, 1.0)
+
+
+def cache_timing_warning(animation: AnimatedMesh) -> str | None:
+    """A line saying that a PC2 cache's header asks for another start frame or sample rate than
+    :data:`PC2_DEFAULT_TIMING` and that they are not applied (sample k plays at k / fps
+    seconds), or None where there is nothing to say."""
+    if animation.cache_timing is None or tuple(animation.cache_timing) == PC2_DEFAULT_TIMING:
+        return None
+    start, rate = animation.cache_timing
+    return (f"{animation.cache}: its header says start frame {start:g}, sample rate {rate:g}; neither is "
+            f"applied: sample k plays at k / fps seconds from 0 (give --fps the rate of the samples, "
+            f"docs/animation.md)")
 
 
 def _load_usd_animation(stage: Path, cache: Path, rate: float, loop: bool) -> AnimatedMesh:

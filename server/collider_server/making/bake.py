@@ -150,10 +150,14 @@ ANIMATED_KINDS = ("mesh", "voxel")
 
 def animation_source(animation: AnimatedMesh, transform: np.ndarray | None = None) -> dict:
     """Metadata of an animated source (``ColliderInfo.source``): the mesh's, and the vertex
-    cache's file name and sha256, its frame count and rate."""
-    return {**mesh_source(animation.frame(0), transform), "cache": animation.cache,
-            "cache_sha256": animation.cache_sha256, "frames": int(animation.timeline.frames),
-            "frame_rate_hz": float(animation.timeline.frame_rate_hz)}
+    cache's file name and sha256, its frame count and rate, and a PC2 cache's header timing
+    (``cache_start_frame``, ``cache_sample_rate``: recorded, not applied)."""
+    source = {**mesh_source(animation.frame(0), transform), "cache": animation.cache,
+              "cache_sha256": animation.cache_sha256, "frames": int(animation.timeline.frames),
+              "frame_rate_hz": float(animation.timeline.frame_rate_hz)}
+    if animation.cache_timing is not None:
+        source["cache_start_frame"], source["cache_sample_rate"] = map(float, animation.cache_timing)
+    return source
 
 
 def keyframe_positions(frames: int, keyframes: int) -> np.ndarray:

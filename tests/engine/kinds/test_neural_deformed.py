@@ -19,7 +19,7 @@ from collider_contract import Timeline
 from collider_server.engine.collider import ColliderInfo
 from collider_server.engine.kinds import AnimatedNeuralCollider, grid_kernels
 from collider_server.engine.kinds.neural import ANIMATED_PRESETS, PRESETS, architecture_dict, build_network
-from collider_server.engine.kinds.neural_deformed import DeformedGridArchitecture, trilinear
+from collider_server.engine.kinds.neural_deformed import DeformedGridArchitecture, field_corners, trilinear
 from collider_server.engine.kinds.neural_grid import GridArchitecture
 from collider_server.engine.kinds.neural_keyframes import keyframe_segments
 from collider_server.engine.modelfile import load_collider, save_collider
@@ -93,7 +93,7 @@ def test_the_torch_warp_is_the_numpy_rule_of_the_fit():
     expected = u + (weight[..., None] * field[nodes]).sum(axis=1)
     expected_jacobian = np.eye(3) + np.einsum("ncd,nce->nde", field[nodes], dweight)
     inside = (np.abs(u) <= 1.0).all(axis=1)
-    t_nodes, t_weight, t_dweight = network.field_corners(torch.from_numpy(u))
+    t_nodes, t_weight, t_dweight = field_corners(torch.from_numpy(u), SMALL["deformation_resolution"])
     rest, jacobian = network.warp(torch.from_numpy(u), network.deformation[2].double()[t_nodes], t_weight,
                                   t_dweight)
     assert np.array_equal(t_nodes.numpy(), nodes)

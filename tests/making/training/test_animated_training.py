@@ -160,8 +160,8 @@ def test_a_deformed_rest_pose_learns_the_pulsing_sphere_and_its_velocity(sphere,
 
 
 def run_cli(*args):
-    return subprocess.run([sys.executable, "-m", "collider_cli", *args], capture_output=True, text=True,
-                          timeout=300)
+    """``collider ARGS`` in a subprocess; the test's timeout (pytest-timeout) is its deadline."""
+    return subprocess.run([sys.executable, "-m", "collider_cli", *args], capture_output=True, text=True)
 
 
 def test_train_an_animation_through_the_cli(tmp_path):

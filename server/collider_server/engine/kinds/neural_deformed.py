@@ -42,7 +42,8 @@ from typing import ClassVar
 import numpy as np
 
 from . import grid_kernels
-from .neural_grid import CORNERS, GridArchitecture, grid_network_class
+from .grid_cells import cell_corners, dense_row
+from .neural_grid import GridArchitecture, grid_network_class
 
 #: The stretch's bounds: beyond them the warp is degenerate, not a deformation of the surface.
 STRETCH_BOUNDS = (0.1, 10.0)
@@ -83,21 +84,23 @@ def trilinear(u: np.ndarray, resolution: int) -> tuple[np.ndarray, np.ndarray, n
     """Nodes (n, 8) int64, weights (n, 8) and weight derivatives d weight / d u (n, 8, 3) of the
     trilinear interpolation at normalised points ``u`` (n, 3) (clamped into [-1, 1]) on a grid of
     ``resolution`` cells per side over [-1, 1]^3, node ``(i, j, k)`` at row ``i + s (j + s k)``,
-    ``s = resolution + 1``. The numpy twin of the network's torch warp (the fit uses it)."""
-    side = resolution + 1
-    u = np.asarray(u, np.float64)
-    position = np.clip((u + 1.0) * 0.5, 0.0, 1.0) * resolution
-    cell = np.minimum(np.floor(position), resolution - 1)
-    t = position - cell
-    w = np.stack([1.0 - t, t], axis=-1)  # (n, 3, 2)
-    dw = np.stack([-np.ones_like(t), np.ones_like(t)], axis=-1) * (0.5 * resolution)
-    ox, oy, oz = CORNERS[:, 0], CORNERS[:, 1], CORNERS[:, 2]
-    wx, wy, wz = w[:, 0, ox], w[:, 1, oy], w[:, 2, oz]
-    weight = wx * wy * wz
-    dweight = np.stack([dw[:, 0, ox] * wy * wz, wx * dw[:, 1, oy] * wz, wx * wy * dw[:, 2, oz]], axis=-1)
-    dweight = dweight * (np.abs(u) <= 1.0)[:, None, :]  # clamped axes do not move the field
-    ijk = cell.astype(np.int64)[:, None, :] + CORNERS[None]
-    return ijk[..., 0] + side * (ijk[..., 1] + side * ijk[..., 2]), weight, dweight
+    ``s = resolution + 1``: float64 numpy, the network's warp (:func:`field_corners`) on arrays
+    (the fit uses it)."""
+    import torch
+
+    u = torch.from_numpy(np.asarray(u, np.float64))
+    return tuple(a.numpy() for a in field_corners(u, resolution))
+
+
+def field_corners(u, resolution: int):
+    """Nodes (n, 8) int64, weights (n, 8) and d weights / d u (n, 8, 3) of a deformation grid of
+    ``resolution`` cells per side at normalised points ``u`` (n, 3) (torch, clamped into
+    [-1, 1]): :func:`.grid_cells.cell_corners` at one trilinear level, nodes in a dense table."""
+    import torch
+
+    ijk, weight, dweight = cell_corners(u, torch.tensor([resolution], dtype=u.dtype, device=u.device), False)
+    ijk, weight, dweight = ijk[:, 0], weight[:, 0], dweight[:, 0]
+    return dense_row(ijk[..., 0], ijk[..., 1], ijk[..., 2], resolution + 1), weight, dweight
 
 
 def build_deformed_network(arch: DeformedGridArchitecture, centre, radius: float):
@@ -107,7 +110,6 @@ def build_deformed_network(arch: DeformedGridArchitecture, centre, radius: float
 
     base = grid_network_class(arch.spatial())
     resolution = arch.deformation_resolution
-    side = resolution + 1
 
     class DeformedGridSDF(base):
         """``deformation``: (K, nodes, 3) inverse deformation fields (normalised units; a buffer,
@@ -119,22 +121,6 @@ def build_deformed_network(arch: DeformedGridArchitecture, centre, radius: float
 
         # -- the warp ---------------------------------------------------------------------------
 
-        def field_corners(self, u):
-            """Nodes (n, 8), weights (n, 8), d weights / d u (n, 8, 3) of the deformation grid at
-            normalised points ``u`` (n, 3): :func:`trilinear` in torch."""
-            position = ((u.clamp(-1.0, 1.0) + 1.0) * 0.5) * resolution
-            cell = position.floor().clamp_(max=resolution - 1)
-            t = position - cell
-            w = torch.stack([1.0 - t, t], dim=-1)
-            dw = torch.stack([-torch.ones_like(t), torch.ones_like(t)], dim=-1) * (0.5 * resolution)
-            ox, oy, oz = self.corners[:, 0], self.corners[:, 1], self.corners[:, 2]
-            wx, wy, wz = w[:, 0, ox], w[:, 1, oy], w[:, 2, oz]
-            dweight = torch.stack([dw[:, 0, ox] * wy * wz, wx * dw[:, 1, oy] * wz, wx * wy * dw[:, 2, oz]], dim=-1)
-            # Clamped axes do not move the warp: their derivative is 0.
-            dweight = dweight * (u.abs() <= 1.0).to(u.dtype)[:, None, :]
-            ijk = cell.long()[:, None, :] + self.corners[None]
-            return ijk[..., 0] + side * (ijk[..., 1] + side * ijk[..., 2]), wx * wy * wz, dweight
-
         def warp(self, u, values, weight, dweight):
             """Rest-pose points ``X`` (n, 3) and ``J = dX/du`` (n, 3, 3) (row: X's component) from
             the corner values (n, 8, 3) of the field at normalised points ``u`` (n, 3)."""
@@ -144,7 +130,7 @@ def build_deformed_network(arch: DeformedGridArchitecture, centre, radius: float
 
         def warp_at(self, u, key, frac):
             """:meth:`warp` with point i at keyframe segment ``key[i]``, fraction ``frac[i]``."""
-            nodes, weight, dweight = self.field_corners(u)
+            nodes, weight, dweight = field_corners(u, resolution)
             s = frac[:, None, None]
             values = (1.0 - s) * self.deformation[key[:, None], nodes] + s * self.deformation[key[:, None] + 1, nodes]
             return self.warp(u, values, weight, dweight)
@@ -187,7 +173,7 @@ def build_deformed_network(arch: DeformedGridArchitecture, centre, radius: float
             if fused:
                 rest_u, jacobian, velocity = self._fused_warp(u, field, dfield, want_gradient)
             else:
-                nodes, weight, dweight = self.field_corners(u)
+                nodes, weight, dweight = field_corners(u, resolution)
                 rest_u, jacobian = self.warp(u, field[nodes], weight, dweight)
                 if want_gradient:  # d X / dt at fixed x; the material point (X fixed) moves at -J^-1 dX/dt
                     rest_rate = (weight[..., None] * dfield[nodes]).sum(dim=1)

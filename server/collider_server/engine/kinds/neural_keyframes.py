@@ -28,6 +28,7 @@ from typing import ClassVar
 import numpy as np
 
 from . import grid_kernels
+from .fused_encoding import fused_encoding
 from .neural_grid import GridArchitecture, grid_network_class
 
 
@@ -67,49 +68,6 @@ def keyframe_segments(times, duration_s: float, keyframes: int):
     return key, (position - key).astype(np.float32)
 
 
-def _keyframe_encoding_class():
-    import torch
-
-    class KeyframeEncoding(torch.autograd.Function):
-        """The numba keyframe encoding as an autograd function: gradients reach the tables."""
-
-        @staticmethod
-        def forward(ctx, u, key, frac, tables, spec, want_jacobian: bool):
-            u_np = u.detach().numpy()
-            n = len(u_np)
-            features = np.empty((n, spec.levels, spec.features), np.float32)
-            jacobian = np.empty((n if want_jacobian else 0, spec.levels, spec.features, 3), np.float32)
-            grid_kernels.encode_keyframes(u_np, key.numpy(), frac.numpy(), tables.detach().numpy(),
-                                          spec.resolution, spec.offset, spec.rows, spec.dense, spec.smooth,
-                                          want_jacobian, features, jacobian)
-            ctx.save_for_backward(u, key, frac, tables)
-            ctx.spec, ctx.want_jacobian = spec, want_jacobian
-            return torch.from_numpy(features), torch.from_numpy(jacobian)
-
-        @staticmethod
-        def backward(ctx, grad_features, grad_jacobian):
-            u, key, frac, tables = ctx.saved_tensors
-            spec = ctx.spec
-            grad_tables = np.zeros(tuple(tables.shape), np.float32)
-            grid_kernels.encode_keyframes_backward(
-                u.detach().numpy(), key.numpy(), frac.numpy(), spec.resolution, spec.offset, spec.rows,
-                spec.dense, spec.smooth, grad_features.contiguous().numpy(), grad_jacobian.contiguous().numpy(),
-                ctx.want_jacobian, grad_tables)
-            return None, None, None, torch.from_numpy(grad_tables), None, None
-
-    return KeyframeEncoding
-
-
-_encoding_class = None
-
-
-def _keyframe_encoding():
-    global _encoding_class
-    if _encoding_class is None:  # built on first use: the module imports without torch
-        _encoding_class = _keyframe_encoding_class()
-    return _encoding_class
-
-
 def build_keyframe_network(arch: KeyframeGridArchitecture, centre, radius: float):
     """The torch module for ``arch`` (centre (3,) and radius: the normalisation, collider frame
     and units); see the module docstring."""
@@ -133,8 +91,8 @@ def build_keyframe_network(arch: KeyframeGridArchitecture, centre, radius: float
             ``key[i]`` (int64) and fraction ``frac[i]`` (float32), and when asked their Jacobian
             d features / d u (n, L, F, 3) (else None). Fused on a CPU with numba, else torch."""
             if self.can_fuse(u):
-                features, jacobian = _keyframe_encoding().apply(
-                    u.contiguous(), key.contiguous(), frac.contiguous(), self.table, self.spec, want_jacobian)
+                features, jacobian = fused_encoding(u.contiguous(), self.table, self.spec, want_jacobian,
+                                                    key.contiguous(), frac.contiguous())
                 return features, (jacobian if want_jacobian else None)
             rows, weight, dweight = self.corner_rows(u)
             b = frac[:, None, None, None]

@@ -14,6 +14,7 @@ import numpy as np
 
 from ..collider import Collider, ColliderInfo
 from ..devices import resolve_device
+from .grid_cells import trilerp
 
 MIN_RESOLUTION, MAX_RESOLUTION = 8, 1024
 
@@ -75,31 +76,15 @@ class VoxelCollider(Collider):
     def _trilinear(self, g, index, t, want_gradient):
         """The trilinear interpolant of the flat grid ``g`` in the cells :meth:`_cells` found:
         ``(distance (m,), gradient (m, 3) or None)``, float64 numpy, collider units."""
-        torch = self._torch
         sx, sy, sz = self._strides
         # Corner values c{ijk}, i/j/k = offset along x/y/z.
-        c000, c001 = g[index], g[index + sz]
-        c010, c011 = g[index + sy], g[index + sy + sz]
-        c100, c101 = g[index + sx], g[index + sx + sz]
-        c110, c111 = g[index + sx + sy], g[index + sx + sy + sz]
-        tx, ty, tz = t[:, 0], t[:, 1], t[:, 2]
-        # Interpolate along z, then y, then x.
-        c00 = c000 + (c001 - c000) * tz
-        c01 = c010 + (c011 - c010) * tz
-        c10 = c100 + (c101 - c100) * tz
-        c11 = c110 + (c111 - c110) * tz
-        c0 = c00 + (c01 - c00) * ty
-        c1 = c10 + (c11 - c10) * ty
-        distance = c0 + (c1 - c0) * tx
+        c000, c100, c010, c110 = g[index], g[index + sx], g[index + sy], g[index + sx + sy]
+        c001, c101, c011, c111 = g[index + sz], g[index + sx + sz], g[index + sy + sz], g[index + sx + sy + sz]
+        distance, dx, dy, dz = trilerp(c000, c100, c010, c110, c001, c101, c011, c111, t[:, 0], t[:, 1], t[:, 2])
         if not want_gradient:
             return distance.double().cpu().numpy(), None
-        # Analytic partial derivatives of the trilinear interpolant, per unit of grid coordinate.
-        dx = c1 - c0
-        dy = (c01 - c00) * (1 - tx) + (c11 - c10) * tx
-        dz_0 = (c001 - c000) * (1 - ty) + (c011 - c010) * ty
-        dz_1 = (c101 - c100) * (1 - ty) + (c111 - c110) * ty
-        dz = dz_0 * (1 - tx) + dz_1 * tx
-        gradient = torch.stack([dx, dy, dz], dim=1).double().cpu().numpy() / self._spacing
+        # d/dt per unit of grid coordinate, over the spacing: per unit of length.
+        gradient = self._torch.stack([dx, dy, dz], dim=1).double().cpu().numpy() / self._spacing
         return distance.double().cpu().numpy(), gradient
 
     def tensors(self):

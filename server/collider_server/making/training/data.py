@@ -105,20 +105,15 @@ def make_animated_training_data(animation: AnimatedMesh, config: TrainConfig, me
     its duration (seconds), with the exact distances and gradients of the interpolated mesh at
     their time (:class:`ExactAtTimes`): per time, near-surface samples first, then uniform in the
     padded box of every frame."""
-    rng = np.random.default_rng(config.seed)
     margin = config.margin_m / meters_per_unit if config.margin_m else default_margin(animation, meters_per_unit)
     box = padded_box(animation, config.padding)
     count = max(min(MIN_TIMES, config.samples // 100), config.samples // SAMPLES_PER_TIME, 2)
-    times = rng.uniform(0.0, animation.timeline.duration_s, count)
     sizes = np.full(count, config.samples // count)
     sizes[: config.samples - sizes.sum()] += 1
-    exact = ExactAtTimes(animation, keep=1)
     parts = []
     with progress(config.samples, f"exact SDF of samples at {count} times", "pt", show_progress) as bar:
-        for i, (t, n) in enumerate(zip(times, sizes)):
-            sdf, _, _ = exact.at(float(t))
-            points, near = sample_points(sdf.mesh, int(n), config, margin, meters_per_unit,
-                                         config.seed + 1000 * (i + 1), box)
+        for (t, sdf, seed), n in zip(random_times(animation, count, config.seed, 1000), sizes, strict=True):
+            points, near = sample_points(sdf.mesh, int(n), config, margin, meters_per_unit, seed, box)
             distance, gradient = exact_values(sdf, points)
             parts.append((points, distance, gradient, near, np.full(len(points), t)))
             bar.update(int(n))
@@ -132,19 +127,26 @@ def animated_validation_sets(animation: AnimatedMesh, n: int, seed: int, meters_
     """Points in the +-1 mm and +-10 mm bands at ``times`` random times (seconds, uniform over the
     duration; ``n`` points per band in all): ``{band: (points float32, distance float32, times
     float64)}``, exact distances of the interpolated mesh at each point's time."""
-    rng = np.random.default_rng(seed)
-    when = rng.uniform(0.0, animation.timeline.duration_s, times)
-    exact = ExactAtTimes(animation, keep=1)
     per_time = max(1, n // times)
     parts: dict[str, list] = {}
-    for i, t in enumerate(when):
-        sdf, _, _ = exact.at(float(t))
-        for name, p in band_sets(sdf.mesh, per_time, seed + 10 * (i + 1), meters_per_unit).items():
+    for t, sdf, seed_at in random_times(animation, times, seed, 10):
+        for name, p in band_sets(sdf.mesh, per_time, seed_at, meters_per_unit).items():
             parts.setdefault(name[len("band_"):], []).append((p, sdf.signed_distance(p), np.full(len(p), t)))
     return {name: (np.concatenate([a[0] for a in sets]).astype(np.float32),
                    np.concatenate([a[1] for a in sets]).astype(np.float32),
                    np.concatenate([a[2] for a in sets]))
             for name, sets in parts.items()}
+
+
+def random_times(animation: AnimatedMesh, count: int, seed: int, stride: int):
+    """``count`` times (seconds, uniform over the animation's duration, drawn with ``seed``),
+    each as ``(t, exact SDF of the interpolated mesh at t, t's own seed)``: the i-th time's seed
+    is ``seed + stride * (i + 1)``, so that every time samples its points independently."""
+    when = np.random.default_rng(seed).uniform(0.0, animation.timeline.duration_s, count)
+    exact = ExactAtTimes(animation, keep=1)
+    for i, t in enumerate(when):
+        sdf, _, _ = exact.at(float(t))
+        yield t, sdf, seed + stride * (i + 1)
 
 
 def validation_sets(mesh: Mesh, sdf: ExactSDF, n: int, seed: int, meters_per_unit: float) -> dict:

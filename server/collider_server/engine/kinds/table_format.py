@@ -1,0 +1,96 @@
+"""How a model file stores a grid network's feature table (``GridArchitecture.table_dtype``):
+float16, float32, or 8 bits (the hashed levels as int8 codes with one scale per level and
+feature, the dense levels as float16). :func:`pack_table` writes, :func:`unpack_table` reads."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .grid_architecture import GridArchitecture
+
+#: The quantile of a hashed level's |feature values| that its 8-bit codes reach (``int8``); the
+#: rarer larger values are clipped to it. Scaling by the maximum instead left most values a
+#: coarser step (docs/neural.md: "8-bit tables").
+INT8_QUANTILE = 0.999
+
+
+def pack_table(table: np.ndarray, arch: GridArchitecture) -> dict[str, np.ndarray]:
+    """The feature table (..., rows, F) float32 as a model file stores it (``arch.table_dtype``):
+    ``{"table": ...}`` in float16 or float32, or for ``int8`` the dense levels' rows as float16
+    (``table_dense``: the coarse levels, few rows, to which the distance is most sensitive) and
+    the hashed levels' rows as int8 codes (``table_codes``) times one float32 scale per level and
+    feature (``table_scales`` (hashed levels, F)): the value is ``code * scale``, the scale the
+    level's :data:`INT8_QUANTILE` of |value| / 127. :func:`unpack_table` inverts it."""
+    if arch.table_dtype != "int8":
+        return {"table": table.astype(arch.table_dtype)}
+    dense_rows, codes, scales = [], [], []
+    for rows, dense in _level_slices(arch):
+        block = table[..., rows, :]
+        if dense:
+            dense_rows.append(block.astype(np.float16))
+            continue
+        flat = np.abs(block).reshape(-1, block.shape[-1])
+        scale = np.quantile(flat, INT8_QUANTILE, axis=0).astype(np.float32) / 127
+        # A table that was loaded from 8 bits is kept on its own steps (its largest value is code
+        # 127), so that loading and saving again changes nothing.
+        peak = flat.max(axis=0) / np.float32(127)
+        steps = flat / np.where(peak > 0, peak, 1.0)
+        coded = (np.abs(steps - np.rint(steps)) < 1e-3).all(axis=0)
+        scale = np.where(coded, peak, scale)
+        scale = np.where(scale > 0, scale, np.float32(1.0))  # an all-zero level: any scale
+        codes.append(np.clip(np.rint(block / scale), -127, 127).astype(np.int8))
+        scales.append(scale)
+    features = table.shape[-1]
+    return {"table_dense": np.concatenate(dense_rows, axis=-2) if dense_rows
+            else np.zeros((*table.shape[:-2], 0, features), np.float16),
+            "table_codes": np.concatenate(codes, axis=-2) if codes
+            else np.zeros((*table.shape[:-2], 0, features), np.int8),
+            "table_scales": np.asarray(scales, np.float32).reshape(len(scales), features)}
+
+
+def unpack_table(tensors: dict[str, np.ndarray], arch: GridArchitecture) -> dict[str, np.ndarray]:
+    """A copy of ``tensors`` with the table as :func:`pack_table` stored it turned back into
+    ``"table"`` (..., rows, F) float32. Raises ValueError when the stored parts do not fit ``arch``."""
+    tensors = dict(tensors)
+    if arch.table_dtype != "int8":
+        return tensors
+    try:
+        dense = np.asarray(tensors.pop("table_dense"))
+        codes = np.asarray(tensors.pop("table_codes"))
+        scales = np.asarray(tensors.pop("table_scales"))
+    except KeyError as exc:
+        raise ValueError(f"an int8 table needs table_dense, table_codes and table_scales; "
+                         f"{exc.args[0]} is missing") from None
+    levels = _level_slices(arch)
+    hashed = [rows for rows, is_dense in levels if not is_dense]
+    expected_dense = sum(rows.stop - rows.start for rows, is_dense in levels if is_dense)
+    expected_codes = sum(rows.stop - rows.start for rows in hashed)
+    features = arch.features
+    if (codes.dtype != np.int8 or dense.ndim < 2 or codes.ndim != dense.ndim
+            or dense.shape[-2:] != (expected_dense, features) or codes.shape[-2:] != (expected_codes, features)
+            or dense.shape[:-2] != codes.shape[:-2] or scales.shape != (len(hashed), features)):
+        raise ValueError(f"the int8 table does not fit the architecture: expected (..., {expected_dense}, "
+                         f"{features}) dense rows, (..., {expected_codes}, {features}) int8 codes and "
+                         f"({len(hashed)}, {features}) scales, found {dense.dtype} {dense.shape}, "
+                         f"{codes.dtype} {codes.shape}, {scales.shape}")
+    dense, scales = dense.astype(np.float32), scales.astype(np.float32)
+    table = np.empty((*dense.shape[:-2], expected_dense + expected_codes, features), np.float32)
+    dense_at = code_at = level = 0
+    for rows, is_dense in levels:
+        n = rows.stop - rows.start
+        if is_dense:
+            table[..., rows, :] = dense[..., dense_at:dense_at + n, :]
+            dense_at += n
+        else:
+            table[..., rows, :] = codes[..., code_at:code_at + n, :] * scales[level]
+            code_at += n
+            level += 1
+    tensors["table"] = table
+    return tensors
+
+
+def _level_slices(arch: GridArchitecture) -> list[tuple[slice, bool]]:
+    """Each level's rows of the table and whether the level is dense."""
+    stops = np.cumsum(arch.level_rows())
+    return [(slice(int(stop - n), int(stop)), dense)
+            for stop, n, dense in zip(stops, arch.level_rows(), arch.level_dense())]
