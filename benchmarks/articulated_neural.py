@@ -31,17 +31,17 @@ import numpy as np
 
 sys.path[:0] = [str(Path(__file__).resolve().parents[1] / "server"), str(Path(__file__).resolve().parents[1] / "client")]
 
-from collider_server.engine.collider import ColliderInfo  # noqa: E402
-from collider_server.engine.kinds.neural import PRESETS, NeuralCollider, architecture_dict, build_network  # noqa: E402
-from collider_server.engine.meshes import Mesh  # noqa: E402
-from collider_server.engine.modelfile import load_collider, save_collider  # noqa: E402
-from collider_server.engine.skinning import pose_at, skin_vertices  # noqa: E402
-from collider_server.making.sampling import surface_band_points  # noqa: E402
-from collider_server.making.skinned import skinned_collider  # noqa: E402
-from collider_server.making.training import TrainConfig  # noqa: E402
-from collider_server.making.training.articulated import sample_poses, train_articulated  # noqa: E402
-from collider_server.making.training.data import normalisation  # noqa: E402
-from collider_server.making.walker import make_walker  # noqa: E402
+from collider_server.engine.collider import ColliderInfo
+from collider_server.engine.kinds.neural import PRESETS, NeuralCollider, architecture_dict, build_network
+from collider_server.engine.meshes import Mesh
+from collider_server.engine.modelfile import load_collider, save_collider
+from collider_server.engine.skinning import pose_at, skin_vertices
+from collider_server.making.sampling import surface_band_points
+from collider_server.making.skinned import skinned_collider
+from collider_server.making.training import TrainConfig
+from collider_server.making.training.articulated import sample_poses, train_articulated
+from collider_server.making.training.data import normalisation
+from collider_server.making.walker import make_walker
 
 
 def accuracy(collider, exact, skin, poses, points_per_pose: int, seed: int) -> dict:

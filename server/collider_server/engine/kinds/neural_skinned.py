@@ -67,12 +67,18 @@ class ArticulatedGridArchitecture(GridArchitecture):
     label_resolution : cells per side of the rest pose's label grid
     neighbours : a joint is a candidate where the label is its parent's or a child's too (False:
         only where it is its own)
+    skinning_iterations : fixed-point steps that carry a part's rigid rest image on through the
+        skinning (:func:`skinned_rest`); 0: rigid parts only
+    weight_resolution : cells per side of the rest pose's skinning-weight grid (its 4 largest
+        weights per corner, 8 bits each)
     """
 
     joints: int = 1
     pose_slots: int = 4
     label_resolution: int = 64
-    neighbours: bool = True
+    neighbours: bool = False
+    skinning_iterations: int = 2
+    weight_resolution: int = 48
     table_log2: int = 17
     table_dtype: str = "int8"
     encoding: str = "articulated-grid"
@@ -80,9 +86,9 @@ class ArticulatedGridArchitecture(GridArchitecture):
 
     def __post_init__(self):
         super().__post_init__()
-        for name in ("joints", "pose_slots", "label_resolution"):
+        for name in ("joints", "pose_slots", "label_resolution", "skinning_iterations", "weight_resolution"):
             value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+            if isinstance(value, bool) or not isinstance(value, int) or value < (0 if name == "skinning_iterations" else 1):
                 raise ValueError(f"architecture {name} must be a positive integer, got {value!r}")
         if self.joints >= NO_PART:
             raise ValueError(f"an articulated network has at most {NO_PART - 1} joints, got {self.joints}")
@@ -241,6 +247,82 @@ if grid_kernels.available():
                 mask[nearest, p] = True
 
 
+#: Largest skinning weights kept per corner of the weight grid.
+GRID_INFLUENCES = 4
+
+
+def weight_grid(skin: Skin, centre, radius: float, resolution: int) -> tuple[np.ndarray, np.ndarray]:
+    """The rest pose's skinning weights on the corners of a grid over the cube ``centre +-
+    radius`` ((R + 1)^3 corners, indexed [i, j, k] along x, y, z): at each corner the weights of
+    its closest point on the rest surface (the closest triangle's vertex weights blended by its
+    barycentric coordinates), the :data:`GRID_INFLUENCES` largest kept. Returns ``(joints (R+1,
+    R+1, R+1, 4) uint8, weights (R+1, R+1, R+1, 4) uint8)``, a weight ``w / 255`` (renormalised)."""
+    from ..meshes import ExactSDF, Mesh, barycentric
+
+    side = resolution + 1
+    axis = np.linspace(-1.0, 1.0, side)
+    corners = np.asarray(centre, np.float64) + radius * np.stack(
+        np.meshgrid(axis, axis, axis, indexing="ij"), axis=-1).reshape(-1, 3)
+    _, closest, face = ExactSDF(Mesh(skin.vertices, skin.faces, "rest")).query(corners)
+    tri = skin.faces[face]
+    bary = barycentric(closest, skin.vertices[tri])
+    dense = np.zeros((len(corners), skin.skeleton.joint_count))
+    rows = np.arange(len(corners))
+    for c in range(3):
+        for k in range(skin.joints.shape[1]):
+            np.add.at(dense, (rows, skin.joints[tri[:, c], k]), bary[:, c] * skin.weights[tri[:, c], k])
+    if dense.shape[1] < GRID_INFLUENCES:  # fewer joints than slots: pad with zero weights
+        dense = np.pad(dense, ((0, 0), (0, GRID_INFLUENCES - dense.shape[1])))
+    top = np.argsort(-dense, axis=1)[:, :GRID_INFLUENCES]
+    values = np.take_along_axis(dense, top, axis=1)
+    top = np.where(top < skin.skeleton.joint_count, top, 0)
+    values /= np.maximum(values.sum(axis=1, keepdims=True), 1e-12)
+    shape = (side, side, side, GRID_INFLUENCES)
+    return (top.astype(np.uint8).reshape(shape),
+            np.clip(np.rint(values * 255), 0, 255).astype(np.uint8).reshape(shape))
+
+
+def weights_at(rest: np.ndarray, grid_joints: np.ndarray, grid_weights: np.ndarray, centre, radius: float,
+               joints: int) -> np.ndarray:
+    """(m, J) float64 skinning weights at rest-pose points ``rest`` (m, 3): the weight grid
+    (:func:`weight_grid`) interpolated trilinearly (clamped into the cube), rows summing to 1."""
+    side = grid_joints.shape[0]
+    position = np.clip((np.asarray(rest) - centre) / radius, -1.0, 1.0)
+    position = (position + 1.0) * 0.5 * (side - 1)
+    cell = np.minimum(np.floor(position).astype(np.int64), side - 2)
+    t = position - cell
+    out = np.zeros((len(rest), joints))
+    rows = np.arange(len(rest))
+    for corner in range(8):
+        o = [(corner >> a) & 1 for a in range(3)]
+        tw = np.prod([t[:, a] if o[a] else 1.0 - t[:, a] for a in range(3)], axis=0)
+        i, j, k = cell[:, 0] + o[0], cell[:, 1] + o[1], cell[:, 2] + o[2]
+        jj, ww = grid_joints[i, j, k], grid_weights[i, j, k] / 255.0
+        for slot in range(GRID_INFLUENCES):
+            out[rows, jj[:, slot]] += tw * ww[:, slot]
+    return out / np.maximum(out.sum(axis=1, keepdims=True), 1e-12)
+
+
+def skinned_rest(points: np.ndarray, rest: np.ndarray, posed: np.ndarray, grid_joints, grid_weights, centre,
+                 radius: float, iterations: int):
+    """Rest-pose images of posed points through the skinning: from a part's rigid image ``rest``
+    (m, 3), ``iterations`` fixed-point steps ``x_rest <- M(x_rest)^-1 x`` with ``M = sum_k w_k(x_rest)
+    A_k`` (linear blend skinning's map at the rest point, ``A = posed`` (J, 4, 4), the weights
+    :func:`weights_at`). Returns ``(rest (m, 3), to_rest (m, 3, 3), weights (m, J))``: the images,
+    the linear part of ``M^-1`` (the gradient's pull-back: the weights' own variation is left
+    out) and the weights of the last ``M`` (the velocity's blend). With 0 iterations the rigid
+    image, its part's map is not known here: ``to_rest`` and ``weights`` are None."""
+    if iterations == 0:
+        return rest, None, None
+    points = np.asarray(points, np.float64)
+    for _ in range(iterations):
+        w = weights_at(rest, grid_joints, grid_weights, centre, radius, len(posed))
+        blend = np.einsum("mj,jab->mab", w, posed[:, :3, :])
+        inverse = np.linalg.inv(blend[:, :, :3])
+        rest = np.einsum("mab,mb->ma", inverse, points - blend[:, :, 3])
+    return rest, inverse, w
+
+
 def part_labels(skin: Skin, centre, radius: float, resolution: int, band: float) -> np.ndarray:
     """(R, R, R) uint8: the label grid of ``skin``'s rest pose over the cube ``centre +-
     radius``: each cell's centre takes the dominant joint (largest weight) of its nearest rest
@@ -296,6 +378,9 @@ def build_articulated_network(arch: ArticulatedGridArchitecture, centre, radius:
             r = arch.label_resolution
             self.register_buffer("labels", torch.full((r, r, r), NO_PART, dtype=torch.uint8))
             self.register_buffer("part_boxes", torch.zeros(arch.joints, 2, 3, dtype=torch.float64))
+            side = (arch.weight_resolution + 1, ) * 3 + (GRID_INFLUENCES,)
+            self.register_buffer("weight_joints", torch.zeros(side, dtype=torch.uint8))
+            self.register_buffer("weight_values", torch.zeros(side, dtype=torch.uint8))
 
         @property
         def radius(self):
@@ -354,6 +439,8 @@ class ArticulatedNeuralCollider(Collider):
             parameter.requires_grad_(False)
         self.labels = self.network.labels.cpu().numpy()
         self.part_boxes = self.network.part_boxes.cpu().numpy()
+        self.weight_joints = self.network.weight_joints.cpu().numpy()
+        self.weight_values = self.network.weight_values.cpu().numpy()
         self.allowed = allowed_labels(skin.skeleton.parents, self.arch.neighbours)
         grid = self.network.grid
         self.centre = grid.centre.double().cpu().numpy()
@@ -371,8 +458,9 @@ class ArticulatedNeuralCollider(Collider):
         return True
 
     def pose(self, time, skeleton):
-        """The query's pose prepared once (cached by pose): ``(to_rest (J, 3, 4), velocity maps
-        (J, 3, 4) or None (still), first biases (J, H) float32)``."""
+        """The query's pose prepared once (cached by pose): ``(to_rest (J, 3, 4), posed (J, 4,
+        4) (:func:`rest_maps`), velocity maps (J, 3, 4) or None (still), first biases (J, H)
+        float32)``."""
         key = pose_key(time, skeleton)
         with self._lock:
             prepared = self._cache.get(key)
@@ -380,7 +468,7 @@ class ArticulatedNeuralCollider(Collider):
                 self._cache.move_to_end(key)
                 return prepared
         transforms, velocities = resolve_pose(self.skin, self.loop, key, skeleton)
-        to_rest, _ = rest_maps(self.skin.skeleton, transforms)
+        to_rest, posed = rest_maps(self.skin.skeleton, transforms)
         moving = None
         if velocities is not None:
             moving = (np.asarray(velocities, np.float64) @ self.skin.skeleton.inverse_bind)[:, :3, :]
@@ -390,7 +478,7 @@ class ArticulatedNeuralCollider(Collider):
         with torch.inference_mode():
             joints = torch.arange(self.arch.joints, device=self._device)
             bias = self.network.first_bias(joints, torch.from_numpy(codes).to(self._device))
-        prepared = (to_rest, moving, bias.float().cpu().numpy())
+        prepared = (to_rest, posed, moving, bias.float().cpu().numpy())
         with self._lock:
             self._cache[key] = prepared
             while len(self._cache) > self.keep:
@@ -402,36 +490,44 @@ class ArticulatedNeuralCollider(Collider):
         return distance, gradient
 
     def evaluate_at(self, local, want_gradient, time, skeleton=None):
-        to_rest, moving, bias = self.pose(time, skeleton)
-        point, joint, rest = part_candidates(local, to_rest, self.labels, self.centre, self.radius,
-                                             self.allowed, self.part_boxes)
+        to_rest, posed, moving, bias = self.pose(time, skeleton)
+        point, joint, rigid = part_candidates(local, to_rest, self.labels, self.centre, self.radius,
+                                              self.allowed, self.part_boxes)
+        rest, inverse, weights = skinned_rest(local[point], rigid, posed, self.weight_joints, self.weight_values,
+                                              self.centre, self.radius, self.arch.skinning_iterations)
         n = len(local)
         best = np.full(n, np.inf)
-        best_joint = np.zeros(n, np.int64)
-        best_gradient = np.zeros((n, 3)) if want_gradient else None
-        best_rest = np.zeros((n, 3))
+        best_row = np.zeros(n, np.int64)
+        gradient = np.zeros((len(point), 3)) if want_gradient else None
         bounds = np.searchsorted(joint, np.arange(self.arch.joints + 1))
         for j in range(self.arch.joints):
-            rows = slice(bounds[j], bounds[j + 1])
-            if rows.start == rows.stop:
+            rows = np.arange(bounds[j], bounds[j + 1])
+            if not len(rows):
                 continue
             d, g = self._part_values(rest[rows], j, bias[j], want_gradient)
+            if want_gradient:
+                gradient[rows] = g
             at = point[rows]
             better = d < best[at]
-            at = at[better]
-            best[at] = d[better]
-            best_joint[at] = j
-            best_rest[at] = rest[rows][better]
-            if want_gradient:
-                # Through the rigid map: grad_x f(A_j^-1 x) = (A_j^-1)[:3, :3]^T grad f.
-                best_gradient[at] = g[better] @ to_rest[j, :, :3]
+            best[at[better]] = d[better]
+            best_row[at[better]] = rows[better]
         if not want_gradient:
             return best, None, None
+        g = gradient[best_row]
+        # Through the map to the rest pose: grad_x f(B x) = B^T grad f (B: the part's rigid map,
+        # or the skinning's inverse at the point).
+        if inverse is None:
+            g = np.einsum("na,nab->nb", g, to_rest[joint[best_row], :, :3])
+        else:
+            g = np.einsum("na,nab->nb", g, inverse[best_row])
         if moving is None:
-            return best, best_gradient, None
-        m = moving[best_joint]
-        velocity = np.einsum("nab,nb->na", m[:, :, :3], best_rest) + m[:, :, 3]
-        return best, best_gradient, velocity
+            return best, g, None
+        homogeneous = np.concatenate([rest[best_row], np.ones((n, 1))], axis=1)
+        if weights is None:  # the chosen part's rigid motion
+            m = moving[joint[best_row]]
+        else:  # the skinning's motion at the rest point: sum_k w_k dA_k/dt
+            m = np.einsum("nj,jab->nab", weights[best_row], moving)
+        return best, g, np.einsum("nab,nb->na", m, homogeneous)
 
     def _part_values(self, rest: np.ndarray, joint: int, bias: np.ndarray, want_gradient: bool):
         """Distance (m,) and rest-frame gradient (m, 3) (or None) of part ``joint`` at its

@@ -36,6 +36,8 @@ from ...engine.kinds.neural_skinned import (
     part_labels,
     pose_codes,
     rest_maps,
+    skinned_rest,
+    weight_grid,
 )
 from ...engine.meshes import ExactSDF, Mesh
 from ...engine.skinning import Skin, skin_vertices, trs_matrices, world_transforms
@@ -96,9 +98,9 @@ class ArticulatedSamples:
 
     distance (n,), gradient (n, 3), near (n,) bool: the exact truth per sample
     start (n,) int64, count (n,) int64: each sample's rows of the candidate arrays
-    rest (m, 3), joint (m,) int64, pose (m,) int64: each candidate's rest-frame point, part, pose
-    codes (P, J, C) and to_rest (P, J, 3, 3): the poses' part codes and linear maps to the rest
-    frame (the gradient's pull-back)
+    rest (m, 3), joint (m,) int64, pose (m,) int64, to_rest (m, 3, 3): each candidate's rest-pose
+    point, part, pose and the linear part of its map to the rest pose (the gradient's pull-back)
+    codes (P, J, C): the poses' part codes
     """
 
     distance: np.ndarray
@@ -109,25 +111,31 @@ class ArticulatedSamples:
     rest: np.ndarray
     joint: np.ndarray
     pose: np.ndarray
-    codes: np.ndarray
     to_rest: np.ndarray
+    codes: np.ndarray
 
 
 def make_samples(skin: Skin, poses: np.ndarray, per_pose: int, point_sampler, arch, centre, radius: float,
-                 labels: np.ndarray, boxes: np.ndarray, show_progress: bool, what: str) -> ArticulatedSamples:
+                 labels: np.ndarray, boxes: np.ndarray, weights: tuple, show_progress: bool,
+                 what: str) -> ArticulatedSamples:
     """:class:`ArticulatedSamples` of ``per_pose`` points at each pose: ``point_sampler(mesh,
-    seed)`` -> (points (k, 3), near (k,) bool) on the posed mesh."""
+    seed)`` -> (points (k, 3), near (k,) bool) on the posed mesh; ``weights``: the weight grid
+    (:func:`weight_grid`'s joints and weights) the query carries points through."""
     skeleton = skin.skeleton
     allowed = allowed_labels(skeleton.parents, arch.neighbours)
-    parts = {k: [] for k in ("distance", "gradient", "near", "count", "rest", "joint", "pose")}
-    codes, maps = [], []
+    parts = {k: [] for k in ("distance", "gradient", "near", "count", "rest", "joint", "pose", "to_rest")}
+    codes = []
     with progress(len(poses), what, "pose", show_progress) as bar:
         for p, transforms in enumerate(poses):
             mesh = Mesh(skin_vertices(skin, transforms), skin.faces, "posed")
             points, near = point_sampler(mesh, p)
             distance, gradient = exact_values(ExactSDF(mesh), points)
-            to_rest, _ = rest_maps(skeleton, transforms)
+            to_rest, posed = rest_maps(skeleton, transforms)
             point, joint, rest = part_candidates(points, to_rest, labels, centre, radius, allowed, boxes)
+            rest, inverse, _ = skinned_rest(points[point], rest, posed, *weights, centre, radius,
+                                            arch.skinning_iterations)
+            if inverse is None:
+                inverse = to_rest[joint, :, :3]
             order = np.argsort(point, kind="stable")
             parts["distance"].append(distance)
             parts["gradient"].append(gradient)
@@ -136,8 +144,8 @@ def make_samples(skin: Skin, poses: np.ndarray, per_pose: int, point_sampler, ar
             parts["rest"].append(rest[order])
             parts["joint"].append(joint[order])
             parts["pose"].append(np.full(len(point), p, np.int64))
+            parts["to_rest"].append(inverse[order])
             codes.append(pose_codes(skeleton, transforms, arch.pose_slots))
-            maps.append(to_rest[:, :, :3])
             bar.update(1)
     joined = {k: np.concatenate(v) for k, v in parts.items()}
     count = joined["count"].astype(np.int64)
@@ -145,7 +153,7 @@ def make_samples(skin: Skin, poses: np.ndarray, per_pose: int, point_sampler, ar
         joined["distance"].astype(np.float32), joined["gradient"].astype(np.float32), joined["near"],
         np.concatenate([[0], np.cumsum(count)[:-1]]).astype(np.int64), count,
         joined["rest"].astype(np.float32), joined["joint"], joined["pose"],
-        np.stack(codes), np.stack(maps).astype(np.float32))
+        joined["to_rest"].astype(np.float32), np.stack(codes))
 
 
 class _Batches:
@@ -180,7 +188,7 @@ class _Batches:
         chosen = d.detach() <= best.detach()[owner]
         # One chosen row per sample (the last of equal ones): its gradient through the rigid map.
         pick = torch.zeros(len(index), dtype=torch.int64).index_put_((owner[chosen],), torch.nonzero(chosen)[:, 0])
-        world = torch.einsum("nb,nba->na", g[pick], self.to_rest[pose[pick], joint[pick]])
+        world = torch.einsum("nb,nba->na", g[pick], self.to_rest[rows[pick]])
         return best, world
 
 
@@ -204,10 +212,11 @@ class ArticulatedResult:
 
 
 def train_articulated(skin: Skin, name: str, config: TrainConfig, *, arch: ArticulatedGridArchitecture | None = None,
-                      poses: int = TRAIN_POSES, units: str = "m", meters_per_unit: float = 1.0, loop: bool = True,
+                      poses: int | None = None, units: str = "m", meters_per_unit: float = 1.0, loop: bool = True,
                       source: dict | None = None, show_progress: bool = True) -> ArticulatedResult:
     """Train the articulated network of ``skin`` (its units and frame) for ``config``'s budget
-    (``max_minutes`` / ``steps``, ``samples`` over ``poses`` poses, ``batch_size``, learning
+    (``max_minutes`` / ``steps``, ``samples`` over ``poses`` poses (default :data:`TRAIN_POSES`,
+    fewer for fewer than 2,000 samples a pose), ``batch_size``, learning
     rates, ``normal_weight``, ``seed``, ``threads``; its ``preset`` is not used: ``arch``,
     default :data:`ARTICULATED_PRESET` with the skeleton's joints)."""
     import torch
@@ -215,6 +224,8 @@ def train_articulated(skin: Skin, name: str, config: TrainConfig, *, arch: Artic
     from ..skinned import skinned_collider
 
     config.check()
+    if poses is None:  # each pose costs an exact SDF: a few thousand samples share one
+        poses = min(TRAIN_POSES, max(8, config.samples // 2000))
     arch = replace(arch or ARTICULATED_PRESET, joints=skin.skeleton.joint_count)
     if config.threads is not None:
         set_training_threads(arch, config.threads)
@@ -227,6 +238,7 @@ def train_articulated(skin: Skin, name: str, config: TrainConfig, *, arch: Artic
     began = time.monotonic()
     labels = part_labels(skin, centre, radius, arch.label_resolution, band=3.0 * cell)
     boxes = part_boxes(skin, cell)
+    weights = weight_grid(skin, centre, radius, arch.weight_resolution)
 
     margin = config.margin_m / meters_per_unit if config.margin_m else default_margin(rest, meters_per_unit)
     per_pose = max(config.samples // poses, 100)
@@ -245,15 +257,17 @@ def train_articulated(skin: Skin, name: str, config: TrainConfig, *, arch: Artic
         return points, np.ones(len(points), bool)
 
     data = _Batches(make_samples(skin, train_poses, per_pose, training_points, arch, centre, radius, labels,
-                                 boxes, show_progress, "exact SDF at training poses"))
+                                 boxes, weights, show_progress, "exact SDF at training poses"))
     held_out = sample_poses(skin, VALIDATION_POSES, config.seed + 77)
     val = _Batches(make_samples(skin, held_out, per_validation, validation_points, arch, centre, radius,
-                                labels, boxes, show_progress, "exact SDF at validation poses"))
+                                labels, boxes, weights, show_progress, "exact SDF at validation poses"))
     data_seconds = time.monotonic() - began
 
     network = build_articulated_network(arch, centre, radius)
     network.labels.copy_(torch.from_numpy(labels))
     network.part_boxes.copy_(torch.from_numpy(boxes))
+    network.weight_joints.copy_(torch.from_numpy(weights[0]))
+    network.weight_values.copy_(torch.from_numpy(weights[1]))
     first_lr, last_lr = config.resolved_learning_rates()
     normal_weight = config.resolved_normal_weight()
     optimizer = make_optimizer(network, first_lr)
