@@ -303,24 +303,141 @@ def weights_at(rest: np.ndarray, grid_joints: np.ndarray, grid_weights: np.ndarr
     return out / np.maximum(out.sum(axis=1, keepdims=True), 1e-12)
 
 
+def blend_at(rest: np.ndarray, maps: np.ndarray, grid_joints, grid_weights, centre, radius: float,
+             fused: bool = True) -> np.ndarray:
+    """(m, 3, 4) float64: ``sum_k w_k(x) maps_k`` at rest-pose points ``rest`` (m, 3), the
+    weights :func:`weights_at`'s, ``maps`` (J, 3, 4) (the skinning's map at a pose: ``A``; its
+    motion: ``dA/dt``). One numba pass (:func:`_blend_kernel`) when numba is there, else numpy."""
+    rest = np.ascontiguousarray(rest, np.float64)
+    maps = np.ascontiguousarray(maps, np.float64)
+    if fused and _blend_kernel is not None:
+        out = np.empty((len(rest), 3, 4))
+        _blend_kernel(rest, maps, grid_joints, grid_weights, np.asarray(centre, np.float64), float(radius), out)
+        return out
+    w = weights_at(rest, grid_joints, grid_weights, centre, radius, len(maps))
+    return np.einsum("mj,jab->mab", w, maps)
+
+
 def skinned_rest(points: np.ndarray, rest: np.ndarray, posed: np.ndarray, grid_joints, grid_weights, centre,
-                 radius: float, iterations: int):
+                 radius: float, iterations: int, fused: bool = True):
     """Rest-pose images of posed points through the skinning: from a part's rigid image ``rest``
     (m, 3), ``iterations`` fixed-point steps ``x_rest <- M(x_rest)^-1 x`` with ``M = sum_k w_k(x_rest)
     A_k`` (linear blend skinning's map at the rest point, ``A = posed`` (J, 4, 4), the weights
-    :func:`weights_at`). Returns ``(rest (m, 3), to_rest (m, 3, 3), weights (m, J))``: the images,
-    the linear part of ``M^-1`` (the gradient's pull-back: the weights' own variation is left
-    out) and the weights of the last ``M`` (the velocity's blend). With 0 iterations the rigid
-    image, its part's map is not known here: ``to_rest`` and ``weights`` are None."""
+    :func:`weights_at`'s). Returns ``(rest (m, 3), to_rest (m, 3, 3))``: the images and the
+    linear part of the last ``M^-1`` (the gradient's pull-back: the weights' own variation is
+    left out). With 0 iterations the rigid image, and ``to_rest`` None (its part's map). One
+    numba pass (:func:`_skinned_rest_kernel`) when numba is there and ``fused``, else numpy."""
     if iterations == 0:
-        return rest, None, None
-    points = np.asarray(points, np.float64)
+        return rest, None
+    points = np.ascontiguousarray(points, np.float64)
+    if fused and _skinned_rest_kernel is not None:
+        rest = np.array(rest, np.float64, order="C")  # moved in place
+        inverse = np.empty((len(rest), 3, 3))
+        _skinned_rest_kernel(points, rest, np.ascontiguousarray(posed[:, :3, :]), grid_joints, grid_weights,
+                             np.asarray(centre, np.float64), float(radius), iterations,
+                             np.empty((len(rest), 3, 4)), inverse)
+        return rest, inverse
     for _ in range(iterations):
-        w = weights_at(rest, grid_joints, grid_weights, centre, radius, len(posed))
-        blend = np.einsum("mj,jab->mab", w, posed[:, :3, :])
+        blend = blend_at(rest, posed[:, :3, :], grid_joints, grid_weights, centre, radius, fused)
         inverse = np.linalg.inv(blend[:, :, :3])
         rest = np.einsum("mab,mb->ma", inverse, points - blend[:, :, 3])
-    return rest, inverse, w
+    return rest, inverse
+
+
+#: A point whose fixed-point steps moved it further than this share of the grid's half side from
+#: its part's rigid image (the steps diverged where the blended map nearly folds) keeps the rigid
+#: image: its error is then the blend's, not a wild point's (the walker: 224 mm at worst before).
+DIVERGED = 0.25
+
+
+def carry_to_rest(points: np.ndarray, joint: np.ndarray, rigid: np.ndarray, to_rest: np.ndarray, posed: np.ndarray,
+                  grid_joints, grid_weights, centre, radius: float, iterations: int):
+    """Each candidate's rest-pose point and the linear part of its map there, ``(rest (m, 3),
+    inverse (m, 3, 3))``: :func:`skinned_rest` from its part's rigid image ``rigid`` (``joint``
+    (m,), ``to_rest`` (J, 3, 4) of :func:`rest_maps`), the rigid image and map where there are no
+    steps or they diverged (:data:`DIVERGED`). The rule both the query and the training use."""
+    rigid_inverse = to_rest[joint, :, :3]
+    rest, inverse = skinned_rest(points, rigid, posed, grid_joints, grid_weights, centre, radius, iterations)
+    if inverse is None:
+        return rigid, rigid_inverse
+    wild = np.flatnonzero(np.einsum("ma,ma->m", rest - rigid, rest - rigid) > (DIVERGED * radius) ** 2)
+    rest[wild], inverse[wild] = rigid[wild], rigid_inverse[wild]
+    return rest, inverse
+
+
+_blend_kernel = _skinned_rest_kernel = None
+if grid_kernels.available():
+    import numba
+
+    @numba.njit(cache=True, nogil=True)
+    def _weight_cell(value, centre, radius, side):  # pragma: no cover
+        """Corner index below and the fraction along one axis of the weight grid (clamped)."""
+        u = min(max((value - centre) / radius, -1.0), 1.0)
+        position = (u + 1.0) * 0.5 * (side - 1)
+        c = min(int(math.floor(position)), side - 2)
+        return c, position - c
+
+    @numba.njit(cache=True, nogil=True)
+    def _blend_one(x, y, z, maps, grid_joints, grid_weights, centre, radius, out, p):  # pragma: no cover
+        """``out[p]`` (3, 4) = the weight-blended ``maps`` at the rest point (x, y, z)."""
+        side = grid_joints.shape[0]
+        cx, tx = _weight_cell(x, centre[0], radius, side)
+        cy, ty = _weight_cell(y, centre[1], radius, side)
+        cz, tz = _weight_cell(z, centre[2], radius, side)
+        for a in range(3):
+            for b in range(4):
+                out[p, a, b] = 0.0
+        total = 0.0
+        for corner in range(8):
+            ox, oy, oz = corner & 1, (corner >> 1) & 1, (corner >> 2) & 1
+            tw = (tx if ox else 1.0 - tx) * (ty if oy else 1.0 - ty) * (tz if oz else 1.0 - tz)
+            i, j, k = cx + ox, cy + oy, cz + oz
+            for slot in range(grid_joints.shape[3]):
+                w = tw * grid_weights[i, j, k, slot] / 255.0
+                if w == 0.0:
+                    continue
+                total += w
+                joint = grid_joints[i, j, k, slot]
+                for a in range(3):
+                    for b in range(4):
+                        out[p, a, b] += w * maps[joint, a, b]
+        scale = 1.0 / max(total, 1e-12)
+        for a in range(3):
+            for b in range(4):
+                out[p, a, b] *= scale
+
+    @numba.njit(cache=True, nogil=True, parallel=True)
+    def _blend_kernel(rest, maps, grid_joints, grid_weights, centre, radius, out):  # pragma: no cover
+        """:func:`blend_at` in one pass over the points (numba): ``out`` (m, 3, 4) overwritten."""
+        for p in numba.prange(rest.shape[0]):
+            _blend_one(rest[p, 0], rest[p, 1], rest[p, 2], maps, grid_joints, grid_weights, centre, radius, out, p)
+
+    @numba.njit(cache=True, nogil=True, parallel=True)
+    def _skinned_rest_kernel(points, rest, maps, grid_joints, grid_weights, centre, radius, iterations,
+                             blend, inverse):  # pragma: no cover
+        """:func:`skinned_rest` in one pass over the points (numba): ``rest`` (m, 3) is moved in
+        place, ``inverse`` (m, 3, 3) overwritten; ``blend`` (m, 3, 4) scratch."""
+        for p in numba.prange(points.shape[0]):
+            for _ in range(iterations):
+                _blend_one(rest[p, 0], rest[p, 1], rest[p, 2], maps, grid_joints, grid_weights, centre, radius,
+                           blend, p)
+                m = blend[p]
+                c00 = m[1, 1] * m[2, 2] - m[1, 2] * m[2, 1]
+                c01 = m[1, 2] * m[2, 0] - m[1, 0] * m[2, 2]
+                c02 = m[1, 0] * m[2, 1] - m[1, 1] * m[2, 0]
+                det = m[0, 0] * c00 + m[0, 1] * c01 + m[0, 2] * c02
+                det = det if det != 0.0 else 1e-300
+                inv = inverse[p]
+                inv[0, 0], inv[1, 0], inv[2, 0] = c00 / det, c01 / det, c02 / det
+                inv[0, 1] = (m[0, 2] * m[2, 1] - m[0, 1] * m[2, 2]) / det
+                inv[1, 1] = (m[0, 0] * m[2, 2] - m[0, 2] * m[2, 0]) / det
+                inv[2, 1] = (m[0, 1] * m[2, 0] - m[0, 0] * m[2, 1]) / det
+                inv[0, 2] = (m[0, 1] * m[1, 2] - m[0, 2] * m[1, 1]) / det
+                inv[1, 2] = (m[0, 2] * m[1, 0] - m[0, 0] * m[1, 2]) / det
+                inv[2, 2] = (m[0, 0] * m[1, 1] - m[0, 1] * m[1, 0]) / det
+                dx, dy, dz = points[p, 0] - m[0, 3], points[p, 1] - m[1, 3], points[p, 2] - m[2, 3]
+                for a in range(3):
+                    rest[p, a] = inv[a, 0] * dx + inv[a, 1] * dy + inv[a, 2] * dz
 
 
 def part_labels(skin: Skin, centre, radius: float, resolution: int, band: float) -> np.ndarray:
@@ -493,8 +610,8 @@ class ArticulatedNeuralCollider(Collider):
         to_rest, posed, moving, bias = self.pose(time, skeleton)
         point, joint, rigid = part_candidates(local, to_rest, self.labels, self.centre, self.radius,
                                               self.allowed, self.part_boxes)
-        rest, inverse, weights = skinned_rest(local[point], rigid, posed, self.weight_joints, self.weight_values,
-                                              self.centre, self.radius, self.arch.skinning_iterations)
+        rest, inverse = carry_to_rest(local[point], joint, rigid, to_rest, posed, self.weight_joints,
+                                      self.weight_values, self.centre, self.radius, self.arch.skinning_iterations)
         n = len(local)
         best = np.full(n, np.inf)
         best_row = np.zeros(n, np.int64)
@@ -513,20 +630,16 @@ class ArticulatedNeuralCollider(Collider):
             best_row[at[better]] = rows[better]
         if not want_gradient:
             return best, None, None
-        g = gradient[best_row]
         # Through the map to the rest pose: grad_x f(B x) = B^T grad f (B: the part's rigid map,
         # or the skinning's inverse at the point).
-        if inverse is None:
-            g = np.einsum("na,nab->nb", g, to_rest[joint[best_row], :, :3])
-        else:
-            g = np.einsum("na,nab->nb", g, inverse[best_row])
+        g = np.einsum("na,nab->nb", gradient[best_row], inverse[best_row])
         if moving is None:
             return best, g, None
         homogeneous = np.concatenate([rest[best_row], np.ones((n, 1))], axis=1)
-        if weights is None:  # the chosen part's rigid motion
+        if self.arch.skinning_iterations == 0:  # the chosen part's rigid motion
             m = moving[joint[best_row]]
         else:  # the skinning's motion at the rest point: sum_k w_k dA_k/dt
-            m = np.einsum("nj,jab->nab", weights[best_row], moving)
+            m = blend_at(rest[best_row], moving, self.weight_joints, self.weight_values, self.centre, self.radius)
         return best, g, np.einsum("nab,nb->na", m, homogeneous)
 
     def _part_values(self, rest: np.ndarray, joint: int, bias: np.ndarray, want_gradient: bool):

@@ -31,12 +31,12 @@ from ...engine.kinds.neural_skinned import (
     ArticulatedNeuralCollider,
     allowed_labels,
     build_articulated_network,
+    carry_to_rest,
     part_boxes,
     part_candidates,
     part_labels,
     pose_codes,
     rest_maps,
-    skinned_rest,
     weight_grid,
 )
 from ...engine.meshes import ExactSDF, Mesh
@@ -132,10 +132,8 @@ def make_samples(skin: Skin, poses: np.ndarray, per_pose: int, point_sampler, ar
             distance, gradient = exact_values(ExactSDF(mesh), points)
             to_rest, posed = rest_maps(skeleton, transforms)
             point, joint, rest = part_candidates(points, to_rest, labels, centre, radius, allowed, boxes)
-            rest, inverse, _ = skinned_rest(points[point], rest, posed, *weights, centre, radius,
-                                            arch.skinning_iterations)
-            if inverse is None:
-                inverse = to_rest[joint, :, :3]
+            rest, inverse = carry_to_rest(points[point], joint, rest, to_rest, posed, *weights, centre, radius,
+                                          arch.skinning_iterations)
             order = np.argsort(point, kind="stable")
             parts["distance"].append(distance)
             parts["gradient"].append(gradient)
