@@ -48,7 +48,8 @@ def test_it_answers_a_pose_it_never_saw_with_a_bounded_error_and_the_right_sign(
         angles.append(np.degrees(np.arccos(cos)))
     error, angle = np.concatenate(errors), np.concatenate(angles)
     assert error.mean() < 3e-3, f"mean error {error.mean() * 1e3:.2f} mm in the +-1 mm band"
-    assert np.median(angle) < 20.0, f"median normal error {np.median(angle):.1f} deg"
+    # (measured: 5.1 deg mean; 15 with the gradient not pulled back through the map to the rest pose)
+    assert angle.mean() < 8.0, f"mean normal error {angle.mean():.1f} deg"
     # Far inside (on the bone, 4 cm deep) and far outside (6 cm off the skin) of each part at a
     # new pose: the sign.
     transforms = sample_poses(skin, 1, seed=99)[0]
