@@ -53,17 +53,36 @@ def _save_arm(root: Path) -> None:
     save_collider(skinned_collider(skinned_arm(), "arm"), root / "arm.safetensors")
 
 
+def _save_arm_neural(root: Path) -> None:
+    """The arm's articulated network (kind ``neural-skinned``) as ``arm-neural``: a small one
+    trained for a few steps (the answers are the network's, whatever its accuracy: the same
+    embedded and served)."""
+    from collider_server.engine.kinds.neural_skinned import ArticulatedGridArchitecture
+    from collider_server.engine.modelfile import save_collider
+    from collider_server.making.skinned import skinned_arm
+    from collider_server.making.training import TrainConfig
+    from collider_server.making.training.articulated import train_articulated
+
+    arch = ArticulatedGridArchitecture(levels=4, max_resolution=64, table_log2=12, label_resolution=32,
+                                       weight_resolution=24)
+    config = TrainConfig(samples=8000, steps=20, batch_size=1024, validation_points=500, threads=1)
+    result = train_articulated(skinned_arm(), "arm-neural", config, arch=arch, show_progress=False)
+    save_collider(result.collider, root / "arm-neural.safetensors")
+
+
 @pytest.fixture(scope="session")
 def models_dir(tmp_path_factory) -> Path:
     """A model repository with ``sphere`` (radius 0.1 m at the origin) and ``box``
     (0.2 x 0.1 x 0.05 m at the origin), voxel colliders, and the animated ``pulse`` (exact) and
-    ``pulse-voxel`` (keyframe grids) of the pulsing sphere, and the skinned ``arm``; metres."""
+    ``pulse-voxel`` (keyframe grids) of the pulsing sphere, the skinned ``arm`` and its
+    articulated network ``arm-neural``; metres."""
     pytest.importorskip("collider_server", reason="the engine (server extras) is not installed")
     root = tmp_path_factory.mktemp("models")
     _bake("sphere", root)
     _bake("box", root)
     _bake_pulse(root)
     _save_arm(root)
+    _save_arm_neural(root)
     return root
 
 

@@ -163,8 +163,8 @@ def test_scene_fields_are_the_nearest_colliders_own(backend, request, points, fi
 def test_list_models_same(embedded, remote):
     a = {m.name: m for m in embedded.list_models()}
     b = {m.name: m for m in remote.list_models()}
-    assert sorted(a) == sorted(b) == ["arm", "box", "pulse", "pulse-voxel", "sphere"]
-    kinds = {"pulse": "mesh", "arm": "skinned"}
+    assert sorted(a) == sorted(b) == ["arm", "arm-neural", "box", "pulse", "pulse-voxel", "sphere"]
+    kinds = {"pulse": "mesh", "arm": "skinned", "arm-neural": "neural-skinned"}
     for name in a:
         assert a[name].kind == b[name].kind == kinds.get(name, "voxel")
         np.testing.assert_allclose(a[name].domain_min, b[name].domain_min)
@@ -182,6 +182,7 @@ def test_list_models_same(embedded, remote):
         "joints": ["shoulder", "elbow", "wrist"], "parents": [-1, 0, 1], "loop": True,
         "clips": [{"name": "wave", "duration_s": 1.0}, {"name": "reach", "duration_s": 2.0}]}
     assert b["arm"].skinned and not b["pulse"].skinned
+    assert a["arm-neural"].skeleton == b["arm-neural"].skeleton == b["arm"].skeleton and b["arm-neural"].skinned
 
 
 @pytest.mark.parametrize("backend", ["embedded", "remote"])

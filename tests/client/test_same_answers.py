@@ -125,10 +125,19 @@ CASES = {
     "skinned, joint transforms and velocities": ("query", (ARM_POINTS,), {
         "model": "arm", "fields": ALL + ["velocity"], "joint_transforms": ARM_POSE,
         "joint_velocities": ARM_RATES, "pose": pose((0.02, 0, 0.01), 1.5, 20), "pose_velocity": RATE}),
+    # the arm's articulated network (kind neural-skinned): the same skeleton pose keys
+    "neural-skinned, a clip at a time": ("query", (ARM_POINTS,), {"model": "arm-neural",
+                                                                  "fields": ALL + ["velocity"],
+                                                                  "time": 0.37, "clip": "wave"}),
+    "neural-skinned, joint transforms and velocities, collide-only": ("query", (ARM_POINTS,), {
+        "model": "arm-neural", "fields": ALL + ["velocity"], "joint_transforms": ARM_POSE,
+        "joint_velocities": ARM_RATES, "pose": pose((0.02, 0, 0.01), 1.5, 20), "eps": 0.01,
+        "only_colliding": True}),
     "scene, a skinned collider at a pose and a static one": ("scene", (ARM_POINTS,), {
         "colliders": [cc.SceneCollider("arm", pose((0.01, 0, 0)), joint_transforms=ARM_POSE,
                                        joint_velocities=ARM_RATES),
-                      {"model": "arm", "clip": "reach", "time": 1.2}, "box"],
+                      {"model": "arm", "clip": "reach", "time": 1.2}, "box",
+                      {"model": "arm-neural", "clip": "reach", "time": 0.9}],
         "fields": ALL + ["velocity"]}),
     "scene, two colliders": ("scene", (NEAR,), {"colliders": ["sphere", ("box", pose((0.05, 0, 0)))],
                                                 "fields": ALL}),

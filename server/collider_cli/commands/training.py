@@ -36,7 +36,9 @@ def register(subparsers) -> None:
                     "keyframe feature tables blended in time (preset keyframes, any motion), or the "
                     "rest pose's grid carried by deformation fields fitted to the frames (preset "
                     "deformed, a smooth deformation such as a twist or a squash: docs/neural.md).")
-    train.add_argument("mesh", help="mesh file (OBJ, PLY, STL, OFF, GLB; an OBJ with --animation)")
+    train.add_argument("mesh", help="mesh file (OBJ, PLY, STL, OFF, GLB; an OBJ with --animation), or a skinned "
+                                    "character (glTF .gltf/.glb with a skin, USD): its articulated network, kind "
+                                    "neural-skinned, answering at any pose of its skeleton")
     train.add_argument("--name", required=True, help="model name (file NAME.safetensors)")
     train.add_argument("--preset", default=None, choices=sorted({**PRESETS, **ANIMATED_PRESETS}),
                        help=f"network (default {defaults.preset}: a feature grid + tiny MLP, the fastest to "
@@ -118,6 +120,10 @@ def run_train(args) -> int:
     )
 
     check_name(args.name)
+    from collider_server.making.characters import is_skinned_character
+
+    if args.animation is None and is_skinned_character(args.mesh):
+        return run_train_character(args)
     check_animation_arguments(args)
     animated = args.animation is not None
     # An animation without --preset (or --keyframes, the keyframe tables' option) gets the animated
@@ -183,6 +189,42 @@ def run_train(args) -> int:
         return 0
     print(sign_check_line(result.collider, mesh, check))
     print("next: " + command("eval", args.name, "--mesh", args.mesh, *models_options(args), *placement_options(args)))
+    return 0
+
+
+def run_train_character(args) -> int:
+    """``collider train CHARACTER``: the articulated network of a skinned character (glTF or USD;
+    kind ``neural-skinned``, docs/neural.md), answering at any pose of its skeleton."""
+    from collider_server.engine.modelfile import save_collider
+    from collider_server.engine.repository import ModelRepository
+    from collider_server.making.characters import skinned_from_file
+    from collider_server.making.training import TrainConfig
+    from collider_server.making.training.articulated import train_articulated
+
+    if args.fps is not None or args.keyframes is not None:
+        raise ValueError("--fps and --keyframes are for vertex caches; a skinned character brings its own clips")
+    if args.preset is not None:
+        raise ValueError(f"--preset is for meshes and vertex caches; a skinned character ({args.mesh}) trains "
+                         "the articulated network (docs/neural.md)")
+    if args.checkpoint is not None or args.runs is not None:
+        raise ValueError("an articulated network's run keeps no checkpoint (--checkpoint, --runs); it trains "
+                         "within its --max-minutes")
+    config = TrainConfig(samples=args.samples, steps=args.steps, batch_size=args.batch_size,
+                         learning_rate=args.learning_rate, normal_weight=args.normal_weight,
+                         max_minutes=args.max_minutes, seed=args.seed, threads=args.threads)
+    config.check()
+    placement = placement_from_args(args)
+    repository = ModelRepository(args.models)
+    repository.check_writable()  # before the training, not after
+    exact, read, _ = skinned_from_file(args.mesh, args.name, placement, loop=args.loop)
+    for note in read.notes:
+        print(f"{args.mesh}: {note}")
+    result = train_articulated(exact.skin, args.name, config, units=placement.units,
+                               meters_per_unit=placement.meters_per_unit, loop=args.loop,
+                               source=exact.info.source, show_progress=not args.quiet)
+    path = save_collider(result.collider, repository.path(args.name))
+    print(f"wrote {path} ({path.stat().st_size:,} bytes, kind neural-skinned: "
+          f"{len(exact.info.skeleton['joints'])} joints): {result.summary()}")
     return 0
 
 

@@ -35,7 +35,7 @@ class ColliderInfo:
     """What a collider is; stored as JSON in its model file.
 
     name : model name (the file stem in a model repository)
-    kind : "neural", "voxel", "mesh", "kdtree" or "skinned"
+    kind : "neural", "voxel", "mesh", "kdtree", "skinned" or "neural-skinned"
     units : length unit of the collider frame, e.g. "m"
     meters_per_unit : metres in one unit (1.0 for metres); sets the default eps of 1 mm
     domain_min, domain_max : (3,) corners of the box, collider frame, where the model is defined

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 #: The kinds that run on the device they are given (torch); the exact ``mesh`` and the
 #: ``kdtree`` kinds run on the CPU whatever it is (libigl, SciPy).
-DEVICE_KINDS = ("voxel", "neural")
+DEVICE_KINDS = ("voxel", "neural", "neural-skinned")
 
 
 def device_of(kind: str, device: str) -> str:

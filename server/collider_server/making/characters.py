@@ -18,6 +18,19 @@ def is_character_file(path: str | Path) -> bool:
     return Path(path).suffix.lower() in GLTF_SUFFIXES + USD_SUFFIXES
 
 
+def is_skinned_character(path: str | Path) -> bool:
+    """Whether ``path`` is a skinned character: a USD stage, or a glTF file with a skin (a glTF
+    of static meshes is a mesh file); a ValueError naming the file when a glTF cannot be read."""
+    suffix = Path(path).suffix.lower()
+    if suffix in USD_SUFFIXES:
+        return True
+    if suffix in GLTF_SUFFIXES:
+        from .gltf import has_skin
+
+        return has_skin(path)
+    return False
+
+
 def read_character(path: str | Path) -> SkinFile:
     """The skinned character of ``path`` in the file's frame and units; a ValueError (one line,
     naming the file) when it has none or cannot be read."""

@@ -87,6 +87,13 @@ def read_gltf(path: str | Path, max_faces: int = MAX_FACES) -> SkinFile:
     return reader.read(max_faces)
 
 
+def has_skin(path: str | Path) -> bool:
+    """Whether the glTF file ``path`` holds a skin (a character for :func:`read_gltf`) rather
+    than only static meshes; GltfError when it cannot be read."""
+    document, _ = _load(Path(path))
+    return bool(document.skins)
+
+
 def _load(path: Path):
     import pygltflib
 

@@ -7,11 +7,12 @@ from .animated_voxel import AnimatedVoxelCollider
 from .kdtree import KDTreeCollider
 from .mesh import MeshCollider
 from .neural import NeuralCollider
+from .neural_skinned import ArticulatedNeuralCollider
 from .skinned import SkinnedCollider
 from .voxel import VoxelCollider
 
 KINDS = {cls.kind: cls for cls in (NeuralCollider, VoxelCollider, MeshCollider, KDTreeCollider,
-                                   SkinnedCollider)}
+                                   SkinnedCollider, ArticulatedNeuralCollider)}
 #: The kinds that can be animated, and the class of an animated model of each.
 ANIMATED_KINDS = {cls.kind: cls for cls in (AnimatedMeshCollider, AnimatedVoxelCollider, AnimatedNeuralCollider)}
 
@@ -29,5 +30,17 @@ def kind_class(info):
     return ANIMATED_KINDS[info.kind]
 
 
-__all__ = ["ANIMATED_KINDS", "KINDS", "AnimatedMeshCollider", "AnimatedNeuralCollider", "AnimatedVoxelCollider",
-           "KDTreeCollider", "MeshCollider", "NeuralCollider", "SkinnedCollider", "VoxelCollider", "kind_class"]
+__all__ = [
+    "ANIMATED_KINDS",
+    "KINDS",
+    "AnimatedMeshCollider",
+    "AnimatedNeuralCollider",
+    "AnimatedVoxelCollider",
+    "ArticulatedNeuralCollider",
+    "KDTreeCollider",
+    "MeshCollider",
+    "NeuralCollider",
+    "SkinnedCollider",
+    "VoxelCollider",
+    "kind_class",
+]

@@ -117,14 +117,18 @@ def grid_network_class(arch: GridArchitecture):
 
         # -- the analytic gradient -----------------------------------------------------------
 
-        def fused_query(self, x, want_gradient: bool):
+        def fused_query(self, x, want_gradient: bool, first_bias=None):
             """Distance (n,) and, when asked, gradient (n, 3) at collider-frame points ``x``
             (n, 3) by one fused CPU kernel for the whole network (numba; inference only, the
-            query fast path). Same values as :meth:`value_and_gradient`."""
+            query fast path). Same values as :meth:`value_and_gradient`. ``first_bias``
+            (hidden_width,) float32 numpy, when given, is added to the first layer's bias (the
+            articulated network's per-part condition, :mod:`.neural_skinned`)."""
             linears = [m for m in self.body if isinstance(m, nn.Linear)]
             u = ((x - self.centre) / self.radius).contiguous().numpy()
             weights = tuple(m.weight.detach().numpy() for m in linears[:-1])
             biases = tuple(m.bias.detach().numpy() for m in linears[:-1])
+            if first_bias is not None:
+                biases = (np.ascontiguousarray(biases[0] + first_bias, np.float32),) + biases[1:]
             out = linears[-1]
             n = len(u)
             distance = np.empty(n, np.float32)
@@ -154,15 +158,19 @@ def grid_network_class(arch: GridArchitecture):
             # d distance / d x = radius * d mlp / d u * d u / d x = d mlp / d u.
             return distance, torch.einsum("nlf,nlfd->nd", g, jacobian)
 
-        def head(self, features):
+        def head(self, features, first_bias=None):
             """The MLP on ``features`` (n, L, F): distance (n,) (the output times the radius)
-            and d output / d features (n, L, F) (the ReLU masks kept from the forward pass)."""
+            and d output / d features (n, L, F) (the ReLU masks kept from the forward pass).
+            ``first_bias`` ((n, hidden_width) or (hidden_width,)), when given, is added to the
+            first layer's pre-activation (the articulated network's per-part condition)."""
             n = len(features)
             h = features.flatten(1)
             masks = []
             linears = [m for m in self.body if isinstance(m, nn.Linear)]
-            for linear in linears[:-1]:
+            for k, linear in enumerate(linears[:-1]):
                 pre = torch.nn.functional.linear(h, linear.weight, linear.bias)
+                if k == 0 and first_bias is not None:
+                    pre = pre + first_bias
                 mask = pre > 0
                 masks.append(mask)
                 h = pre * mask

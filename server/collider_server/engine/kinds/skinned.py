@@ -90,30 +90,14 @@ class SkinnedCollider(Collider):
     def posed(self, time: float | None, skeleton: SkeletonPose | None) -> PosedSkin:
         """The skin at the pose of a query: ``skeleton``'s joint transforms, or its clip (None:
         the first) at ``time`` seconds; with neither, the rest pose. Cached by pose."""
-        if skeleton is not None and skeleton.joint_transforms is not None:
-            key = ("joints", skeleton.joint_transforms.tobytes(),
-                   None if skeleton.joint_velocities is None else skeleton.joint_velocities.tobytes())
-        elif time is not None:
-            key = ("clip", None if skeleton is None else skeleton.clip, float(time))
-        else:
-            key = ("rest",)
+        key = pose_key(time, skeleton)
         with self._lock:
             posed = self._cache.get(key)
             if posed is not None:
                 self._cache.move_to_end(key)
                 return posed
         started = clock.perf_counter()
-        if key[0] == "joints":
-            transforms = np.asarray(skeleton.joint_transforms, dtype=np.float64)
-            velocities = (None if skeleton.joint_velocities is None
-                          else np.asarray(skeleton.joint_velocities, dtype=np.float64))
-        elif key[0] == "clip":
-            transforms, velocities = pose_at(self.skin, key[1], key[2],
-                                             "loop" if self.loop else "clamp")
-            if not velocities.any():
-                velocities = None
-        else:
-            transforms, velocities = self.skin.skeleton.rest_world(), None
+        transforms, velocities = resolve_pose(self.skin, self.loop, key, skeleton)
         mesh = Mesh(skin_vertices(self.skin, transforms), self.skin.faces, self.info.name)
         posed = PosedSkin(self.skin, ExactSDF(mesh, self._edges), transforms, velocities)
         spent = clock.perf_counter() - started
@@ -147,24 +131,56 @@ class SkinnedCollider(Collider):
         return distance, gradient, velocity
 
     def tensors(self):
-        skin, skeleton = self.skin, self.skin.skeleton
-        out = {"vertices": skin.vertices, "faces": skin.faces.astype(np.int32),
-               "joints": skin.joints.astype(np.int32), "weights": skin.weights,
-               "parents": skeleton.parents.astype(np.int32),
-               "rest_translation": skeleton.rest_translation,
-               "rest_rotation": skeleton.rest_rotation, "rest_scale": skeleton.rest_scale,
-               "inverse_bind": skeleton.inverse_bind, "root": skeleton.root}
-        n = 0
-        for clip in skin.clips:
-            for channel in clip.channels:
-                out[f"channel.{n}.times"] = channel.times
-                out[f"channel.{n}.values"] = channel.values
-                n += 1
-        return {k: np.asarray(v) for k, v in out.items()}
+        return skin_tensors(self.skin)
 
     @classmethod
     def from_tensors(cls, info, tensors, device=None):
         return cls(info, skin_from_tensors(info, tensors))
+
+
+def pose_key(time: float | None, skeleton: SkeletonPose | None) -> tuple:
+    """The cache key of a query's pose (hashable): its joint transforms (and velocities), or its
+    clip (None: the first) and time, or the rest pose when it gives neither."""
+    if skeleton is not None and skeleton.joint_transforms is not None:
+        return ("joints", skeleton.joint_transforms.tobytes(),
+                None if skeleton.joint_velocities is None else skeleton.joint_velocities.tobytes())
+    if time is not None:
+        return ("clip", None if skeleton is None else skeleton.clip, float(time))
+    return ("rest",)
+
+
+def resolve_pose(skin: Skin, loop: bool, key: tuple, skeleton: SkeletonPose | None):
+    """The pose of :func:`pose_key`'s ``key``: ``(joint_transforms (J, 4, 4), joint_velocities
+    (J, 4, 4) or None: still)`` float64, collider frame (a clip's time wrapped when ``loop``, else
+    clamped; the rest pose is still)."""
+    if key[0] == "joints":
+        transforms = np.asarray(skeleton.joint_transforms, dtype=np.float64)
+        velocities = (None if skeleton.joint_velocities is None
+                      else np.asarray(skeleton.joint_velocities, dtype=np.float64))
+        return transforms, velocities
+    if key[0] == "clip":
+        transforms, velocities = pose_at(skin, key[1], key[2], "loop" if loop else "clamp")
+        return transforms, (velocities if velocities.any() else None)
+    return skin.skeleton.rest_world(), None
+
+
+def skin_tensors(skin: Skin) -> dict:
+    """The arrays a model file stores of ``skin``: :data:`SKIN_TENSORS` and each channel's
+    ``channel.<n>.times`` / ``channel.<n>.values`` (:func:`channel_layout`'s order)."""
+    skeleton = skin.skeleton
+    out = {"vertices": skin.vertices, "faces": skin.faces.astype(np.int32),
+           "joints": skin.joints.astype(np.int32), "weights": skin.weights,
+           "parents": skeleton.parents.astype(np.int32),
+           "rest_translation": skeleton.rest_translation,
+           "rest_rotation": skeleton.rest_rotation, "rest_scale": skeleton.rest_scale,
+           "inverse_bind": skeleton.inverse_bind, "root": skeleton.root}
+    n = 0
+    for clip in skin.clips:
+        for channel in clip.channels:
+            out[f"channel.{n}.times"] = channel.times
+            out[f"channel.{n}.values"] = channel.values
+            n += 1
+    return {k: np.asarray(v) for k, v in out.items()}
 
 
 def skeleton_description(skin: Skin, loop: bool) -> dict:

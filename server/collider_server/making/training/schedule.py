@@ -51,8 +51,11 @@ def make_optimizer(network, learning_rate: float, fused: bool = False):
     in several passes)."""
     import torch
 
-    table = [p for n, p in network.named_parameters() if n == "table"]
-    others = [p for n, p in network.named_parameters() if n != "table"]
+    def is_table(name: str) -> bool:  # the static network's, or one inside a larger module
+        return name == "table" or name.endswith(".table")
+
+    table = [p for n, p in network.named_parameters() if is_table(n)]
+    others = [p for n, p in network.named_parameters() if not is_table(n)]
     if not table:
         return torch.optim.Adam(others, lr=learning_rate)
     return torch.optim.Adam([{"params": table}, {"params": others}], lr=learning_rate,

@@ -84,3 +84,20 @@ def test_bad_characters_are_one_line_errors(capsys, tmp_path):
                       "a skinned character brings its own clips")
     assert_user_error(capsys, ["animate", "arm", "--bake", "skinned", "--output", tmp_path],
                       "--bake takes some of ['mesh', 'voxel'] for arm")
+
+
+def test_train_character_makes_its_articulated_network(capsys, tmp_path):
+    code, out, err = run(capsys, "train", SAMPLE, "--name", "cylinder-neural", "--fit-size", 1.0,
+                         "--steps", 20, "--samples", 8000, "--batch-size", 1024, "--threads", 1,
+                         "--models", tmp_path, "--quiet")
+    assert code == 0, err
+    assert "kind neural-skinned: 2 joints" in out and "20 steps" in out
+    collider = load_collider(tmp_path / "cylinder-neural.safetensors")
+    assert collider.info.kind == "neural-skinned" and collider.skin.skeleton.joint_count == 2
+    answer = collider.query(np.zeros((1, 3)), "distance", clip=None, time=0.5)
+    assert np.isfinite(answer.distance).all()
+
+
+def test_train_character_refuses_a_mesh_preset_in_one_line(capsys, tmp_path):
+    assert_user_error(capsys, ["train", SAMPLE, "--name", "c", "--preset", "grid", "--models", tmp_path],
+                      "--preset is for meshes and vertex caches")

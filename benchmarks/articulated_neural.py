@@ -1,0 +1,162 @@
+"""The articulated neural collider (kind ``neural-skinned``) of the generated walking figure against
+the exact skinned kind, at poses it was not trained on, and its query time against the static grid
+network's.
+
+Accuracy: at ``--clip-times`` random times of the walker's clips and ``--poses`` random poses off
+the clips (a random clip time, then every joint's local rotation turned by up to 15 degrees about
+a random axis; seeds apart from training's), ``--points`` points per pose in the +-1 mm band of
+the exact skinned surface at that pose (surface samples offset along the face normal): mean / p99
+/ max distance error, sign errors (all, and where the exact |d| > 0.2 mm), normal error mean / p99
+(degrees). Also the model file's size and its training (steps, seconds).
+
+Speed: 1M points in the +-10 mm band, per round each candidate once in turn (interleaved, the
+load falls on both alike): the articulated network's distance + normal + contact + velocity at a
+new pose each round (joint transforms and velocities: no pose cache), and the static ``grid``
+preset's network of the rest mesh (same preset and size, untrained weights: the fused kernel's
+time does not depend on the values) for distance + normal + contact; the median and range.
+
+    python benchmarks/articulated_neural.py --model models/walker-neural.safetensors
+    python benchmarks/articulated_neural.py --train-minutes 10   # trains one first (not saved)
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path[:0] = [str(Path(__file__).resolve().parents[1] / "server"), str(Path(__file__).resolve().parents[1] / "client")]
+
+from collider_server.engine.collider import ColliderInfo
+from collider_server.engine.kinds.neural import PRESETS, NeuralCollider, architecture_dict, build_network
+from collider_server.engine.meshes import Mesh
+from collider_server.engine.modelfile import load_collider, save_collider
+from collider_server.engine.skinning import pose_at, skin_vertices
+from collider_server.making.sampling import surface_band_points
+from collider_server.making.skinned import skinned_collider
+from collider_server.making.training import TrainConfig
+from collider_server.making.training.articulated import sample_poses, train_articulated
+from collider_server.making.training.data import normalisation
+from collider_server.making.walker import make_walker
+
+
+def accuracy(collider, exact, skin, poses, points_per_pose: int, seed: int) -> dict:
+    """Errors of ``collider`` against ``exact`` in the +-1 mm band at each of ``poses``."""
+    errors, truths, answers, angles = [], [], [], []
+    for p, transforms in enumerate(poses):
+        mesh = Mesh(skin_vertices(skin, transforms), skin.faces, "posed")
+        points = surface_band_points(mesh, points_per_pose, 1e-3, seed + p)
+        truth = exact.query(points, ("distance", "normal"), joint_transforms=transforms)
+        answer = collider.query(points, ("distance", "normal"), joint_transforms=transforms)
+        errors.append(np.abs(answer.distance - truth.distance))
+        truths.append(truth.distance)
+        answers.append(answer.distance)
+        cos = np.clip(np.einsum("ij,ij->i", answer.normal, truth.normal), -1.0, 1.0)
+        angles.append(np.degrees(np.arccos(cos)))
+    error, truth, answer, angle = (np.concatenate(a) for a in (errors, truths, answers, angles))
+    wrong = np.sign(answer) != np.sign(truth)
+    clear = np.abs(truth) > 2e-4
+    return {"poses": len(poses), "points": len(error), "mean_mm": error.mean() * 1e3,
+            "p99_mm": np.percentile(error, 99) * 1e3, "max_mm": error.max() * 1e3,
+            "sign_errors_pct": wrong.mean() * 100, "sign_errors_beyond_0.2mm_pct": wrong[clear].mean() * 100,
+            "normal_mean_deg": angle.mean(), "normal_p99_deg": np.percentile(angle, 99)}
+
+
+def clip_poses(skin, count: int, seed: int) -> np.ndarray:
+    """(count, J, 4, 4): random clips at uniform random times."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for _ in range(count):
+        clip = skin.clips[rng.integers(len(skin.clips))]
+        out.append(pose_at(skin, clip.name, rng.uniform(0.0, clip.duration_s))[0])
+    return np.stack(out)
+
+
+def timing(collider, skin, rounds: int, seed: int, threads: int) -> dict:
+    """Median (min - max) seconds per 1M points: articulated d+n+c+v at a new pose each round,
+    the static grid network of the rest mesh d+n+c, interleaved."""
+    import torch
+
+    torch.set_num_threads(threads)
+    rest = Mesh(skin.vertices, skin.faces, "rest")
+    centre, radius = normalisation(rest, 0.1)
+    arch = PRESETS["grid"]
+    lo, hi = centre - radius, centre + radius
+    info = ColliderInfo(name="static", kind="neural", domain_min=lo.tolist(), domain_max=hi.tolist(),
+                        settings={"architecture": architecture_dict(arch)})
+    static = NeuralCollider(info, build_network(arch, centre, radius), device="cpu")
+    static_points = surface_band_points(rest, 1_000_000, 1e-2, seed)
+    poses = sample_poses(skin, rounds, seed + 1)
+    _, velocities = pose_at(skin, skin.clips[0].name, 0.3)
+    times = {"articulated d+n+c+v (new pose)": [], "static grid d+n+c": []}
+    for r in range(rounds):
+        mesh = Mesh(skin_vertices(skin, poses[r]), skin.faces, "posed")
+        points = surface_band_points(mesh, 1_000_000, 1e-2, seed + 10 + r)
+        started = time.perf_counter()
+        collider.query(points, ("distance", "normal", "contact", "velocity"), joint_transforms=poses[r],
+                       joint_velocities=velocities)
+        times["articulated d+n+c+v (new pose)"].append(time.perf_counter() - started)
+        started = time.perf_counter()
+        static.query(static_points, ("distance", "normal", "contact"))
+        times["static grid d+n+c"].append(time.perf_counter() - started)
+    return {k: (float(np.median(v)), float(min(v)), float(max(v))) for k, v in times.items()}
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--model", type=Path, help="a trained neural-skinned model of the walker")
+    parser.add_argument("--train-minutes", type=float, default=None, help="train one first (no --model)")
+    parser.add_argument("--save", type=Path, default=None, help="where a model trained here is saved")
+    parser.add_argument("--clip-times", type=int, default=16)
+    parser.add_argument("--poses", type=int, default=100)
+    parser.add_argument("--points", type=int, default=2000, help="points per pose")
+    parser.add_argument("--rounds", type=int, default=5)
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--seed", type=int, default=2026)
+    args = parser.parse_args()
+    if (args.model is None) == (args.train_minutes is None):
+        parser.error("give --model or --train-minutes")
+    skin = make_walker().skin()
+    exact = skinned_collider(skin, "walker", loop=True)
+    print(f"load average at start: {os.getloadavg()[0]:.1f}")
+    if args.model is not None:
+        collider = load_collider(args.model)
+        size = args.model.stat().st_size
+    else:
+        config = TrainConfig(max_minutes=args.train_minutes, threads=args.threads, batch_size=4096)
+        result = train_articulated(skin, "walker-neural", config, loop=True)
+        collider = result.collider
+        path = save_collider(collider, args.save or Path("/tmp/walker-neural.safetensors"))
+        size = path.stat().st_size
+        print(result.summary())
+    training = collider.info.settings.get("training", {})
+    print(f"model: {size / 1e6:.2f} MB; trained {training.get('steps_done')} steps in "
+          f"{training.get('seconds')} s; best validation {training.get('best_validation_1mm_mm')} mm")
+    import torch
+
+    torch.set_num_threads(args.threads)
+    figures = {"clip times": accuracy(collider, exact, skin, clip_poses(skin, args.clip_times, args.seed),
+                                      args.points, args.seed),
+               "poses off the clips (15 deg)": accuracy(collider, exact, skin,
+                                                        sample_poses(skin, args.poses, args.seed + 5,
+                                                                     perturbed_share=1.0),
+                                                        args.points, args.seed + 1000)}
+    for name, f in figures.items():
+        print(f"{name}: {f['poses']} poses, {f['points']:,} points in the +-1 mm band: mean {f['mean_mm']:.4f} / "
+              f"p99 {f['p99_mm']:.3f} / max {f['max_mm']:.2f} mm, sign errors {f['sign_errors_pct']:.3f} % "
+              f"({f['sign_errors_beyond_0.2mm_pct']:.3f} % beyond 0.2 mm), normals {f['normal_mean_deg']:.2f} / "
+              f"{f['normal_p99_deg']:.1f} deg")
+    speed = timing(collider, skin, args.rounds, args.seed + 7, args.threads)
+    for name, (median, low, high) in speed.items():
+        print(f"{name}: {median:.3f} s per 1M points ({low:.3f}-{high:.3f}, {args.rounds} rounds)")
+    ratio = speed["articulated d+n+c+v (new pose)"][0] / speed["static grid d+n+c"][0]
+    print(f"articulated / static: {ratio:.2f}x; load average at end: {os.getloadavg()[0]:.1f}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

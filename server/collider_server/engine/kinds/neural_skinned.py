@@ -1,0 +1,706 @@
+"""The articulated neural collider (kind ``neural-skinned``): one network for a skinned character
+that answers at any pose of its skeleton (a clip and a time, or the joints' transforms), as the
+exact ``skinned`` kind does, from a few megabytes.
+
+Per-part fields in each joint's rest frame, composed by a minimum (COAP-style), sharing one grid:
+
+- **The rigid maps.** At a pose ``T`` (J, 4, 4) (the joints' world transforms, collider frame)
+  joint j moves its part by ``A_j = T_j @ inverse_bind_j`` (rest pose -> posed, collider frame).
+  A query point x is taken back to the rest pose as if rigidly attached to joint j:
+  ``x_j = A_j^-1 x``.
+- **Which parts a point may belong to** (:func:`part_candidates`): a label grid over the rest
+  pose (``label_resolution``^3 cells over the grid's domain, uint8) says which joint owns each
+  cell (the dominant joint of the nearest rest vertex; :data:`NO_PART` beyond a band outside the
+  rest surface). Joint j is a candidate for x when the label at ``x_j`` is j itself or, with
+  ``neighbours``, j's parent or one of its children (the region a bent joint's blend reaches).
+  A point with no candidate (far from the body) takes the joint whose part box (the rest
+  vertices it dominates, padded) is nearest to its ``x_j``.
+- **One shared field, conditioned per part** (:func:`build_articulated_network`): the static
+  grid network of :mod:`.neural_grid` over the rest pose, evaluated at ``x_j``, whose first
+  layer gets a per-part bias ``embedding_j + condition @ code_j``; ``code_j`` holds the rotations
+  (relative to the rest pose, minus the identity) of joint j against its parent and of its
+  children against it (:func:`pose_codes`): what bends the skin near the part. A bias of the
+  first layer is all the condition is, so the fused CPU kernel of the static network answers a
+  part's points unchanged (its first bias replaced).
+- **Composition**: ``d(x) = min_j f(x_j; j, code_j)`` over the candidates (the union of the
+  parts, as the exact kind answers a self-overlapping skin); the normal is the chosen part's
+  gradient through its rigid map, ``(A_j^-1)[:3, :3]^T grad f``; the surface velocity is the
+  chosen part's rigid motion at the point, ``dA_j/dt @ A_j^-1 x`` (``dA_j/dt = dT_j/dt @
+  inverse_bind_j``).
+
+The model file holds the skin as the exact kind stores it (so the pose of a clip is computed by
+the same code, and ``collider eval`` has its truth) plus the network's arrays under
+``network.`` (the grid's table packed as the static preset's, 8-bit hashed levels).
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+from collections import OrderedDict
+from dataclasses import asdict, dataclass
+from typing import ClassVar
+
+import numpy as np
+
+from ..collider import Collider, ColliderInfo
+from ..devices import resolve_device
+from ..skinning import Skeleton, Skin
+from . import grid_kernels
+from .neural_grid import GridArchitecture, build_grid_network, pack_table, unpack_table
+from .skinned import pose_key, resolve_pose, skin_from_tensors, skin_tensors
+
+#: The label of a rest-pose cell no part owns (beyond the band outside the rest surface).
+NO_PART = 255
+#: Prefix of the network's arrays in the model file (the skin's are unprefixed).
+NETWORK_PREFIX = "network."
+
+
+@dataclass(frozen=True)
+class ArticulatedGridArchitecture(GridArchitecture):
+    """The static grid network's shape (the rest pose's field; default the ``grid`` preset's
+    2^17 rows per hashed level in 8 bits) plus:
+
+    joints : J, parts (one per joint of the skeleton)
+    pose_slots : rotations in a part's pose code: its own against its parent, then up to
+        ``pose_slots - 1`` children's against it (9 numbers each)
+    label_resolution : cells per side of the rest pose's label grid
+    neighbours : a joint is a candidate where the label is its parent's or a child's too (False:
+        only where it is its own)
+    skinning_iterations : fixed-point steps that carry a part's rigid rest image on through the
+        skinning (:func:`skinned_rest`); 0: rigid parts only
+    weight_resolution : cells per side of the rest pose's skinning-weight grid (its 4 largest
+        weights per corner, 8 bits each)
+    """
+
+    joints: int = 1
+    pose_slots: int = 4
+    label_resolution: int = 64
+    neighbours: bool = False
+    skinning_iterations: int = 2
+    weight_resolution: int = 48
+    table_log2: int = 17
+    table_dtype: str = "int8"
+    encoding: str = "articulated-grid"
+    ENCODING: ClassVar[str] = "articulated-grid"
+
+    def __post_init__(self):
+        super().__post_init__()
+        for name in ("joints", "pose_slots", "label_resolution", "skinning_iterations", "weight_resolution"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < (0 if name == "skinning_iterations" else 1):
+                raise ValueError(f"architecture {name} must be a positive integer, got {value!r}")
+        if self.joints >= NO_PART:
+            raise ValueError(f"an articulated network has at most {NO_PART - 1} joints, got {self.joints}")
+
+    def code_width(self) -> int:
+        return 9 * self.pose_slots
+
+    def parameter_count(self) -> int:
+        return (super().parameter_count() + self.joints * self.hidden_width
+                + self.hidden_width * self.code_width())
+
+
+# --------------------------------------------------------------------------------------------
+# The pose: rigid maps, codes, candidates (numpy, collider frame, float64)
+
+
+def rest_maps(skeleton: Skeleton, joint_transforms: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(to_rest (J, 3, 4), to_posed (J, 4, 4))`` float64: each part's map from the posed
+    collider frame back to the rest pose, ``A_j^-1`` (its last row dropped), and ``A_j = T_j @
+    inverse_bind_j`` itself, for joint transforms ``T`` (J, 4, 4)."""
+    posed = np.asarray(joint_transforms, np.float64) @ skeleton.inverse_bind
+    return np.linalg.inv(posed)[:, :3, :], posed
+
+
+def pose_codes(skeleton: Skeleton, joint_transforms: np.ndarray, slots: int) -> np.ndarray:
+    """(J, 9 * slots) float32: per joint, its local rotation relative to the rest pose minus the
+    identity (zero for a root: a root's rotation moves the part, it does not bend it), then its
+    first ``slots - 1`` children's; zero where a joint has fewer children. Rotations are taken
+    from the local transforms with their scale divided out."""
+    world = np.asarray(joint_transforms, np.float64)
+    parents = skeleton.parents
+    above = np.where((parents >= 0)[:, None, None], world[np.maximum(parents, 0)], skeleton.root)
+    local = np.linalg.solve(above, world)[:, :3, :3]
+    rest = skeleton.rest_local()[:, :3, :3]
+    local = local / np.linalg.norm(local, axis=1, keepdims=True)
+    rest = rest / np.linalg.norm(rest, axis=1, keepdims=True)
+    relative = np.swapaxes(rest, 1, 2) @ local - np.eye(3)
+    relative[parents < 0] = 0.0
+    relative = relative.reshape(len(parents), 9)
+    codes = np.zeros((len(parents), slots, 9))
+    codes[:, 0] = relative
+    for j in range(len(parents)):
+        for slot, child in enumerate(np.flatnonzero(parents == j)[: slots - 1]):
+            codes[j, slot + 1] = relative[child]
+    return codes.reshape(len(parents), -1).astype(np.float32)
+
+
+def allowed_labels(parents: np.ndarray, neighbours: bool) -> np.ndarray:
+    """(J, 256) bool: whether joint j is a candidate where the label grid says ``label``: its
+    own, and with ``neighbours`` its parent's and its children's; never :data:`NO_PART`."""
+    count = len(parents)
+    allowed = np.zeros((count, 256), bool)
+    allowed[np.arange(count), np.arange(count)] = True
+    if neighbours:
+        for child, parent in enumerate(parents):
+            if parent >= 0:
+                allowed[child, parent] = allowed[parent, child] = True
+    return allowed
+
+
+def part_candidates(points: np.ndarray, to_rest: np.ndarray, labels: np.ndarray, centre, radius: float,
+                    allowed: np.ndarray, part_boxes: np.ndarray, fused: bool = True):
+    """The parts each point may belong to (the rule of the module docstring).
+
+    points : (n, 3) float64, collider frame at the pose; to_rest : (J, 3, 4) (:func:`rest_maps`)
+    labels : (R, R, R) uint8 over the cube ``centre +- radius`` (rest pose), indexed [i, j, k]
+        along x, y, z; allowed : (J, 256) bool (:func:`allowed_labels`)
+    part_boxes : (J, 2, 3) float64, each part's rest box (lo, hi), for points with no candidate
+    fused : decide in one numba kernel over the points (:func:`_candidate_mask`) when numba is
+        there; else (or False) numpy, joint by joint (the reference)
+    Returns ``(point (k,) int64, joint (k,) int64, rest (k, 3) float64)``: one row per candidate,
+    its point's index, the joint and the point in that joint's rest frame; every point has at
+    least one row; rows sorted by joint, then point.
+    """
+    points = np.ascontiguousarray(points, np.float64)
+    centre = np.asarray(centre, np.float64)
+    if fused and _candidate_mask is not None:
+        mask = np.empty((len(to_rest), len(points)), np.bool_)
+        _candidate_mask(points, np.ascontiguousarray(to_rest), labels, centre, float(radius), allowed,
+                        np.ascontiguousarray(part_boxes, np.float64), mask)
+    else:
+        mask = _candidate_mask_numpy(points, to_rest, labels, centre, radius, allowed, part_boxes)
+    rows_point, rows_joint, rows_rest = [], [], []
+    for j in range(len(to_rest)):
+        take = np.flatnonzero(mask[j])
+        rows_point.append(take)
+        rows_joint.append(np.full(len(take), j, np.int64))
+        rows_rest.append(points[take] @ to_rest[j, :, :3].T + to_rest[j, :, 3])
+    return np.concatenate(rows_point), np.concatenate(rows_joint), np.concatenate(rows_rest)
+
+
+def _candidate_mask_numpy(points, to_rest, labels, centre, radius, allowed, part_boxes) -> np.ndarray:
+    """(J, n) bool: whether joint j is a candidate of point p (:func:`part_candidates`), numpy."""
+    n = len(points)
+    resolution = labels.shape[0]
+    mask = np.zeros((len(to_rest), n), bool)
+    for j in range(len(to_rest)):
+        rest = points @ to_rest[j, :, :3].T + to_rest[j, :, 3]
+        cell = np.floor(((rest - centre) / radius + 1.0) * 0.5 * resolution).astype(np.int64)
+        inside = ((cell >= 0) & (cell < resolution)).all(axis=1)
+        label = np.full(n, NO_PART, np.int64)
+        c = cell[inside]
+        label[inside] = labels[c[:, 0], c[:, 1], c[:, 2]]
+        mask[j] = allowed[j, label]
+    lost = np.flatnonzero(~mask.any(axis=0))
+    if len(lost):
+        # Far from every part's region: the part whose rest box is nearest to the point's image.
+        rest = np.einsum("jab,nb->nja", to_rest[:, :, :3], points[lost]) + to_rest[None, :, :, 3]
+        gap = np.maximum(part_boxes[None, :, 0] - rest, 0.0) + np.maximum(rest - part_boxes[None, :, 1], 0.0)
+        mask[np.argmin(np.einsum("nja,nja->nj", gap, gap), axis=1), lost] = True
+    return mask
+
+
+_candidate_mask = None
+if grid_kernels.available():
+    import numba
+
+    @numba.njit(cache=True, nogil=True, parallel=True)
+    def _candidate_mask(points, to_rest, labels, centre, radius, allowed, part_boxes, mask):  # pragma: no cover
+        """:func:`_candidate_mask_numpy` in one pass over the points (numba, parallel): ``mask``
+        (J, n) bool is overwritten."""
+        n = points.shape[0]
+        joints = to_rest.shape[0]
+        resolution = labels.shape[0]
+        for p in numba.prange(n):
+            x, y, z = points[p, 0], points[p, 1], points[p, 2]
+            any_part = False
+            nearest, nearest_gap = 0, np.inf
+            for j in range(joints):
+                m = to_rest[j]
+                inside = True
+                gap = 0.0
+                ci = cj = ck = 0
+                for a in range(3):
+                    r = m[a, 0] * x + m[a, 1] * y + m[a, 2] * z + m[a, 3]
+                    c = math.floor(((r - centre[a]) / radius + 1.0) * 0.5 * resolution)
+                    if c < 0 or c >= resolution:
+                        inside = False
+                    if a == 0:
+                        ci = c
+                    elif a == 1:
+                        cj = c
+                    else:
+                        ck = c
+                    g = max(part_boxes[j, 0, a] - r, 0.0) + max(r - part_boxes[j, 1, a], 0.0)
+                    gap += g * g
+                label = NO_PART
+                if inside:
+                    label = labels[ci, cj, ck]
+                mask[j, p] = allowed[j, label]
+                if mask[j, p]:
+                    any_part = True
+                if gap < nearest_gap:
+                    nearest, nearest_gap = j, gap
+            if not any_part:
+                mask[nearest, p] = True
+
+
+#: Largest skinning weights kept per corner of the weight grid.
+GRID_INFLUENCES = 4
+
+
+def weight_grid(skin: Skin, centre, radius: float, resolution: int) -> tuple[np.ndarray, np.ndarray]:
+    """The rest pose's skinning weights on the corners of a grid over the cube ``centre +-
+    radius`` ((R + 1)^3 corners, indexed [i, j, k] along x, y, z): at each corner the weights of
+    its closest point on the rest surface (the closest triangle's vertex weights blended by its
+    barycentric coordinates), the :data:`GRID_INFLUENCES` largest kept. Returns ``(joints (R+1,
+    R+1, R+1, 4) uint8, weights (R+1, R+1, R+1, 4) uint8)``, a weight ``w / 255`` (renormalised)."""
+    from ..meshes import ExactSDF, Mesh, barycentric
+
+    side = resolution + 1
+    axis = np.linspace(-1.0, 1.0, side)
+    corners = np.asarray(centre, np.float64) + radius * np.stack(
+        np.meshgrid(axis, axis, axis, indexing="ij"), axis=-1).reshape(-1, 3)
+    _, closest, face = ExactSDF(Mesh(skin.vertices, skin.faces, "rest")).query(corners)
+    tri = skin.faces[face]
+    bary = barycentric(closest, skin.vertices[tri])
+    dense = np.zeros((len(corners), skin.skeleton.joint_count))
+    rows = np.arange(len(corners))
+    for c in range(3):
+        for k in range(skin.joints.shape[1]):
+            np.add.at(dense, (rows, skin.joints[tri[:, c], k]), bary[:, c] * skin.weights[tri[:, c], k])
+    if dense.shape[1] < GRID_INFLUENCES:  # fewer joints than slots: pad with zero weights
+        dense = np.pad(dense, ((0, 0), (0, GRID_INFLUENCES - dense.shape[1])))
+    top = np.argsort(-dense, axis=1)[:, :GRID_INFLUENCES]
+    values = np.take_along_axis(dense, top, axis=1)
+    top = np.where(top < skin.skeleton.joint_count, top, 0)
+    values /= np.maximum(values.sum(axis=1, keepdims=True), 1e-12)
+    shape = (side, side, side, GRID_INFLUENCES)
+    return (top.astype(np.uint8).reshape(shape),
+            np.clip(np.rint(values * 255), 0, 255).astype(np.uint8).reshape(shape))
+
+
+def weights_at(rest: np.ndarray, grid_joints: np.ndarray, grid_weights: np.ndarray, centre, radius: float,
+               joints: int) -> np.ndarray:
+    """(m, J) float64 skinning weights at rest-pose points ``rest`` (m, 3): the weight grid
+    (:func:`weight_grid`) interpolated trilinearly (clamped into the cube), rows summing to 1."""
+    side = grid_joints.shape[0]
+    position = np.clip((np.asarray(rest) - centre) / radius, -1.0, 1.0)
+    position = (position + 1.0) * 0.5 * (side - 1)
+    cell = np.minimum(np.floor(position).astype(np.int64), side - 2)
+    t = position - cell
+    out = np.zeros((len(rest), joints))
+    rows = np.arange(len(rest))
+    for corner in range(8):
+        o = [(corner >> a) & 1 for a in range(3)]
+        tw = np.prod([t[:, a] if o[a] else 1.0 - t[:, a] for a in range(3)], axis=0)
+        i, j, k = cell[:, 0] + o[0], cell[:, 1] + o[1], cell[:, 2] + o[2]
+        jj, ww = grid_joints[i, j, k], grid_weights[i, j, k] / 255.0
+        for slot in range(GRID_INFLUENCES):
+            out[rows, jj[:, slot]] += tw * ww[:, slot]
+    return out / np.maximum(out.sum(axis=1, keepdims=True), 1e-12)
+
+
+def blend_at(rest: np.ndarray, maps: np.ndarray, grid_joints, grid_weights, centre, radius: float,
+             fused: bool = True) -> np.ndarray:
+    """(m, 3, 4) float64: ``sum_k w_k(x) maps_k`` at rest-pose points ``rest`` (m, 3), the
+    weights :func:`weights_at`'s, ``maps`` (J, 3, 4) (the skinning's map at a pose: ``A``; its
+    motion: ``dA/dt``). One numba pass (:func:`_blend_kernel`) when numba is there, else numpy."""
+    rest = np.ascontiguousarray(rest, np.float64)
+    maps = np.ascontiguousarray(maps, np.float64)
+    if fused and _blend_kernel is not None:
+        out = np.empty((len(rest), 3, 4))
+        _blend_kernel(rest, maps, grid_joints, grid_weights, np.asarray(centre, np.float64), float(radius), out)
+        return out
+    w = weights_at(rest, grid_joints, grid_weights, centre, radius, len(maps))
+    return np.einsum("mj,jab->mab", w, maps)
+
+
+def skinned_rest(points: np.ndarray, rest: np.ndarray, posed: np.ndarray, grid_joints, grid_weights, centre,
+                 radius: float, iterations: int, fused: bool = True):
+    """Rest-pose images of posed points through the skinning: from a part's rigid image ``rest``
+    (m, 3), ``iterations`` fixed-point steps ``x_rest <- M(x_rest)^-1 x`` with ``M = sum_k w_k(x_rest)
+    A_k`` (linear blend skinning's map at the rest point, ``A = posed`` (J, 4, 4), the weights
+    :func:`weights_at`'s). Returns ``(rest (m, 3), to_rest (m, 3, 3))``: the images and the
+    linear part of the last ``M^-1`` (the gradient's pull-back: the weights' own variation is
+    left out). With 0 iterations the rigid image, and ``to_rest`` None (its part's map). One
+    numba pass (:func:`_skinned_rest_kernel`) when numba is there and ``fused``, else numpy."""
+    if iterations == 0:
+        return rest, None
+    points = np.ascontiguousarray(points, np.float64)
+    if fused and _skinned_rest_kernel is not None:
+        rest = np.array(rest, np.float64, order="C")  # moved in place
+        inverse = np.empty((len(rest), 3, 3))
+        _skinned_rest_kernel(points, rest, np.ascontiguousarray(posed[:, :3, :]), grid_joints, grid_weights,
+                             np.asarray(centre, np.float64), float(radius), iterations,
+                             np.empty((len(rest), 3, 4)), inverse)
+        return rest, inverse
+    for _ in range(iterations):
+        blend = blend_at(rest, posed[:, :3, :], grid_joints, grid_weights, centre, radius, fused)
+        inverse = np.linalg.inv(blend[:, :, :3])
+        rest = np.einsum("mab,mb->ma", inverse, points - blend[:, :, 3])
+    return rest, inverse
+
+
+#: A point whose fixed-point steps moved it further than this share of the grid's half side from
+#: its part's rigid image (the steps diverged where the blended map nearly folds) keeps the rigid
+#: image: its error is then the blend's, not a wild point's (the walker: 224 mm at worst before).
+DIVERGED = 0.25
+
+
+def carry_to_rest(points: np.ndarray, joint: np.ndarray, rigid: np.ndarray, to_rest: np.ndarray, posed: np.ndarray,
+                  grid_joints, grid_weights, centre, radius: float, iterations: int):
+    """Each candidate's rest-pose point and the linear part of its map there, ``(rest (m, 3),
+    inverse (m, 3, 3))``: :func:`skinned_rest` from its part's rigid image ``rigid`` (``joint``
+    (m,), ``to_rest`` (J, 3, 4) of :func:`rest_maps`), the rigid image and map where there are no
+    steps or they diverged (:data:`DIVERGED`). The rule both the query and the training use."""
+    rigid_inverse = to_rest[joint, :, :3]
+    rest, inverse = skinned_rest(points, rigid, posed, grid_joints, grid_weights, centre, radius, iterations)
+    if inverse is None:
+        return rigid, rigid_inverse
+    wild = np.flatnonzero(np.einsum("ma,ma->m", rest - rigid, rest - rigid) > (DIVERGED * radius) ** 2)
+    rest[wild], inverse[wild] = rigid[wild], rigid_inverse[wild]
+    return rest, inverse
+
+
+_blend_kernel = _skinned_rest_kernel = None
+if grid_kernels.available():
+    import numba
+
+    @numba.njit(cache=True, nogil=True)
+    def _weight_cell(value, centre, radius, side):  # pragma: no cover
+        """Corner index below and the fraction along one axis of the weight grid (clamped)."""
+        u = min(max((value - centre) / radius, -1.0), 1.0)
+        position = (u + 1.0) * 0.5 * (side - 1)
+        c = min(int(math.floor(position)), side - 2)
+        return c, position - c
+
+    @numba.njit(cache=True, nogil=True)
+    def _blend_one(x, y, z, maps, grid_joints, grid_weights, centre, radius, out, p):  # pragma: no cover
+        """``out[p]`` (3, 4) = the weight-blended ``maps`` at the rest point (x, y, z)."""
+        side = grid_joints.shape[0]
+        cx, tx = _weight_cell(x, centre[0], radius, side)
+        cy, ty = _weight_cell(y, centre[1], radius, side)
+        cz, tz = _weight_cell(z, centre[2], radius, side)
+        for a in range(3):
+            for b in range(4):
+                out[p, a, b] = 0.0
+        total = 0.0
+        for corner in range(8):
+            ox, oy, oz = corner & 1, (corner >> 1) & 1, (corner >> 2) & 1
+            tw = (tx if ox else 1.0 - tx) * (ty if oy else 1.0 - ty) * (tz if oz else 1.0 - tz)
+            i, j, k = cx + ox, cy + oy, cz + oz
+            for slot in range(grid_joints.shape[3]):
+                w = tw * grid_weights[i, j, k, slot] / 255.0
+                if w == 0.0:
+                    continue
+                total += w
+                joint = grid_joints[i, j, k, slot]
+                for a in range(3):
+                    for b in range(4):
+                        out[p, a, b] += w * maps[joint, a, b]
+        scale = 1.0 / max(total, 1e-12)
+        for a in range(3):
+            for b in range(4):
+                out[p, a, b] *= scale
+
+    @numba.njit(cache=True, nogil=True, parallel=True)
+    def _blend_kernel(rest, maps, grid_joints, grid_weights, centre, radius, out):  # pragma: no cover
+        """:func:`blend_at` in one pass over the points (numba): ``out`` (m, 3, 4) overwritten."""
+        for p in numba.prange(rest.shape[0]):
+            _blend_one(rest[p, 0], rest[p, 1], rest[p, 2], maps, grid_joints, grid_weights, centre, radius, out, p)
+
+    @numba.njit(cache=True, nogil=True, parallel=True)
+    def _skinned_rest_kernel(points, rest, maps, grid_joints, grid_weights, centre, radius, iterations,
+                             blend, inverse):  # pragma: no cover
+        """:func:`skinned_rest` in one pass over the points (numba): ``rest`` (m, 3) is moved in
+        place, ``inverse`` (m, 3, 3) overwritten; ``blend`` (m, 3, 4) scratch."""
+        for p in numba.prange(points.shape[0]):
+            for _ in range(iterations):
+                _blend_one(rest[p, 0], rest[p, 1], rest[p, 2], maps, grid_joints, grid_weights, centre, radius,
+                           blend, p)
+                m = blend[p]
+                c00 = m[1, 1] * m[2, 2] - m[1, 2] * m[2, 1]
+                c01 = m[1, 2] * m[2, 0] - m[1, 0] * m[2, 2]
+                c02 = m[1, 0] * m[2, 1] - m[1, 1] * m[2, 0]
+                det = m[0, 0] * c00 + m[0, 1] * c01 + m[0, 2] * c02
+                det = det if det != 0.0 else 1e-300
+                inv = inverse[p]
+                inv[0, 0], inv[1, 0], inv[2, 0] = c00 / det, c01 / det, c02 / det
+                inv[0, 1] = (m[0, 2] * m[2, 1] - m[0, 1] * m[2, 2]) / det
+                inv[1, 1] = (m[0, 0] * m[2, 2] - m[0, 2] * m[2, 0]) / det
+                inv[2, 1] = (m[0, 1] * m[2, 0] - m[0, 0] * m[2, 1]) / det
+                inv[0, 2] = (m[0, 1] * m[1, 2] - m[0, 2] * m[1, 1]) / det
+                inv[1, 2] = (m[0, 2] * m[1, 0] - m[0, 0] * m[1, 2]) / det
+                inv[2, 2] = (m[0, 0] * m[1, 1] - m[0, 1] * m[1, 0]) / det
+                dx, dy, dz = points[p, 0] - m[0, 3], points[p, 1] - m[1, 3], points[p, 2] - m[2, 3]
+                for a in range(3):
+                    rest[p, a] = inv[a, 0] * dx + inv[a, 1] * dy + inv[a, 2] * dz
+
+
+def part_labels(skin: Skin, centre, radius: float, resolution: int, band: float) -> np.ndarray:
+    """(R, R, R) uint8: the label grid of ``skin``'s rest pose over the cube ``centre +-
+    radius``: each cell's centre takes the dominant joint (largest weight) of its nearest rest
+    vertex, or :data:`NO_PART` where it lies more than ``band`` (collider units) outside the rest
+    surface."""
+    from scipy.spatial import cKDTree
+
+    from ..meshes import ExactSDF, Mesh
+
+    axis = (np.arange(resolution) + 0.5) / resolution * 2.0 - 1.0
+    grid = np.stack(np.meshgrid(axis, axis, axis, indexing="ij"), axis=-1).reshape(-1, 3)
+    cells = np.asarray(centre, np.float64) + radius * grid
+    owner = skin.joints[np.arange(len(skin.joints)), np.argmax(skin.weights, axis=1)]
+    _, nearest = cKDTree(skin.vertices).query(cells)
+    labels = owner[nearest].astype(np.uint8)
+    distance, _, _ = ExactSDF(Mesh(skin.vertices, skin.faces, "rest")).query(cells)
+    labels[distance > band] = NO_PART
+    return labels.reshape(resolution, resolution, resolution)
+
+
+def part_boxes(skin: Skin, pad: float) -> np.ndarray:
+    """(J, 2, 3) float64: per joint the box (lo, hi) of the rest vertices it dominates, padded by
+    ``pad`` (collider units); a joint that dominates none gets the whole rest box."""
+    owner = skin.joints[np.arange(len(skin.joints)), np.argmax(skin.weights, axis=1)]
+    boxes = np.empty((skin.skeleton.joint_count, 2, 3))
+    for j in range(len(boxes)):
+        mine = skin.vertices[owner == j]
+        if not len(mine):
+            mine = skin.vertices
+        boxes[j] = mine.min(axis=0) - pad, mine.max(axis=0) + pad
+    return boxes
+
+
+# --------------------------------------------------------------------------------------------
+# The network
+
+
+def build_articulated_network(arch: ArticulatedGridArchitecture, centre, radius: float):
+    """The torch module of ``arch`` (``centre``, ``radius``: the rest pose's normalisation, as
+    the static network's). ``value_and_gradient(rest, joint, code)``: distance (m,) and its
+    gradient in the rest frame (m, 3) at rest-frame points (m, 3) float32 of parts ``joint`` (m,)
+    int64 with pose codes ``code`` (m, 9 * slots) float32."""
+    import torch
+    from torch import nn
+
+    class ArticulatedSDF(nn.Module):
+        def __init__(self):
+            super().__init__()
+            self.grid = build_grid_network(arch.grid(), centre, radius)
+            width = arch.hidden_width
+            self.embedding = nn.Parameter(torch.zeros(arch.joints, width))
+            self.condition = nn.Parameter(torch.zeros(width, arch.code_width()))
+            r = arch.label_resolution
+            self.register_buffer("labels", torch.full((r, r, r), NO_PART, dtype=torch.uint8))
+            self.register_buffer("part_boxes", torch.zeros(arch.joints, 2, 3, dtype=torch.float64))
+            side = (arch.weight_resolution + 1, ) * 3 + (GRID_INFLUENCES,)
+            self.register_buffer("weight_joints", torch.zeros(side, dtype=torch.uint8))
+            self.register_buffer("weight_values", torch.zeros(side, dtype=torch.uint8))
+
+        @property
+        def radius(self):
+            return self.grid.radius
+
+        def first_bias(self, joint, code):
+            """The first layer's added bias of parts ``joint`` at codes ``code``: (m, H)."""
+            return self.embedding[joint] + code @ self.condition.T
+
+        def forward(self, rest, joint, code):
+            u = (rest - self.grid.centre) / self.grid.radius
+            features, _ = self.grid.encode_parts(u, False)
+            distance, _ = self.grid.head(features, self.first_bias(joint, code))
+            return distance
+
+        def value_and_gradient(self, rest, joint, code):
+            u = (rest - self.grid.centre) / self.grid.radius
+            features, jacobian = self.grid.encode_parts(u, True)
+            distance, g = self.grid.head(features, self.first_bias(joint, code))
+            return distance, torch.einsum("nlf,nlfd->nd", g, jacobian)
+
+    return ArticulatedSDF()
+
+
+def architecture_of(info: ColliderInfo) -> ArticulatedGridArchitecture:
+    """The architecture in ``info.settings["architecture"]``; ValueError if there is none."""
+    try:
+        return ArticulatedGridArchitecture(**info.settings["architecture"])
+    except (KeyError, TypeError, AttributeError) as exc:
+        raise ValueError(f"neural-skinned settings lack a valid articulated architecture: {exc}") from None
+
+
+class ArticulatedNeuralCollider(Collider):
+    """A trained :func:`build_articulated_network` and the skin it was trained on
+    (``info.settings["architecture"]``, ``info.skeleton`` and ``info.settings["channels"]`` as
+    the exact kind's)."""
+
+    kind = "neural-skinned"
+    chunk_points = 524_288
+    clamps_to_domain = False  # every answer goes through a part's rest frame (its own box rule)
+
+    def __init__(self, info: ColliderInfo, skin: Skin, network, device: str | None = None, keep: int = 4):
+        super().__init__(info)
+        import torch
+
+        self._torch = torch
+        self._device = resolve_device(device)
+        self.skin = skin
+        self.arch = architecture_of(info)
+        if self.arch.joints != skin.skeleton.joint_count:
+            raise ValueError(f"the network has {self.arch.joints} parts, the skeleton "
+                             f"{skin.skeleton.joint_count} joints")
+        self.loop = bool(info.skeleton.get("loop", True))
+        self.network = network.to(self._device).eval()
+        for parameter in self.network.parameters():
+            parameter.requires_grad_(False)
+        self.labels = self.network.labels.cpu().numpy()
+        self.part_boxes = self.network.part_boxes.cpu().numpy()
+        self.weight_joints = self.network.weight_joints.cpu().numpy()
+        self.weight_values = self.network.weight_values.cpu().numpy()
+        self.allowed = allowed_labels(skin.skeleton.parents, self.arch.neighbours)
+        grid = self.network.grid
+        self.centre = grid.centre.double().cpu().numpy()
+        self.radius = float(grid.radius)
+        self.keep = keep
+        self._cache: OrderedDict = OrderedDict()
+        self._lock = threading.Lock()
+
+    @property
+    def device(self) -> str:
+        return self._device
+
+    @property
+    def skinned(self) -> bool:
+        return True
+
+    def pose(self, time, skeleton):
+        """The query's pose prepared once (cached by pose): ``(to_rest (J, 3, 4), posed (J, 4,
+        4) (:func:`rest_maps`), velocity maps (J, 3, 4) or None (still), first biases (J, H)
+        float32)``."""
+        key = pose_key(time, skeleton)
+        with self._lock:
+            prepared = self._cache.get(key)
+            if prepared is not None:
+                self._cache.move_to_end(key)
+                return prepared
+        transforms, velocities = resolve_pose(self.skin, self.loop, key, skeleton)
+        to_rest, posed = rest_maps(self.skin.skeleton, transforms)
+        moving = None
+        if velocities is not None:
+            moving = (np.asarray(velocities, np.float64) @ self.skin.skeleton.inverse_bind)[:, :3, :]
+            # The velocity at a posed point x: dA_j/dt @ A_j^-1 x = moving_j @ [x_j, 1].
+        codes = pose_codes(self.skin.skeleton, transforms, self.arch.pose_slots)
+        torch = self._torch
+        with torch.inference_mode():
+            joints = torch.arange(self.arch.joints, device=self._device)
+            bias = self.network.first_bias(joints, torch.from_numpy(codes).to(self._device))
+        prepared = (to_rest, posed, moving, bias.float().cpu().numpy())
+        with self._lock:
+            self._cache[key] = prepared
+            while len(self._cache) > self.keep:
+                self._cache.popitem(last=False)
+        return prepared
+
+    def evaluate(self, local, want_gradient):
+        distance, gradient, _ = self.evaluate_at(local, want_gradient, None, None)
+        return distance, gradient
+
+    def evaluate_at(self, local, want_gradient, time, skeleton=None):
+        to_rest, posed, moving, bias = self.pose(time, skeleton)
+        point, joint, rigid = part_candidates(local, to_rest, self.labels, self.centre, self.radius,
+                                              self.allowed, self.part_boxes)
+        rest, inverse = carry_to_rest(local[point], joint, rigid, to_rest, posed, self.weight_joints,
+                                      self.weight_values, self.centre, self.radius, self.arch.skinning_iterations)
+        n = len(local)
+        best = np.full(n, np.inf)
+        best_row = np.zeros(n, np.int64)
+        gradient = np.zeros((len(point), 3)) if want_gradient else None
+        bounds = np.searchsorted(joint, np.arange(self.arch.joints + 1))
+        for j in range(self.arch.joints):
+            rows = np.arange(bounds[j], bounds[j + 1])
+            if not len(rows):
+                continue
+            d, g = self._part_values(rest[rows], j, bias[j], want_gradient)
+            if want_gradient:
+                gradient[rows] = g
+            at = point[rows]
+            better = d < best[at]
+            best[at[better]] = d[better]
+            best_row[at[better]] = rows[better]
+        if not want_gradient:
+            return best, None, None
+        # Through the map to the rest pose: grad_x f(B x) = B^T grad f (B: the part's rigid map,
+        # or the skinning's inverse at the point).
+        g = np.einsum("na,nab->nb", gradient[best_row], inverse[best_row])
+        if moving is None:
+            return best, g, None
+        homogeneous = np.concatenate([rest[best_row], np.ones((n, 1))], axis=1)
+        if self.arch.skinning_iterations == 0:  # the chosen part's rigid motion
+            m = moving[joint[best_row]]
+        else:  # the skinning's motion at the rest point: sum_k w_k dA_k/dt
+            m = blend_at(rest[best_row], moving, self.weight_joints, self.weight_values, self.centre, self.radius)
+        return best, g, np.einsum("nab,nb->na", m, homogeneous)
+
+    def _part_values(self, rest: np.ndarray, joint: int, bias: np.ndarray, want_gradient: bool):
+        """Distance (m,) and rest-frame gradient (m, 3) (or None) of part ``joint`` at its
+        rest-frame points (m, 3) float64, with the conservative box rule beyond the grid's cube:
+        the value at the cube's nearest point plus the way there (the normal along it)."""
+        torch = self._torch
+        lo, hi = self.centre - self.radius, self.centre + self.radius
+        clamped = np.clip(rest, lo, hi)
+        x = torch.as_tensor(clamped, dtype=torch.float32, device=self._device)
+        grid = self.network.grid
+        if grid.can_fuse(x):
+            threads = torch.get_num_threads()
+            grid_kernels.set_threads(threads)
+            try:
+                d, g = grid.fused_query(x, want_gradient, bias)
+            finally:
+                if torch.get_num_threads() != threads:
+                    torch.set_num_threads(threads)  # numba's OpenMP pool resets it (neural.py)
+        else:
+            with torch.inference_mode():
+                code_bias = torch.as_tensor(bias, device=self._device)
+                u = (x - grid.centre) / grid.radius
+                features, jacobian = grid.encode_parts(u, want_gradient)
+                d, gf = grid.head(features, code_bias)
+                g = torch.einsum("nlf,nlfd->nd", gf, jacobian) if want_gradient else None
+        d = d.double().cpu().numpy()
+        g = g.double().cpu().numpy() if want_gradient else None
+        away = rest - clamped
+        outside = np.flatnonzero(away.any(axis=1))
+        if len(outside):
+            gap = np.linalg.norm(away[outside], axis=1)
+            d[outside] = np.maximum(d[outside], 0.0) + gap
+            if want_gradient:
+                g[outside] = away[outside] / gap[:, None]
+        return d, g
+
+    def tensors(self):
+        out = skin_tensors(self.skin)
+        state = {k: v.detach().cpu().numpy() for k, v in self.network.state_dict().items()}
+        state.update({f"grid.{k}": v for k, v in pack_table(state.pop("grid.table"), self.arch.grid()).items()})
+        out.update({NETWORK_PREFIX + k: v for k, v in state.items()})
+        return out
+
+    @classmethod
+    def from_tensors(cls, info, tensors, device=None):
+        import torch
+
+        arch = architecture_of(info)
+        skin = skin_from_tensors(info, {k: v for k, v in tensors.items() if not k.startswith(NETWORK_PREFIX)})
+        state = {k[len(NETWORK_PREFIX):]: v for k, v in tensors.items() if k.startswith(NETWORK_PREFIX)}
+        grid = unpack_table({k[len("grid."):]: v for k, v in state.items() if k.startswith("grid.table")},
+                            arch.grid())
+        state = {k: v for k, v in state.items() if not k.startswith("grid.table")}
+        state["grid.table"] = grid["table"]
+        with torch.random.fork_rng(devices=[]):  # leave the caller's random stream as it was
+            network = build_articulated_network(arch, np.zeros(3), 1.0)
+        expected = {k: tuple(v.shape) for k, v in network.state_dict().items()}
+        found = {k: tuple(np.shape(v)) for k, v in state.items()}
+        if expected != found:
+            raise ValueError(f"weights do not match the architecture {asdict(arch)}: "
+                             f"expected {expected}, found {found}")
+        network.load_state_dict({k: torch.from_numpy(np.array(v)) for k, v in state.items()})
+        return cls(info, skin, network, device)

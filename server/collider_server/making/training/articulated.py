@@ -1,0 +1,330 @@
+"""Training the articulated network of a skinned character (kind ``neural-skinned``,
+:mod:`collider_server.engine.kinds.neural_skinned`): :func:`train_articulated`.
+
+Data: poses of the skeleton (:func:`sample_poses`: the rest pose, random times of the clips, and
+random times with every joint's local rotation turned by up to ``perturb_deg`` about a random
+axis), at each the skin posed by linear blend skinning and its exact signed distance and gradient
+(:class:`~collider_server.engine.meshes.ExactSDF`, the exact ``skinned`` kind's truth) at
+``samples / poses`` points drawn as a static mesh's are (near the posed surface, then uniform in
+its padded box). Each sample keeps its candidate parts (``part_candidates``: the rule the query
+uses) with its point in each part's rest frame and the pose's codes.
+
+Loss per batch: the distance is the minimum over a sample's candidates of the shared network's
+value (what the query answers), L1 against the truth, plus ``normal_weight`` (1 - cos) between the
+chosen part's gradient, taken through its rigid map, and the exact gradient on the near samples.
+Adam with the grid presets' rates and cosine decay, the clock of :class:`.schedule.RunClock`; the
+weights with the best mean error in the +-1 mm band of held-out poses are kept. No checkpoint to
+resume from (a run is minutes).
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+import time
+from dataclasses import asdict, dataclass, field, replace
+
+import numpy as np
+
+from ...engine.kinds.neural_skinned import (
+    ArticulatedGridArchitecture,
+    ArticulatedNeuralCollider,
+    allowed_labels,
+    build_articulated_network,
+    carry_to_rest,
+    part_boxes,
+    part_candidates,
+    part_labels,
+    pose_codes,
+    rest_maps,
+    weight_grid,
+)
+from ...engine.meshes import ExactSDF, Mesh
+from ...engine.skinning import Skin, skin_vertices, trs_matrices, world_transforms
+from ..bake import padded_box
+from ..progress import progress
+from ..sampling import surface_band_points
+from .config import TrainConfig
+from .data import default_margin, exact_values, normalisation, sample_points
+from .schedule import RunClock, cosine_learning_rate, make_optimizer, set_training_threads
+
+#: The preset ``collider train CHARACTER`` uses: the static ``grid`` preset's field (2^17 rows
+#: per hashed level in 8 bits) shared by the parts.
+ARTICULATED_PRESET = ArticulatedGridArchitecture()
+#: Largest turn of a joint's local rotation in the perturbed poses (training and measurement).
+PERTURB_DEG = 15.0
+#: Training poses and validation poses of a run (the rest pose is one of the training poses).
+TRAIN_POSES = 240
+VALIDATION_POSES = 12
+
+
+def _rotations(rng, count: int, max_deg: float) -> np.ndarray:
+    """(count, 3, 3) rotations about uniform random axes by angles uniform in [0, max_deg]."""
+    axis = rng.normal(size=(count, 3))
+    axis /= np.linalg.norm(axis, axis=1, keepdims=True)
+    angle = np.radians(rng.uniform(0.0, max_deg, count))
+    k = np.zeros((count, 3, 3))
+    k[:, 0, 1], k[:, 0, 2], k[:, 1, 2] = -axis[:, 2], axis[:, 1], -axis[:, 0]
+    k = k - np.swapaxes(k, 1, 2)
+    s, c = np.sin(angle)[:, None, None], np.cos(angle)[:, None, None]
+    return np.eye(3) + s * k + (1.0 - c) * (k @ k)
+
+
+def sample_poses(skin: Skin, count: int, seed: int, perturb_deg: float = PERTURB_DEG,
+                 perturbed_share: float = 0.5) -> np.ndarray:
+    """(count, J, 4, 4) float64 joint transforms (collider frame): each at a random clip (the
+    rest pose when the skin has none) and a uniform random time in it, and for a share
+    ``perturbed_share`` of them (the second part) every joint's local rotation then turned by
+    :func:`_rotations` (up to ``perturb_deg``)."""
+    rng = np.random.default_rng(seed)
+    skeleton = skin.skeleton
+    out = np.empty((count, skeleton.joint_count, 4, 4))
+    perturbed_from = count - int(round(count * perturbed_share))
+    for i in range(count):
+        if skin.clips:
+            clip = skin.clips[rng.integers(len(skin.clips))]
+            local = trs_matrices(*clip.local_trs(skeleton, rng.uniform(0.0, clip.duration_s)))
+        else:
+            local = skeleton.rest_local()
+        if i >= perturbed_from:
+            local[:, :3, :3] = local[:, :3, :3] @ _rotations(rng, skeleton.joint_count, perturb_deg)
+        out[i] = world_transforms(skeleton, local)
+    return out
+
+
+@dataclass
+class ArticulatedSamples:
+    """Samples of several poses with their candidate parts (float32 unless said).
+
+    distance (n,), gradient (n, 3), near (n,) bool: the exact truth per sample
+    start (n,) int64, count (n,) int64: each sample's rows of the candidate arrays
+    rest (m, 3), joint (m,) int64, pose (m,) int64, to_rest (m, 3, 3): each candidate's rest-pose
+    point, part, pose and the linear part of its map to the rest pose (the gradient's pull-back)
+    codes (P, J, C): the poses' part codes
+    """
+
+    distance: np.ndarray
+    gradient: np.ndarray
+    near: np.ndarray
+    start: np.ndarray
+    count: np.ndarray
+    rest: np.ndarray
+    joint: np.ndarray
+    pose: np.ndarray
+    to_rest: np.ndarray
+    codes: np.ndarray
+
+
+def make_samples(skin: Skin, poses: np.ndarray, per_pose: int, point_sampler, arch, centre, radius: float,
+                 labels: np.ndarray, boxes: np.ndarray, weights: tuple, show_progress: bool,
+                 what: str) -> ArticulatedSamples:
+    """:class:`ArticulatedSamples` of ``per_pose`` points at each pose: ``point_sampler(mesh,
+    seed)`` -> (points (k, 3), near (k,) bool) on the posed mesh; ``weights``: the weight grid
+    (:func:`weight_grid`'s joints and weights) the query carries points through."""
+    skeleton = skin.skeleton
+    allowed = allowed_labels(skeleton.parents, arch.neighbours)
+    parts = {k: [] for k in ("distance", "gradient", "near", "count", "rest", "joint", "pose", "to_rest")}
+    codes = []
+    with progress(len(poses), what, "pose", show_progress) as bar:
+        for p, transforms in enumerate(poses):
+            mesh = Mesh(skin_vertices(skin, transforms), skin.faces, "posed")
+            points, near = point_sampler(mesh, p)
+            distance, gradient = exact_values(ExactSDF(mesh), points)
+            to_rest, posed = rest_maps(skeleton, transforms)
+            point, joint, rest = part_candidates(points, to_rest, labels, centre, radius, allowed, boxes)
+            rest, inverse = carry_to_rest(points[point], joint, rest, to_rest, posed, *weights, centre, radius,
+                                          arch.skinning_iterations)
+            order = np.argsort(point, kind="stable")
+            parts["distance"].append(distance)
+            parts["gradient"].append(gradient)
+            parts["near"].append(near)
+            parts["count"].append(np.bincount(point, minlength=len(points)))
+            parts["rest"].append(rest[order])
+            parts["joint"].append(joint[order])
+            parts["pose"].append(np.full(len(point), p, np.int64))
+            parts["to_rest"].append(inverse[order])
+            codes.append(pose_codes(skeleton, transforms, arch.pose_slots))
+            bar.update(1)
+    joined = {k: np.concatenate(v) for k, v in parts.items()}
+    count = joined["count"].astype(np.int64)
+    return ArticulatedSamples(
+        joined["distance"].astype(np.float32), joined["gradient"].astype(np.float32), joined["near"],
+        np.concatenate([[0], np.cumsum(count)[:-1]]).astype(np.int64), count,
+        joined["rest"].astype(np.float32), joined["joint"], joined["pose"],
+        joined["to_rest"].astype(np.float32), np.stack(codes))
+
+
+class _Batches:
+    """The samples as torch tensors, and the network's answer at a set of them (the minimum over
+    each sample's candidates, and the chosen candidate's gradient through its rigid map)."""
+
+    def __init__(self, samples: ArticulatedSamples):
+        import torch
+
+        self.torch = torch
+        t = {k: torch.from_numpy(np.ascontiguousarray(v)) for k, v in asdict(samples).items()}
+        self.__dict__.update(t)
+        self.parts = samples.codes.shape[1]
+
+    def answer(self, network, index, want_gradient: bool):
+        """Distance (b,) at samples ``index`` (b,) int64, and (when asked) the world gradient of
+        each sample's chosen candidate (b, 3)."""
+        torch = self.torch
+        count = self.count[index]
+        owner = torch.repeat_interleave(torch.arange(len(index)), count)
+        first = torch.repeat_interleave(self.start[index] - (torch.cumsum(count, 0) - count), count)
+        rows = first + torch.arange(len(owner))
+        rest, joint, pose = self.rest[rows], self.joint[rows], self.pose[rows]
+        code = self.codes[pose, joint]
+        if want_gradient:
+            d, g = network.value_and_gradient(rest, joint, code)
+        else:
+            d, g = network(rest, joint, code), None
+        best = torch.full((len(index),), math.inf).scatter_reduce(0, owner, d, "amin", include_self=True)
+        if not want_gradient:
+            return best, None
+        chosen = d.detach() <= best.detach()[owner]
+        # One chosen row per sample (the last of equal ones): its gradient through the rigid map.
+        pick = torch.zeros(len(index), dtype=torch.int64).index_put_((owner[chosen],), torch.nonzero(chosen)[:, 0])
+        world = torch.einsum("nb,nba->na", g[pick], self.to_rest[rows[pick]])
+        return best, world
+
+
+@dataclass
+class ArticulatedResult:
+    """A finished run: the collider (best validated weights), its validation error (mm, +-1 mm
+    band of the held-out poses), steps, seconds, the validations."""
+
+    collider: ArticulatedNeuralCollider
+    best_validation_mm: float
+    steps: int
+    seconds: float
+    history: list = field(default_factory=list)
+    data_seconds: float = 0.0
+
+    def summary(self) -> str:
+        rate = self.steps / self.seconds if self.seconds > 0 else 0.0
+        return (f"{self.steps:,} steps in {self.seconds / 60:.1f} min ({rate:.0f} steps/s, after "
+                f"{self.data_seconds:.0f} s of exact samples); best mean error in the +-1 mm band of "
+                f"{VALIDATION_POSES} held-out poses {self.best_validation_mm:.4f} mm")
+
+
+def train_articulated(skin: Skin, name: str, config: TrainConfig, *, arch: ArticulatedGridArchitecture | None = None,
+                      poses: int | None = None, units: str = "m", meters_per_unit: float = 1.0, loop: bool = True,
+                      source: dict | None = None, show_progress: bool = True) -> ArticulatedResult:
+    """Train the articulated network of ``skin`` (its units and frame) for ``config``'s budget
+    (``max_minutes`` / ``steps``, ``samples`` over ``poses`` poses (default :data:`TRAIN_POSES`,
+    fewer for fewer than 2,000 samples a pose), ``batch_size``, learning
+    rates, ``normal_weight``, ``seed``, ``threads``; its ``preset`` is not used: ``arch``,
+    default :data:`ARTICULATED_PRESET` with the skeleton's joints)."""
+    import torch
+
+    from ..skinned import skinned_collider
+
+    config.check()
+    if poses is None:  # each pose costs an exact SDF: a few thousand samples share one
+        poses = min(TRAIN_POSES, max(8, config.samples // 2000))
+    arch = replace(arch or ARTICULATED_PRESET, joints=skin.skeleton.joint_count)
+    if config.threads is not None:
+        set_training_threads(arch, config.threads)
+    torch.manual_seed(config.seed)
+    exact = skinned_collider(skin, name, loop=loop, padding=config.padding, units=units,
+                             meters_per_unit=meters_per_unit, source=source)
+    rest = Mesh(skin.vertices, skin.faces, name)
+    centre, radius = normalisation(rest, config.padding)
+    cell = 2.0 * radius / arch.label_resolution
+    began = time.monotonic()
+    labels = part_labels(skin, centre, radius, arch.label_resolution, band=3.0 * cell)
+    boxes = part_boxes(skin, cell)
+    weights = weight_grid(skin, centre, radius, arch.weight_resolution)
+
+    margin = config.margin_m / meters_per_unit if config.margin_m else default_margin(rest, meters_per_unit)
+    per_pose = max(config.samples // poses, 100)
+    train_poses = np.concatenate([skin.skeleton.rest_world()[None],
+                                  sample_poses(skin, poses - 1, config.seed)])
+
+    def training_points(mesh, p):
+        return sample_points(mesh, per_pose, config, margin, meters_per_unit, config.seed + 1000 + p,
+                             padded_box(mesh, config.padding))
+
+    band = 1e-3 / meters_per_unit
+    per_validation = max(config.validation_points // VALIDATION_POSES, 100)
+
+    def validation_points(mesh, p):
+        points = surface_band_points(mesh, per_validation, band, config.seed + 500 + p)
+        return points, np.ones(len(points), bool)
+
+    data = _Batches(make_samples(skin, train_poses, per_pose, training_points, arch, centre, radius, labels,
+                                 boxes, weights, show_progress, "exact SDF at training poses"))
+    held_out = sample_poses(skin, VALIDATION_POSES, config.seed + 77)
+    val = _Batches(make_samples(skin, held_out, per_validation, validation_points, arch, centre, radius,
+                                labels, boxes, weights, show_progress, "exact SDF at validation poses"))
+    data_seconds = time.monotonic() - began
+
+    network = build_articulated_network(arch, centre, radius)
+    network.labels.copy_(torch.from_numpy(labels))
+    network.part_boxes.copy_(torch.from_numpy(boxes))
+    network.weight_joints.copy_(torch.from_numpy(weights[0]))
+    network.weight_values.copy_(torch.from_numpy(weights[1]))
+    first_lr, last_lr = config.resolved_learning_rates()
+    normal_weight = config.resolved_normal_weight()
+    optimizer = make_optimizer(network, first_lr)
+    generator = torch.Generator().manual_seed(config.seed)
+    to_mm = 1000.0 * meters_per_unit
+    n = len(data.distance)
+    val_index = torch.arange(len(val.distance))
+
+    def validate() -> float:
+        network.eval()
+        with torch.no_grad():
+            d, _ = val.answer(network, val_index, False)
+        network.train()
+        return float((d - val.distance).abs().mean()) * to_mm
+
+    step, best_mm, best_weights, history = 0, math.inf, None, []
+    started = time.monotonic()
+    clock = RunClock(config, started, started)
+    with clock.progress_bar(f"train {name}", 0, started, show_progress) as bar:
+        finished = False
+        while not finished:
+            lr = cosine_learning_rate(clock.fraction(step, time.monotonic()), first_lr, last_lr)
+            for group in optimizer.param_groups:
+                group["lr"] = lr
+            index = torch.randint(0, n, (config.batch_size,), generator=generator)
+            near = data.near[index]
+            want_normals = normal_weight > 0 and bool(near.any())
+            prediction, gradient = data.answer(network, index, want_normals)
+            loss = (prediction - data.distance[index]).abs().mean() / radius
+            if want_normals:
+                cosine = torch.nn.functional.cosine_similarity(gradient[near], data.gradient[index][near], dim=1)
+                loss = loss + normal_weight * (1 - cosine).mean()
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            optimizer.step()
+            step += 1
+            now = time.monotonic()
+            finished = clock.finished(step, now)
+            if finished or clock.validation_due(step, now):
+                error = validate()
+                history.append({"step": step, "loss": float(loss.detach()), "1mm": error,
+                                "seconds": time.monotonic() - started})
+                if error < best_mm:
+                    best_mm = error
+                    best_weights = {k: v.detach().clone() for k, v in network.state_dict().items()}
+                clock.validated(time.monotonic())
+                bar.set_postfix_str(f"step {step:,} val±1mm {error:.4f}mm best {best_mm:.4f}mm lr {lr:.1e}",
+                                    refresh=False)
+            clock.advance(bar, now)
+    if best_weights is not None:
+        network.load_state_dict(best_weights)
+    seconds = time.monotonic() - started
+    info = exact.info
+    info.kind = ArticulatedNeuralCollider.kind
+    info.settings = {**info.settings, "architecture": asdict(arch), "parameters": arch.parameter_count(),
+                     "training": {**asdict(config), "poses": poses, "perturb_deg": PERTURB_DEG,
+                                  "steps_done": step, "seconds": round(seconds, 1),
+                                  "best_validation_1mm_mm": best_mm}}
+    collider = ArticulatedNeuralCollider(info, skin, network.eval(), device="cpu")
+    if show_progress:
+        print(f"trained {name}: {step:,} steps, best validation {best_mm:.4f} mm", file=sys.stderr)
+    return ArticulatedResult(collider, best_mm, step, seconds, history, data_seconds)
