@@ -75,7 +75,8 @@ class GridArchitecture:
         """Rows of each level's table: its corners when they fit (dense), else the level's hash
         table: ``2^table_log2`` rows, or with ``surface_rows`` rows growing like the number of
         cells a surface crosses (r^2), ``2^table_log2`` at the finest level, a power of two
-        and at least ``2^14``: the fine levels, where the surface detail is, get the memory."""
+        and at least ``2^14`` (or ``2^table_log2`` when that is smaller): the fine levels, where
+        the surface detail is, get the memory. A level never has more rows than corners."""
         cap = 2 ** self.table_log2
         rows = []
         for r in self.resolutions():
