@@ -29,8 +29,10 @@ def info(kind, **changes):
 
 
 def test_kinds_by_name():
+    from collider_server.engine.kinds.skinned import SkinnedCollider
+
     assert KINDS == {"neural": NeuralCollider, "voxel": VoxelCollider, "mesh": MeshCollider,
-                     "kdtree": KDTreeCollider}
+                     "kdtree": KDTreeCollider, "skinned": SkinnedCollider}
 
 
 def test_vertex_normals_by_hand():
