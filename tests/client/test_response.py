@@ -625,7 +625,6 @@ def test_the_hook_asks_a_skinned_collider_in_the_placements_clip(models_dir):
     """Points 2 mm inside the arm as "reach" poses it at 0.9 s (elbow bent 60 degrees up, not so
     in "wave") are all caught and put eps outside that pose: the hook asked in "reach"."""
     import collider_client as cc
-
     from collider_server.making.skinned import skinned_arm
 
     skin = skinned_arm()
