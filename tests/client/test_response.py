@@ -477,7 +477,7 @@ def test_hook_sends_its_eps_fields_and_only_colliding(exact_client, two, only_co
     else:
         assert (method, sent_colliders) == ("query", "floor")
         np.testing.assert_array_equal(sent_options.pop("pose"), np.eye(4))
-        options.update(time=None, pose_velocity=None)
+        options.update(time=None, pose_velocity=None, clip=None)
     assert sent_options == options
 
 
@@ -648,7 +648,7 @@ def test_the_hook_asks_a_skinned_collider_in_the_placements_clip(models_dir):
 
 def test_cloth_points_on_a_waving_arm_never_go_deeper_than_a_tenth_of_a_millimetre(models_dir):
     """A ring of 300 points (a sleeve) resting around the forearm while "wave" swings the arm
-    for 0.5 s at 240 steps a second: after every step no point is deeper than 0.1 mm inside the
+    for 0.25 s at 240 steps a second: after every step no point is deeper than 0.1 mm inside the
     exact surface at that pose, and the arm pushed them (they moved)."""
     import collider_client as cc
 
@@ -660,10 +660,10 @@ def test_cloth_points_on_a_waving_arm_never_go_deeper_than_a_tenth_of_a_millimet
     dt, deepest = 1.0 / 240.0, 0.0
     with cc.Client(models=models_dir, device="cpu") as client:
         hook = CollisionHook(client, [ColliderPlacement("arm")], eps=1e-3)
-        for step in range(1, 121):
+        for step in range(1, 61):
             t = step * dt
             points = points + velocities * dt
             points, velocities, _ = hook.apply(points, velocities, t, dt)
             deepest = min(deepest, float(_arm_distance(points, "wave", t).min()))
     assert deepest > -1e-4, f"a point {-1e3 * deepest:.3f} mm inside"
-    assert np.linalg.norm(points - start, axis=1).max() > 0.05  # the arm carried them along
+    assert np.linalg.norm(points - start, axis=1).max() > 0.02  # the arm carried them along
