@@ -1034,3 +1034,25 @@ def test_a_cloth_on_a_skinned_arm_is_never_deeper_than_a_tenth_of_a_millimetre(t
     deepest = max(float(-exact.evaluate_at(np.asarray(v, np.float64), False, t,
                                            SkeletonPose(clip=clip))[0].min()) for t, v in frames)
     assert deepest < 1e-4, f"{1e3 * deepest:.3f} mm inside"
+
+
+def test_the_png_draws_a_skinned_collider_in_its_clip_at_the_panels_time(models_dir):
+    """``collider simulate``'s picture asks a skinned model in the scene's clip at each panel's
+    time: the arm's surface at 0.9 s in "reach" lies on the exact "reach" pose (within the
+    48^3 grid's marching cubes) and far from the "wave" pose at that time."""
+    from collider_cli.commands.simulate import model_surfaces
+    from collider_client.sim.motion import ColliderSpec, Motion
+    from collider_contract import SkeletonPose
+    from collider_server.making.skinned import skinned_arm, skinned_collider
+
+    spec = ColliderSpec("arm", np.zeros(3), np.zeros(3), Motion(), clip="reach")
+    with cc.Client(models=models_dir, device="cpu") as client:
+        points = model_surfaces(client, [spec])["arm"](0.9)
+    exact = skinned_collider(skinned_arm(), "arm")
+
+    def off(clip):
+        distance = exact.evaluate_at(np.asarray(points, np.float64), False, 0.9, SkeletonPose(clip=clip))[0]
+        return float(np.abs(distance).mean())
+
+    assert len(points) > 500
+    assert off("reach") < 2e-3 and off("wave") > 5 * off("reach")
