@@ -82,7 +82,8 @@ class ModelInfo:
         ``duration_s``, ``loop`` and ``max_surface_speed`` (:mod:`.animation`; its queries must
         give a time)
     skeleton : empty for a model without one; a skinned model's ``joints`` (names), ``parents``
-        (indices, -1 for a root), ``clips`` (each ``name`` and ``duration_s``) and ``loop``
+        (indices, -1 for a root), ``clips`` (each ``name``, ``duration_s`` and
+        ``max_surface_speed``, collider units per second) and ``loop``
         (:mod:`.skeleton`; its queries give a clip and a time, or joint transforms)
     """
 
