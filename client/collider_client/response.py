@@ -82,7 +82,8 @@ class CollisionHook:
     Call :meth:`apply` after each integration step (or substep). Only points inside a collider's
     inflated world box are sent, and only the fields the response needs are asked for: the
     surface ``velocity`` when a collider moves or is animated. Each collider is asked at its
-    animation time (:func:`animation_time`) with its pose's velocity (the backward difference of
+    animation time (:func:`animation_time`; a skinned model in its placement's clip) with its
+    pose's velocity (the backward difference of
     its pose over the step); the service answers the velocity of the surface at each contact,
     its frame's motion plus its own deformation, and the response is relative to it.
     """
