@@ -34,12 +34,15 @@ class ColliderPlacement:
     time_offset_s : an animated model is asked at the simulation time plus this (seconds)
     loop : None: the model's own loop or clamp; True / False: loop or clamp it here whatever it
         was baked with (:class:`~collider_contract.Timeline`)
+    clip : a skinned model's clip (a name; None: its first), asked at the animation time; only
+        for skinned models (:meth:`~collider_contract.ModelInfo.clip_timeline`)
     """
 
     model: str
     pose_at: Callable[[float], np.ndarray] | np.ndarray | None = None
     time_offset_s: float = 0.0
     loop: bool | None = None
+    clip: str | None = None
 
     def __post_init__(self):
         if self.pose_at is not None and not callable(self.pose_at):
@@ -58,6 +61,9 @@ class ColliderPlacement:
         if self.loop is not None and not isinstance(self.loop, bool):
             raise ValueError(f"ColliderPlacement({self.model!r}): loop must be None, True or "
                              f"False, got {self.loop!r}")
+        if self.clip is not None and (not isinstance(self.clip, str) or not self.clip):
+            raise ValueError(f"ColliderPlacement({self.model!r}): clip must be None or a clip's "
+                             f"name, got {self.clip!r}")
 
     def pose(self, t: float) -> np.ndarray:
         if self.pose_at is None:
@@ -78,7 +84,8 @@ def animation_time(placement: ColliderPlacement, timeline: Timeline | None,
     """When ``placement``'s model is asked at simulation time ``t``: ``(time, held)``, the
     animation's time in seconds (None: a static model) and whether an end frame is held there
     (clamped beyond the ends: the surface's own velocity is zero). ``timeline`` is the model's
-    (``ModelInfo.timeline``), the placement's ``loop`` overrides its loop."""
+    (``ModelInfo.timeline``, or a skinned model's ``ModelInfo.clip_timeline``), the placement's
+    ``loop`` overrides its loop."""
     if timeline is None:
         return None, False
     raw = t + placement.time_offset_s

@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from collider_contract import ModelInfo, SceneCollider, transform_points
+from collider_contract import ModelInfo, SceneCollider, Timeline, transform_points
 
 from .physics import collider_velocity, project_to_contacts, respond_velocities, unit_rows
 from .placement import ColliderPlacement, animation_time, world_box
@@ -82,7 +82,8 @@ class CollisionHook:
     Call :meth:`apply` after each integration step (or substep). Only points inside a collider's
     inflated world box are sent, and only the fields the response needs are asked for: the
     surface ``velocity`` when a collider moves or is animated. Each collider is asked at its
-    animation time (:func:`animation_time`) with its pose's velocity (the backward difference of
+    animation time (:func:`animation_time`; a skinned model in its placement's clip) with its
+    pose's velocity (the backward difference of
     its pose over the step); the service answers the velocity of the surface at each contact,
     its frame's motion plus its own deformation, and the response is relative to it.
     """
@@ -109,8 +110,27 @@ class CollisionHook:
         if missing:
             raise ValueError(f"unknown model(s) {missing}; available: {sorted(infos)}")
         self.infos = infos
-        #: Per collider, its model's timeline (None: static).
-        self.timelines = [infos[c.model].timeline for c in self.colliders]
+        #: Per collider, its model's timeline (None: static), a skinned model's clip's
+        #: (:meth:`ModelInfo.clip_timeline`: the clip's duration, the model's loop, the clip's
+        #: max_surface_speed), and that clip's name (None for any other model).
+        self.timelines: list[Timeline | None] = []
+        self.clips: list[str | None] = []
+        for placement in self.colliders:
+            timeline: Timeline | None
+            info = infos[placement.model]
+            if info.skinned:
+                try:
+                    timeline = info.clip_timeline(placement.clip)
+                except ValueError as error:
+                    raise ValueError(f"ColliderPlacement({placement.model!r}): {error}") from None
+                self.clips.append(placement.clip or info.skeleton["clips"][0]["name"])
+            elif placement.clip is not None:
+                raise ValueError(f"ColliderPlacement({placement.model!r}): clip applies to "
+                                 f"skinned models; this one is {info.kind}")
+            else:
+                timeline = info.timeline
+                self.clips.append(None)
+            self.timelines.append(timeline)
         for placement, timeline in zip(self.colliders, self.timelines, strict=True):
             if timeline is None and (placement.time_offset_s or placement.loop is not None):
                 raise ValueError(f"ColliderPlacement({placement.model!r}): time_offset_s and "
@@ -135,8 +155,8 @@ class CollisionHook:
         """Per collider, the largest displacement (m) of any point of its surface over the step
         from ``t - dt`` to ``t``: its domain box's corners under the two poses (a rigid motion
         moves a box's points at most as far as its corners), plus, animated, its fastest
-        surface point's own travel (``max_surface_speed`` times the pose's scale and ``dt``);
-        0 for static colliders."""
+        surface point's own travel (``max_surface_speed``, an animation's or a skinned model's
+        clip's, times the pose's scale and ``dt``); 0 for static colliders."""
         moves = []
         for placement, pose, timeline in zip(self.colliders, poses, self.timelines, strict=True):
             move = 0.0
@@ -253,7 +273,8 @@ class CollisionHook:
         return near
 
     def _query(self, points, poses, t: float, dt: float):
-        """The SDK call at ``t``: each collider at its animation time with its pose's velocity.
+        """The SDK call at ``t``: each collider at its animation time (a skinned one in its clip)
+        with its pose's velocity.
         Returns ``(result, which collider per point or None, held per collider)``."""
         times = [animation_time(c, line, t) for c, line in zip(self.colliders, self.timelines, strict=True)]
         rates = [c.pose_velocity(t, dt) for c in self.colliders]
@@ -261,11 +282,12 @@ class CollisionHook:
             placement = self.colliders[0]
             result = self.client.query(
                 placement.model, points, fields=self.fields, pose=poses[0], eps=self.eps,
-                only_colliding=self.only_colliding, time=times[0][0], pose_velocity=rates[0])
+                only_colliding=self.only_colliding, time=times[0][0], pose_velocity=rates[0],
+                clip=self.clips[0])
             return result, None, [times[0][1]]
         result = self.client.scene_query(
-            [SceneCollider(c.model, p, at, rate) for c, p, (at, _), rate in
-             zip(self.colliders, poses, times, rates, strict=True)],
+            [SceneCollider(c.model, p, at, rate, clip) for c, p, (at, _), rate, clip in
+             zip(self.colliders, poses, times, rates, self.clips, strict=True)],
             points, fields=self.fields, eps=self.eps, only_colliding=self.only_colliding)
         return result, np.asarray(result.collider), [held for _, held in times]
 

@@ -67,6 +67,16 @@ class Timeline:
                 math.isfinite(speed) and speed >= 0):
             raise ValueError(f"max_surface_speed must be a finite number >= 0, got {speed!r}")
 
+    @classmethod
+    def of_clip(cls, duration_s: float, loop: bool, max_surface_speed: float = 0.0) -> Timeline:
+        """A skinned model's clip as a timeline: the same time rule over its ``duration_s``
+        seconds (> 0), two frames spanning it (a clip's keys are its own: only
+        :attr:`duration_s`, :attr:`loop` and :attr:`max_surface_speed` mean anything here)."""
+        if isinstance(duration_s, bool) or not isinstance(duration_s, (int, float)) or not (
+                math.isfinite(duration_s) and duration_s > 0):
+            raise ValueError(f"a clip's duration must be a number of seconds > 0, got {duration_s!r}")
+        return cls(2, 1.0 / duration_s, loop, max_surface_speed)
+
     @property
     def duration_s(self) -> float:
         """Seconds from the first frame to the last: ``(frames - 1) / frame_rate_hz``."""

@@ -82,7 +82,8 @@ class ModelInfo:
         ``duration_s``, ``loop`` and ``max_surface_speed`` (:mod:`.animation`; its queries must
         give a time)
     skeleton : empty for a model without one; a skinned model's ``joints`` (names), ``parents``
-        (indices, -1 for a root), ``clips`` (each ``name`` and ``duration_s``) and ``loop``
+        (indices, -1 for a root), ``clips`` (each ``name``, ``duration_s`` and
+        ``max_surface_speed``, collider units per second) and ``loop``
         (:mod:`.skeleton`; its queries give a clip and a time, or joint transforms)
     """
 
@@ -118,6 +119,28 @@ class ModelInfo:
     def timeline(self) -> Timeline | None:
         """The animation's :class:`~.animation.Timeline`, or None for a static model."""
         return Timeline.from_dict(self.animation) if self.animation else None
+
+    def clip_timeline(self, clip: str | None) -> Timeline:
+        """A skinned model's clip ``clip`` (None: its first) as a :class:`~.animation.Timeline`
+        (:meth:`~.animation.Timeline.of_clip`: its duration, the model's ``loop`` and the clip's
+        ``max_surface_speed``). ValueError, one line, for a model without a skeleton, an unknown
+        clip, a clip of no duration, or one without ``max_surface_speed`` (a model made before
+        it was recorded: remake it)."""
+        if not self.skinned:
+            raise ValueError(f"model {self.name!r} has no skeleton: clip applies to skinned models")
+        clips = self.skeleton.get("clips", [])
+        names = [c.get("name") for c in clips]
+        if not clips or (clip is not None and clip not in names):
+            raise ValueError(f"model {self.name!r} has no clip {clip!r}; its clips: {names}")
+        entry = clips[0 if clip is None else names.index(clip)]
+        if "max_surface_speed" not in entry:
+            raise ValueError(f"model {self.name!r}'s clip {entry['name']!r} does not record "
+                             "max_surface_speed (made by an older version): make the model again")
+        try:
+            return Timeline.of_clip(entry.get("duration_s"), bool(self.skeleton.get("loop", True)),
+                                    entry["max_surface_speed"])
+        except ValueError as error:
+            raise ValueError(f"model {self.name!r}'s clip {entry['name']!r}: {error}") from None
 
     def domain_corners(self) -> np.ndarray:
         """(8, 3) float64: the corners of the domain box, collider frame and units."""

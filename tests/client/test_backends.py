@@ -178,9 +178,12 @@ def test_list_models_same(embedded, remote):
     assert b["pulse-voxel"].timeline.frames == 5 and b["pulse-voxel"].timeline.duration_s == 1.0
     assert b["pulse"].source["cache_sha256"] == a["pulse"].source["cache_sha256"]
     # The skeleton, over the wire as in process: joints, parents, clips, loop.
+    speeds = [c["max_surface_speed"] for c in a["arm"].skeleton["clips"]]
+    assert min(speeds) > 0
     assert a["arm"].skeleton == b["arm"].skeleton == {
         "joints": ["shoulder", "elbow", "wrist"], "parents": [-1, 0, 1], "loop": True,
-        "clips": [{"name": "wave", "duration_s": 1.0}, {"name": "reach", "duration_s": 2.0}]}
+        "clips": [{"name": "wave", "duration_s": 1.0, "max_surface_speed": speeds[0]},
+                  {"name": "reach", "duration_s": 2.0, "max_surface_speed": speeds[1]}]}
     assert b["arm"].skinned and not b["pulse"].skinned
     assert a["arm-neural"].skeleton == b["arm-neural"].skeleton == b["arm"].skeleton and b["arm-neural"].skinned
 

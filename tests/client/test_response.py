@@ -477,7 +477,7 @@ def test_hook_sends_its_eps_fields_and_only_colliding(exact_client, two, only_co
     else:
         assert (method, sent_colliders) == ("query", "floor")
         np.testing.assert_array_equal(sent_options.pop("pose"), np.eye(4))
-        options.update(time=None, pose_velocity=None)
+        options.update(time=None, pose_velocity=None, clip=None)
     assert sent_options == options
 
 
@@ -564,3 +564,106 @@ def test_hook_stats_add_up_over_calls(exact_client):
     assert 0 < history[0][6] == history[1][6] < history[2][6]  # query time adds up
     assert 0 < history[0][7] <= history[1][7] <= history[2][7]  # so does the response's
     assert hook.stats.deepest_penetration_m == pytest.approx(-2e-3, abs=1e-9)
+
+
+# -- a skinned collider: its clip, its clip's speed bound -------------------------------------------
+
+ARM = ModelInfo("arm", "skinned", domain_min=np.array([-0.1, -0.2, -0.1]),
+                domain_max=np.array([0.6, 0.2, 0.4]),
+                skeleton={"joints": ["shoulder"], "parents": [-1], "loop": True,
+                          "clips": [{"name": "wave", "duration_s": 1.0, "max_surface_speed": 1.5},
+                                    {"name": "reach", "duration_s": 2.0, "max_surface_speed": 0.5}]})
+
+
+def test_a_skinned_collider_moves_by_its_clips_speed_times_scale_and_dt():
+    scaled = np.diag([2.0, 2.0, 2.0, 1.0])
+    hook = CollisionHook(None, [ColliderPlacement("arm"), ColliderPlacement("arm", scaled, clip="reach")],
+                         infos={"arm": ARM})
+    assert hook.clips == ["wave", "reach"]  # None: the first clip
+    assert [line.duration_s for line in hook.timelines] == pytest.approx([1.0, 2.0])
+    assert hook.moving and "velocity" in hook.fields
+    # wave: 1.5 m/s x 1 x 10 ms; reach: 0.5 m/s x 2 x 10 ms (a fixed pose: no frame motion).
+    assert hook.collider_moves([np.eye(4), scaled], 0.3, 0.01) == pytest.approx([0.015, 0.01])
+    # The clip's speed decides the checks: 15 mm in a step of eps 1 mm is 16 checks.
+    assert hook.substeps(np.zeros((1, 3)), np.array([0]), hook.collider_moves(
+        [np.eye(4), scaled], 0.3, 0.01), 0.3, 0.01) == 16
+
+
+def test_a_clip_is_refused_where_it_does_not_fit():
+    infos = {"arm": ARM, "box": BOX}
+    with pytest.raises(ValueError, match=r"^ColliderPlacement\('box'\): clip applies to skinned "
+                                         r"models; this one is mesh$"):
+        CollisionHook(None, [ColliderPlacement("box", clip="wave")], infos=infos)
+    with pytest.raises(ValueError, match=r"^ColliderPlacement\('arm'\): model 'arm' has no clip "
+                                         r"'run'; its clips: \['wave', 'reach'\]$"):
+        CollisionHook(None, [ColliderPlacement("arm", clip="run")], infos=infos)
+    old = ModelInfo("arm", "skinned", skeleton={**ARM.skeleton, "clips": [
+        {"name": "wave", "duration_s": 1.0}]})
+    with pytest.raises(ValueError, match=r"^ColliderPlacement\('arm'\): model 'arm''s clip 'wave' "
+                                         r"does not record max_surface_speed \(made by an older "
+                                         r"version\): make the model again$"):
+        CollisionHook(None, [ColliderPlacement("arm")], infos={"arm": old})
+    with pytest.raises(ValueError, match=r"^ColliderPlacement\('arm'\): clip must be None or a "
+                                         r"clip's name, got 3$"):
+        ColliderPlacement("arm", clip=3)
+
+
+def _arm_distance(points, clip, t):
+    """Signed distance (m) of ``points`` to the generated arm skinned in ``clip`` at ``t`` s (the
+    engine's exact kind, asked directly: independent of the hook)."""
+    from collider_contract import SkeletonPose
+    from collider_server.making.skinned import skinned_arm, skinned_collider
+
+    collider = _arm_distance.collider = getattr(_arm_distance, "collider", None) or skinned_collider(
+        skinned_arm(), "arm")
+    distance, _, _ = collider.evaluate_at(np.asarray(points, dtype=np.float64), False, t,
+                                          SkeletonPose(clip=clip))
+    return np.asarray(distance)
+
+
+def test_the_hook_asks_a_skinned_collider_in_the_placements_clip(models_dir):
+    """Points 2 mm inside the arm as "reach" poses it at 0.9 s (elbow bent 60 degrees up, not so
+    in "wave") are all caught and put eps outside that pose: the hook asked in "reach"."""
+    import collider_client as cc
+    from collider_server.making.skinned import skinned_arm
+
+    skin = skinned_arm()
+    from collider_server.engine.skinning import pose_at, skin_vertices
+
+    posed = skin_vertices(skin, pose_at(skin, "reach", 0.9)[0])
+    rng = np.random.default_rng(3)
+    forearm = posed[posed[:, 0] > 0.3]
+    picked = forearm[rng.choice(len(forearm), 100, replace=False)]
+    # 2 mm inward: towards the bone's axis, approximately; keep those the exact kind has inside.
+    inside = picked - 0.002 * (picked - picked.mean(axis=0)) / np.linalg.norm(
+        picked - picked.mean(axis=0), axis=1, keepdims=True)
+    inside = inside[_arm_distance(inside, "reach", 0.9) < -5e-4]
+    assert len(inside) > 20
+    with cc.Client(models=models_dir, device="cpu") as client:
+        hook = CollisionHook(client, [ColliderPlacement("arm", clip="reach")], eps=1e-3)
+        pos, _, mask = hook.apply(inside, np.zeros_like(inside), t=0.9, dt=1e-3)
+    assert mask.all()
+    np.testing.assert_allclose(_arm_distance(pos, "reach", 0.9), 1e-3, atol=1e-5)
+
+
+def test_cloth_points_on_a_waving_arm_never_go_deeper_than_a_tenth_of_a_millimetre(models_dir):
+    """A ring of 300 points (a sleeve) resting around the forearm while "wave" swings the arm
+    for 0.25 s at 240 steps a second: after every step no point is deeper than 0.1 mm inside the
+    exact surface at that pose, and the arm pushed them (they moved)."""
+    import collider_client as cc
+
+    angle = np.linspace(0.0, 2.0 * np.pi, 30, endpoint=False)
+    x = np.linspace(0.28, 0.46, 10)
+    points = np.array([[xi, 0.0415 * np.cos(a), 0.0415 * np.sin(a)] for xi in x for a in angle])
+    start = points.copy()
+    velocities = np.zeros_like(points)
+    dt, deepest = 1.0 / 240.0, 0.0
+    with cc.Client(models=models_dir, device="cpu") as client:
+        hook = CollisionHook(client, [ColliderPlacement("arm")], eps=1e-3)
+        for step in range(1, 61):
+            t = step * dt
+            points = points + velocities * dt
+            points, velocities, _ = hook.apply(points, velocities, t, dt)
+            deepest = min(deepest, float(_arm_distance(points, "wave", t).min()))
+    assert deepest > -1e-4, f"a point {-1e3 * deepest:.3f} mm inside"
+    assert np.linalg.norm(points - start, axis=1).max() > 0.02  # the arm carried them along

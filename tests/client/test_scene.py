@@ -340,7 +340,9 @@ KNOWN_EFFECTS = sorted(["gravity", "wind", "damping", "stretch", "shear", "bend"
     ("[effects.gravity]", COLLIDER + "rotation_deg = [0, 0]",
      "colliders[0].rotation_deg: must be a list of 3 numbers, got [0, 0]"),
     ("[effects.gravity]", COLLIDER + "colour = 'red'", ("unknown key(s) ['colliders[0].colour']; "
-     "known here: ['loop', 'make', 'model', 'motion', 'position_m', 'rotation_deg', 'time_offset_s']")),
+     "known here: ['clip', 'loop', 'make', 'model', 'motion', 'position_m', 'rotation_deg', "
+     "'time_offset_s']")),
+    ("[effects.gravity]", COLLIDER + "clip = 3", "colliders[0].clip: must be a string, got int 3"),
     ("[effects.gravity]", COLLIDER + "time_offset_s = 'soon'",
      "colliders[0].time_offset_s: must be a number, got str 'soon'"),
     ("[effects.gravity]", COLLIDER + "time_offset_s = nan",
@@ -635,3 +637,32 @@ def test_collider_pose_of_each_motion_kind_against_independent_rotations():
         np.testing.assert_allclose(pose[:3, 3], position + offset, atol=1e-15)
         np.testing.assert_allclose(pose[:3, :3], extrinsic_xyz(turn) @ base, atol=1e-12)
         assert pose[3].tolist() == [0.0, 0.0, 0.0, 1.0]
+
+
+def test_check_models_takes_a_clip_for_a_skinned_model_only(tmp_path):
+    """``clip`` names a clip of a skinned model (left out: its first); on another model, or a
+    name the model lacks, the refusal names the file and the key; ``time_offset_s`` and ``loop``
+    apply to skinned models as to animated ones."""
+    from collider_client.sim.scene import check_models
+    from collider_contract import ModelInfo
+
+    arm = ModelInfo("arm", "skinned", skeleton={"joints": ["a"], "parents": [-1], "loop": True,
+                                                "clips": [{"name": "wave", "duration_s": 1.0,
+                                                           "max_surface_speed": 1.0}]})
+    infos = {"arm": arm, "sphere": ModelInfo("sphere", "voxel")}
+
+    def scene(collider: str):
+        text = BASE.replace("[effects.gravity]", "[effects.gravity]\n" + collider)
+        return load_scene(write(tmp_path, text))
+
+    ok = scene("[effects.collisions]\n[[colliders]]\nmodel = 'arm'\nclip = 'wave'\n"
+               "time_offset_s = 0.5\nloop = false\n")
+    assert ok.colliders[0].clip == "wave"
+    check_models(ok, infos)
+    check_models(scene("[effects.collisions]\n[[colliders]]\nmodel = 'arm'\n"), infos)
+    with pytest.raises(SceneError, match=r"colliders\[0\]\.clip: model 'arm' has no clip 'run'; "
+                                         r"its clips: \['wave'\]$"):
+        check_models(scene("[effects.collisions]\n[[colliders]]\nmodel = 'arm'\nclip = 'run'\n"), infos)
+    with pytest.raises(SceneError, match=r"colliders\[0\]\.clip: model 'sphere' is not skinned "
+                                         r"\(the key applies to skinned models\)$"):
+        check_models(scene(COLLIDER + "clip = 'wave'\n"), infos)

@@ -10,8 +10,8 @@ def test_a_batch_answers_each_skeleton_pose_on_its_own():
     from collider_contract import ModelQuery
     from collider_server.engine.skinning import pose_at
     from collider_server.making.skinned import skinned_arm, skinned_collider
-    from collider_server.service.query_jobs import QueryJob, answer_batch
     from collider_server.service.batching import BatchPart
+    from collider_server.service.query_jobs import QueryJob, answer_batch
 
     skin = skinned_arm()
     collider = skinned_collider(skin, "arm")

@@ -28,7 +28,8 @@ class Motion:
 class ColliderSpec:
     """A scene's collider: its model, placement and motion; for an animated model, the offset
     added to the simulation time (seconds) and a loop override (None: the model's own), and
-    the command that makes the model when it is not shipped (said when it is missing)."""
+    the command that makes the model when it is not shipped (said when it is missing); for a
+    skinned model, the clip it plays (None: its first)."""
 
     model: str
     position_m: np.ndarray
@@ -37,6 +38,7 @@ class ColliderSpec:
     time_offset_s: float = 0.0
     loop: bool | None = None
     make: str | None = None
+    clip: str | None = None
 
 
 def euler_matrix(rotation_deg: np.ndarray) -> np.ndarray:

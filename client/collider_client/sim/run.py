@@ -102,9 +102,11 @@ def query_cost_per_point(client, scene: Scene, hook) -> float | None:
     if info is None:
         return None
     points = np.random.default_rng(0).uniform(info.domain_min, info.domain_max, (PROBE_POINTS, 3))
-    # An animated collider is asked at its first frame (it refuses a query without a time).
+    # An animated collider is asked at its first frame (it refuses a query without a time), a
+    # skinned one at its clip's first pose (a pose as the run asks, not the rest pose).
     ask = {"fields": hook.fields, "only_colliding": hook.only_colliding,
-           "time": 0.0 if info.animated else None}
+           "time": 0.0 if info.animated or info.skinned else None,
+           "clip": hook.clips[0]}
     client.query(info.name, points[:1000], **ask)  # warm-up
     started = time.perf_counter()
     client.query(info.name, points, **ask)

@@ -3,7 +3,8 @@
 Units are in the key names (``_m``, ``_s``, ``_kg_m2``, ``_deg``). Frames: the world frame has
 gravity along -z by default; a collider's ``position_m``/``rotation_deg`` place its frame in the
 world (collider -> world). An animated collider is asked at the simulation time plus its
-``time_offset_s``, looping or clamping as its model was baked unless ``loop`` says otherwise;
+``time_offset_s``, looping or clamping as its model was baked unless ``loop`` says otherwise; a
+skinned one likewise, in its ``clip`` (left out: its first);
 ``make`` is the command that makes a model the repository does not ship. Only the tables under
 ``[effects]`` that a file declares are simulated.
 Every error names the file and the key (:mod:`.tables`); colliders' placement and motion are
@@ -145,9 +146,11 @@ def load_scene(path: str | Path) -> Scene:
         motion = _motion(t.table("motion"))
         time_offset = t.number("time_offset_s", default=0.0)
         loop = t.boolean("loop")
+        clip = t.string("clip")
         make = t.string("make")
         t.done()
-        colliders.append(ColliderSpec(model, position, rotation, motion, float(time_offset), loop, make))
+        colliders.append(ColliderSpec(model, position, rotation, motion, float(time_offset), loop,
+                                      make, clip))
 
     effects_table = root.table("effects", required=True)
     effects: dict[str, dict[str, Any]] = {}
@@ -166,8 +169,8 @@ def load_scene(path: str | Path) -> Scene:
 
 def check_models(scene: Scene, infos: dict) -> None:
     """Refuse, naming the file and key, colliders whose model is not among ``infos`` (name ->
-    ModelInfo; the collider's ``make`` says how to make it) and animation keys on a static
-    model."""
+    ModelInfo; the collider's ``make`` says how to make it), animation keys on a static model
+    and a ``clip`` that is not the model's (or on a model without a skeleton)."""
     missing = [i for i, spec in enumerate(scene.colliders) if spec.model not in infos]
     if missing:
         spec = scene.colliders[missing[0]]
@@ -175,12 +178,22 @@ def check_models(scene: Scene, infos: dict) -> None:
         raise SceneError(f"{scene.path}: colliders[{missing[0]}].model: no model named "
                          f"{spec.model!r} (available: {sorted(infos) or 'none'}){hint}")
     for i, spec in enumerate(scene.colliders):
-        if infos[spec.model].animated:
+        info = infos[spec.model]
+        if info.skinned:
+            try:
+                info.clip_timeline(spec.clip)
+            except ValueError as error:
+                raise SceneError(f"{scene.path}: colliders[{i}].clip: {error}") from None
+            continue
+        if spec.clip is not None:
+            raise SceneError(f"{scene.path}: colliders[{i}].clip: model {spec.model!r} is not "
+                             "skinned (the key applies to skinned models)")
+        if info.animated:
             continue
         for key, given in (("time_offset_s", spec.time_offset_s != 0.0), ("loop", spec.loop is not None)):
             if given:
                 raise SceneError(f"{scene.path}: colliders[{i}].{key}: model {spec.model!r} is "
-                                 "not animated (the key applies to animated models)")
+                                 "not animated (the key applies to animated and skinned models)")
 
 
 def _motion(t: Table | None) -> Motion:

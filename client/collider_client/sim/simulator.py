@@ -164,7 +164,7 @@ class Simulator:
             # A still collider's pose as a matrix: the hook then knows it does not move.
             placements = [ColliderPlacement(
                 spec.model, pose_function(spec)(0.0) if spec.motion.kind == "static" else pose_function(spec),
-                spec.time_offset_s, spec.loop) for spec in scene.colliders]
+                spec.time_offset_s, spec.loop, spec.clip) for spec in scene.colliders]
             friction = fx.get("friction")
             # Without friction the hook keeps the collider's velocity (restitution has no use).
             response = {} if friction is None else {"friction": friction["coefficient"],

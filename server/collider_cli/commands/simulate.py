@@ -276,8 +276,8 @@ def model_surfaces(client, specs, resolution: int = 48, count: int = 4000) -> di
     """Per model of the scene colliders ``specs``, its surface as the model itself answers it,
     for the PNG: marching cubes (:mod:`collider_server.making.surface`) of the distance the
     client answers on a ``resolution``^3 grid over the model's domain, ``count`` of its vertices
-    (m, 3), collider frame; for an animated model a function of the simulation time (its
-    animation time as the collision hook asks it). A model the scene names that the client
+    (m, 3), collider frame; for an animated or skinned model a function of the simulation time
+    (its animation time, a skinned one's in its clip, as the collision hook asks it). A model the scene names that the client
     does not know is left out (the run refuses it)."""
     from collider_client import ColliderError
     from collider_client.response import ColliderPlacement, animation_time
@@ -291,9 +291,10 @@ def model_surfaces(client, specs, resolution: int = 48, count: int = 4000) -> di
         client.close()
         raise ValueError(str(exc)) from None
 
-    def surface(info, time):
+    def surface(info, time, clip=None):
         def distance(points):
-            return client.query(info.name, points, fields=["distance"], time=time).distance
+            return client.query(info.name, points, fields=["distance"], time=time,
+                                clip=clip).distance
 
         grid = distance_grid(distance, info.domain_min, info.domain_max, resolution)
         mesh = level_surface(grid)
@@ -304,14 +305,24 @@ def model_surfaces(client, specs, resolution: int = 48, count: int = 4000) -> di
         info = infos.get(spec.model)
         if info is None or spec.model in shown:
             continue
-        if info.timeline is None:
+        clip = None
+        if info.skinned:  # asked in its clip at the animation time, as the hook asks it
+            try:
+                timeline = info.clip_timeline(spec.clip)
+            except ValueError:  # a clip the model lacks: the run refuses it
+                continue
+            clip = spec.clip or info.skeleton["clips"][0]["name"]
+        else:
+            timeline = info.timeline
+        if timeline is None:
             points = surface(info, None)
             if points is not None:
                 shown[spec.model] = points
         else:
             placement = ColliderPlacement(spec.model, None, spec.time_offset_s, spec.loop)
-            shown[spec.model] = (lambda t, info=info, placement=placement: _or_none(
-                surface(info, animation_time(placement, info.timeline, t)[0])))
+            shown[spec.model] = (lambda t, info=info, placement=placement, timeline=timeline,
+                                 clip=clip: _or_none(
+                surface(info, animation_time(placement, timeline, t)[0], clip)))
     return shown
 
 

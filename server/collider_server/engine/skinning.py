@@ -417,7 +417,7 @@ def clip_time(clip: Clip, time_s: float, mode: str = "loop") -> tuple[float, boo
         raise ValueError(f"mode must be one of {list(TIME_MODES)}, got {mode!r}")
     if clip.duration_s <= 0.0:  # a single pose: nothing to wrap or run
         return 0.0, True
-    timeline = Timeline(2, 1.0 / clip.duration_s, loop=mode == "loop")
+    timeline = Timeline.of_clip(clip.duration_s, loop=mode == "loop")
     return timeline.local_time(float(time_s)), timeline.held(float(time_s))
 
 

@@ -240,7 +240,12 @@ _SKELETON = {"type": "object", "description": "empty for a model without one; a 
                  "clips": {"type": "array", "description": "the model's clips", "items": {
                      "type": "object", "properties": {
                          "name": {"type": "string"},
-                         "duration_s": {"type": "number", "minimum": 0}}}},
+                         "duration_s": {"type": "number", "minimum": 0},
+                         "max_surface_speed": {
+                             "type": "number", "minimum": 0,
+                             "description": "the fastest any point of the skin moves in the "
+                             "clip, collider units per second (measured; absent in models "
+                             "made before it was recorded)"}}}},
                  "loop": {"type": "boolean", "description": "beyond a clip's ends time wraps "
                           "(true) or holds the end pose (false)"}}}
 #: ``collider_contract.ModelInfo.to_dict()``: what ``GET /v1/models/{name}`` answers (keys a
