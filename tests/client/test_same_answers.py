@@ -321,7 +321,7 @@ def test_a_file_path_given_as_a_model_name_is_refused_alike(backends, server_url
     error = outcome(backends[0], method, (NEAR[:2],), kwargs)
     assert error[:3] == ("error", cc.ModelNotFoundError, "unknown-model"), error
     assert error[3] == (f"404 Not found: no model named {path!r} "
-                        "(models: arm, box, pulse, pulse-voxel, sphere)")
+                        "(models: arm, arm-neural, box, pulse, pulse-voxel, sphere)")
 
 
 def test_an_embedded_client_of_an_empty_folder_refuses_a_file_path(tmp_path, models_dir):
@@ -336,7 +336,7 @@ def test_an_embedded_client_of_an_empty_folder_refuses_a_file_path(tmp_path, mod
 
 def test_embedded_and_remote_list_the_same_models(backends):
     embedded, remote = ([m.to_dict() for m in client.list_models()] for client in backends)
-    assert [m["name"] for m in embedded] == ["arm", "box", "pulse", "pulse-voxel", "sphere"]
+    assert [m["name"] for m in embedded] == ["arm", "arm-neural", "box", "pulse", "pulse-voxel", "sphere"]
     assert json.dumps(embedded, sort_keys=True) == json.dumps(remote, sort_keys=True)
 
 

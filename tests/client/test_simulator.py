@@ -489,7 +489,7 @@ def test_run_scene_refuses_before_the_run(tmp_path, models_dir, monkeypatch):
     scene = load_scene(path)
     with cc.Client(models=models_dir, device="cpu") as client:
         with pytest.raises(ValueError, match=r"colliders\[0\]\.model: no model named 'teapot' "
-                                             r"\(available: \['arm', 'box', 'pulse', 'pulse-voxel', 'sphere'\]\)$"):
+                                             r"\(available: \['arm', 'arm-neural', 'box', 'pulse', 'pulse-voxel', 'sphere'\]\)$"):
             run_scene(scene, client, tmp_path / "out", show_progress=False)
     (tmp_path / "empty").mkdir()
     with cc.Client(models=tmp_path / "empty", device="cpu") as client:

@@ -452,7 +452,8 @@ def test_the_exact_kinds_run_on_the_cpu_whatever_device_is_asked(fresh_collider)
     """What the service and the SDK report (``device_of``) is where each kind runs."""
     from collider_server.engine.devices import DEVICE_KINDS, device_of
 
-    assert set(DEVICE_KINDS) == {"voxel", "neural"}
+    assert set(DEVICE_KINDS) == {"voxel", "neural", "neural-skinned"}
+    assert device_of("skinned", "cuda:1") == "cpu"
     for kind in ("mesh", "kdtree"):
         assert device_of(kind, "cuda:1") == "cpu" and fresh_collider(kind, "cpu").device == "cpu"
     assert device_of("neural", "cuda:1") == "cuda:1" and device_of("voxel", "cpu") == "cpu"
