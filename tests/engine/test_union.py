@@ -313,3 +313,20 @@ def test_a_bake_of_the_two_boxes_reads_the_union_distance_in_the_overlap(tmp_pat
     collider = load_collider(tmp_path / "two-boxes.safetensors")
     distance = collider.query(np.array([[0.04, 0.0, 0.0]]), ["distance"]).distance[0]
     assert abs(distance + 0.06) < 1e-3
+
+
+def test_the_kdtree_kind_answers_from_the_unions_vertices_not_the_buried_ones():
+    """The approximate kind too answers against the union: the bar's buried end corners are not
+    among its vertices, so the issue's point is answered by a corner of the union's boundary."""
+    from collider_server.making.bake import bake_collider
+
+    mesh = boxes_mesh(CUBE, BAR, name="two-boxes")
+    collider = bake_collider(mesh, "kdtree", "two-boxes", show_progress=False)
+    vertices = collider.tensors()["vertices"]
+    buried = ((vertices > np.array(CUBE[0]) + 1e-9) & (vertices < np.array(CUBE[1]) - 1e-9)).all(axis=1)
+    assert not buried.any()
+    # the bar's corners where it leaves the cube's top face are vertices of the union
+    assert any(np.allclose(v, [0.02, -0.02, 0.1]) for v in vertices)
+    point = np.array([[0.0421, 0.0, -0.0295]])
+    distance = collider.query(point, ["distance"]).distance[0]
+    assert distance < -0.05  # a buried corner would answer about -0.0005

@@ -4,6 +4,11 @@
 distance : |p - v| signed by the side of v's normal the point lies on; always >= the exact
     unsigned distance, off by up to about half the edge length near the surface;
 normal : the area-weighted normal of the nearest vertex.
+
+The vertices are those of the boundary every kind answers against
+(:class:`~collider_server.engine.meshes.ExactSDF`): for a mesh that passes through itself, the
+union's (its cut cells' corners in, the vertices buried inside the body out), so that no point
+is answered by a vertex inside the body.
 """
 
 from __future__ import annotations
@@ -11,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..collider import Collider, ColliderInfo
-from ..meshes import Mesh
+from ..meshes import ExactSDF, Mesh
 
 
 def vertex_normals(mesh: Mesh) -> np.ndarray:
@@ -42,7 +47,12 @@ class KDTreeCollider(Collider):
 
     @classmethod
     def from_mesh(cls, info: ColliderInfo, mesh: Mesh) -> KDTreeCollider:
-        return cls(info, mesh.vertices, vertex_normals(mesh))
+        union = ExactSDF(mesh).union
+        if union is None:
+            return cls(info, mesh.vertices, vertex_normals(mesh))
+        boundary = Mesh(union.vertices, union.faces, mesh.name, mesh.sha256)
+        kept = np.unique(union.faces)  # the mesh's buried vertices are on no kept face
+        return cls(info, union.vertices[kept], vertex_normals(boundary)[kept])
 
     def evaluate(self, local, want_gradient):
         unsigned, index = self.tree.query(local, workers=-1)
