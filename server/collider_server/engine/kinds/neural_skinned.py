@@ -54,6 +54,8 @@ from .skinned import pose_key, resolve_pose, skin_from_tensors, skin_tensors
 NO_PART = 255
 #: Prefix of the network's arrays in the model file (the skin's are unprefixed).
 NETWORK_PREFIX = "network."
+#: How a part's rigid rest image is carried on through the skinning (:func:`carry_to_rest`).
+SKINNING_SOLVERS = ("fixed-point", "newton")
 
 
 @dataclass(frozen=True)
@@ -67,8 +69,12 @@ class ArticulatedGridArchitecture(GridArchitecture):
     label_resolution : cells per side of the rest pose's label grid
     neighbours : a joint is a candidate where the label is its parent's or a child's too (False:
         only where it is its own)
-    skinning_iterations : fixed-point steps that carry a part's rigid rest image on through the
-        skinning (:func:`skinned_rest`); 0: rigid parts only
+    skinning_iterations : steps that carry a part's rigid rest image on through the skinning
+        (:func:`carry_to_rest`); 0: rigid parts only
+    skinning_solver : ``"fixed-point"`` (:func:`skinned_rest`'s steps ``x_rest <- M(x_rest)^-1 x``,
+        the first model files') or ``"newton"`` (:func:`newton_rest`: damped Newton steps with the
+        weight grid's derivative; a candidate that does not converge is dropped where its point
+        has one that does)
     weight_resolution : cells per side of the rest pose's skinning-weight grid (its 4 largest
         weights per corner, 8 bits each)
     """
@@ -79,6 +85,7 @@ class ArticulatedGridArchitecture(GridArchitecture):
     neighbours: bool = False
     skinning_iterations: int = 2
     weight_resolution: int = 48
+    skinning_solver: str = "fixed-point"
     table_log2: int = 17
     table_dtype: str = "int8"
     encoding: str = "articulated-grid"
@@ -90,6 +97,9 @@ class ArticulatedGridArchitecture(GridArchitecture):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < (0 if name == "skinning_iterations" else 1):
                 raise ValueError(f"architecture {name} must be a positive integer, got {value!r}")
+        if self.skinning_solver not in SKINNING_SOLVERS:
+            raise ValueError(f"architecture skinning_solver must be one of {', '.join(SKINNING_SOLVERS)}, "
+                             f"got {self.skinning_solver!r}")
         if self.joints >= NO_PART:
             raise ValueError(f"an articulated network has at most {NO_PART - 1} joints, got {self.joints}")
 
@@ -303,6 +313,99 @@ def weights_at(rest: np.ndarray, grid_joints: np.ndarray, grid_weights: np.ndarr
     return out / np.maximum(out.sum(axis=1, keepdims=True), 1e-12)
 
 
+def weights_and_gradient(rest: np.ndarray, grid_joints: np.ndarray, grid_weights: np.ndarray, centre, radius: float,
+                         joints: int) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`weights_at` (m, J) and its derivative along the rest frame's axes (m, J, 3) float64
+    (per collider unit; zero along an axis where the point is clamped into the cube)."""
+    side = grid_joints.shape[0]
+    u = (np.asarray(rest, np.float64) - centre) / radius
+    clamped = (u < -1.0) | (u > 1.0)
+    position = (np.clip(u, -1.0, 1.0) + 1.0) * 0.5 * (side - 1)
+    cell = np.minimum(np.floor(position).astype(np.int64), side - 2)
+    t = position - cell
+    scale = np.where(clamped, 0.0, 0.5 * (side - 1) / radius)  # d t / d x
+    raw = np.zeros((len(u), joints))
+    draw = np.zeros((len(u), joints, 3))
+    rows = np.arange(len(u))
+    for corner in range(8):
+        o = [(corner >> a) & 1 for a in range(3)]
+        f = [t[:, a] if o[a] else 1.0 - t[:, a] for a in range(3)]
+        df = [scale[:, a] * (1.0 if o[a] else -1.0) for a in range(3)]
+        tw = f[0] * f[1] * f[2]
+        dtw = np.stack([df[0] * f[1] * f[2], f[0] * df[1] * f[2], f[0] * f[1] * df[2]], axis=1)
+        i, j, k = cell[:, 0] + o[0], cell[:, 1] + o[1], cell[:, 2] + o[2]
+        jj, ww = grid_joints[i, j, k], grid_weights[i, j, k] / 255.0
+        for slot in range(GRID_INFLUENCES):
+            np.add.at(raw, (rows, jj[:, slot]), tw * ww[:, slot])
+            np.add.at(draw, (rows, jj[:, slot]), dtw * ww[:, slot, None])
+    total = np.maximum(raw.sum(axis=1), 1e-12)
+    w = raw / total[:, None]
+    dw = (draw - w[:, :, None] * draw.sum(axis=1)[:, None, :]) / total[:, None, None]
+    return w, dw
+
+
+def skinning_jacobian(rest: np.ndarray, posed: np.ndarray, w: np.ndarray, dw: np.ndarray) -> np.ndarray:
+    """(m, 3, 3) float64: the derivative of linear blend skinning's map ``y -> sum_k w_k(y) A_k
+    [y, 1]`` at rest points ``rest`` (m, 3), ``A = posed`` (J, 4, 4), the weights ``w`` (m, J)
+    and their derivative ``dw`` (m, J, 3) (:func:`weights_and_gradient`)."""
+    homogeneous = np.concatenate([rest, np.ones((len(rest), 1))], axis=1)
+    moved = np.einsum("jab,mb->mja", posed[:, :3, :], homogeneous)
+    return np.einsum("mj,jab->mab", w, posed[:, :3, :3]) + np.einsum("mja,mjc->mac", moved, dw)
+
+
+#: Newton steps stop where the skinned rest point is this close to the query point, a share of the
+#: grid's half side (the walker's 0.95 m: about 1 micrometre).
+NEWTON_TOLERANCE = 1e-6
+#: The longest Newton step, a share of the grid's half side (the walker: 5 cm, about a weight-grid
+#: cell), and how often a step that does not lower |F| is halved before the point stops.
+NEWTON_MAX_STEP = 0.05
+NEWTON_HALVINGS = 4
+
+
+def _newton_terms(y: np.ndarray, x: np.ndarray, posed: np.ndarray, weights):
+    """``(F (m, 3), J_F (m, 3, 3))`` of :func:`newton_rest`'s equation at rest points ``y``."""
+    w, dw = weights(y)
+    homogeneous = np.concatenate([y, np.ones((len(y), 1))], axis=1)
+    f = np.einsum("mj,jab,mb->ma", w, posed[:, :3, :], homogeneous) - x
+    return f, skinning_jacobian(y, posed, w, dw)
+
+
+def newton_rest(points: np.ndarray, rest: np.ndarray, posed: np.ndarray, weights, iterations: int,
+                max_step: float = NEWTON_MAX_STEP, tolerance: float = NEWTON_TOLERANCE):
+    """Rest-pose images of posed points ``points`` (m, 3) through the skinning by damped Newton
+    steps on ``F(y) = sum_k w_k(y) A_k [y, 1] - x = 0`` (SNARF's root search) from ``rest``
+    (m, 3) (a part's rigid image), ``A = posed`` (J, 4, 4), ``weights(y) -> (w (m, J), dw (m, J,
+    3))`` (:func:`weights_and_gradient`): each step ``-J_F^-1 F``, at most ``max_step`` long, halved
+    up to :data:`NEWTON_HALVINGS` times until |F| falls (else the point stops). Returns ``(rest
+    (m, 3), inverse (m, 3, 3), converged (m,) bool)``: the images, ``J_F^-1`` there (the
+    gradient's pull-back) and whether |F| <= ``tolerance``. The numpy reference of
+    :func:`_newton_kernel`."""
+    x = np.asarray(points, np.float64)
+    y = np.array(rest, np.float64)
+    active = np.arange(len(y))
+    for _ in range(iterations):
+        f, jacobian = _newton_terms(y[active], x[active], posed, weights)
+        size = np.linalg.norm(f, axis=1)
+        keep = size > tolerance
+        active, f, jacobian, size = active[keep], f[keep], jacobian[keep], size[keep]
+        if not len(active):
+            break
+        step = -np.linalg.solve(jacobian, f[..., None])[..., 0]
+        length = np.linalg.norm(step, axis=1)
+        step *= np.minimum(1.0, max_step / np.maximum(length, 1e-300))[:, None]
+        todo = np.arange(len(active))
+        for _ in range(NEWTON_HALVINGS + 1):
+            trial = y[active[todo]] + step[todo]
+            f_trial, _ = _newton_terms(trial, x[active[todo]], posed, weights)
+            better = np.linalg.norm(f_trial, axis=1) < size[todo]
+            y[active[todo[better]]] = trial[better]
+            todo = todo[~better]
+            step[todo] *= 0.5
+        active = np.delete(active, todo)  # no step lowered |F|: stuck
+    f, jacobian = _newton_terms(y, x, posed, weights)
+    return y, np.linalg.inv(jacobian), np.linalg.norm(f, axis=1) <= tolerance
+
+
 def blend_at(rest: np.ndarray, maps: np.ndarray, grid_joints, grid_weights, centre, radius: float,
              fused: bool = True) -> np.ndarray:
     """(m, 3, 4) float64: ``sum_k w_k(x) maps_k`` at rest-pose points ``rest`` (m, 3), the
@@ -350,19 +453,60 @@ def skinned_rest(points: np.ndarray, rest: np.ndarray, posed: np.ndarray, grid_j
 DIVERGED = 0.25
 
 
-def carry_to_rest(points: np.ndarray, joint: np.ndarray, rigid: np.ndarray, to_rest: np.ndarray, posed: np.ndarray,
-                  grid_joints, grid_weights, centre, radius: float, iterations: int):
-    """Each candidate's rest-pose point and the linear part of its map there, ``(rest (m, 3),
-    inverse (m, 3, 3))``: :func:`skinned_rest` from its part's rigid image ``rigid`` (``joint``
-    (m,), ``to_rest`` (J, 3, 4) of :func:`rest_maps`), the rigid image and map where there are no
-    steps or they diverged (:data:`DIVERGED`). The rule both the query and the training use."""
+def carry_to_rest(points: np.ndarray, point: np.ndarray, joint: np.ndarray, rigid: np.ndarray,
+                  to_rest: np.ndarray, posed: np.ndarray, grid_joints, grid_weights, centre, radius: float,
+                  iterations: int, solver: str = "fixed-point", fused: bool = True):
+    """Each candidate's rest-pose point and the linear part of its map there: candidates
+    ``point`` (m,) (indices into ``points`` (n, 3), the posed points), ``joint`` (m,), their
+    parts' rigid images ``rigid`` (m, 3) (``to_rest`` (J, 3, 4) of :func:`rest_maps`), carried on
+    by ``solver`` (:data:`SKINNING_SOLVERS`): :func:`skinned_rest`, whose rows keep the rigid image
+    and map where the steps diverged (:data:`DIVERGED`), or :func:`newton_rest` through the weight
+    grid (tolerance and longest step shares of ``radius``), whose rows that did not converge are
+    dropped where their point has one that did (else they keep the rigid image and map where they
+    went further than :data:`DIVERGED`). The rule both the query and the training use.
+
+    Returns ``(keep (k,) int64, rest (k, 3), inverse (k, 3, 3))``: the candidates kept (indices
+    into the m rows, in order), their rest points and the linear maps that pull a rest-frame
+    gradient back to the posed frame (``grad_x = inverse^T grad_rest``)."""
     rigid_inverse = to_rest[joint, :, :3]
-    rest, inverse = skinned_rest(points, rigid, posed, grid_joints, grid_weights, centre, radius, iterations)
-    if inverse is None:
-        return rigid, rigid_inverse
+    x = np.ascontiguousarray(points[point], np.float64)
+    if iterations == 0:
+        return np.arange(len(point)), rigid, rigid_inverse
+    if solver == "fixed-point":
+        rest, inverse = skinned_rest(x, rigid, posed, grid_joints, grid_weights, centre, radius, iterations, fused)
+        converged = np.ones(len(point), bool)
+    else:
+        rest, inverse, converged = _newton_through_grid(x, rigid, posed, grid_joints, grid_weights, centre, radius,
+                                                        iterations, fused)
     wild = np.flatnonzero(np.einsum("ma,ma->m", rest - rigid, rest - rigid) > (DIVERGED * radius) ** 2)
     rest[wild], inverse[wild] = rigid[wild], rigid_inverse[wild]
-    return rest, inverse
+    has_converged = np.zeros(len(points), bool)
+    has_converged[point[converged]] = True
+    keep = np.flatnonzero(converged | ~has_converged[point])
+    return keep, rest[keep], inverse[keep]
+
+
+def _newton_through_grid(points, rigid, posed, grid_joints, grid_weights, centre, radius: float, iterations: int,
+                         fused: bool = True):
+    """:func:`newton_rest` through the weight grid (:func:`weights_and_gradient`), its tolerance
+    :data:`NEWTON_TOLERANCE` and longest step :data:`NEWTON_MAX_STEP` times ``radius``: one numba
+    pass (:func:`_newton_kernel`) when numba is there and ``fused``, else numpy."""
+    centre = np.asarray(centre, np.float64)
+    tolerance, max_step = NEWTON_TOLERANCE * radius, NEWTON_MAX_STEP * radius
+    if fused and _newton_kernel is not None:
+        rest = np.array(rigid, np.float64, order="C")
+        inverse = np.empty((len(rest), 3, 3))
+        converged = np.empty(len(rest), np.bool_)
+        _newton_kernel(np.ascontiguousarray(points, np.float64), rest, np.ascontiguousarray(posed[:, :3, :]),
+                       grid_joints, grid_weights, centre, float(radius), iterations, max_step, tolerance,
+                       NEWTON_HALVINGS, inverse, converged)
+        return rest, inverse, converged
+    joints = len(posed)
+
+    def weights(y):
+        return weights_and_gradient(y, grid_joints, grid_weights, centre, radius, joints)
+
+    return newton_rest(points, rigid, posed, weights, iterations, max_step, tolerance)
 
 
 _blend_kernel = _skinned_rest_kernel = None
@@ -438,6 +582,133 @@ if grid_kernels.available():
                 dx, dy, dz = points[p, 0] - m[0, 3], points[p, 1] - m[1, 3], points[p, 2] - m[2, 3]
                 for a in range(3):
                     rest[p, a] = inv[a, 0] * dx + inv[a, 1] * dy + inv[a, 2] * dz
+
+
+_newton_kernel = None
+if grid_kernels.available():
+    import numba
+
+    @numba.njit(cache=True, nogil=True)
+    def _weight_axis(value, centre, radius, side):  # pragma: no cover
+        """:func:`_weight_cell` and d(fraction)/d(value) (0 where the value is clamped)."""
+        c, t = _weight_cell(value, centre, radius, side)
+        u = (value - centre) / radius
+        return c, t, (0.0 if (u < -1.0 or u > 1.0) else 0.5 * (side - 1) / radius)
+
+    @numba.njit(cache=True, nogil=True)
+    def _newton_terms_one(y0, y1, y2, x, maps, grid_joints, grid_weights, centre, radius, f, jac,
+                          r, d, ds):  # pragma: no cover
+        """``f`` (3,) = F and ``jac`` (3, 3) = J_F of :func:`newton_rest` at the rest point (y0, y1,
+        y2) for the posed point ``x`` (3,); returns |F|. ``r`` (3, 4), ``d`` (3, 3), ``ds`` (3,):
+        scratch."""
+        side = grid_joints.shape[0]
+        cx, tx, sx = _weight_axis(y0, centre[0], radius, side)
+        cy, ty, sy = _weight_axis(y1, centre[1], radius, side)
+        cz, tz, sz = _weight_axis(y2, centre[2], radius, side)
+        r[:] = 0.0
+        d[:] = 0.0
+        ds[:] = 0.0
+        total = 0.0
+        for corner in range(8):
+            ox, oy, oz = corner & 1, (corner >> 1) & 1, (corner >> 2) & 1
+            fx = tx if ox else 1.0 - tx
+            fy = ty if oy else 1.0 - ty
+            fz = tz if oz else 1.0 - tz
+            gx = sx if ox else -sx
+            gy = sy if oy else -sy
+            gz = sz if oz else -sz
+            tw = fx * fy * fz
+            d0, d1, d2 = gx * fy * fz, fx * gy * fz, fx * fy * gz
+            i, j, k = cx + ox, cy + oy, cz + oz
+            for slot in range(grid_joints.shape[3]):
+                q = grid_weights[i, j, k, slot] / 255.0
+                if q == 0.0:
+                    continue
+                joint = grid_joints[i, j, k, slot]
+                w = tw * q
+                total += w
+                ds[0] += d0 * q
+                ds[1] += d1 * q
+                ds[2] += d2 * q
+                for a in range(3):
+                    m = maps[joint, a]
+                    moved = (m[0] * y0 + m[1] * y1 + m[2] * y2 + m[3]) * q
+                    for b in range(4):
+                        r[a, b] += w * m[b]
+                    d[a, 0] += moved * d0
+                    d[a, 1] += moved * d1
+                    d[a, 2] += moved * d2
+        total = max(total, 1e-12)
+        size = 0.0
+        for a in range(3):
+            image = (r[a, 0] * y0 + r[a, 1] * y1 + r[a, 2] * y2 + r[a, 3]) / total
+            f[a] = image - x[a]
+            size += f[a] * f[a]
+            for c in range(3):
+                jac[a, c] = (r[a, c] + d[a, c] - image * ds[c]) / total
+        return math.sqrt(size)
+
+    @numba.njit(cache=True, nogil=True)
+    def _inverse3(m, out):  # pragma: no cover
+        """``out`` (3, 3) = the inverse of ``m`` (3, 3) (cofactors; a singular m as if det 1e-300)."""
+        c00 = m[1, 1] * m[2, 2] - m[1, 2] * m[2, 1]
+        c01 = m[1, 2] * m[2, 0] - m[1, 0] * m[2, 2]
+        c02 = m[1, 0] * m[2, 1] - m[1, 1] * m[2, 0]
+        det = m[0, 0] * c00 + m[0, 1] * c01 + m[0, 2] * c02
+        det = det if det != 0.0 else 1e-300
+        out[0, 0], out[1, 0], out[2, 0] = c00 / det, c01 / det, c02 / det
+        out[0, 1] = (m[0, 2] * m[2, 1] - m[0, 1] * m[2, 2]) / det
+        out[1, 1] = (m[0, 0] * m[2, 2] - m[0, 2] * m[2, 0]) / det
+        out[2, 1] = (m[0, 1] * m[2, 0] - m[0, 0] * m[2, 1]) / det
+        out[0, 2] = (m[0, 1] * m[1, 2] - m[0, 2] * m[1, 1]) / det
+        out[1, 2] = (m[0, 2] * m[1, 0] - m[0, 0] * m[1, 2]) / det
+        out[2, 2] = (m[0, 0] * m[1, 1] - m[0, 1] * m[1, 0]) / det
+
+    @numba.njit(cache=True, nogil=True, parallel=True)
+    def _newton_kernel(points, rest, maps, grid_joints, grid_weights, centre, radius, iterations, max_step,
+                       tolerance, halvings, inverse, converged):  # pragma: no cover
+        """:func:`newton_rest` through the weight grid in one pass over the points (numba):
+        ``rest`` (m, 3) moved in place, ``inverse`` (m, 3, 3) and ``converged`` (m,) overwritten."""
+        n = points.shape[0]
+        chunk = 1024
+        for first in numba.prange((n + chunk - 1) // chunk):
+            f = np.empty(3)
+            jac = np.empty((3, 3))
+            inv = np.empty((3, 3))
+            r = np.empty((3, 4))
+            d = np.empty((3, 3))
+            ds = np.empty(3)
+            for p in range(first * chunk, min(n, first * chunk + chunk)):
+                x = points[p]
+                y0, y1, y2 = rest[p, 0], rest[p, 1], rest[p, 2]
+                for _ in range(iterations):
+                    size = _newton_terms_one(y0, y1, y2, x, maps, grid_joints, grid_weights, centre, radius, f, jac,
+                                             r, d, ds)
+                    if size <= tolerance:
+                        break
+                    _inverse3(jac, inv)
+                    s0 = -(inv[0, 0] * f[0] + inv[0, 1] * f[1] + inv[0, 2] * f[2])
+                    s1 = -(inv[1, 0] * f[0] + inv[1, 1] * f[1] + inv[1, 2] * f[2])
+                    s2 = -(inv[2, 0] * f[0] + inv[2, 1] * f[1] + inv[2, 2] * f[2])
+                    length = math.sqrt(s0 * s0 + s1 * s1 + s2 * s2)
+                    shrink = min(1.0, max_step / max(length, 1e-300))
+                    s0, s1, s2 = s0 * shrink, s1 * shrink, s2 * shrink
+                    moved = False
+                    for _h in range(halvings + 1):
+                        trial = _newton_terms_one(y0 + s0, y1 + s1, y2 + s2, x, maps, grid_joints, grid_weights,
+                                                  centre, radius, f, jac, r, d, ds)
+                        if trial < size:
+                            y0, y1, y2 = y0 + s0, y1 + s1, y2 + s2
+                            moved = True
+                            break
+                        s0, s1, s2 = 0.5 * s0, 0.5 * s1, 0.5 * s2
+                    if not moved:
+                        break
+                size = _newton_terms_one(y0, y1, y2, x, maps, grid_joints, grid_weights, centre, radius, f, jac,
+                                         r, d, ds)
+                _inverse3(jac, inverse[p])
+                rest[p, 0], rest[p, 1], rest[p, 2] = y0, y1, y2
+                converged[p] = size <= tolerance
 
 
 def part_labels(skin: Skin, centre, radius: float, resolution: int, band: float) -> np.ndarray:
@@ -610,8 +881,10 @@ class ArticulatedNeuralCollider(Collider):
         to_rest, posed, moving, bias = self.pose(time, skeleton)
         point, joint, rigid = part_candidates(local, to_rest, self.labels, self.centre, self.radius,
                                               self.allowed, self.part_boxes)
-        rest, inverse = carry_to_rest(local[point], joint, rigid, to_rest, posed, self.weight_joints,
-                                      self.weight_values, self.centre, self.radius, self.arch.skinning_iterations)
+        keep, rest, inverse = carry_to_rest(local, point, joint, rigid, to_rest, posed, self.weight_joints,
+                                            self.weight_values, self.centre, self.radius,
+                                            self.arch.skinning_iterations, self.arch.skinning_solver)
+        point, joint = point[keep], joint[keep]
         n = len(local)
         best = np.full(n, np.inf)
         best_row = np.zeros(n, np.int64)

@@ -132,8 +132,9 @@ def make_samples(skin: Skin, poses: np.ndarray, per_pose: int, point_sampler, ar
             distance, gradient = exact_values(ExactSDF(mesh), points)
             to_rest, posed = rest_maps(skeleton, transforms)
             point, joint, rest = part_candidates(points, to_rest, labels, centre, radius, allowed, boxes)
-            rest, inverse = carry_to_rest(points[point], joint, rest, to_rest, posed, *weights, centre, radius,
-                                          arch.skinning_iterations)
+            keep, rest, inverse = carry_to_rest(points, point, joint, rest, to_rest, posed, *weights, centre,
+                                                radius, arch.skinning_iterations, arch.skinning_solver)
+            point, joint = point[keep], joint[keep]
             order = np.argsort(point, kind="stable")
             parts["distance"].append(distance)
             parts["gradient"].append(gradient)
