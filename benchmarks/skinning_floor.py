@@ -12,8 +12,10 @@ clip times and off-clip poses apart. Variants (``--variants``), interleaved per 
 - ``fp2-w48``: two fixed-point steps ``x_rest <- M(x_rest)^-1 x`` through the 48^3 uint8 weight
   grid (the map of the first model files)
 - ``newton-w48``: damped Newton on ``M(y) y = x`` with the weight grid's derivative
-- ``newton-w96`` / ``newton-w128``: the same through a finer dense weight grid (benchmark only:
-  too big to ship; says what a finer field would buy)
+- ``newton-w96``: the same through a finer dense weight grid (benchmark only: 7.3 MB, too big to
+  ship; says what a finer field would buy)
+- ``newton-b96`` / ``fp2-b96``: through the 48^3 grid and blocks of a 96^3 grid near the rest
+  surface (:func:`weight_field`, what a model holds with ``fine_weight_resolution`` 96)
 - ``newton-surface``: the weights of the closest rest surface point (barycentric), exact on the
   surface (finite-difference derivative; benchmark only)
 - a ``+metric`` suffix: the distance divided by the stretch along the normal, ``d_rest / |J^-T
@@ -40,12 +42,12 @@ from collider_server.engine.meshes import ExactSDF, Mesh, barycentric
 from collider_server.engine.skinning import pose_at, skin_vertices
 from collider_server.making.sampling import surface_band_points
 from collider_server.making.skinned import skinned_collider
-from collider_server.making.training.articulated import sample_poses
+from collider_server.making.training.articulated import FINE_WEIGHT_BAND_CELLS, sample_poses
 from collider_server.making.training.data import normalisation
 from collider_server.making.walker import make_walker
 
-VARIANTS = ("fp2-w48", "fp2-w48+metric", "newton-w48", "newton-w48+metric", "newton-w96", "newton-w96+metric",
-            "newton-surface", "newton-surface+metric")
+VARIANTS = ("fp2-w48", "fp2-w48+metric", "newton-w48", "newton-w48+metric", "fp2-b96", "newton-b96",
+            "newton-b96+metric", "newton-w96", "newton-w96+metric", "newton-surface", "newton-surface+metric")
 
 
 def surface_weights(rest_sdf: ExactSDF, skin, joints: int):
@@ -78,7 +80,7 @@ def surface_weights(rest_sdf: ExactSDF, skin, joints: int):
 
 def grid_weights(grid, centre, radius, joints: int):
     def weights(y):
-        return ns.weights_and_gradient(y, *grid, centre, radius, joints)
+        return ns.weights_and_gradient(y, grid, centre, radius, joints)
 
     return weights
 
@@ -113,8 +115,14 @@ def main() -> int:
             weight_functions[source] = (None, surface_weights(rest_sdf, skin, joints))
         else:
             started = time.perf_counter()
-            grid = ns.weight_grid(skin, centre, radius, int(source[1:]))
-            print(f"weight grid {source}: {grid[0].nbytes * 2 / 1e6:.2f} MB, built in "
+            resolution = int(source[1:])
+            if source.startswith("w"):  # a dense grid
+                grid = ns.weight_field(skin, centre, radius, resolution)
+            else:  # the 48^3 grid and blocks of a finer one near the surface
+                grid = ns.weight_field(skin, centre, radius, 48, resolution,
+                                       FINE_WEIGHT_BAND_CELLS * 2.0 * radius / resolution)
+            size = sum(a.nbytes for a in grid)
+            print(f"weight field {source}: {size / 1e6:.2f} MB ({len(grid.block_joints)} blocks), built in "
                   f"{time.perf_counter() - started:.0f} s")
             weight_functions[source] = (grid, grid_weights(grid, centre, radius, joints))
 
@@ -138,9 +146,9 @@ def main() -> int:
             method, source = variant.split("+")[0].split("-")
             metric = variant.endswith("+metric")
             grid, weights = weight_functions[source]
-            if source.startswith("w"):  # the query's rule (its numba passes)
+            if source != "surface":  # the query's rule (its numba passes)
                 solver, steps = ("fixed-point", 2) if method == "fp2" else ("newton", args.iterations)
-                keep, kept, _ = ns.carry_to_rest(points, point, joint, rigid, to_rest, posed, *grid, centre, radius,
+                keep, kept, _ = ns.carry_to_rest(points, point, joint, rigid, to_rest, posed, grid, centre, radius,
                                                  steps, solver)
                 ok = np.zeros(len(point), bool)
                 ok[keep] = True
