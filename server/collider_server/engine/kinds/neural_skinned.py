@@ -15,6 +15,13 @@ Per-part fields in each joint's rest frame, composed by a minimum (COAP-style), 
   ``neighbours``, j's parent or one of its children (the region a bent joint's blend reaches).
   A point with no candidate (far from the body) takes the joint whose part box (the rest
   vertices it dominates, padded) is nearest to its ``x_j``.
+- **Through the skinning** (:func:`carry_to_rest`): each candidate's rigid image is carried on to
+  the rest point y that linear blend skinning takes to x, ``sum_k w_k(y) A_k [y, 1] = x``, by
+  damped Newton steps (:func:`newton_rest`, the architecture's ``skinning_solver`` ``newton``) or
+  the first files' fixed-point steps (:func:`skinned_rest`), the weights read from the rest
+  pose's :class:`WeightField` (a coarse grid and blocks of a fine one near the rest surface). The
+  normal is then pulled back through that map's inverse derivative, and the velocity is the
+  skinning's motion at y.
 - **One shared field, conditioned per part** (:func:`build_articulated_network`): the static
   grid network of :mod:`.neural_grid` over the rest pose, evaluated at ``x_j``, whose first
   layer gets a per-part bias ``embedding_j + condition @ code_j``; ``code_j`` holds the rotations
