@@ -15,6 +15,13 @@ Per-part fields in each joint's rest frame, composed by a minimum (COAP-style), 
   ``neighbours``, j's parent or one of its children (the region a bent joint's blend reaches).
   A point with no candidate (far from the body) takes the joint whose part box (the rest
   vertices it dominates, padded) is nearest to its ``x_j``.
+- **Through the skinning** (:func:`carry_to_rest`): each candidate's rigid image is carried on to
+  the rest point y that linear blend skinning takes to x, ``sum_k w_k(y) A_k [y, 1] = x``, by
+  damped Newton steps (:func:`newton_rest`, the architecture's ``skinning_solver`` ``newton``) or
+  the first files' fixed-point steps (:func:`skinned_rest`), the weights read from the rest
+  pose's :class:`WeightField` (a coarse grid and blocks of a fine one near the rest surface). The
+  normal is then pulled back through that map's inverse derivative, and the velocity is the
+  skinning's motion at y.
 - **One shared field, conditioned per part** (:func:`build_articulated_network`): the static
   grid network of :mod:`.neural_grid` over the rest pose, evaluated at ``x_j``, whose first
   layer gets a per-part bias ``embedding_j + condition @ code_j``; ``code_j`` holds the rotations
@@ -39,7 +46,7 @@ import math
 import threading
 from collections import OrderedDict
 from dataclasses import asdict, dataclass
-from typing import ClassVar
+from typing import ClassVar, NamedTuple
 
 import numpy as np
 
@@ -54,6 +61,10 @@ from .skinned import pose_key, resolve_pose, skin_from_tensors, skin_tensors
 NO_PART = 255
 #: Prefix of the network's arrays in the model file (the skin's are unprefixed).
 NETWORK_PREFIX = "network."
+#: How a part's rigid rest image is carried on through the skinning (:func:`carry_to_rest`).
+SKINNING_SOLVERS = ("fixed-point", "newton")
+#: Cells per side of a block of the fine weight field (:func:`weight_field`).
+BLOCK_CELLS = 4
 
 
 @dataclass(frozen=True)
@@ -67,10 +78,17 @@ class ArticulatedGridArchitecture(GridArchitecture):
     label_resolution : cells per side of the rest pose's label grid
     neighbours : a joint is a candidate where the label is its parent's or a child's too (False:
         only where it is its own)
-    skinning_iterations : fixed-point steps that carry a part's rigid rest image on through the
-        skinning (:func:`skinned_rest`); 0: rigid parts only
+    skinning_iterations : steps that carry a part's rigid rest image on through the skinning
+        (:func:`carry_to_rest`); 0: rigid parts only
+    skinning_solver : ``"fixed-point"`` (:func:`skinned_rest`'s steps ``x_rest <- M(x_rest)^-1 x``,
+        the first model files') or ``"newton"`` (:func:`newton_rest`: damped Newton steps with the
+        weight grid's derivative; a candidate that does not converge is dropped where its point
+        has one that does)
     weight_resolution : cells per side of the rest pose's skinning-weight grid (its 4 largest
         weights per corner, 8 bits each)
+    fine_weight_resolution : cells per side of the finer weight grid kept in blocks near the rest
+        surface (:func:`weight_field`; a multiple of :data:`BLOCK_CELLS`); 0: none
+    weight_blocks : how many blocks of it the model holds (set by the training)
     """
 
     joints: int = 1
@@ -79,6 +97,9 @@ class ArticulatedGridArchitecture(GridArchitecture):
     neighbours: bool = False
     skinning_iterations: int = 2
     weight_resolution: int = 48
+    skinning_solver: str = "fixed-point"
+    fine_weight_resolution: int = 0
+    weight_blocks: int = 0
     table_log2: int = 17
     table_dtype: str = "int8"
     encoding: str = "articulated-grid"
@@ -86,10 +107,17 @@ class ArticulatedGridArchitecture(GridArchitecture):
 
     def __post_init__(self):
         super().__post_init__()
-        for name in ("joints", "pose_slots", "label_resolution", "skinning_iterations", "weight_resolution"):
+        may_be_zero = ("skinning_iterations", "fine_weight_resolution", "weight_blocks")
+        for name in ("joints", "pose_slots", "label_resolution", "weight_resolution") + may_be_zero:
             value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < (0 if name == "skinning_iterations" else 1):
+            if isinstance(value, bool) or not isinstance(value, int) or value < (0 if name in may_be_zero else 1):
                 raise ValueError(f"architecture {name} must be a positive integer, got {value!r}")
+        if self.fine_weight_resolution % BLOCK_CELLS:
+            raise ValueError(f"architecture fine_weight_resolution must be a multiple of {BLOCK_CELLS}, "
+                             f"got {self.fine_weight_resolution}")
+        if self.skinning_solver not in SKINNING_SOLVERS:
+            raise ValueError(f"architecture skinning_solver must be one of {', '.join(SKINNING_SOLVERS)}, "
+                             f"got {self.skinning_solver!r}")
         if self.joints >= NO_PART:
             raise ValueError(f"an articulated network has at most {NO_PART - 1} joints, got {self.joints}")
 
@@ -251,23 +279,42 @@ if grid_kernels.available():
 GRID_INFLUENCES = 4
 
 
-def weight_grid(skin: Skin, centre, radius: float, resolution: int) -> tuple[np.ndarray, np.ndarray]:
-    """The rest pose's skinning weights on the corners of a grid over the cube ``centre +-
-    radius`` ((R + 1)^3 corners, indexed [i, j, k] along x, y, z): at each corner the weights of
-    its closest point on the rest surface (the closest triangle's vertex weights blended by its
-    barycentric coordinates), the :data:`GRID_INFLUENCES` largest kept. Returns ``(joints (R+1,
-    R+1, R+1, 4) uint8, weights (R+1, R+1, R+1, 4) uint8)``, a weight ``w / 255`` (renormalised)."""
-    from ..meshes import ExactSDF, Mesh, barycentric
+#: The network's buffers that hold the :class:`WeightField`, in its order.
+WEIGHT_FIELD_BUFFERS = ("weight_joints", "weight_values", "weight_block_index", "weight_block_joints",
+                        "weight_block_values")
 
-    side = resolution + 1
-    axis = np.linspace(-1.0, 1.0, side)
-    corners = np.asarray(centre, np.float64) + radius * np.stack(
-        np.meshgrid(axis, axis, axis, indexing="ij"), axis=-1).reshape(-1, 3)
-    _, closest, face = ExactSDF(Mesh(skin.vertices, skin.faces, "rest")).query(corners)
+
+class WeightField(NamedTuple):
+    """The rest pose's skinning weights (:func:`weight_field`): a coarse grid over the cube
+    ``centre +- radius`` and, near the rest surface, blocks of a finer one.
+
+    joints, weights : (R+1, R+1, R+1, 4) uint8, the coarse grid's corners (indexed [i, j, k] along
+        x, y, z): the :data:`GRID_INFLUENCES` largest weights' joints and ``w * 255``
+    block_index : (B, B, B) int32 over the cube's blocks of :data:`BLOCK_CELLS`^3 fine cells (B =
+        fine resolution / 4): the block's row in the next two, or -1 (the coarse grid answers);
+        (0, 0, 0) where there is no fine field
+    block_joints, block_weights : (k, 5, 5, 5, 4) uint8: each stored block's fine corners, as the
+        coarse grid's
+    """
+
+    joints: np.ndarray
+    weights: np.ndarray
+    block_index: np.ndarray
+    block_joints: np.ndarray
+    block_weights: np.ndarray
+
+
+def _surface_weights(skin: Skin, rest_sdf, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """At rest points (n, 3) the weights of their closest rest surface point (the closest
+    triangle's vertex weights blended by its barycentric coordinates), the :data:`GRID_INFLUENCES`
+    largest kept: ``(joints (n, 4) uint8, w * 255 (n, 4) uint8)`` (renormalised)."""
+    from ..meshes import barycentric
+
+    _, closest, face = rest_sdf.query(points)
     tri = skin.faces[face]
     bary = barycentric(closest, skin.vertices[tri])
-    dense = np.zeros((len(corners), skin.skeleton.joint_count))
-    rows = np.arange(len(corners))
+    dense = np.zeros((len(points), skin.skeleton.joint_count))
+    rows = np.arange(len(points))
     for c in range(3):
         for k in range(skin.joints.shape[1]):
             np.add.at(dense, (rows, skin.joints[tri[:, c], k]), bary[:, c] * skin.weights[tri[:, c], k])
@@ -277,33 +324,177 @@ def weight_grid(skin: Skin, centre, radius: float, resolution: int) -> tuple[np.
     values = np.take_along_axis(dense, top, axis=1)
     top = np.where(top < skin.skeleton.joint_count, top, 0)
     values /= np.maximum(values.sum(axis=1, keepdims=True), 1e-12)
+    return top.astype(np.uint8), np.clip(np.rint(values * 255), 0, 255).astype(np.uint8)
+
+
+def weight_field(skin: Skin, centre, radius: float, resolution: int, fine_resolution: int = 0,
+                 band: float = 0.0) -> WeightField:
+    """The :class:`WeightField` of ``skin``'s rest pose over the cube ``centre +- radius``: at each
+    corner the weights of its closest point on the rest surface (:func:`_surface_weights`), on a
+    ``resolution``^3 grid and, where ``fine_resolution`` (a multiple of :data:`BLOCK_CELLS`; 0:
+    none), in the blocks of a ``fine_resolution``^3 grid that come within ``band`` (collider
+    units) of the rest surface."""
+    from ..meshes import ExactSDF, Mesh
+
+    rest_sdf = ExactSDF(Mesh(skin.vertices, skin.faces, "rest"))
+    centre = np.asarray(centre, np.float64)
+    side = resolution + 1
+    axis = np.linspace(-1.0, 1.0, side)
+    corners = centre + radius * np.stack(np.meshgrid(axis, axis, axis, indexing="ij"), axis=-1).reshape(-1, 3)
+    joints, weights = _surface_weights(skin, rest_sdf, corners)
     shape = (side, side, side, GRID_INFLUENCES)
-    return (top.astype(np.uint8).reshape(shape),
-            np.clip(np.rint(values * 255), 0, 255).astype(np.uint8).reshape(shape))
+    if not fine_resolution:
+        empty = np.zeros((0, BLOCK_CELLS + 1, BLOCK_CELLS + 1, BLOCK_CELLS + 1, GRID_INFLUENCES), np.uint8)
+        return WeightField(joints.reshape(shape), weights.reshape(shape), np.zeros((0, 0, 0), np.int32), empty,
+                           empty.copy())
+    if fine_resolution % BLOCK_CELLS:
+        raise ValueError(f"the fine weight resolution must be a multiple of {BLOCK_CELLS}, got {fine_resolution}")
+    blocks = fine_resolution // BLOCK_CELLS
+    block_side = 2.0 * radius / blocks
+    axis = -1.0 + (np.arange(blocks) + 0.5) * 2.0 / blocks
+    middles = centre + radius * np.stack(np.meshgrid(axis, axis, axis, indexing="ij"), axis=-1).reshape(-1, 3)
+    distance, _, _ = rest_sdf.query(middles)
+    near = np.flatnonzero(np.abs(distance) <= 0.5 * math.sqrt(3.0) * block_side + band)
+    index = np.full(blocks ** 3, -1, np.int32)
+    index[near] = np.arange(len(near), dtype=np.int32)
+    b = np.stack(np.unravel_index(near, (blocks,) * 3), axis=1)  # (k, 3) block coordinates
+    local = np.stack(np.meshgrid(*(np.arange(BLOCK_CELLS + 1),) * 3, indexing="ij"), axis=-1).reshape(-1, 3)
+    fine = (b[:, None, :] * BLOCK_CELLS + local[None]).reshape(-1, 3)
+    points = centre + radius * (-1.0 + 2.0 * fine / fine_resolution)
+    block_joints, block_weights = _surface_weights(skin, rest_sdf, points)
+    block_shape = (len(near), BLOCK_CELLS + 1, BLOCK_CELLS + 1, BLOCK_CELLS + 1, GRID_INFLUENCES)
+    return WeightField(joints.reshape(shape), weights.reshape(shape), index.reshape((blocks,) * 3),
+                       block_joints.reshape(block_shape), block_weights.reshape(block_shape))
 
 
-def weights_at(rest: np.ndarray, grid_joints: np.ndarray, grid_weights: np.ndarray, centre, radius: float,
-               joints: int) -> np.ndarray:
-    """(m, J) float64 skinning weights at rest-pose points ``rest`` (m, 3): the weight grid
-    (:func:`weight_grid`) interpolated trilinearly (clamped into the cube), rows summing to 1."""
-    side = grid_joints.shape[0]
-    position = np.clip((np.asarray(rest) - centre) / radius, -1.0, 1.0)
-    position = (position + 1.0) * 0.5 * (side - 1)
-    cell = np.minimum(np.floor(position).astype(np.int64), side - 2)
-    t = position - cell
-    out = np.zeros((len(rest), joints))
-    rows = np.arange(len(rest))
+def _corner_tables(rest: np.ndarray, field: WeightField, centre, radius: float):
+    """Where rest points (m, 3) read the weight field: per point its 8 corners' joints and ``w *
+    255`` ((m, 8, 4) uint8 each, corner c at offset ``((c >> a) & 1)`` along axis a), the fraction
+    along each axis (m, 3) and d(fraction)/d(rest) (m, 3) (0 where clamped into the cube). The
+    numpy reference of :func:`_weight_source`."""
+    u = (np.asarray(rest, np.float64) - centre) / radius
+    clamped = (u < -1.0) | (u > 1.0)
+    u = np.clip(u, -1.0, 1.0)
+    offsets = np.array([[(c >> a) & 1 for a in range(3)] for c in range(8)])
+
+    def locate(cells):
+        position = (u + 1.0) * 0.5 * cells
+        cell = np.minimum(np.floor(position).astype(np.int64), cells - 1)
+        return cell, position - cell, np.where(clamped, 0.0, 0.5 * cells / radius)
+
+    side = field.joints.shape[0]
+    cell, t, scale = locate(side - 1)
+    corner = cell[:, None, :] + offsets[None]
+    joints = field.joints[corner[..., 0], corner[..., 1], corner[..., 2]]
+    weights = field.weights[corner[..., 0], corner[..., 1], corner[..., 2]]
+    blocks = field.block_index.shape[0]
+    if blocks:
+        fine_cell, fine_t, fine_scale = locate(blocks * BLOCK_CELLS)
+        b = fine_cell // BLOCK_CELLS
+        row = field.block_index[b[:, 0], b[:, 1], b[:, 2]]
+        fine = np.flatnonzero(row >= 0)
+        c = (fine_cell[fine] - b[fine] * BLOCK_CELLS)[:, None, :] + offsets[None]
+        r = row[fine][:, None]
+        joints[fine] = field.block_joints[r, c[..., 0], c[..., 1], c[..., 2]]
+        weights[fine] = field.block_weights[r, c[..., 0], c[..., 1], c[..., 2]]
+        t[fine], scale[fine] = fine_t[fine], fine_scale[fine]
+    return joints, weights, t, scale
+
+
+def weights_at(rest: np.ndarray, field: WeightField, centre, radius: float, joints: int) -> np.ndarray:
+    """(m, J) float64 skinning weights at rest-pose points ``rest`` (m, 3): the weight field
+    (:func:`weight_field`) interpolated trilinearly (clamped into the cube), rows summing to 1."""
+    return weights_and_gradient(rest, field, centre, radius, joints)[0]
+
+
+def weights_and_gradient(rest: np.ndarray, field: WeightField, centre, radius: float,
+                         joints: int) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`weights_at` (m, J) and its derivative along the rest frame's axes (m, J, 3) float64
+    (per collider unit; zero along an axis where the point is clamped into the cube)."""
+    corner_joints, corner_weights, t, scale = _corner_tables(rest, field, centre, radius)
+    m = len(t)
+    raw = np.zeros((m, joints))
+    draw = np.zeros((m, joints, 3))
+    rows = np.arange(m)
     for corner in range(8):
         o = [(corner >> a) & 1 for a in range(3)]
-        tw = np.prod([t[:, a] if o[a] else 1.0 - t[:, a] for a in range(3)], axis=0)
-        i, j, k = cell[:, 0] + o[0], cell[:, 1] + o[1], cell[:, 2] + o[2]
-        jj, ww = grid_joints[i, j, k], grid_weights[i, j, k] / 255.0
+        f = [t[:, a] if o[a] else 1.0 - t[:, a] for a in range(3)]
+        df = [scale[:, a] * (1.0 if o[a] else -1.0) for a in range(3)]
+        tw = f[0] * f[1] * f[2]
+        dtw = np.stack([df[0] * f[1] * f[2], f[0] * df[1] * f[2], f[0] * f[1] * df[2]], axis=1)
+        jj, ww = corner_joints[:, corner], corner_weights[:, corner] / 255.0
         for slot in range(GRID_INFLUENCES):
-            out[rows, jj[:, slot]] += tw * ww[:, slot]
-    return out / np.maximum(out.sum(axis=1, keepdims=True), 1e-12)
+            np.add.at(raw, (rows, jj[:, slot]), tw * ww[:, slot])
+            np.add.at(draw, (rows, jj[:, slot]), dtw * ww[:, slot, None])
+    total = np.maximum(raw.sum(axis=1), 1e-12)
+    w = raw / total[:, None]
+    dw = (draw - w[:, :, None] * draw.sum(axis=1)[:, None, :]) / total[:, None, None]
+    return w, dw
 
 
-def blend_at(rest: np.ndarray, maps: np.ndarray, grid_joints, grid_weights, centre, radius: float,
+def skinning_jacobian(rest: np.ndarray, posed: np.ndarray, w: np.ndarray, dw: np.ndarray) -> np.ndarray:
+    """(m, 3, 3) float64: the derivative of linear blend skinning's map ``y -> sum_k w_k(y) A_k
+    [y, 1]`` at rest points ``rest`` (m, 3), ``A = posed`` (J, 4, 4), the weights ``w`` (m, J)
+    and their derivative ``dw`` (m, J, 3) (:func:`weights_and_gradient`)."""
+    homogeneous = np.concatenate([rest, np.ones((len(rest), 1))], axis=1)
+    moved = np.einsum("jab,mb->mja", posed[:, :3, :], homogeneous)
+    return np.einsum("mj,jab->mab", w, posed[:, :3, :3]) + np.einsum("mja,mjc->mac", moved, dw)
+
+
+#: Newton steps stop where the skinned rest point is this close to the query point, a share of the
+#: grid's half side (the walker's 0.95 m: about 1 micrometre).
+NEWTON_TOLERANCE = 1e-6
+#: The longest Newton step, a share of the grid's half side (the walker: 5 cm, about a weight-grid
+#: cell), and how often a step that does not lower |F| is halved before the point stops.
+NEWTON_MAX_STEP = 0.05
+NEWTON_HALVINGS = 4
+
+
+def _newton_terms(y: np.ndarray, x: np.ndarray, posed: np.ndarray, weights):
+    """``(F (m, 3), J_F (m, 3, 3))`` of :func:`newton_rest`'s equation at rest points ``y``."""
+    w, dw = weights(y)
+    homogeneous = np.concatenate([y, np.ones((len(y), 1))], axis=1)
+    f = np.einsum("mj,jab,mb->ma", w, posed[:, :3, :], homogeneous) - x
+    return f, skinning_jacobian(y, posed, w, dw)
+
+
+def newton_rest(points: np.ndarray, rest: np.ndarray, posed: np.ndarray, weights, iterations: int,
+                max_step: float = NEWTON_MAX_STEP, tolerance: float = NEWTON_TOLERANCE):
+    """Rest-pose images of posed points ``points`` (m, 3) through the skinning by damped Newton
+    steps on ``F(y) = sum_k w_k(y) A_k [y, 1] - x = 0`` (SNARF's root search) from ``rest``
+    (m, 3) (a part's rigid image), ``A = posed`` (J, 4, 4), ``weights(y) -> (w (m, J), dw (m, J,
+    3))`` (:func:`weights_and_gradient`): each step ``-J_F^-1 F``, at most ``max_step`` long, halved
+    up to :data:`NEWTON_HALVINGS` times until |F| falls (else the point stops). Returns ``(rest
+    (m, 3), inverse (m, 3, 3), converged (m,) bool)``: the images, ``J_F^-1`` there (the
+    gradient's pull-back) and whether |F| <= ``tolerance``. The numpy reference of
+    :func:`_newton_kernel`."""
+    x = np.asarray(points, np.float64)
+    y = np.array(rest, np.float64)
+    active = np.arange(len(y))
+    for _ in range(iterations):
+        f, jacobian = _newton_terms(y[active], x[active], posed, weights)
+        size = np.linalg.norm(f, axis=1)
+        keep = size > tolerance
+        active, f, jacobian, size = active[keep], f[keep], jacobian[keep], size[keep]
+        if not len(active):
+            break
+        step = -np.linalg.solve(jacobian, f[..., None])[..., 0]
+        length = np.linalg.norm(step, axis=1)
+        step *= np.minimum(1.0, max_step / np.maximum(length, 1e-300))[:, None]
+        todo = np.arange(len(active))
+        for _ in range(NEWTON_HALVINGS + 1):
+            trial = y[active[todo]] + step[todo]
+            f_trial, _ = _newton_terms(trial, x[active[todo]], posed, weights)
+            better = np.linalg.norm(f_trial, axis=1) < size[todo]
+            y[active[todo[better]]] = trial[better]
+            todo = todo[~better]
+            step[todo] *= 0.5
+        active = np.delete(active, todo)  # no step lowered |F|: stuck
+    f, jacobian = _newton_terms(y, x, posed, weights)
+    return y, np.linalg.inv(jacobian), np.linalg.norm(f, axis=1) <= tolerance
+
+
+def blend_at(rest: np.ndarray, maps: np.ndarray, field, centre, radius: float,
              fused: bool = True) -> np.ndarray:
     """(m, 3, 4) float64: ``sum_k w_k(x) maps_k`` at rest-pose points ``rest`` (m, 3), the
     weights :func:`weights_at`'s, ``maps`` (J, 3, 4) (the skinning's map at a pose: ``A``; its
@@ -312,13 +503,13 @@ def blend_at(rest: np.ndarray, maps: np.ndarray, grid_joints, grid_weights, cent
     maps = np.ascontiguousarray(maps, np.float64)
     if fused and _blend_kernel is not None:
         out = np.empty((len(rest), 3, 4))
-        _blend_kernel(rest, maps, grid_joints, grid_weights, np.asarray(centre, np.float64), float(radius), out)
+        _blend_kernel(rest, maps, *field, np.asarray(centre, np.float64), float(radius), out)
         return out
-    w = weights_at(rest, grid_joints, grid_weights, centre, radius, len(maps))
+    w = weights_at(rest, field, centre, radius, len(maps))
     return np.einsum("mj,jab->mab", w, maps)
 
 
-def skinned_rest(points: np.ndarray, rest: np.ndarray, posed: np.ndarray, grid_joints, grid_weights, centre,
+def skinned_rest(points: np.ndarray, rest: np.ndarray, posed: np.ndarray, field, centre,
                  radius: float, iterations: int, fused: bool = True):
     """Rest-pose images of posed points through the skinning: from a part's rigid image ``rest``
     (m, 3), ``iterations`` fixed-point steps ``x_rest <- M(x_rest)^-1 x`` with ``M = sum_k w_k(x_rest)
@@ -333,12 +524,12 @@ def skinned_rest(points: np.ndarray, rest: np.ndarray, posed: np.ndarray, grid_j
     if fused and _skinned_rest_kernel is not None:
         rest = np.array(rest, np.float64, order="C")  # moved in place
         inverse = np.empty((len(rest), 3, 3))
-        _skinned_rest_kernel(points, rest, np.ascontiguousarray(posed[:, :3, :]), grid_joints, grid_weights,
+        _skinned_rest_kernel(points, rest, np.ascontiguousarray(posed[:, :3, :]), *field,
                              np.asarray(centre, np.float64), float(radius), iterations,
                              np.empty((len(rest), 3, 4)), inverse)
         return rest, inverse
     for _ in range(iterations):
-        blend = blend_at(rest, posed[:, :3, :], grid_joints, grid_weights, centre, radius, fused)
+        blend = blend_at(rest, posed[:, :3, :], field, centre, radius, fused)
         inverse = np.linalg.inv(blend[:, :, :3])
         rest = np.einsum("mab,mb->ma", inverse, points - blend[:, :, 3])
     return rest, inverse
@@ -350,19 +541,60 @@ def skinned_rest(points: np.ndarray, rest: np.ndarray, posed: np.ndarray, grid_j
 DIVERGED = 0.25
 
 
-def carry_to_rest(points: np.ndarray, joint: np.ndarray, rigid: np.ndarray, to_rest: np.ndarray, posed: np.ndarray,
-                  grid_joints, grid_weights, centre, radius: float, iterations: int):
-    """Each candidate's rest-pose point and the linear part of its map there, ``(rest (m, 3),
-    inverse (m, 3, 3))``: :func:`skinned_rest` from its part's rigid image ``rigid`` (``joint``
-    (m,), ``to_rest`` (J, 3, 4) of :func:`rest_maps`), the rigid image and map where there are no
-    steps or they diverged (:data:`DIVERGED`). The rule both the query and the training use."""
+def carry_to_rest(points: np.ndarray, point: np.ndarray, joint: np.ndarray, rigid: np.ndarray,
+                  to_rest: np.ndarray, posed: np.ndarray, field, centre, radius: float,
+                  iterations: int, solver: str = "fixed-point", fused: bool = True):
+    """Each candidate's rest-pose point and the linear part of its map there: candidates
+    ``point`` (m,) (indices into ``points`` (n, 3), the posed points), ``joint`` (m,), their
+    parts' rigid images ``rigid`` (m, 3) (``to_rest`` (J, 3, 4) of :func:`rest_maps`), carried on
+    by ``solver`` (:data:`SKINNING_SOLVERS`): :func:`skinned_rest`, whose rows keep the rigid image
+    and map where the steps diverged (:data:`DIVERGED`), or :func:`newton_rest` through the weight
+    grid (tolerance and longest step shares of ``radius``), whose rows that did not converge are
+    dropped where their point has one that did (else they keep the rigid image and map where they
+    went further than :data:`DIVERGED`). The rule both the query and the training use.
+
+    Returns ``(keep (k,) int64, rest (k, 3), inverse (k, 3, 3))``: the candidates kept (indices
+    into the m rows, in order), their rest points and the linear maps that pull a rest-frame
+    gradient back to the posed frame (``grad_x = inverse^T grad_rest``)."""
     rigid_inverse = to_rest[joint, :, :3]
-    rest, inverse = skinned_rest(points, rigid, posed, grid_joints, grid_weights, centre, radius, iterations)
-    if inverse is None:
-        return rigid, rigid_inverse
+    x = np.ascontiguousarray(points[point], np.float64)
+    if iterations == 0:
+        return np.arange(len(point)), rigid, rigid_inverse
+    if solver == "fixed-point":
+        rest, inverse = skinned_rest(x, rigid, posed, field, centre, radius, iterations, fused)
+        converged = np.ones(len(point), bool)
+    else:
+        rest, inverse, converged = _newton_through_grid(x, rigid, posed, field, centre, radius,
+                                                        iterations, fused)
     wild = np.flatnonzero(np.einsum("ma,ma->m", rest - rigid, rest - rigid) > (DIVERGED * radius) ** 2)
     rest[wild], inverse[wild] = rigid[wild], rigid_inverse[wild]
-    return rest, inverse
+    has_converged = np.zeros(len(points), bool)
+    has_converged[point[converged]] = True
+    keep = np.flatnonzero(converged | ~has_converged[point])
+    return keep, rest[keep], inverse[keep]
+
+
+def _newton_through_grid(points, rigid, posed, field, centre, radius: float, iterations: int,
+                         fused: bool = True):
+    """:func:`newton_rest` through the weight grid (:func:`weights_and_gradient`), its tolerance
+    :data:`NEWTON_TOLERANCE` and longest step :data:`NEWTON_MAX_STEP` times ``radius``: one numba
+    pass (:func:`_newton_kernel`) when numba is there and ``fused``, else numpy."""
+    centre = np.asarray(centre, np.float64)
+    tolerance, max_step = NEWTON_TOLERANCE * radius, NEWTON_MAX_STEP * radius
+    if fused and _newton_kernel is not None:
+        rest = np.array(rigid, np.float64, order="C")
+        inverse = np.empty((len(rest), 3, 3))
+        converged = np.empty(len(rest), np.bool_)
+        _newton_kernel(np.ascontiguousarray(points, np.float64), rest, np.ascontiguousarray(posed[:, :3, :]),
+                       *field, centre, float(radius), iterations, max_step, tolerance,
+                       NEWTON_HALVINGS, inverse, converged)
+        return rest, inverse, converged
+    joints = len(posed)
+
+    def weights(y):
+        return weights_and_gradient(y, field, centre, radius, joints)
+
+    return newton_rest(points, rigid, posed, weights, iterations, max_step, tolerance)
 
 
 _blend_kernel = _skinned_rest_kernel = None
@@ -378,12 +610,42 @@ if grid_kernels.available():
         return c, position - c
 
     @numba.njit(cache=True, nogil=True)
-    def _blend_one(x, y, z, maps, grid_joints, grid_weights, centre, radius, out, p):  # pragma: no cover
+    def _weight_axis(value, centre, radius, cells):  # pragma: no cover
+        """Corner index below, fraction and d(fraction)/d(value) (0 where clamped) along one axis
+        of a weight grid of ``cells`` cells per side."""
+        c, t = _weight_cell(value, centre, radius, cells + 1)
+        u = (value - centre) / radius
+        return c, t, (0.0 if (u < -1.0 or u > 1.0) else 0.5 * cells / radius)
+
+    @numba.njit(cache=True, nogil=True)
+    def _weight_source(x, y, z, grid_joints, grid_weights, block_index, block_joints, block_weights, centre,
+                       radius):  # pragma: no cover
+        """Where the rest point (x, y, z) reads the :class:`WeightField`: ``(joints, weights)`` (the
+        fine block's corners, or the coarse grid's) and per axis the corner index below in them,
+        the fraction and its derivative. :func:`_corner_tables` in numba."""
+        blocks = block_index.shape[0]
+        if blocks > 0:
+            cells = blocks * BLOCK_CELLS
+            cx, tx, sx = _weight_axis(x, centre[0], radius, cells)
+            cy, ty, sy = _weight_axis(y, centre[1], radius, cells)
+            cz, tz, sz = _weight_axis(z, centre[2], radius, cells)
+            bx, by, bz = cx // BLOCK_CELLS, cy // BLOCK_CELLS, cz // BLOCK_CELLS
+            row = block_index[bx, by, bz]
+            if row >= 0:
+                return (block_joints[row], block_weights[row], cx - bx * BLOCK_CELLS, cy - by * BLOCK_CELLS,
+                        cz - bz * BLOCK_CELLS, tx, ty, tz, sx, sy, sz)
+        cells = grid_joints.shape[0] - 1
+        cx, tx, sx = _weight_axis(x, centre[0], radius, cells)
+        cy, ty, sy = _weight_axis(y, centre[1], radius, cells)
+        cz, tz, sz = _weight_axis(z, centre[2], radius, cells)
+        return grid_joints, grid_weights, cx, cy, cz, tx, ty, tz, sx, sy, sz
+
+    @numba.njit(cache=True, nogil=True)
+    def _blend_one(x, y, z, maps, grid_joints, grid_weights, block_index, block_joints, block_weights, centre,
+                   radius, out, p):  # pragma: no cover
         """``out[p]`` (3, 4) = the weight-blended ``maps`` at the rest point (x, y, z)."""
-        side = grid_joints.shape[0]
-        cx, tx = _weight_cell(x, centre[0], radius, side)
-        cy, ty = _weight_cell(y, centre[1], radius, side)
-        cz, tz = _weight_cell(z, centre[2], radius, side)
+        table_joints, table_weights, cx, cy, cz, tx, ty, tz, _, _, _ = _weight_source(
+            x, y, z, grid_joints, grid_weights, block_index, block_joints, block_weights, centre, radius)
         for a in range(3):
             for b in range(4):
                 out[p, a, b] = 0.0
@@ -392,12 +654,12 @@ if grid_kernels.available():
             ox, oy, oz = corner & 1, (corner >> 1) & 1, (corner >> 2) & 1
             tw = (tx if ox else 1.0 - tx) * (ty if oy else 1.0 - ty) * (tz if oz else 1.0 - tz)
             i, j, k = cx + ox, cy + oy, cz + oz
-            for slot in range(grid_joints.shape[3]):
-                w = tw * grid_weights[i, j, k, slot] / 255.0
+            for slot in range(table_joints.shape[3]):
+                w = tw * table_weights[i, j, k, slot] / 255.0
                 if w == 0.0:
                     continue
                 total += w
-                joint = grid_joints[i, j, k, slot]
+                joint = table_joints[i, j, k, slot]
                 for a in range(3):
                     for b in range(4):
                         out[p, a, b] += w * maps[joint, a, b]
@@ -407,20 +669,22 @@ if grid_kernels.available():
                 out[p, a, b] *= scale
 
     @numba.njit(cache=True, nogil=True, parallel=True)
-    def _blend_kernel(rest, maps, grid_joints, grid_weights, centre, radius, out):  # pragma: no cover
+    def _blend_kernel(rest, maps, grid_joints, grid_weights, block_index, block_joints, block_weights, centre, radius,
+                      out):  # pragma: no cover
         """:func:`blend_at` in one pass over the points (numba): ``out`` (m, 3, 4) overwritten."""
         for p in numba.prange(rest.shape[0]):
-            _blend_one(rest[p, 0], rest[p, 1], rest[p, 2], maps, grid_joints, grid_weights, centre, radius, out, p)
+            _blend_one(rest[p, 0], rest[p, 1], rest[p, 2], maps, grid_joints, grid_weights, block_index, block_joints,
+                       block_weights, centre, radius, out, p)
 
     @numba.njit(cache=True, nogil=True, parallel=True)
-    def _skinned_rest_kernel(points, rest, maps, grid_joints, grid_weights, centre, radius, iterations,
-                             blend, inverse):  # pragma: no cover
+    def _skinned_rest_kernel(points, rest, maps, grid_joints, grid_weights, block_index, block_joints, block_weights,
+                             centre, radius, iterations, blend, inverse):  # pragma: no cover
         """:func:`skinned_rest` in one pass over the points (numba): ``rest`` (m, 3) is moved in
         place, ``inverse`` (m, 3, 3) overwritten; ``blend`` (m, 3, 4) scratch."""
         for p in numba.prange(points.shape[0]):
             for _ in range(iterations):
-                _blend_one(rest[p, 0], rest[p, 1], rest[p, 2], maps, grid_joints, grid_weights, centre, radius,
-                           blend, p)
+                _blend_one(rest[p, 0], rest[p, 1], rest[p, 2], maps, grid_joints, grid_weights, block_index,
+                           block_joints, block_weights, centre, radius, blend, p)
                 m = blend[p]
                 c00 = m[1, 1] * m[2, 2] - m[1, 2] * m[2, 1]
                 c01 = m[1, 2] * m[2, 0] - m[1, 0] * m[2, 2]
@@ -438,6 +702,128 @@ if grid_kernels.available():
                 dx, dy, dz = points[p, 0] - m[0, 3], points[p, 1] - m[1, 3], points[p, 2] - m[2, 3]
                 for a in range(3):
                     rest[p, a] = inv[a, 0] * dx + inv[a, 1] * dy + inv[a, 2] * dz
+
+
+_newton_kernel = None
+if grid_kernels.available():
+    import numba
+
+    @numba.njit(cache=True, nogil=True)
+    def _newton_terms_one(y0, y1, y2, x, maps, field, centre, radius, f, jac,
+                          r, d, ds):  # pragma: no cover
+        """``f`` (3,) = F and ``jac`` (3, 3) = J_F of :func:`newton_rest` at the rest point (y0, y1,
+        y2) for the posed point ``x`` (3,); returns |F|. ``r`` (3, 4), ``d`` (3, 3), ``ds`` (3,):
+        scratch."""
+        table_joints, table_weights, cx, cy, cz, tx, ty, tz, sx, sy, sz = _weight_source(
+            y0, y1, y2, field[0], field[1], field[2], field[3], field[4], centre, radius)
+        r[:] = 0.0
+        d[:] = 0.0
+        ds[:] = 0.0
+        total = 0.0
+        for corner in range(8):
+            ox, oy, oz = corner & 1, (corner >> 1) & 1, (corner >> 2) & 1
+            fx = tx if ox else 1.0 - tx
+            fy = ty if oy else 1.0 - ty
+            fz = tz if oz else 1.0 - tz
+            gx = sx if ox else -sx
+            gy = sy if oy else -sy
+            gz = sz if oz else -sz
+            tw = fx * fy * fz
+            d0, d1, d2 = gx * fy * fz, fx * gy * fz, fx * fy * gz
+            i, j, k = cx + ox, cy + oy, cz + oz
+            for slot in range(table_joints.shape[3]):
+                q = table_weights[i, j, k, slot] / 255.0
+                if q == 0.0:
+                    continue
+                joint = table_joints[i, j, k, slot]
+                w = tw * q
+                total += w
+                ds[0] += d0 * q
+                ds[1] += d1 * q
+                ds[2] += d2 * q
+                for a in range(3):
+                    m = maps[joint, a]
+                    moved = (m[0] * y0 + m[1] * y1 + m[2] * y2 + m[3]) * q
+                    for b in range(4):
+                        r[a, b] += w * m[b]
+                    d[a, 0] += moved * d0
+                    d[a, 1] += moved * d1
+                    d[a, 2] += moved * d2
+        total = max(total, 1e-12)
+        size = 0.0
+        for a in range(3):
+            image = (r[a, 0] * y0 + r[a, 1] * y1 + r[a, 2] * y2 + r[a, 3]) / total
+            f[a] = image - x[a]
+            size += f[a] * f[a]
+            for c in range(3):
+                jac[a, c] = (r[a, c] + d[a, c] - image * ds[c]) / total
+        return math.sqrt(size)
+
+    @numba.njit(cache=True, nogil=True)
+    def _inverse3(m, out):  # pragma: no cover
+        """``out`` (3, 3) = the inverse of ``m`` (3, 3) (cofactors; a singular m as if det 1e-300)."""
+        c00 = m[1, 1] * m[2, 2] - m[1, 2] * m[2, 1]
+        c01 = m[1, 2] * m[2, 0] - m[1, 0] * m[2, 2]
+        c02 = m[1, 0] * m[2, 1] - m[1, 1] * m[2, 0]
+        det = m[0, 0] * c00 + m[0, 1] * c01 + m[0, 2] * c02
+        det = det if det != 0.0 else 1e-300
+        out[0, 0], out[1, 0], out[2, 0] = c00 / det, c01 / det, c02 / det
+        out[0, 1] = (m[0, 2] * m[2, 1] - m[0, 1] * m[2, 2]) / det
+        out[1, 1] = (m[0, 0] * m[2, 2] - m[0, 2] * m[2, 0]) / det
+        out[2, 1] = (m[0, 1] * m[2, 0] - m[0, 0] * m[2, 1]) / det
+        out[0, 2] = (m[0, 1] * m[1, 2] - m[0, 2] * m[1, 1]) / det
+        out[1, 2] = (m[0, 2] * m[1, 0] - m[0, 0] * m[1, 2]) / det
+        out[2, 2] = (m[0, 0] * m[1, 1] - m[0, 1] * m[1, 0]) / det
+
+    @numba.njit(cache=True, nogil=True, parallel=True)
+    def _newton_kernel(points, rest, maps, grid_joints, grid_weights, block_index, block_joints, block_weights, centre,
+                       radius, iterations, max_step,
+                       tolerance, halvings, inverse, converged):  # pragma: no cover
+        """:func:`newton_rest` through the weight grid in one pass over the points (numba):
+        ``rest`` (m, 3) moved in place, ``inverse`` (m, 3, 3) and ``converged`` (m,) overwritten."""
+        field = (grid_joints, grid_weights, block_index, block_joints, block_weights)
+        n = points.shape[0]
+        chunk = 1024
+        for first in numba.prange((n + chunk - 1) // chunk):
+            f = np.empty(3)
+            jac = np.empty((3, 3))
+            f_trial = np.empty(3)
+            jac_trial = np.empty((3, 3))
+            inv = np.empty((3, 3))
+            r = np.empty((3, 4))
+            d = np.empty((3, 3))
+            ds = np.empty(3)
+            for p in range(first * chunk, min(n, first * chunk + chunk)):
+                x = points[p]
+                y0, y1, y2 = rest[p, 0], rest[p, 1], rest[p, 2]
+                size = _newton_terms_one(y0, y1, y2, x, maps, field, centre, radius, f, jac, r, d, ds)
+                for _ in range(iterations):
+                    if size <= tolerance:
+                        break
+                    _inverse3(jac, inv)
+                    s0 = -(inv[0, 0] * f[0] + inv[0, 1] * f[1] + inv[0, 2] * f[2])
+                    s1 = -(inv[1, 0] * f[0] + inv[1, 1] * f[1] + inv[1, 2] * f[2])
+                    s2 = -(inv[2, 0] * f[0] + inv[2, 1] * f[1] + inv[2, 2] * f[2])
+                    length = math.sqrt(s0 * s0 + s1 * s1 + s2 * s2)
+                    shrink = min(1.0, max_step / max(length, 1e-300))
+                    s0, s1, s2 = s0 * shrink, s1 * shrink, s2 * shrink
+                    moved = False
+                    for _h in range(halvings + 1):
+                        trial = _newton_terms_one(y0 + s0, y1 + s1, y2 + s2, x, maps, field, centre, radius, f_trial,
+                                                  jac_trial, r, d, ds)
+                        if trial < size:  # the terms at the new point are kept for the next step
+                            y0, y1, y2 = y0 + s0, y1 + s1, y2 + s2
+                            size = trial
+                            f[:] = f_trial
+                            jac[:] = jac_trial
+                            moved = True
+                            break
+                        s0, s1, s2 = 0.5 * s0, 0.5 * s1, 0.5 * s2
+                    if not moved:
+                        break
+                _inverse3(jac, inverse[p])
+                rest[p, 0], rest[p, 1], rest[p, 2] = y0, y1, y2
+                converged[p] = size <= tolerance
 
 
 def part_labels(skin: Skin, centre, radius: float, resolution: int, band: float) -> np.ndarray:
@@ -498,6 +884,16 @@ def build_articulated_network(arch: ArticulatedGridArchitecture, centre, radius:
             side = (arch.weight_resolution + 1, ) * 3 + (GRID_INFLUENCES,)
             self.register_buffer("weight_joints", torch.zeros(side, dtype=torch.uint8))
             self.register_buffer("weight_values", torch.zeros(side, dtype=torch.uint8))
+            blocks = arch.fine_weight_resolution // BLOCK_CELLS
+            self.register_buffer("weight_block_index", torch.full((blocks,) * 3, -1, dtype=torch.int32))
+            block = (arch.weight_blocks,) + (BLOCK_CELLS + 1,) * 3 + (GRID_INFLUENCES,)
+            self.register_buffer("weight_block_joints", torch.zeros(block, dtype=torch.uint8))
+            self.register_buffer("weight_block_values", torch.zeros(block, dtype=torch.uint8))
+
+        def set_weight_field(self, field: WeightField):
+            """Take the weight field's arrays (:func:`weight_field`, shaped as the architecture)."""
+            for name, value in zip(WEIGHT_FIELD_BUFFERS, field):
+                getattr(self, name).copy_(torch.from_numpy(np.ascontiguousarray(value)))
 
         @property
         def radius(self):
@@ -556,8 +952,8 @@ class ArticulatedNeuralCollider(Collider):
             parameter.requires_grad_(False)
         self.labels = self.network.labels.cpu().numpy()
         self.part_boxes = self.network.part_boxes.cpu().numpy()
-        self.weight_joints = self.network.weight_joints.cpu().numpy()
-        self.weight_values = self.network.weight_values.cpu().numpy()
+        self.weights = WeightField(*(np.ascontiguousarray(getattr(self.network, name).cpu().numpy())
+                                     for name in WEIGHT_FIELD_BUFFERS))
         self.allowed = allowed_labels(skin.skeleton.parents, self.arch.neighbours)
         grid = self.network.grid
         self.centre = grid.centre.double().cpu().numpy()
@@ -610,8 +1006,9 @@ class ArticulatedNeuralCollider(Collider):
         to_rest, posed, moving, bias = self.pose(time, skeleton)
         point, joint, rigid = part_candidates(local, to_rest, self.labels, self.centre, self.radius,
                                               self.allowed, self.part_boxes)
-        rest, inverse = carry_to_rest(local[point], joint, rigid, to_rest, posed, self.weight_joints,
-                                      self.weight_values, self.centre, self.radius, self.arch.skinning_iterations)
+        keep, rest, inverse = carry_to_rest(local, point, joint, rigid, to_rest, posed, self.weights, self.centre,
+                                            self.radius, self.arch.skinning_iterations, self.arch.skinning_solver)
+        point, joint = point[keep], joint[keep]
         n = len(local)
         best = np.full(n, np.inf)
         best_row = np.zeros(n, np.int64)
@@ -639,7 +1036,7 @@ class ArticulatedNeuralCollider(Collider):
         if self.arch.skinning_iterations == 0:  # the chosen part's rigid motion
             m = moving[joint[best_row]]
         else:  # the skinning's motion at the rest point: sum_k w_k dA_k/dt
-            m = blend_at(rest[best_row], moving, self.weight_joints, self.weight_values, self.centre, self.radius)
+            m = blend_at(rest[best_row], moving, self.weights, self.centre, self.radius)
         return best, g, np.einsum("nab,nb->na", m, homogeneous)
 
     def _part_values(self, rest: np.ndarray, joint: int, bias: np.ndarray, want_gradient: bool):
@@ -697,6 +1094,9 @@ class ArticulatedNeuralCollider(Collider):
         state["grid.table"] = grid["table"]
         with torch.random.fork_rng(devices=[]):  # leave the caller's random stream as it was
             network = build_articulated_network(arch, np.zeros(3), 1.0)
+        if not arch.weight_blocks and not arch.fine_weight_resolution:  # files from before the fine field
+            for name in WEIGHT_FIELD_BUFFERS[2:]:
+                state.setdefault(name, getattr(network, name).numpy())
         expected = {k: tuple(v.shape) for k, v in network.state_dict().items()}
         found = {k: tuple(np.shape(v)) for k, v in state.items()}
         if expected != found:

@@ -37,7 +37,7 @@ from ...engine.kinds.neural_skinned import (
     part_labels,
     pose_codes,
     rest_maps,
-    weight_grid,
+    weight_field,
 )
 from ...engine.meshes import ExactSDF, Mesh
 from ...engine.skinning import Skin, skin_vertices, trs_matrices, world_transforms
@@ -49,10 +49,15 @@ from .data import default_margin, exact_values, normalisation, sample_points
 from .schedule import RunClock, cosine_learning_rate, make_optimizer, set_training_threads
 
 #: The preset ``collider train CHARACTER`` uses: the static ``grid`` preset's field (2^17 rows
-#: per hashed level in 8 bits) shared by the parts.
-ARTICULATED_PRESET = ArticulatedGridArchitecture()
+#: per hashed level in 8 bits) shared by the parts; the map to the rest pose by 8 damped Newton
+#: steps through the 48^3 weight grid and blocks of a 128^3 one near the rest surface (the
+#: walker's floor without a network: docs/neural.md).
+ARTICULATED_PRESET = ArticulatedGridArchitecture(skinning_solver="newton", skinning_iterations=8,
+                                                 fine_weight_resolution=128)
 #: Largest turn of a joint's local rotation in the perturbed poses (training and measurement).
 PERTURB_DEG = 15.0
+#: The fine weight field's blocks reach this many fine cells beyond the rest surface.
+FINE_WEIGHT_BAND_CELLS = 1.0
 #: Training poses and validation poses of a run (the rest pose is one of the training poses).
 TRAIN_POSES = 240
 VALIDATION_POSES = 12
@@ -120,7 +125,7 @@ def make_samples(skin: Skin, poses: np.ndarray, per_pose: int, point_sampler, ar
                  what: str) -> ArticulatedSamples:
     """:class:`ArticulatedSamples` of ``per_pose`` points at each pose: ``point_sampler(mesh,
     seed)`` -> (points (k, 3), near (k,) bool) on the posed mesh; ``weights``: the weight grid
-    (:func:`weight_grid`'s joints and weights) the query carries points through."""
+    (:func:`weight_field`) the query carries points through."""
     skeleton = skin.skeleton
     allowed = allowed_labels(skeleton.parents, arch.neighbours)
     parts = {k: [] for k in ("distance", "gradient", "near", "count", "rest", "joint", "pose", "to_rest")}
@@ -132,8 +137,9 @@ def make_samples(skin: Skin, poses: np.ndarray, per_pose: int, point_sampler, ar
             distance, gradient = exact_values(ExactSDF(mesh), points)
             to_rest, posed = rest_maps(skeleton, transforms)
             point, joint, rest = part_candidates(points, to_rest, labels, centre, radius, allowed, boxes)
-            rest, inverse = carry_to_rest(points[point], joint, rest, to_rest, posed, *weights, centre, radius,
-                                          arch.skinning_iterations)
+            keep, rest, inverse = carry_to_rest(points, point, joint, rest, to_rest, posed, weights, centre,
+                                                radius, arch.skinning_iterations, arch.skinning_solver)
+            point, joint = point[keep], joint[keep]
             order = np.argsort(point, kind="stable")
             parts["distance"].append(distance)
             parts["gradient"].append(gradient)
@@ -236,7 +242,9 @@ def train_articulated(skin: Skin, name: str, config: TrainConfig, *, arch: Artic
     began = time.monotonic()
     labels = part_labels(skin, centre, radius, arch.label_resolution, band=3.0 * cell)
     boxes = part_boxes(skin, cell)
-    weights = weight_grid(skin, centre, radius, arch.weight_resolution)
+    weights = weight_field(skin, centre, radius, arch.weight_resolution, arch.fine_weight_resolution,
+                           band=FINE_WEIGHT_BAND_CELLS * 2.0 * radius / max(arch.fine_weight_resolution, 1))
+    arch = replace(arch, weight_blocks=len(weights.block_joints))
 
     margin = config.margin_m / meters_per_unit if config.margin_m else default_margin(rest, meters_per_unit)
     per_pose = max(config.samples // poses, 100)
@@ -264,8 +272,7 @@ def train_articulated(skin: Skin, name: str, config: TrainConfig, *, arch: Artic
     network = build_articulated_network(arch, centre, radius)
     network.labels.copy_(torch.from_numpy(labels))
     network.part_boxes.copy_(torch.from_numpy(boxes))
-    network.weight_joints.copy_(torch.from_numpy(weights[0]))
-    network.weight_values.copy_(torch.from_numpy(weights[1]))
+    network.set_weight_field(weights)
     first_lr, last_lr = config.resolved_learning_rates()
     normal_weight = config.resolved_normal_weight()
     optimizer = make_optimizer(network, first_lr)
