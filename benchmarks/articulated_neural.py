@@ -3,8 +3,8 @@ the exact skinned kind, at poses it was not trained on, and its query time again
 network's.
 
 Accuracy: at ``--clip-times`` random times of the walker's clips and ``--poses`` random poses off
-the clips (a random clip time, then every joint's local rotation turned by up to 15 degrees about
-a random axis; seeds apart from training's), ``--points`` points per pose in the +-1 mm band of
+the clips (``collider_server.engine.skinning.random_poses``: a random clip time, then every joint's
+local rotation turned by up to 15 degrees about a random axis; seeds apart from training's), ``--points`` points per pose in the +-1 mm band of
 the exact skinned surface at that pose (surface samples offset along the face normal): mean / p99
 / max distance error, sign errors (all, and where the exact |d| > 0.2 mm), normal error mean / p99
 (degrees). Also the model file's size and its training (steps, seconds).
@@ -35,11 +35,11 @@ from collider_server.engine.collider import ColliderInfo
 from collider_server.engine.kinds.neural import PRESETS, NeuralCollider, architecture_dict, build_network
 from collider_server.engine.meshes import Mesh
 from collider_server.engine.modelfile import load_collider, save_collider
-from collider_server.engine.skinning import pose_at, skin_vertices
+from collider_server.engine.skinning import PERTURB_DEG, pose_at, random_poses, skin_vertices
 from collider_server.making.sampling import surface_band_points
 from collider_server.making.skinned import skinned_collider
 from collider_server.making.training import TrainConfig
-from collider_server.making.training.articulated import sample_poses, train_articulated
+from collider_server.making.training.articulated import train_articulated
 from collider_server.making.training.data import normalisation
 from collider_server.making.walker import make_walker
 
@@ -66,16 +66,6 @@ def accuracy(collider, exact, skin, poses, points_per_pose: int, seed: int) -> d
             "normal_mean_deg": angle.mean(), "normal_p99_deg": np.percentile(angle, 99)}
 
 
-def clip_poses(skin, count: int, seed: int) -> np.ndarray:
-    """(count, J, 4, 4): random clips at uniform random times."""
-    rng = np.random.default_rng(seed)
-    out = []
-    for _ in range(count):
-        clip = skin.clips[rng.integers(len(skin.clips))]
-        out.append(pose_at(skin, clip.name, rng.uniform(0.0, clip.duration_s))[0])
-    return np.stack(out)
-
-
 def timing(collider, skin, rounds: int, seed: int, threads: int) -> dict:
     """Median (min - max) seconds per 1M points: articulated d+n+c+v at a new pose each round,
     the static grid network of the rest mesh d+n+c, interleaved."""
@@ -90,7 +80,7 @@ def timing(collider, skin, rounds: int, seed: int, threads: int) -> dict:
                         settings={"architecture": architecture_dict(arch)})
     static = NeuralCollider(info, build_network(arch, centre, radius), device="cpu")
     static_points = surface_band_points(rest, 1_000_000, 1e-2, seed)
-    poses = sample_poses(skin, rounds, seed + 1)
+    poses = random_poses(skin, rounds, seed + 1, perturbed_share=0.5).transforms
     _, velocities = pose_at(skin, skin.clips[0].name, 0.3)
     times = {"articulated d+n+c+v (new pose)": [], "static grid d+n+c": []}
     for r in range(rounds):
@@ -139,12 +129,13 @@ def main() -> int:
     import torch
 
     torch.set_num_threads(args.threads)
-    figures = {"clip times": accuracy(collider, exact, skin, clip_poses(skin, args.clip_times, args.seed),
+    # The one rule of random poses (engine.skinning.random_poses), as collider eval draws them.
+    figures = {"clip times": accuracy(collider, exact, skin,
+                                      random_poses(skin, args.clip_times, args.seed, perturbed_share=0.0).transforms,
                                       args.points, args.seed),
-               "poses off the clips (15 deg)": accuracy(collider, exact, skin,
-                                                        sample_poses(skin, args.poses, args.seed + 5,
-                                                                     perturbed_share=1.0),
-                                                        args.points, args.seed + 1000)}
+               f"poses off the clips ({PERTURB_DEG:g} deg)": accuracy(
+                   collider, exact, skin, random_poses(skin, args.poses, args.seed + 5).transforms,
+                   args.points, args.seed + 1000)}
     for name, f in figures.items():
         print(f"{name}: {f['poses']} poses, {f['points']:,} points in the +-1 mm band: mean {f['mean_mm']:.4f} / "
               f"p99 {f['p99_mm']:.3f} / max {f['max_mm']:.2f} mm, sign errors {f['sign_errors_pct']:.3f} % "

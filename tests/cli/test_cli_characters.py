@@ -101,3 +101,49 @@ def test_train_character_makes_its_articulated_network(capsys, tmp_path):
 def test_train_character_refuses_a_mesh_preset_in_one_line(capsys, tmp_path):
     assert_user_error(capsys, ["train", SAMPLE, "--name", "c", "--preset", "grid", "--models", tmp_path],
                       "--preset is for meshes and vertex caches")
+
+
+def test_eval_of_skinned_models_reports_clip_times_and_random_poses(capsys, tmp_path):
+    """`collider eval` of the exact and the articulated model of a public glTF character: each pose
+    set reported apart, against the exact skin of the file at each pose; the exact kind's errors
+    nil, the figures stored and shown by `collider info`."""
+    code, _, err = run(capsys, "bake", SAMPLE, "--kind", "skinned", "--name", "cylinder", "--fit-size", 1.0,
+                       "--models", tmp_path)
+    assert code == 0, err
+    code, _, err = run(capsys, "train", SAMPLE, "--name", "cylinder-neural", "--fit-size", 1.0, "--steps", 20,
+                       "--samples", 8000, "--batch-size", 1024, "--threads", 1, "--models", tmp_path, "--quiet")
+    assert code == 0, err
+    reports = {}
+    for model in ("cylinder", "cylinder-neural"):
+        report = tmp_path / f"{model}.json"
+        code, out, err = run(capsys, "eval", model, "--mesh", SAMPLE, "--models", tmp_path, "--points", 1500,
+                             "--times", 2, "--poses", 3, "--quiet", "--report", report)
+        assert code == 0, err
+        assert "2 random clip times (animation 0; asked by clip and time)" in out
+        assert "3 random poses: random clip times (animation 0), every joint's local rotation then turned" in out
+        assert f"figures written into {tmp_path / (model + '.safetensors')}" in out
+        reports[model] = json.loads(report.read_text())
+    for report in reports.values():
+        assert [p["perturbed"] for p in report["random_poses"]["poses"]] == [True] * 3
+        assert [p["perturbed"] for p in report["clip_times"]["poses"]] == [False] * 2
+        for part in ("clip_times", "random_poses"):
+            assert report[part]["band_1mm"]["points"] == 1500 and report[part]["box"]["points"] == 1500
+    for part in ("clip_times", "random_poses"):
+        assert reports["cylinder"][part]["band_1mm"]["distance_max_mm"] < 1e-4  # float32 answers
+        neural = reports["cylinder-neural"][part]["band_1mm"]
+        assert np.isfinite(neural["distance_max_mm"]) and neural["distance_max_mm"] > 1e-3  # 20 steps: not exact
+    code, out, _ = run(capsys, "info", "cylinder-neural", "--models", tmp_path)
+    assert code == 0 and "3 random poses" in out and "2 random clip times" in out
+
+
+def test_eval_of_a_skinned_model_refuses_what_is_not_its_character_in_one_line(capsys, tmp_path):
+    code, _, err = run(capsys, "bake", SAMPLE, "--kind", "skinned", "--name", "cylinder", "--models", tmp_path)
+    assert code == 0, err
+    assert_user_error(capsys, ["eval", "cylinder", "--mesh", SAMPLE, "--models", tmp_path, "--animation", "a.pc2"],
+                      "cylinder is skinned: --animation and --fps are for vertex caches")
+    assert_user_error(capsys, ["eval", "cylinder", "--mesh", SAMPLE, "--models", tmp_path, "--poses", 0],
+                      "--poses must be a positive number of random poses, got 0")
+    obj = tmp_path / "a.obj"
+    obj.write_text("v 0 0 0\n")
+    assert_user_error(capsys, ["eval", "cylinder", "--mesh", obj, "--models", tmp_path],
+                      "a skinned character is a glTF 2.0 file")

@@ -6,11 +6,13 @@ import numpy as np
 import pytest
 
 from collider_server.engine.skinning import (
+    PERTURB_DEG,
     Channel,
     Clip,
     Skeleton,
     Skin,
     pose_at,
+    random_poses,
     skin_velocities,
     skin_vertices,
     trs_matrices,
@@ -194,3 +196,43 @@ def test_bad_skeletons_skins_and_clips_are_refused_by_name():
         pose_at(two_joint_skin((bend_clip(),)), "run", 0.0)
     with pytest.raises(ValueError, match=r"\[2, 4, 4\]"):
         skin_vertices(two_joint_skin(), np.zeros((3, 4, 4)))
+
+
+def local_transforms(skeleton, world):
+    """(J, 4, 4) each joint's local transform from its world transform (J, 4, 4): the parent's (or
+    the root's) inverse times its own, independently of how the pose was made."""
+    above = np.stack([skeleton.root if p < 0 else world[p] for p in skeleton.parents])
+    return np.linalg.inv(above) @ world
+
+
+def test_random_poses_turn_every_joint_within_the_bound_and_are_reproducible():
+    from collider_server.making.skinned import skinned_arm
+
+    skin = skinned_arm()
+    poses = random_poses(skin, 40, seed=7, perturbed_share=0.5)
+    assert poses.transforms.shape == (40, skin.skeleton.joint_count, 4, 4)
+    assert poses.perturbed.tolist() == [False] * 20 + [True] * 20
+    assert set(poses.clips) == set(skin.clip_names)
+    turns = []
+    for i in range(40):
+        clip = skin.clip(poses.clips[i])
+        assert 0.0 <= poses.times[i] <= clip.duration_s
+        recorded, _ = pose_at(skin, poses.clips[i], poses.times[i])
+        # The turn of each joint's local rotation away from the clip's at that time.
+        clip_local, local = local_transforms(skin.skeleton, recorded), local_transforms(skin.skeleton, poses.transforms[i])
+        relative = np.swapaxes(clip_local[:, :3, :3], 1, 2) @ local[:, :3, :3]
+        cosine = np.clip((np.trace(relative, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)
+        turns.append(np.degrees(np.arccos(cosine)))
+        # Translations as the clip has them: every joint's origin relative to its parent.
+        np.testing.assert_allclose(local[:, :3, 3], clip_local[:, :3, 3], atol=1e-12)
+    turns = np.array(turns)
+    assert turns[:20].max() < 1e-5  # clip poses: as recorded
+    assert turns[20:].max() <= PERTURB_DEG + 1e-6  # perturbed: within the bound ...
+    assert turns[20:].max() > 0.8 * PERTURB_DEG and turns[20:].mean() > 0.3 * PERTURB_DEG  # ... and up to it
+    again = random_poses(skin, 40, seed=7, perturbed_share=0.5)
+    np.testing.assert_array_equal(again.transforms, poses.transforms)
+    assert again.clips == poses.clips
+    other = random_poses(skin, 40, seed=8, perturbed_share=0.5)
+    assert not np.allclose(other.transforms, poses.transforms)
+    with pytest.raises(ValueError, match="perturbed_share in"):
+        random_poses(skin, 4, seed=1, perturbed_share=1.5)

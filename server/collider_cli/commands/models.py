@@ -421,8 +421,8 @@ def eval_hint(info, path, args) -> str:
     from .hints import command, models_options
 
     if info.skeleton:
-        return ("kind skinned is exact: it answers with the distance to the mesh skinned at the "
-                "asked pose, so there is nothing to measure")
+        return (f"`collider eval {info.name} --mesh CHARACTER` measures it at random clip times and random "
+                f"poses against its character file ({info.source.get('path') or info.source.get('mesh', '?')})")
     if info.animation:
         return (f"`collider eval {info.name} --mesh OBJ --animation CACHE` measures it at random times "
                 f"against the frames it was made from ({info.source.get('mesh', '?')}.obj and "

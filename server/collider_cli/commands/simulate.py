@@ -32,7 +32,9 @@ def register(subparsers) -> None:
     add_quiet_argument(p)
     p.add_argument("--check-mesh", action="append", default=[], metavar="MODEL=MESH",
                    help="also measure penetration of every output frame against the exact SDF of "
-                        "MESH (collider frame) for collider MODEL; repeatable")
+                        "MESH (collider frame) for collider MODEL; for a skinned MODEL, MESH is its "
+                        "character file (glTF or USD), skinned in the scene's clip at each frame's "
+                        "time (the exact union at that pose); repeatable")
     p.add_argument("--check-animation", action="append", default=[], metavar="MODEL=CACHE",
                    help="with --check-mesh for an animated MODEL: its vertex cache (the PC2 or "
                         "'frames/*.obj' it was baked from): each frame is measured against the "
@@ -205,7 +207,8 @@ def placed_meshes(client, checks: dict[str, Path], caches: dict[str, Path] | Non
     frame like the model: model name -> :class:`~collider_server.engine.meshes.Mesh`, or for an
     animated model (its ``--check-animation`` cache) an
     :class:`~collider_server.engine.animated_meshes.AnimatedMesh` run at its source's frame rate
-    and the model's loop."""
+    and the model's loop, or for a skinned model (its character file) the exact skinned collider
+    of that file (:func:`placed_skin`)."""
     import numpy as np
 
     from collider_client import ColliderError
@@ -223,6 +226,12 @@ def placed_meshes(client, checks: dict[str, Path], caches: dict[str, Path] | Non
         info = infos.get(model)
         transform = np.asarray(info.source.get("transform", np.eye(4)), dtype=np.float64) \
             if info is not None else np.eye(4)
+        if info is not None and info.skinned:
+            if model in caches:
+                raise ValueError(f"--check-animation {model}: the model is skinned; its character file "
+                                 f"(--check-mesh {model}=CHARACTER) brings its clips")
+            placed[model] = placed_skin(model, path, transform, info)
+            continue
         if info is not None and info.animated:
             if model not in caches:
                 raise ValueError(f"--check-mesh {model}: the model is animated; give its vertex "
@@ -237,15 +246,41 @@ def placed_meshes(client, checks: dict[str, Path], caches: dict[str, Path] | Non
     return placed
 
 
+def placed_skin(model: str, path: Path, transform, info):
+    """The exact ``skinned`` collider of the character file ``path`` placed by ``transform`` (the
+    skinned model ``info``'s: it lies in the collider frame like the model), looping as the model
+    does: what ``--check-mesh`` measures a skinned model's frames against. ValueError (one line)
+    for a file that is not a character or not the model's (another skeleton or vertex count)."""
+    import numpy as np
+
+    from collider_server.making.characters import read_character
+    from collider_server.making.placement import transformed_skin
+    from collider_server.making.skinned import skinned_collider
+
+    read = read_character(path)
+    skin = read.skin if np.allclose(transform, np.eye(4)) else transformed_skin(read.skin, transform)
+    joints = len(info.skeleton.get("joints", []))
+    if skin.skeleton.joint_count != joints or [c.name for c in skin.clips] != [
+            c["name"] for c in info.skeleton.get("clips", [])]:
+        raise ValueError(f"--check-mesh {model}={path}: {skin.skeleton.joint_count} joints, clips "
+                         f"{[c.name for c in skin.clips]}, but {model} has {joints} joints, clips "
+                         f"{[c['name'] for c in info.skeleton.get('clips', [])]}: not its character")
+    return skinned_collider(skin, model, loop=bool(info.skeleton.get("loop", True)))
+
+
 def exact_check(mesh, spec):
     """``distance(points, t)`` of the exact (placed) ``mesh`` for scene collider ``spec`` at
     simulation time ``t``: an animated one at the animation time the collision hook asks
-    (``collider_client.response.animation_time``: the spec's time offset and loop)."""
+    (``collider_client.response.animation_time``: the spec's time offset and loop), a skinned
+    one (:func:`placed_skin`) in the spec's clip at that time."""
     from collider_client.response import ColliderPlacement, animation_time
     from collider_server.engine.animated_meshes import AnimatedMesh, ExactAtTimes
     from collider_server.engine.meshes import ExactSDF
     from collider_server.making.evaluation import exact_distance
 
+    if getattr(mesh, "skinned", False):
+        at = skinned_time(mesh, spec)
+        return lambda points, t: mesh.posed(*at(t)).exact.signed_distance(points)
     if not isinstance(mesh, AnimatedMesh):
         return exact_distance(ExactSDF(mesh))
     placement = ColliderPlacement(spec.model, None, spec.time_offset_s, spec.loop)
@@ -256,11 +291,28 @@ def exact_check(mesh, spec):
                           lambda t: animation_time(placement, line, t)[0])
 
 
+def skinned_time(collider, spec):
+    """For the exact skinned ``collider`` of scene collider ``spec``: ``t -> (clip time, pose)``,
+    the arguments of ``collider.posed`` at simulation time ``t``: the spec's clip (None: the
+    first) at the animation time the collision hook asks it (its time offset and loop)."""
+    from collider_client.response import ColliderPlacement, animation_time
+    from collider_contract import SkeletonPose, Timeline
+
+    clip = collider.skin.clip(spec.clip)
+    line = Timeline.of_clip(clip.duration_s, loop=collider.loop)
+    placement = ColliderPlacement(spec.model, None, spec.time_offset_s, spec.loop, spec.clip)
+    pose = SkeletonPose(clip=clip.name)
+    return lambda t: (animation_time(placement, line, t)[0], pose)
+
+
 def shown_points(mesh, spec, count: int = 4000):
     """Surface points of the placed exact ``mesh`` for the PNG: (m, 3), collider frame; for an
     animated one a function of the simulation time (seconds)."""
     from collider_server.engine.animated_meshes import AnimatedMesh
 
+    if getattr(mesh, "skinned", False):  # the exact skinned collider of a character (placed_skin)
+        at = skinned_time(mesh, spec)
+        return lambda t: surface_sample(mesh.posed(*at(t)).exact.mesh.vertices, count)
     if not isinstance(mesh, AnimatedMesh):
         return surface_sample(mesh.vertices, count)
     import numpy as np

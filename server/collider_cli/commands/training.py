@@ -78,10 +78,16 @@ def register(subparsers) -> None:
                     "around the surface and in its domain box. An animated model is measured at "
                     "--times random times drawn uniformly over its animation (between its "
                     "frames), against the exact interpolated mesh at each time: give the frames "
-                    "it was made from, --mesh OBJ --animation CACHE.")
+                    "it was made from, --mesh OBJ --animation CACHE. A skinned model (kind skinned "
+                    "or neural-skinned) is measured at --times random clip times and at --poses "
+                    "random poses off its clips (a random clip time, then every joint's local "
+                    "rotation turned about a random axis by up to 15 degrees), each against the "
+                    "exact skin of --mesh CHARACTER (its glTF or USD file) at that pose, reported "
+                    "apart.")
     evaluate.add_argument("model", help="model name or .safetensors path (any kind)")
     evaluate.add_argument("--mesh", required=True, help="the mesh it was made from (its original file; "
-                                                         "an animated model: its OBJ)")
+                                                         "an animated model: its OBJ; a skinned model: "
+                                                         "its character file)")
     evaluate.add_argument("--points", type=int, default=100_000,
                           help="points per band (an animated model: over all its times)")
     evaluate.add_argument("--seed", type=int, default=1234)
@@ -98,7 +104,11 @@ def register(subparsers) -> None:
     animated.add_argument("--fps", type=float, default=None,
                           help="frames per second of --animation (default: the rate the model was made at)")
     animated.add_argument("--times", type=int, default=None,
-                          help="random times the model is measured at (default 16)")
+                          help="random times the model is measured at (default 16; a skinned model: "
+                               "random times of random clips)")
+    skinned = evaluate.add_argument_group("skinned models")
+    skinned.add_argument("--poses", type=int, default=None,
+                         help="random poses off the clips a skinned model is measured at (default 16)")
     add_models_argument(evaluate)
     add_device_argument(evaluate)
     add_quiet_argument(evaluate)
@@ -231,36 +241,19 @@ def run_train_character(args) -> int:
 def run_eval(args) -> int:
     from collider_server.engine.modelfile import save_collider
     from collider_server.engine.repository import ModelRepository
-    from collider_server.making.evaluation import evaluate_animated_collider, evaluate_collider, format_report
-    from collider_server.making.mesh_files import load_mesh
+    from collider_server.making.evaluation import format_report
 
     repo = ModelRepository(args.models)
     path = repo.resolve(args.model)
     collider = repo.load(args.model, args.device)
     check_units(collider.info, args)
-    if not collider.animated and (args.animation, args.fps, args.times) != (None, None, None):
-        raise ValueError(f"{collider.info.name} is static: --animation, --fps and --times are for animated "
-                         "models (measure it with --mesh alone)")
-    if args.times is not None and args.times < 1:
-        raise ValueError(f"--times must be a positive number of random times, got {args.times}")
-    stored = np.asarray(collider.info.source.get("transform", np.eye(4)), dtype=np.float64)
-    placement = placement_from_args(args)
-    raw = load_animated_source(collider.info, args) if collider.animated else load_mesh(args.mesh)
-    transform = stored if placement is None else placement.transform(
-        raw.frame(0) if collider.animated else raw)  # an animation is placed by its first frame
-    placed = raw if np.allclose(transform, np.eye(4)) else raw.transformed(transform)
-    differs = source_differences(collider.info, raw, transform, args.mesh, args.animation)
-    if differs:
-        # On stderr, so that stdout stays the report alone.
-        storing = "not stored" if not args.store_anyway else "stored anyway (--store-anyway)"
-        print(f"collider eval: warning: {'; '.join(differs)}: figures {storing}", file=sys.stderr)
-    if collider.animated:
-        report = evaluate_animated_collider(collider, placed, points=args.points, times=args.times or 16,
-                                            seed=args.seed, path=path, show_progress=not args.quiet)
+    for option, value in (("--times", args.times), ("--poses", args.poses)):
+        if value is not None and value < 1:
+            raise ValueError(f"{option} must be a positive number of random {option[2:]}, got {value}")
+    if collider.skinned:
+        report, differs = eval_skinned(collider, path, args)
     else:
-        report = evaluate_collider(collider, placed, points=args.points, seed=args.seed,
-                                   reconstruction=not args.no_reconstruction, path=path,
-                                   show_progress=not args.quiet)
+        report, differs = eval_mesh(collider, path, args)
     print(format_report(collider.info.name, collider.info.kind, report))
     if args.report is not None:
         args.report.write_text(json.dumps(report, indent=2))
@@ -274,6 +267,72 @@ def run_eval(args) -> int:
     save_collider(collider, path)
     print(f"figures written into {path}")
     return 0
+
+
+def eval_mesh(collider, path, args) -> tuple[dict, list[str]]:
+    """``collider eval`` of a static or animated model: its report and why ``--mesh`` (and
+    ``--animation``) is not its source (empty when it is)."""
+    from collider_server.making.evaluation import evaluate_animated_collider, evaluate_collider
+    from collider_server.making.mesh_files import load_mesh
+
+    if args.poses is not None:
+        raise ValueError(f"{collider.info.name} is not skinned: --poses is for skinned models")
+    if not collider.animated and (args.animation, args.fps, args.times) != (None, None, None):
+        raise ValueError(f"{collider.info.name} is static: --animation, --fps and --times are for animated "
+                         "models (measure it with --mesh alone)")
+    stored = np.asarray(collider.info.source.get("transform", np.eye(4)), dtype=np.float64)
+    placement = placement_from_args(args)
+    raw = load_animated_source(collider.info, args) if collider.animated else load_mesh(args.mesh)
+    transform = stored if placement is None else placement.transform(
+        raw.frame(0) if collider.animated else raw)  # an animation is placed by its first frame
+    placed = raw if np.allclose(transform, np.eye(4)) else raw.transformed(transform)
+    differs = report_differences(collider.info, raw, transform, args)
+    if collider.animated:
+        report = evaluate_animated_collider(collider, placed, points=args.points, times=args.times or 16,
+                                            seed=args.seed, path=path, show_progress=not args.quiet)
+    else:
+        report = evaluate_collider(collider, placed, points=args.points, seed=args.seed,
+                                   reconstruction=not args.no_reconstruction, path=path,
+                                   show_progress=not args.quiet)
+    return report, differs
+
+
+def eval_skinned(collider, path, args) -> tuple[dict, list[str]]:
+    """``collider eval`` of a skinned model (kind ``skinned`` or ``neural-skinned``) against the
+    character file ``--mesh`` placed as the model was made: random clip times and random poses
+    (:func:`~collider_server.making.evaluation.evaluate_skinned_collider`)."""
+    from collider_server.engine.meshes import Mesh
+    from collider_server.making.characters import read_character
+    from collider_server.making.evaluation import evaluate_skinned_collider
+    from collider_server.making.placement import transformed_skin
+
+    if (args.animation, args.fps) != (None, None):
+        raise ValueError(f"{collider.info.name} is skinned: --animation and --fps are for vertex caches; give "
+                         "its character file (--mesh CHARACTER), --times and --poses")
+    read = read_character(args.mesh)
+    stored = np.asarray(collider.info.source.get("transform", np.eye(4)), dtype=np.float64)
+    placement = placement_from_args(args)
+    transform = stored if placement is None else placement.transform(Mesh(read.skin.vertices, read.skin.faces))
+    skin = read.skin if np.allclose(transform, np.eye(4)) else transformed_skin(read.skin, transform)
+    model_joints = collider.info.skeleton.get("joints", [])
+    if skin.skeleton.joint_count != len(model_joints) or len(skin.vertices) != len(collider.skin.vertices):
+        raise ValueError(f"{args.mesh}: {skin.skeleton.joint_count} joints and {len(skin.vertices):,} vertices, "
+                         f"but {collider.info.name} has {len(model_joints)} and {len(collider.skin.vertices):,}: "
+                         "not the character it was made from")
+    differs = report_differences(collider.info, read, transform, args)
+    report = evaluate_skinned_collider(collider, skin, points=args.points, times=args.times or 16,
+                                       poses=args.poses or 16, seed=args.seed, path=path,
+                                       show_progress=not args.quiet)
+    return report, differs
+
+
+def report_differences(info, source, transform, args) -> list[str]:
+    """:func:`source_differences`, said on stderr (stdout stays the report alone)."""
+    differs = source_differences(info, source, transform, args.mesh, args.animation)
+    if differs:
+        storing = "not stored" if not args.store_anyway else "stored anyway (--store-anyway)"
+        print(f"collider eval: warning: {'; '.join(differs)}: figures {storing}", file=sys.stderr)
+    return differs
 
 
 def check_units(info, args) -> None:

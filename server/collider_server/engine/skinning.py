@@ -471,3 +471,84 @@ def skin_velocities(skin: Skin, joint_transforms: np.ndarray,
     linear blend skinning's derivative; it is checked for shape so the pair stays consistent."""
     _skinning_matrices(skin, joint_transforms)
     return _blend(skin, _skinning_matrices(skin, joint_velocities), 1.0)
+
+
+# --------------------------------------------------------------------------------------------
+# Random poses: where a skinned model is trained and measured off its recorded clips
+
+#: The largest turn (degrees) of a joint's local rotation in a perturbed random pose
+#: (:func:`random_poses`): training, ``collider eval``, ``collider bench`` and the benchmarks.
+PERTURB_DEG = 15.0
+
+
+@dataclass(frozen=True)
+class RandomPoses:
+    """Poses drawn by :func:`random_poses`.
+
+    transforms : (n, J, 4, 4) float64, the joints' world transforms, collider frame
+    clips : n clip names (None: the skin has no clip, the rest pose was perturbed)
+    times : (n,) float64, seconds in each pose's clip (0 without a clip)
+    perturbed : (n,) bool, whether the pose's local rotations were turned off the clip
+    perturb_deg : the largest turn of a perturbed pose's joints, degrees
+    """
+
+    transforms: np.ndarray
+    clips: tuple
+    times: np.ndarray
+    perturbed: np.ndarray
+    perturb_deg: float
+
+    def __len__(self) -> int:
+        return len(self.transforms)
+
+
+def random_rotations(rng: np.random.Generator, count: int, max_deg: float) -> np.ndarray:
+    """(count, 3, 3) float64 rotations about uniform random axes by angles uniform in
+    ``[0, max_deg]`` degrees (Rodrigues' formula)."""
+    axis = rng.normal(size=(count, 3))
+    axis /= np.linalg.norm(axis, axis=1, keepdims=True)
+    angle = np.radians(rng.uniform(0.0, max_deg, count))
+    k = np.zeros((count, 3, 3))
+    k[:, 0, 1], k[:, 0, 2], k[:, 1, 2] = -axis[:, 2], axis[:, 1], -axis[:, 0]
+    k = k - np.swapaxes(k, 1, 2)
+    s, c = np.sin(angle)[:, None, None], np.cos(angle)[:, None, None]
+    return np.eye(3) + s * k + (1.0 - c) * (k @ k)
+
+
+def random_poses(skin: Skin, count: int, seed: int, perturb_deg: float = PERTURB_DEG,
+                 perturbed_share: float = 1.0) -> RandomPoses:
+    """``count`` random poses of ``skin``, reproducible from ``seed``: the one rule by which a
+    skinned model is trained (``making.training.articulated``) and measured (``collider eval``,
+    ``collider bench``, ``benchmarks/articulated_neural.py``) at poses nobody recorded.
+
+    Each pose: a uniformly random clip of the skin and a uniform random time in ``[0,
+    duration_s]`` of it (the rest pose when the skin has no clip); for the last ``perturbed_share``
+    of them (rounded), every joint's local rotation then turned by :func:`random_rotations`
+    about a uniform random axis by an angle uniform in ``[0, perturb_deg]`` (applied on the right,
+    in the joint's own frame; translations and scales as the clip has them). "Within the clip's
+    range" means this fixed limit, not each joint's own range over the clip: a joint the clip
+    does not move is turned too, by up to ``perturb_deg`` from its clip rotation.
+    """
+    if count < 0 or not 0.0 <= perturbed_share <= 1.0 or not 0.0 <= perturb_deg <= 180.0:
+        raise ValueError(f"random_poses: count >= 0, perturbed_share in [0, 1] and perturb_deg in "
+                         f"[0, 180] needed, got {count}, {perturbed_share}, {perturb_deg}")
+    rng = np.random.default_rng(seed)
+    skeleton = skin.skeleton
+    transforms = np.empty((count, skeleton.joint_count, 4, 4))
+    clips: list = []
+    times = np.zeros(count)
+    perturbed_from = count - int(round(count * perturbed_share))
+    for i in range(count):
+        if skin.clips:
+            clip = skin.clips[rng.integers(len(skin.clips))]
+            times[i] = rng.uniform(0.0, clip.duration_s)
+            local = trs_matrices(*clip.local_trs(skeleton, times[i]))
+            clips.append(clip.name)
+        else:
+            local = skeleton.rest_local()
+            clips.append(None)
+        if i >= perturbed_from:
+            local[:, :3, :3] = local[:, :3, :3] @ random_rotations(rng, skeleton.joint_count, perturb_deg)
+        transforms[i] = world_transforms(skeleton, local)
+    return RandomPoses(transforms, tuple(clips), times, np.arange(count) >= perturbed_from,
+                       float(perturb_deg))

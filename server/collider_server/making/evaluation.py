@@ -31,6 +31,7 @@ import numpy as np
 from ..engine.animated_meshes import AnimatedMesh, ExactAtTimes
 from ..engine.collider import Collider
 from ..engine.meshes import ExactSDF, Mesh
+from ..engine.skinning import RandomPoses, Skin, random_poses, skin_vertices
 from .progress import progress
 from .sampling import animated_band_sets, band_sets, box_points, random_times, surface_points
 from .surface import distance_grid, level_surface
@@ -48,16 +49,18 @@ def point_sets(collider: Collider, mesh: Mesh, points: int, seed: int) -> dict[s
 
 
 def point_errors(collider: Collider, sdf: ExactSDF, points: np.ndarray,
-                 time: float | None = None) -> dict[str, np.ndarray]:
+                 time: float | None = None, skeleton: dict | None = None) -> dict[str, np.ndarray]:
     """Per point of ``points`` (collider frame), ``collider`` asked at ``time`` seconds (an
-    animated one; ``sdf`` the exact SDF of its surface at that time) against ``sdf``: distance
+    animated one; ``sdf`` the exact SDF of its surface at that time) and at the skeleton pose
+    ``skeleton`` (a skinned one: ``{"clip": name}`` with ``time``, or ``{"joint_transforms": (J,
+    4, 4)}``, the query's keywords) against ``sdf``: distance
     error (mm), whether the true sign is decided (|d| > 0.2 mm) and the sign wrong, normal angle
     error (deg), contact error (mm) and whether the winding number is clear."""
     to_mm = 1000.0 * collider.info.meters_per_unit
     eps = collider.info.default_eps
     truth, closest, face = sdf.query(points)
     true_normal = sdf.gradient(points, truth, closest, face)
-    result = collider.query(points, ["distance", "normal", "contact"], eps=eps, time=time)
+    result = collider.query(points, ["distance", "normal", "contact"], eps=eps, time=time, **(skeleton or {}))
     cosine = np.clip(np.einsum("ij,ij->i", result.normal.astype(np.float64), true_normal), -1.0, 1.0)
     winding = sdf.winding_number(points)
     return {
@@ -152,13 +155,14 @@ QUERY_POINTS = 50_000
 
 
 def query_seconds_per_million(collider: Collider, points: np.ndarray, repeats: int = 2,
-                              at: float | None = None) -> float:
+                              at: float | None = None, skeleton: dict | None = None) -> float:
     """Best wall time of a distance + normal + contact query (at ``at`` seconds: an animated
-    collider), scaled to 1M points."""
+    collider; at the pose ``skeleton``, the query's keywords: a skinned one), scaled to 1M
+    points."""
     best = float("inf")
     for _ in range(repeats):
         started = time.perf_counter()
-        collider.query(points, ["distance", "normal", "contact"], time=at)
+        collider.query(points, ["distance", "normal", "contact"], time=at, **(skeleton or {}))
         best = min(best, time.perf_counter() - started)
     return best * 1e6 / len(points)
 
@@ -211,6 +215,77 @@ def evaluate_animated_collider(collider: Collider, animation: AnimatedMesh, poin
         bar.update(1)
     return {**report, "times_s": at.tolist(), "duration_s": animation.timeline.duration_s,
             "points_per_time": per_time, "seed": seed, **_about(collider, path)}
+
+
+def pose_query(poses: RandomPoses, i: int) -> tuple[float | None, dict]:
+    """How pose ``i`` of ``poses`` is asked of a skinned collider: ``(time, skeleton keywords)``:
+    a clip pose by its clip and time (the query's clip path), a perturbed one (or one of a skin
+    without clips) by its joint transforms."""
+    if poses.perturbed[i] or poses.clips[i] is None:
+        return None, {"joint_transforms": poses.transforms[i]}
+    return float(poses.times[i]), {"clip": poses.clips[i]}
+
+
+def skinned_error_figures(collider: Collider, skin: Skin, poses: RandomPoses, points: int, seed: int,
+                          sets: tuple[str, ...] = ("band_1mm", "band_10mm", "box"),
+                          on_pose=lambda: None) -> dict:
+    """:func:`error_figures` of a skinned ``collider`` (kind ``skinned`` or ``neural-skinned``)
+    at each of ``poses`` (asked as :func:`pose_query` says) against the exact SDF of ``skin``
+    posed there (linear blend skinning, the union of a self-overlapping skin: what the exact
+    ``skinned`` kind answers), ``points`` per set per pose (pose ``i``'s bands drawn from ``seed +
+    10 i``; ``box`` uniform in the collider's domain), pooled per set. ``skin`` is the truth's, in
+    the collider's frame and units."""
+    errors: dict[str, list] = {name: [] for name in sets}
+    for i in range(len(poses)):
+        mesh = Mesh(skin_vertices(skin, poses.transforms[i]), skin.faces, "posed")
+        sdf = ExactSDF(mesh)
+        bands = band_sets(mesh, points, seed + 10 * i, collider.info.meters_per_unit)
+        bands["box"] = box_points(collider.domain_min, collider.domain_max, points, seed + 7 + 10 * i)
+        time_s, skeleton = pose_query(poses, i)
+        for name in sets:
+            errors[name].append(point_errors(collider, sdf, bands[name], time_s, skeleton))
+        on_pose()
+    return {name: summarize(pooled(found)) for name, found in errors.items()}
+
+
+#: The pose sets of a skinned evaluation, in the order they are reported.
+SKINNED_POSE_SETS = ("clip_times", "random_poses")
+
+
+def evaluate_skinned_collider(collider: Collider, skin: Skin, points: int = 100_000, times: int = 16,
+                              poses: int = 16, seed: int = 1234, path: Path | None = None,
+                              show_progress: bool = True) -> dict:
+    """The figures of :func:`evaluate_collider` for a skinned ``collider`` in two pose sets of
+    :func:`~collider_server.engine.skinning.random_poses` (seeded): ``clip_times``, ``times``
+    random clips at uniform random times (asked by clip and time), and ``random_poses``, ``poses``
+    random clip times with every joint's local rotation then turned by up to
+    :data:`~collider_server.engine.skinning.PERTURB_DEG` about a random axis (asked by joint
+    transforms); ``points`` per set split evenly over each set's poses, pooled, against the exact
+    skin at each pose (:func:`skinned_error_figures`). No reconstruction; the query time is
+    measured at the first random pose. Each set adds ``poses`` (each pose's clip, time, and
+    whether it was turned) and ``points_per_pose``."""
+    if isinstance(points, bool) or not isinstance(points, (int, np.integer)) or points < 1:
+        raise ValueError(f"points (per set) must be a positive integer, got {points!r}")
+    drawn = {"clip_times": random_poses(skin, times, seed, perturbed_share=0.0),
+             "random_poses": random_poses(skin, poses, seed + 1, perturbed_share=1.0)}
+    report: dict = {"perturb_deg": drawn["random_poses"].perturb_deg, "seed": seed}
+    with progress(times + poses + 1, f"eval {collider.info.name}", "pose", show_progress) as bar:
+        for offset, (name, drawn_poses) in enumerate(drawn.items()):
+            per_pose = -(-points // len(drawn_poses))
+            report[name] = {
+                **skinned_error_figures(collider, skin, drawn_poses, per_pose, seed + 1000 * offset,
+                                        on_pose=lambda: bar.update(1)),
+                "points_per_pose": per_pose,
+                "poses": [{"clip": c, "time_s": float(t), "perturbed": bool(p)}
+                          for c, t, p in zip(drawn_poses.clips, drawn_poses.times, drawn_poses.perturbed)]}
+        first = drawn["random_poses"]
+        probe = Mesh(skin_vertices(skin, first.transforms[0]), skin.faces, "posed")
+        timed = band_sets(probe, min(points, QUERY_POINTS), seed, collider.info.meters_per_unit)["band_1mm"]
+        report["query_seconds_per_million"] = query_seconds_per_million(
+            collider, timed, skeleton={"joint_transforms": first.transforms[0]})
+        report["query_points"] = len(timed)
+        bar.update(1)
+    return {**report, **_about(collider, path)}
 
 
 def _about(collider: Collider, path: Path | None) -> dict:
@@ -343,12 +418,54 @@ def times_lines(report: dict) -> list[str]:
             f"exact interpolated mesh at that time"), f"times (s): {shown}"]
 
 
+def pose_set_lines(report: dict) -> list[str]:
+    """What a skinned evaluation's pose set ``report`` (one of :data:`SKINNED_POSE_SETS`) was."""
+    poses = report["poses"]
+    turned = sum(p["perturbed"] for p in poses)
+    clips = sorted({p["clip"] for p in poses if p["clip"] is not None})
+    what = (f"{len(poses)} random poses: random clip times ({', '.join(clips) or 'the rest pose'}), every "
+            "joint's local rotation then turned about a random axis (asked by joint transforms)") if turned else (
+            f"{len(poses)} random clip times ({', '.join(clips)}; asked by clip and time)")
+    return [(f"{what}, {report['points_per_pose']:,} points per set at each, pooled, against the exact skin "
+             "(its union) at that pose")]
+
+
 def format_report(name: str, kind: str, report: dict) -> str:
     """A plain-text table of :func:`evaluate_collider`'s figures: each set, then the same set
-    without the points of ambiguous winding number ("w clear"), when it has any."""
+    without the points of ambiguous winding number ("w clear"), when it has any; a skinned
+    evaluation's (:func:`evaluate_skinned_collider`) once per pose set."""
     header = ("set", "dist mean", "p99", "max", "sign err", "normal mean", "p99", "contact mean", "p99")
     line = "{:<10} {:>10} {:>8} {:>8} {:>9} {:>12} {:>7} {:>13} {:>8}"
-    rows = [f"{name} ({kind})", *times_lines(report), line.format(*header), line.format("", "mm", "mm", "mm", "%", "deg", "deg", "mm", "mm")]
+    rows = [f"{name} ({kind})", *times_lines(report)]
+    if "random_poses" in report:
+        rows.append(f"random poses: up to {report['perturb_deg']:g} deg per joint off the clip (seed {report['seed']})")
+    ambiguous = []
+    for key, part in [(k, report[k]) for k in SKINNED_POSE_SETS if k in report] or [("", report)]:
+        if key:
+            rows += pose_set_lines(part)
+        rows += [line.format(*header), line.format("", "mm", "mm", "mm", "%", "deg", "deg", "mm", "mm")]
+        ambiguous += [f"{key.replace('_', ' ')} {where}".strip() for where in set_rows(part, rows)]
+    if ambiguous:
+        rows.append(f"w clear: without the points near holes, where the mesh's winding number is between "
+                    f"{CLEAR_WINDING[0]} and {CLEAR_WINDING[1]} ({', '.join(ambiguous)} of the points)")
+    if "chamfer_l1_mm" in report:
+        rows.append(f"reconstruction Chamfer-L1: {report['chamfer_l1_mm']:.4f} mm (marching cubes 128^3)")
+    at = f" at t = {report['times_s'][0]:.4f} s" if report.get("times_s") else ""
+    at = " at the first random pose" if "random_poses" in report else at
+    # Which points were timed: a time per point depends on where the points are (docs/accuracy.md).
+    timed = f" ({report['query_points']:,} points of the +-1 mm band, best of 2)" if "query_points" in report else ""
+    rows.append(f"query (distance+normal+contact){at}: {report['query_seconds_per_million']:.2f} s per 1M points "
+                f"on {report['device']}{timed}")
+    if report.get("file_bytes") is not None:
+        rows.append(f"model file: {report['file_bytes']:,} bytes")
+    if report.get("training_seconds") is not None:
+        rows.append(f"training time: {report['training_seconds'] / 60:.1f} min")
+    return "\n".join(rows)
+
+
+def set_rows(report: dict, rows: list[str]) -> list[str]:
+    """Append the rows of each point set of ``report`` (figures of one pose set, or of the whole
+    evaluation) to ``rows``; returns where points of ambiguous winding number were left out."""
     numbers = "{:<10} {:>10.4f} {:>8.4f} {:>8.4f} {:>9.3f} {:>12.2f} {:>7.2f} {:>13.4f} {:>8.4f}"
     ambiguous = []
     for key in ("band_1mm", "band_10mm", "box"):
@@ -363,18 +480,4 @@ def format_report(name: str, kind: str, report: dict) -> str:
                                        r["contact_mean_mm"], r["contact_p99_mm"]))
         if report[key].get("ambiguous_winding_percent"):
             ambiguous.append(f"{label} {report[key]['ambiguous_winding_percent']:.2f} %")
-    if ambiguous:
-        rows.append(f"w clear: without the points near holes, where the mesh's winding number is between "
-                    f"{CLEAR_WINDING[0]} and {CLEAR_WINDING[1]} ({', '.join(ambiguous)} of the points)")
-    if "chamfer_l1_mm" in report:
-        rows.append(f"reconstruction Chamfer-L1: {report['chamfer_l1_mm']:.4f} mm (marching cubes 128^3)")
-    at = f" at t = {report['times_s'][0]:.4f} s" if report.get("times_s") else ""
-    # Which points were timed: a time per point depends on where the points are (docs/accuracy.md).
-    timed = f" ({report['query_points']:,} points of the +-1 mm band, best of 2)" if "query_points" in report else ""
-    rows.append(f"query (distance+normal+contact){at}: {report['query_seconds_per_million']:.2f} s per 1M points "
-                f"on {report['device']}{timed}")
-    if report.get("file_bytes") is not None:
-        rows.append(f"model file: {report['file_bytes']:,} bytes")
-    if report.get("training_seconds") is not None:
-        rows.append(f"training time: {report['training_seconds'] / 60:.1f} min")
-    return "\n".join(rows)
+    return ambiguous

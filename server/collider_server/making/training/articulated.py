@@ -40,7 +40,7 @@ from ...engine.kinds.neural_skinned import (
     weight_field,
 )
 from ...engine.meshes import ExactSDF, Mesh
-from ...engine.skinning import Skin, skin_vertices, trs_matrices, world_transforms
+from ...engine.skinning import PERTURB_DEG, Skin, random_poses, skin_vertices
 from ..bake import padded_box
 from ..progress import progress
 from ..sampling import surface_band_points
@@ -54,8 +54,6 @@ from .schedule import RunClock, cosine_learning_rate, make_optimizer, set_traini
 #: walker's floor without a network: docs/neural.md).
 ARTICULATED_PRESET = ArticulatedGridArchitecture(skinning_solver="newton", skinning_iterations=8,
                                                  fine_weight_resolution=128)
-#: Largest turn of a joint's local rotation in the perturbed poses (training and measurement).
-PERTURB_DEG = 15.0
 #: The fine weight field's blocks reach this many fine cells beyond the rest surface.
 FINE_WEIGHT_BAND_CELLS = 1.0
 #: Training poses and validation poses of a run (the rest pose is one of the training poses).
@@ -63,38 +61,12 @@ TRAIN_POSES = 240
 VALIDATION_POSES = 12
 
 
-def _rotations(rng, count: int, max_deg: float) -> np.ndarray:
-    """(count, 3, 3) rotations about uniform random axes by angles uniform in [0, max_deg]."""
-    axis = rng.normal(size=(count, 3))
-    axis /= np.linalg.norm(axis, axis=1, keepdims=True)
-    angle = np.radians(rng.uniform(0.0, max_deg, count))
-    k = np.zeros((count, 3, 3))
-    k[:, 0, 1], k[:, 0, 2], k[:, 1, 2] = -axis[:, 2], axis[:, 1], -axis[:, 0]
-    k = k - np.swapaxes(k, 1, 2)
-    s, c = np.sin(angle)[:, None, None], np.cos(angle)[:, None, None]
-    return np.eye(3) + s * k + (1.0 - c) * (k @ k)
-
-
 def sample_poses(skin: Skin, count: int, seed: int, perturb_deg: float = PERTURB_DEG,
                  perturbed_share: float = 0.5) -> np.ndarray:
-    """(count, J, 4, 4) float64 joint transforms (collider frame): each at a random clip (the
-    rest pose when the skin has none) and a uniform random time in it, and for a share
-    ``perturbed_share`` of them (the second part) every joint's local rotation then turned by
-    :func:`_rotations` (up to ``perturb_deg``)."""
-    rng = np.random.default_rng(seed)
-    skeleton = skin.skeleton
-    out = np.empty((count, skeleton.joint_count, 4, 4))
-    perturbed_from = count - int(round(count * perturbed_share))
-    for i in range(count):
-        if skin.clips:
-            clip = skin.clips[rng.integers(len(skin.clips))]
-            local = trs_matrices(*clip.local_trs(skeleton, rng.uniform(0.0, clip.duration_s)))
-        else:
-            local = skeleton.rest_local()
-        if i >= perturbed_from:
-            local[:, :3, :3] = local[:, :3, :3] @ _rotations(rng, skeleton.joint_count, perturb_deg)
-        out[i] = world_transforms(skeleton, local)
-    return out
+    """(count, J, 4, 4) float64 joint transforms (collider frame): :func:`~collider_server.engine.
+    skinning.random_poses` (random clip times, the last ``perturbed_share`` of them with every
+    joint's local rotation turned by up to ``perturb_deg``)."""
+    return random_poses(skin, count, seed, perturb_deg, perturbed_share).transforms
 
 
 @dataclass
