@@ -7,7 +7,9 @@ arm (examples/animations/arm.{obj,pc2}, 24 fps, metres), interleaved step by ste
   at its own random time;
 - ``shared``: the same tables trained as a shared base plus per-keyframe deltas (``T_k = B +
   D_k``, torch's parametrisation; the sum is the model), the base read by every sample;
-- ``few-times``: batches drawn from 4 distinct times of the cached set (2,048 points each).
+- ``few-times``: batches drawn from 4 distinct times of the cached set (2,048 points each);
+- ``warm-start``: the first quarter of the steps trains the static grid on the first frame, then
+  its table is copied into every keyframe table (and its MLP kept) and the tables train on.
 
 Per variant: the mean error in the +-1 mm band every ``--every`` steps (static: at the first
 frame; the others: at 16 random times) and the steps per second; then one step's time split into
@@ -42,7 +44,7 @@ parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
 parser.add_argument("--steps", type=int, default=400)
 parser.add_argument("--every", type=int, default=100)
 parser.add_argument("--samples", type=int, default=200_000)
-parser.add_argument("--variants", default="static,keyframes,shared,few-times")
+parser.add_argument("--variants", default="static,keyframes,shared,few-times,warm-start")
 args = parser.parse_args()
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -89,13 +91,7 @@ def sampler(variant, data):
     return draw
 
 
-runs = {}
-for variant in args.variants.split(","):
-    torch.manual_seed(0)
-    static = variant == "static"
-    network = build_network(arch.spatial() if static else arch, centre, radius)
-    if variant == "shared":
-        torch.nn.utils.parametrize.register_parametrization(network, "table", SharedBase(), unsafe=True)
+def adam(network, fused):
     # The loop's optimiser (schedule.make_optimizer): the tables (here also base and deltas) in
     # their own group with instant-NGP's settings, fused Adam for keyframe tables.
     table_names = [n for n, _ in network.named_parameters() if "table" in n]
@@ -103,7 +99,19 @@ for variant in args.variants.split(","):
         {"params": [p for n, p in network.named_parameters() if n in table_names]},
         {"params": [p for n, p in network.named_parameters() if n not in table_names]},
     ]
-    optimizer = torch.optim.Adam(parameters, lr=1e-2, betas=(0.9, 0.99), eps=1e-15, fused=not static or None)
+    return torch.optim.Adam(parameters, lr=1e-2, betas=(0.9, 0.99), eps=1e-15, fused=fused or None)
+
+
+WARM_STEPS = args.steps // 4
+assert WARM_STEPS < args.every, "warm-start validates its keyframe network only"
+runs = {}
+for variant in args.variants.split(","):
+    torch.manual_seed(0)
+    static = variant in ("static", "warm-start")
+    network = build_network(arch.spatial() if static else arch, centre, radius)
+    if variant == "shared":
+        torch.nn.utils.parametrize.register_parametrization(network, "table", SharedBase(), unsafe=True)
+    optimizer = adam(network, not static)
     data, val = (static_data, static_val) if static else (moving_data, moving_val)
     extra = () if static else segments(data.times)
     runs[variant] = {
@@ -115,6 +123,17 @@ for variant in args.variants.split(","):
 
 for step in range(1, args.steps + 1):
     lr = cosine_learning_rate(step / args.steps, 1e-2, 1e-4)
+    if step == WARM_STEPS + 1 and "warm-start" in runs:
+        run = runs["warm-start"]
+        warm = build_network(arch, centre, radius)
+        with torch.no_grad():
+            warm.table.copy_(run["network"].table.unsqueeze(0).expand_as(warm.table))
+        warm.body.load_state_dict(run["network"].body.state_dict())
+        run.update(network=warm, optimizer=adam(warm, True), draw=sampler("keyframes", moving_data),
+                   data=[torch.from_numpy(a) for a in (moving_data.points, moving_data.distance,
+                                                       moving_data.gradient, moving_data.near)],
+                   extra=segments(moving_data.times), val=(torch.from_numpy(moving_val[0]),
+                                                          torch.from_numpy(moving_val[1]), segments(moving_val[2])))
     for run in runs.values():
         points, target, target_gradient, near = run["data"]
         began = time.perf_counter()
