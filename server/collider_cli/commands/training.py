@@ -43,8 +43,8 @@ def register(subparsers) -> None:
     train.add_argument("--preset", default=None, choices=sorted({**PRESETS, **ANIMATED_PRESETS}),
                        help=f"network (default {defaults.preset}: a feature grid + tiny MLP, the fastest to "
                             "train and to query; paper-bunny / paper-dragon reproduce the paper. With "
-                            "--animation the default is the animated preset that suits the motion: deformed "
-                            "when fitted deformation fields follow every frame, else keyframes; docs/neural.md)")
+                            "--animation the default is the animated preset that measures better after a short "
+                            "trial of each (deformed, keyframes), charged to --max-minutes; docs/neural.md)")
     train.add_argument("--samples", type=int, default=defaults.samples, help="cached training samples")
     train.add_argument("--steps", type=int, default=None,
                        help="cap on optimiser steps (default: none with --max-minutes, which then runs to the "
@@ -125,6 +125,8 @@ def run_train(args) -> int:
         TrainConfig,
         check_preset,
         choose_animated_preset,
+        read_checkpoint_state,
+        remaining_minutes,
         train_animated_neural,
         train_neural,
     )
@@ -166,10 +168,16 @@ def run_train(args) -> int:
     else:
         check = print_mesh_check(mesh)
     extra = {}
-    if choose:
-        choice = choose_animated_preset(mesh, config.padding, placement.meters_per_unit, not args.quiet)
+    resumed = read_checkpoint_state(checkpoint).get("run", {}).get("settings", {}).get("preset") \
+        if choose and checkpoint.is_file() else None
+    if resumed is not None:  # the checkpoint's run goes on: its preset, not a new measurement
+        print(f"preset {resumed}: the preset of the run {checkpoint} resumes (--preset to choose)")
+        config = replace(config, preset=resumed)
+    elif choose:
+        choice = choose_animated_preset(mesh, config, placement.meters_per_unit, args.device, not args.quiet)
         print(choice.reason)
-        config = replace(config, preset=choice.preset)
+        # The choice's minutes are the budget's.
+        config = replace(config, preset=choice.preset, max_minutes=remaining_minutes(config, choice))
         extra["deformation"] = choice.fit
     try:
         result = (train_animated_neural if animated else train_neural)(

@@ -206,32 +206,63 @@ def test_train_cli_refuses_mismatched_options_in_one_line(tmp_path, args, messag
     assert len(lines) == 1 and lines[0].startswith("collider train: error:") and message in lines[0], result.stderr
 
 
-def test_an_animation_gets_the_preset_that_suits_its_motion(sphere):
-    """Without --preset: deformed where fitted fields follow every frame (the pulsing sphere's
-    affine motion), keyframes where they cannot (the arm's elbow folds: 0.18 mm off by its third
-    frame, 3.7 mm at its deepest bend; the fit stops at the first frame over the bound)."""
-    from collider_server.making.animation_files import load_animation
+def test_an_animation_gets_the_preset_that_measures_better(sphere):
+    """Without --preset each animated preset trains briefly and is measured at the same held-out
+    times and points; the better one (mean error in the +-1 mm band) is taken, and the line says
+    why with both figures. The pulsing sphere's affine motion is the deformation fields' (its rest
+    pose learns as a static mesh): deformed measures clearly better."""
+    import re
+
     from collider_server.making.training import choose_animated_preset
 
     animation, _ = sphere
-    smooth = choose_animated_preset(animation, 0.1, 1.0, show_progress=False)
-    assert smooth.preset == "deformed" and "preset deformed: fields of 16^3 (0.8 MB for 13 frames) follow every" in smooth.reason
-    arm = load_animation(ARM / "arm.obj", ARM / "arm.pc2", 24.0)
-    folding = choose_animated_preset(arm, 0.1, 1.0, show_progress=False)
-    assert folding.preset == "keyframes" and folding.fit.residual_p99.max() > 1e-4, folding.reason
-    assert "no smooth field follows this motion" in folding.reason
-    assert len(folding.fit.fields) < 25  # the fit stopped at the first frame it missed
+    settings = TrainConfig(preset="keyframes", samples=10_000, batch_size=2048, threads=2)
+    choice = choose_animated_preset(animation, settings, 1.0, show_progress=False, trial_steps=30)
+    deformed, keyframes = choice.trials
+    assert (deformed.preset, keyframes.preset) == ("deformed", "keyframes")
+    assert deformed.steps == keyframes.steps == 30
+    assert deformed.mean_mm < keyframes.mean_mm, choice.reason
+    assert choice.preset == "deformed" and choice.fit is not None and len(choice.fit.fields) == 13
+    assert choice.reason.startswith(f"preset deformed: {deformed.mean_mm:.3f} mm mean / "
+                                    f"{deformed.sign_percent:.2f} % sign after 30 steps, keyframes "
+                                    f"{keyframes.mean_mm:.3f} / {keyframes.sign_percent:.2f} %"), choice.reason
+    assert re.search(r"measured in \d+ s; --preset to choose\)$", choice.reason)
+
+
+def test_the_better_trial_is_the_one_of_lower_mean_error_and_the_choice_is_charged_to_the_budget():
+    from collider_server.making.training import remaining_minutes
+    from collider_server.making.training.preset_choice import PresetChoice, TrialFigures, better
+
+    deformed, keyframes = TrialFigures("deformed", 300, 0.100, 0.5), TrialFigures("keyframes", 300, 0.099, 0.9)
+    assert better([deformed, keyframes]) is keyframes
+    assert better([TrialFigures("deformed", 300, 0.05, 0.1), keyframes]).preset == "deformed"
+    choice = PresetChoice("keyframes", "", (deformed, keyframes), seconds=90.0)
+    assert remaining_minutes(TrainConfig(max_minutes=10.0), choice) == pytest.approx(8.5)
+    assert remaining_minutes(TrainConfig(max_minutes=1.0), choice) == pytest.approx(0.5)  # half is the run's
+    assert remaining_minutes(TrainConfig(), choice) is None
 
 
 def test_train_without_a_preset_says_which_it_took_and_why(tmp_path):
-    """The CLI's default with --animation: the fit first, then one line naming the preset."""
-    result = run_cli("train", str(ARM / "arm.obj"), "--animation", str(ARM / "arm.pc2"), "--fps", "24",
-                     "--name", "arm-auto", "--models", str(tmp_path / "models"), "--samples", "4000",
-                     "--steps", "2")
+    """The CLI's default with --animation: both presets measured (no more steps than the run's),
+    then one line naming the preset taken with both figures; --preset skips the measurement."""
+    import re
+
+    common = ["--fps", "24", "--models", str(tmp_path / "models"), "--samples", "4000", "--steps", "2"]
+    result = run_cli("train", str(ARM / "arm.obj"), "--animation", str(ARM / "arm.pc2"), "--name", "arm-auto",
+                     *common)
     assert result.returncode == 0, result.stderr
-    assert "preset keyframes: the deformation fields miss a frame by 0.177 mm (99th percentile, frame 2" in result.stdout
-    assert "(keyframe tables)" in result.stdout
-    assert load_collider(tmp_path / "models" / "arm-auto.safetensors").architecture.keyframes == 9
+    line = re.search(r"^preset (deformed|keyframes): (\d+\.\d{3}) mm mean / \d+\.\d\d % sign after 2 steps, "
+                     r"(deformed|keyframes) (\d+\.\d{3}) / \d+\.\d\d % \(\+-1 mm band", result.stdout, re.MULTILINE)
+    assert line and line[1] != line[3], result.stdout
+    assert float(line[2]) <= float(line[4])
+    assert "measuring presets deformed and keyframes: 2 steps each" in result.stderr
+    network = {"keyframes": "(keyframe tables)", "deformed": "(a rest pose and one deformation field per frame)"}
+    assert network[line[1]] in result.stdout
+    named = run_cli("train", str(ARM / "arm.obj"), "--animation", str(ARM / "arm.pc2"), "--name", "arm-named",
+                    "--preset", "keyframes", *common)
+    assert named.returncode == 0, named.stderr
+    assert "measuring presets" not in named.stderr and not re.search(r"^preset ", named.stdout, re.MULTILINE)
+    assert load_collider(tmp_path / "models" / "arm-named.safetensors").architecture.keyframes == 9
 
 
 def test_a_miss_just_over_its_bound_prints_the_digits_that_show_it():

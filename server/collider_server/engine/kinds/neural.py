@@ -80,8 +80,8 @@ ANIMATED_PRESETS: dict[str, KeyframeGridArchitecture | DeformedGridArchitecture]
 }
 
 #: The animated preset for any motion: ``collider train --animation`` takes it when none is named
-#: and the deformation fields do not follow the motion (``making.training.choose_animated_preset``),
-#: or when ``--keyframes`` is given.
+#: and it measures better than ``deformed`` after a short trial of each
+#: (``making.training.choose_animated_preset``), or when ``--keyframes`` is given.
 DEFAULT_ANIMATED_PRESET = "keyframes"
 
 #: The preset ``collider train`` uses when none is named.

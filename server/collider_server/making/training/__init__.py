@@ -15,16 +15,18 @@ with the best validation error in the +-1 mm band is kept; runs resume from thei
 
 The package, one step a module: :mod:`.config` (what a run is asked), :mod:`.data` (the samples
 and validation sets), :mod:`.schedule` (steps or the clock, optimiser, threads),
-:mod:`.checkpoints` (resumable runs) and :mod:`.loop` (:func:`train_neural`).
+:mod:`.checkpoints` (resumable runs), :mod:`.loop` (:func:`train_neural`) and, for an animation,
+:mod:`.deformation` (the deformed preset's fields) and :mod:`.preset_choice` (which animated preset).
 """
 
 from .checkpoints import read_checkpoint_state, save_tensors_atomically
 from .config import DEFAULT_STEPS, LEARNING_RATES, NORMAL_WEIGHTS, VALIDATIONS_PER_BUDGET, TrainConfig
-from .deformation import DeformationFit, PresetChoice, choose_animated_preset, fit_deformation
+from .deformation import DeformationFit, fit_deformation
 from .loop import TrainResult, check_preset, train_animated_neural, train_neural
+from .preset_choice import PresetChoice, choose_animated_preset, remaining_minutes
 from .schedule import RunClock, cosine_learning_rate
 
 __all__ = ["DEFAULT_STEPS", "LEARNING_RATES", "NORMAL_WEIGHTS", "VALIDATIONS_PER_BUDGET", "DeformationFit",
            "PresetChoice", "RunClock", "TrainConfig", "TrainResult", "check_preset", "choose_animated_preset",
-           "cosine_learning_rate", "fit_deformation", "read_checkpoint_state", "save_tensors_atomically",
+           "cosine_learning_rate", "fit_deformation", "read_checkpoint_state", "remaining_minutes", "save_tensors_atomically",
            "train_animated_neural", "train_neural"]

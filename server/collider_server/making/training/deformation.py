@@ -10,7 +10,6 @@ import numpy as np
 from ...engine.animated_meshes import AnimatedMesh
 from ...engine.kinds.neural_deformed import trilinear
 from ..progress import format_against, progress
-from .data import normalisation
 
 #: Weight of the fields' smoothness (squared second differences of the nodes) against the
 #: squared misfit at the surface samples, per sample per node: small, it only fills the nodes
@@ -120,46 +119,3 @@ def _second_differences(side: int):
                                     (np.repeat(np.arange(m), 3), np.stack([low, mid, high], 1).ravel())),
                                    shape=(m, side ** 3)))
     return sp.vstack(parts).tocsr()
-
-
-#: ``collider train --animation`` without ``--preset`` takes ``deformed`` when the fitted fields
-#: carry 99 % of every frame's surface samples to the rest pose within this (metres): the warp's
-#: share of the distance error, small against the 0.05 mm a 4D collider is asked for. Measured:
-#: the twisting bunny 0.021 mm (deformed: 0.03 mm mean after 1 minute); the bending arm, whose
-#: elbow folds, misses by millimetres (keyframe tables: 0.053 mm mean after 30 minutes, the
-#: deformed floor 0.123 mm: docs/neural.md).
-SMOOTH_ENOUGH_M = 1e-4
-
-
-@dataclass(frozen=True)
-class PresetChoice:
-    """The animated preset :func:`choose_animated_preset` picked, the fit it measured (reused by
-    a deformed run) and why, one line."""
-
-    preset: str
-    fit: DeformationFit
-    reason: str
-
-
-def choose_animated_preset(animation: AnimatedMesh, padding: float, meters_per_unit: float,
-                           show_progress: bool = True) -> PresetChoice:
-    """``deformed`` when the deformation preset's fields follow ``animation`` (its units and
-    frame; fitted over the normalised domain of a run with ``padding``) within
-    :data:`SMOOTH_ENOUGH_M`, else ``keyframes`` (any motion)."""
-    from ...engine.kinds.neural import ANIMATED_PRESETS
-
-    resolution = ANIMATED_PRESETS["deformed"].deformation_resolution
-    # A motion the fields do not follow is known at its first such frame: the rest is not fitted.
-    fit = fit_deformation(animation, *normalisation(animation, padding), resolution, show_progress,
-                          stop_above=SMOOTH_ENOUGH_M / meters_per_unit)
-    bound_mm = SMOOTH_ENOUGH_M * 1000
-    bound = f"{bound_mm:g} mm"
-    if fit.residual_p99.max() * meters_per_unit <= SMOOTH_ENOUGH_M and not fit.unconverged:
-        size = fit.fields.size * 4 / 1e6
-        return PresetChoice("deformed", fit, f"preset deformed: fields of {resolution}^3 ({size:.1f} MB for "
-                                             f"{len(fit.fields)} frames) follow every frame within "
-                                             f"{fit.summary(meters_per_unit, bound_mm)}, under {bound} "
-                                             "(--preset keyframes to choose)")
-    return PresetChoice("keyframes", fit, f"preset keyframes: the deformation fields miss a frame by "
-                                          f"{fit.summary(meters_per_unit, bound_mm)}, over {bound}: no smooth field "
-                                          "follows this motion (--preset to choose)")
