@@ -47,6 +47,7 @@ from ..collider import Collider, ColliderInfo
 from ..devices import resolve_device
 from ..skinning import Skeleton, Skin
 from . import grid_kernels
+from .grid_architecture import require_integers
 from .neural_grid import GridArchitecture, build_grid_network, pack_table, unpack_table
 from .skinned import pose_key, resolve_pose, skin_from_tensors, skin_tensors
 
@@ -86,10 +87,8 @@ class ArticulatedGridArchitecture(GridArchitecture):
 
     def __post_init__(self):
         super().__post_init__()
-        for name in ("joints", "pose_slots", "label_resolution", "skinning_iterations", "weight_resolution"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < (0 if name == "skinning_iterations" else 1):
-                raise ValueError(f"architecture {name} must be a positive integer, got {value!r}")
+        require_integers(self, ("joints", "pose_slots", "label_resolution", "weight_resolution"))
+        require_integers(self, ("skinning_iterations",), least=0)
         if self.joints >= NO_PART:
             raise ValueError(f"an articulated network has at most {NO_PART - 1} joints, got {self.joints}")
 
