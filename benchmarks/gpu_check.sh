@@ -23,7 +23,7 @@ EOF
 timeout 200 python3 -m pytest -q -p no:cacheprovider -k cuda -rs \
     tests/engine/kinds/test_neural_grid.py tests/engine/kinds/test_neural_keyframes.py tests/engine/kinds/test_neural_deformed.py \
     tests/making/training/test_grid_training.py tests/making/training/test_animated_training.py \
-    tests/server/test_queries.py tests/hard_cases/test_engine_hard_cases.py tests/engine/test_collider.py \
+    tests/service/test_queries.py tests/hard_cases/test_engine_hard_cases.py tests/engine/test_collider.py \
     2>&1 | tee "$out/tests.log" || status=1
 timeout 120 python3 benchmarks/neural_query.py --device cuda --model bunny --rounds 5 \
     2>&1 | tee "$out/query.log" || status=1

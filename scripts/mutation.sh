@@ -27,13 +27,13 @@ MODULES=(
   "contract|client/collider_contract/*|tests/contract"
   "collider|server/collider_server/engine/collider.py|tests/engine/test_collider.py tests/engine/test_only_colliding.py tests/engine/test_modelfile.py tests/hard_cases/test_engine_hard_cases.py tests/client/test_backends.py"
   "kinds|server/collider_server/engine/kinds/*|tests/engine/kinds tests/engine/test_modelfile.py tests/engine/test_analytic.py tests/engine/test_only_colliding.py tests/hard_cases/test_engine_hard_cases.py"
-  "batching|server/collider_server/service/batching.py|tests/server/test_batching.py"
+  "batching|server/collider_server/service/batching.py|tests/service/test_batching.py"
   "response|client/collider_client/response.py client/collider_client/physics.py client/collider_client/placement.py|tests/client/test_response.py tests/client/test_newton_adapter.py tests/hard_cases/test_simulator_hard_cases.py"
   "sim|$SIM/cloth.py $SIM/output.py $SIM/run.py $SIM/scene.py $SIM/simulator.py|tests/hard_cases/test_simulator_hard_cases.py tests/client/test_scene.py tests/client/test_simulator.py"
   # The browser views (viser): their pages are built on a real viser server and driven through
   # their controls' callbacks in process; the page itself is also checked in a real browser
-  # (tests/view/test_browser.py, which mutmut cannot see).
-  "views|server/collider_cli/views/*|tests/view/test_view_parts.py tests/view/test_page.py tests/view/test_collider_page.py tests/view/test_cloth_page.py"
+  # (tests/views/test_browser.py, which mutmut cannot see).
+  "views|server/collider_cli/views/*|tests/views/test_view_parts.py tests/views/test_page.py tests/views/test_collider_page.py tests/views/test_cloth_page.py"
 )
 #: The packages, each under server/ or client/, that a scratch copy imports from src/.
 PACKAGES=(client/collider_contract client/collider_client server/collider_server server/collider_cli)

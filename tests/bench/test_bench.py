@@ -366,12 +366,16 @@ def test_quick_bench_measures_every_kind_embedded_and_served_with_plausible_accu
 
 
 @pytest.mark.slow
-def test_budget_bake_picks_the_fastest_collider_that_meets_it_and_checks_it_afresh(quick_bench, tmp_path, bunny):
+def test_budget_bake_picks_the_fastest_collider_that_meets_it_and_checks_it_afresh(quick_bench, tmp_path, bunny,
+                                                                                   capsys):
+    """In this process (the pick is under test, not the interpreter; the bench that made
+    bench.json ran as a user runs it)."""
     out, report, _ = quick_bench
     mesh = bunny
-    result = collider("bake", mesh, "--name", "picked", "--models", tmp_path, "--max-error", "0.1mm",
-                      "--bench", out / "result" / "bench.json", "--quiet", "--cache", out / "cache")
-    assert result.returncode == 0, result.stdout + result.stderr
+    code, stdout, stderr = collider_here(capsys, "bake", mesh, "--name", "picked", "--models", tmp_path,
+                                         "--max-error", "0.1mm", "--bench", out / "result" / "bench.json",
+                                         "--quiet", "--cache", out / "cache")
+    assert code == 0, stdout + stderr
     from collider_server.engine.modelfile import read_info
 
     info = read_info(tmp_path / "picked.safetensors")
@@ -379,28 +383,28 @@ def test_budget_bake_picks_the_fastest_collider_that_meets_it_and_checks_it_afre
     assert info.settings["picked_for_budget"]["candidate"] == expected["name"]
     assert info.kind == expected["kind"]
     assert info.accuracy["band_1mm"]["distance_mean_mm"] <= 0.1  # the fresh evaluation, seed 1234
-    assert "meets the budget" in result.stdout
-    verdict = next(line for line in result.stdout.splitlines() if "meets the budget" in line)
+    assert "meets the budget" in stdout
+    verdict = next(line for line in stdout.splitlines() if "meets the budget" in line)
     assert verdict.endswith(f"meets the budget: mean distance error "
                             f"{info.accuracy['band_1mm']['distance_mean_mm']:.4f} mm <= 0.1 mm")
 
     # A memory limit at the shipped network's size: whatever is picked is what rank() says, and a
     # picked network is the trained model's own file (the shipped bunny is smaller than `mesh`).
     limit = next(r for r in report["colliders"] if r["name"] == "neural-bunny")["memory_bytes"]
-    small = collider("bake", mesh, "--name", "small", "--models", tmp_path, "--max-error", "0.05mm",
-                     "--max-memory", str(limit), "--bench", out / "result" / "bench.json", "--quiet",
-                     "--cache", out / "cache")
-    assert small.returncode == 0, small.stdout + small.stderr
+    code, stdout, stderr = collider_here(capsys, "bake", mesh, "--name", "small", "--models", tmp_path,
+                                         "--max-error", "0.05mm", "--max-memory", str(limit), "--bench",
+                                         out / "result" / "bench.json", "--quiet", "--cache", out / "cache")
+    assert code == 0, stdout + stderr
     info = read_info(tmp_path / "small.safetensors")
     picked = rank(report, Budget(0.05, max_memory_bytes=limit))[0]
     assert info.settings["picked_for_budget"]["candidate"] == picked["name"] and info.kind == picked["kind"]
 
-    nothing = collider("bake", mesh, "--name", "none", "--models", tmp_path, "--max-error", "0.05mm",
-                       "--max-memory", "0.5MB", "--bench", out / "result" / "bench.json", "--quiet",
-                       "--cache", out / "cache")
-    assert nothing.returncode == 1
-    assert "no measured collider meets mean distance error <= 0.05 mm" in nothing.stderr
-    assert "Traceback" not in nothing.stderr and not (tmp_path / "none.safetensors").exists()
+    code, _, stderr = collider_here(capsys, "bake", mesh, "--name", "none", "--models", tmp_path, "--max-error",
+                                    "0.05mm", "--max-memory", "0.5MB", "--bench", out / "result" / "bench.json",
+                                    "--quiet", "--cache", out / "cache")
+    assert code == 1
+    assert "no measured collider meets mean distance error <= 0.05 mm" in stderr
+    assert "Traceback" not in stderr and not (tmp_path / "none.safetensors").exists()
 
 
 @pytest.mark.parametrize("args, message", [

@@ -1,7 +1,7 @@
 """Embedded and remote give the same outcome for every input: bit-identical answers, or the same
 error type with the same message. The inputs are those of the hard-case suite
 (tests/hard_cases/test_engine_hard_cases.py) and of the service's bad-input regression tests
-(tests/server/test_queries.py, test_hardening.py, test_only_colliding.py) that the SDK can express;
+(tests/service/test_queries.py, test_hardening.py, test_only_colliding.py) that the SDK can express;
 both backends answer them through the query contract (collider_contract). Voxel sphere of radius
 0.1 m and box at the origin (tests/client/conftest.py); world frame, metres."""
 

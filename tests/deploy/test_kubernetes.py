@@ -345,7 +345,7 @@ def secret_values(doc: dict) -> list[str]:
 
 def test_no_placeholder_secret_reaches_a_pod():
     """No rendered Secret, ConfigMap or env value holds a token; the Secret is made by hand, and
-    the service refuses a placeholder token (tests/server/test_operations.py)."""
+    the service refuses a placeholder token (tests/service/test_operations.py)."""
     from collider_server.service.settings import PLACEHOLDER_TOKENS
 
     everything = [d for overlay in OVERLAYS for d in cluster(overlay)] + \

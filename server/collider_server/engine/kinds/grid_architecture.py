@@ -11,6 +11,16 @@ from typing import ClassVar
 TABLE_DTYPES = ("float16", "float32", "int8")
 
 
+def require_integers(arch, names, least: int = 1) -> None:
+    """Refuse an architecture whose fields ``names`` are not integers >= ``least`` (a bool is not
+    an integer here): one ``ValueError`` naming the first such field and its value."""
+    for name in names:
+        value = getattr(arch, name)
+        if isinstance(value, bool) or not isinstance(value, int) or value < least:
+            wanted = "a positive integer" if least == 1 else f"an integer >= {least}"
+            raise ValueError(f"architecture {name} must be {wanted}, got {value!r}")
+
+
 @dataclass(frozen=True)
 class GridArchitecture:
     """Shape of a grid network (see the module docstring).
@@ -42,11 +52,8 @@ class GridArchitecture:
     ENCODING: ClassVar[str] = "grid"
 
     def __post_init__(self):
-        for name in ("levels", "features", "base_resolution", "max_resolution", "table_log2",
-                     "hidden_layers", "hidden_width"):
-            value = getattr(self, name)
-            if not isinstance(value, int) or isinstance(value, bool) or value < 1:
-                raise ValueError(f"architecture {name} must be a positive integer, got {value!r}")
+        require_integers(self, ("levels", "features", "base_resolution", "max_resolution", "table_log2",
+                                "hidden_layers", "hidden_width"))
         if self.max_resolution < self.base_resolution:
             raise ValueError(f"max_resolution ({self.max_resolution}) must be >= base_resolution "
                              f"({self.base_resolution})")

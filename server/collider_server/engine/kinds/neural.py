@@ -22,6 +22,7 @@ import numpy as np
 from ..collider import Collider, ColliderInfo
 from ..devices import resolve_device
 from . import grid_kernels
+from .grid_architecture import require_integers
 from .neural_deformed import DeformedGridArchitecture, build_deformed_network
 from .neural_grid import GridArchitecture, build_grid_network, pack_table, unpack_table
 from .neural_keyframes import KeyframeGridArchitecture, build_keyframe_network
@@ -43,10 +44,7 @@ class Architecture:
     fourier_scale: float = 3.0
 
     def __post_init__(self):
-        for name in ("fourier_features", "hidden_layers", "hidden_width"):
-            value = getattr(self, name)
-            if not isinstance(value, int) or value < 1:
-                raise ValueError(f"architecture {name} must be a positive integer, got {value!r}")
+        require_integers(self, ("fourier_features", "hidden_layers", "hidden_width"))
         if not (self.fourier_scale > 0):
             raise ValueError(f"fourier_scale must be > 0, got {self.fourier_scale}")
 

@@ -42,6 +42,7 @@ from typing import ClassVar
 import numpy as np
 
 from . import grid_kernels
+from .grid_architecture import require_integers
 from .grid_cells import cell_corners, dense_row
 from .neural_grid import GridArchitecture, grid_network_class
 
@@ -63,10 +64,8 @@ class DeformedGridArchitecture(GridArchitecture):
 
     def __post_init__(self):
         super().__post_init__()
-        for name, least in (("keyframes", 2), ("deformation_resolution", 1)):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < least:
-                raise ValueError(f"architecture {name} must be an integer >= {least}, got {value!r}")
+        require_integers(self, ("keyframes",), least=2)
+        require_integers(self, ("deformation_resolution",))
 
     def spatial(self) -> GridArchitecture:
         """The rest pose's static grid (same levels, rows and MLP)."""
@@ -108,7 +107,7 @@ def build_deformed_network(arch: DeformedGridArchitecture, centre, radius: float
     and units); see the module docstring."""
     import torch
 
-    base = grid_network_class(arch.spatial())
+    base = grid_network_class()
     resolution = arch.deformation_resolution
 
     class DeformedGridSDF(base):
@@ -116,7 +115,7 @@ def build_deformed_network(arch: DeformedGridArchitecture, centre, radius: float
         fitted, saved in the model file); everything else as the static GridSDF (the rest pose)."""
 
         def __init__(self):
-            super().__init__(centre, radius)
+            super().__init__(arch.spatial(), centre, radius)
             self.register_buffer("deformation", torch.zeros(arch.keyframes, arch.field_nodes(), 3))
 
         # -- the warp ---------------------------------------------------------------------------

@@ -29,7 +29,8 @@ import numpy as np
 
 from . import grid_kernels
 from .fused_encoding import fused_encoding
-from .neural_grid import GridArchitecture, grid_network_class
+from .grid_architecture import require_integers
+from .neural_grid import GridArchitecture, grid_network_class, interpolate, linear_layers
 
 
 @dataclass(frozen=True)
@@ -48,8 +49,7 @@ class KeyframeGridArchitecture(GridArchitecture):
 
     def __post_init__(self):
         super().__post_init__()
-        if isinstance(self.keyframes, bool) or not isinstance(self.keyframes, int) or self.keyframes < 2:
-            raise ValueError(f"architecture keyframes must be an integer >= 2, got {self.keyframes!r}")
+        require_integers(self, ("keyframes",), least=2)
 
     def spatial(self) -> GridArchitecture:
         """The static grid of one keyframe (same levels, rows and MLP)."""
@@ -74,13 +74,13 @@ def build_keyframe_network(arch: KeyframeGridArchitecture, centre, radius: float
     import torch
     from torch import nn
 
-    base = grid_network_class(arch.spatial())
+    base = grid_network_class()
 
     class KeyframeGridSDF(base):
         """``table``: (K, rows, F) keyframe tables; everything else as the static GridSDF."""
 
         def __init__(self):
-            super().__init__(centre, radius)
+            super().__init__(arch.spatial(), centre, radius)
             rows = self.table.shape[0]
             self.table = nn.Parameter(torch.empty(arch.keyframes, rows, arch.features).uniform_(-1e-4, 1e-4))
 
@@ -98,10 +98,7 @@ def build_keyframe_network(arch: KeyframeGridArchitecture, centre, radius: float
             b = frac[:, None, None, None]
             index = key[:, None, None]
             values = (1.0 - b) * self.table[index, rows] + b * self.table[index + 1, rows]  # (n, L, 8, F)
-            features = (weight[..., None] * values).sum(dim=2)
-            if not want_jacobian:
-                return features, None
-            return features, torch.einsum("nlcf,nlcd->nlfd", values, dweight)
+            return interpolate(values, weight, dweight, want_jacobian)
 
         def forward(self, x, key, frac):
             """Distance (n,) at collider-frame points ``x`` (n, 3), each at its own time."""
@@ -142,7 +139,7 @@ def build_keyframe_network(arch: KeyframeGridArchitecture, centre, radius: float
             return distance, gradient, (g * dfeatures).sum(dim=(1, 2)) * self.radius
 
         def _fused_query_at(self, u, table, dtable, want_gradient: bool):
-            linears = [m for m in self.body if isinstance(m, nn.Linear)]
+            linears = linear_layers(self.body)
             out = linears[-1]
             n = len(u)
             distance = np.empty(n, np.float32)

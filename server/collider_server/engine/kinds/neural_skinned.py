@@ -54,6 +54,7 @@ from ..collider import Collider, ColliderInfo
 from ..devices import resolve_device
 from ..skinning import Skeleton, Skin
 from . import grid_kernels
+from .grid_architecture import require_integers
 from .neural_grid import GridArchitecture, build_grid_network, pack_table, unpack_table
 from .skinned import pose_key, resolve_pose, skin_from_tensors, skin_tensors
 
@@ -107,11 +108,8 @@ class ArticulatedGridArchitecture(GridArchitecture):
 
     def __post_init__(self):
         super().__post_init__()
-        may_be_zero = ("skinning_iterations", "fine_weight_resolution", "weight_blocks")
-        for name in ("joints", "pose_slots", "label_resolution", "weight_resolution") + may_be_zero:
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < (0 if name in may_be_zero else 1):
-                raise ValueError(f"architecture {name} must be a positive integer, got {value!r}")
+        require_integers(self, ("joints", "pose_slots", "label_resolution", "weight_resolution"))
+        require_integers(self, ("skinning_iterations", "fine_weight_resolution", "weight_blocks"), least=0)
         if self.fine_weight_resolution % BLOCK_CELLS:
             raise ValueError(f"architecture fine_weight_resolution must be a multiple of {BLOCK_CELLS}, "
                              f"got {self.fine_weight_resolution}")

@@ -10,7 +10,7 @@ import time
 
 import httpx
 import pytest
-from tests.view.chromium import Browser, find_browser
+from tests.views.chromium import Browser, find_browser
 
 from .conftest import ServerThread
 
