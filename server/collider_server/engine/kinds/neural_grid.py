@@ -117,17 +117,22 @@ def grid_network_class(arch: GridArchitecture):
 
         # -- the analytic gradient -----------------------------------------------------------
 
-        def fused_query(self, x, want_gradient: bool, first_bias=None):
+        def fused_query(self, x, want_gradient: bool, first_bias=None, part=None):
             """Distance (n,) and, when asked, gradient (n, 3) at collider-frame points ``x``
             (n, 3) by one fused CPU kernel for the whole network (numba; inference only, the
             query fast path). Same values as :meth:`value_and_gradient`. ``first_bias``
             (hidden_width,) float32 numpy, when given, is added to the first layer's bias (the
-            articulated network's per-part condition, :mod:`.neural_skinned`)."""
+            articulated network's per-part condition, :mod:`.neural_skinned`); with ``part`` (n,)
+            int64 it is (P, hidden_width), one row per part, and point p takes row ``part[p]``."""
             linears = [m for m in self.body if isinstance(m, nn.Linear)]
             u = ((x - self.centre) / self.radius).contiguous().numpy()
             weights = tuple(m.weight.detach().numpy() for m in linears[:-1])
             biases = tuple(m.bias.detach().numpy() for m in linears[:-1])
-            if first_bias is not None:
+            part_biases = None
+            if part is not None:
+                part_biases = np.ascontiguousarray(biases[0] + first_bias, np.float32)
+                part = np.ascontiguousarray(part, np.int64)
+            elif first_bias is not None:
                 biases = (np.ascontiguousarray(biases[0] + first_bias, np.float32),) + biases[1:]
             out = linears[-1]
             n = len(u)
@@ -137,7 +142,7 @@ def grid_network_class(arch: GridArchitecture):
             grid_kernels.network_query(u, self.table.detach().numpy(), spec.resolution, spec.offset, spec.rows,
                                        spec.dense, spec.smooth, weights, biases, out.weight.detach().numpy()[0],
                                        float(out.bias.detach()[0]), float(self.radius), want_gradient,
-                                       distance, gradient)
+                                       distance, gradient, part, part_biases)
             return torch.from_numpy(distance), (torch.from_numpy(gradient) if want_gradient else None)
 
         def can_fuse(self, x) -> bool:

@@ -1012,16 +1012,13 @@ class ArticulatedNeuralCollider(Collider):
         n = len(local)
         best = np.full(n, np.inf)
         best_row = np.zeros(n, np.int64)
-        gradient = np.zeros((len(point), 3)) if want_gradient else None
+        distance, gradient = self._part_values(rest, joint, bias, want_gradient)
         bounds = np.searchsorted(joint, np.arange(self.arch.joints + 1))
-        for j in range(self.arch.joints):
+        for j in range(self.arch.joints):  # the union: the least over a point's parts, the first on a tie
             rows = np.arange(bounds[j], bounds[j + 1])
             if not len(rows):
                 continue
-            d, g = self._part_values(rest[rows], j, bias[j], want_gradient)
-            if want_gradient:
-                gradient[rows] = g
-            at = point[rows]
+            d, at = distance[rows], point[rows]
             better = d < best[at]
             best[at[better]] = d[better]
             best_row[at[better]] = rows[better]
@@ -1039,10 +1036,12 @@ class ArticulatedNeuralCollider(Collider):
             m = blend_at(rest[best_row], moving, self.weights, self.centre, self.radius)
         return best, g, np.einsum("nab,nb->na", m, homogeneous)
 
-    def _part_values(self, rest: np.ndarray, joint: int, bias: np.ndarray, want_gradient: bool):
-        """Distance (m,) and rest-frame gradient (m, 3) (or None) of part ``joint`` at its
-        rest-frame points (m, 3) float64, with the conservative box rule beyond the grid's cube:
-        the value at the cube's nearest point plus the way there (the normal along it)."""
+    def _part_values(self, rest: np.ndarray, joint: np.ndarray, bias: np.ndarray, want_gradient: bool):
+        """Distance (m,) and rest-frame gradient (m, 3) (or None) at rest-frame points (m, 3)
+        float64 of parts ``joint`` (m,) int64, the parts' first biases ``bias`` (J, H) float32
+        (one network call for all parts: the fused kernel takes each point's bias by its part),
+        with the conservative box rule beyond the grid's cube: the value at the cube's nearest
+        point plus the way there (the normal along it)."""
         torch = self._torch
         lo, hi = self.centre - self.radius, self.centre + self.radius
         clamped = np.clip(rest, lo, hi)
@@ -1052,13 +1051,14 @@ class ArticulatedNeuralCollider(Collider):
             threads = torch.get_num_threads()
             grid_kernels.set_threads(threads)
             try:
-                d, g = grid.fused_query(x, want_gradient, bias)
+                d, g = grid.fused_query(x, want_gradient, bias, joint)
             finally:
                 if torch.get_num_threads() != threads:
                     torch.set_num_threads(threads)  # numba's OpenMP pool resets it (neural.py)
         else:
             with torch.inference_mode():
-                code_bias = torch.as_tensor(bias, device=self._device)
+                rows = torch.as_tensor(joint, device=self._device)
+                code_bias = torch.as_tensor(bias, device=self._device)[rows]
                 u = (x - grid.centre) / grid.radius
                 features, jacobian = grid.encode_parts(u, want_gradient)
                 d, gf = grid.head(features, code_bias)
