@@ -641,85 +641,13 @@ if grid_kernels.available():
         return grid_joints, grid_weights, cx, cy, cz, tx, ty, tz, sx, sy, sz
 
     @numba.njit(cache=True, nogil=True)
-    def _blend_one(x, y, z, maps, grid_joints, grid_weights, block_index, block_joints, block_weights, centre,
-                   radius, out, p):  # pragma: no cover
-        """``out[p]`` (3, 4) = the weight-blended ``maps`` at the rest point (x, y, z)."""
-        table_joints, table_weights, cx, cy, cz, tx, ty, tz, _, _, _ = _weight_source(
-            x, y, z, grid_joints, grid_weights, block_index, block_joints, block_weights, centre, radius)
-        for a in range(3):
-            for b in range(4):
-                out[p, a, b] = 0.0
-        total = 0.0
-        for corner in range(8):
-            ox, oy, oz = corner & 1, (corner >> 1) & 1, (corner >> 2) & 1
-            tw = (tx if ox else 1.0 - tx) * (ty if oy else 1.0 - ty) * (tz if oz else 1.0 - tz)
-            i, j, k = cx + ox, cy + oy, cz + oz
-            for slot in range(table_joints.shape[3]):
-                w = tw * table_weights[i, j, k, slot] / 255.0
-                if w == 0.0:
-                    continue
-                total += w
-                joint = table_joints[i, j, k, slot]
-                for a in range(3):
-                    for b in range(4):
-                        out[p, a, b] += w * maps[joint, a, b]
-        scale = 1.0 / max(total, 1e-12)
-        for a in range(3):
-            for b in range(4):
-                out[p, a, b] *= scale
-
-    @numba.njit(cache=True, nogil=True, parallel=True)
-    def _blend_kernel(rest, maps, grid_joints, grid_weights, block_index, block_joints, block_weights, centre, radius,
-                      out):  # pragma: no cover
-        """:func:`blend_at` in one pass over the points (numba): ``out`` (m, 3, 4) overwritten."""
-        for p in numba.prange(rest.shape[0]):
-            _blend_one(rest[p, 0], rest[p, 1], rest[p, 2], maps, grid_joints, grid_weights, block_index, block_joints,
-                       block_weights, centre, radius, out, p)
-
-    @numba.njit(cache=True, nogil=True, parallel=True)
-    def _skinned_rest_kernel(points, rest, maps, grid_joints, grid_weights, block_index, block_joints, block_weights,
-                             centre, radius, iterations, blend, inverse):  # pragma: no cover
-        """:func:`skinned_rest` in one pass over the points (numba): ``rest`` (m, 3) is moved in
-        place, ``inverse`` (m, 3, 3) overwritten; ``blend`` (m, 3, 4) scratch."""
-        for p in numba.prange(points.shape[0]):
-            for _ in range(iterations):
-                _blend_one(rest[p, 0], rest[p, 1], rest[p, 2], maps, grid_joints, grid_weights, block_index,
-                           block_joints, block_weights, centre, radius, blend, p)
-                m = blend[p]
-                c00 = m[1, 1] * m[2, 2] - m[1, 2] * m[2, 1]
-                c01 = m[1, 2] * m[2, 0] - m[1, 0] * m[2, 2]
-                c02 = m[1, 0] * m[2, 1] - m[1, 1] * m[2, 0]
-                det = m[0, 0] * c00 + m[0, 1] * c01 + m[0, 2] * c02
-                det = det if det != 0.0 else 1e-300
-                inv = inverse[p]
-                inv[0, 0], inv[1, 0], inv[2, 0] = c00 / det, c01 / det, c02 / det
-                inv[0, 1] = (m[0, 2] * m[2, 1] - m[0, 1] * m[2, 2]) / det
-                inv[1, 1] = (m[0, 0] * m[2, 2] - m[0, 2] * m[2, 0]) / det
-                inv[2, 1] = (m[0, 1] * m[2, 0] - m[0, 0] * m[2, 1]) / det
-                inv[0, 2] = (m[0, 1] * m[1, 2] - m[0, 2] * m[1, 1]) / det
-                inv[1, 2] = (m[0, 2] * m[1, 0] - m[0, 0] * m[1, 2]) / det
-                inv[2, 2] = (m[0, 0] * m[1, 1] - m[0, 1] * m[1, 0]) / det
-                dx, dy, dz = points[p, 0] - m[0, 3], points[p, 1] - m[1, 3], points[p, 2] - m[2, 3]
-                for a in range(3):
-                    rest[p, a] = inv[a, 0] * dx + inv[a, 1] * dy + inv[a, 2] * dz
-
-
-_newton_kernel = None
-if grid_kernels.available():
-    import numba
-
-    @numba.njit(cache=True, nogil=True)
-    def _newton_terms_one(y0, y1, y2, x, maps, field, centre, radius, f, jac,
-                          r, d, ds):  # pragma: no cover
-        """``f`` (3,) = F and ``jac`` (3, 3) = J_F of :func:`newton_rest` at the rest point (y0, y1,
-        y2) for the posed point ``x`` (3,); returns |F|. ``r`` (3, 4), ``d`` (3, 3), ``ds`` (3,):
-        scratch."""
-        table_joints, table_weights, cx, cy, cz, tx, ty, tz, sx, sy, sz = _weight_source(
-            y0, y1, y2, field[0], field[1], field[2], field[3], field[4], centre, radius)
-        r[:] = 0.0
-        d[:] = 0.0
-        ds[:] = 0.0
-        total = 0.0
+    def _gather_weights(table_joints, table_weights, cx, cy, cz, tx, ty, tz, sx, sy, sz, slot_of, touched, wsum,
+                        dsum):  # pragma: no cover
+        """The 8 corners' weights summed per joint: ``touched[:count]`` the joints, ``wsum[:count]``
+        their interpolated raw weights and ``dsum[:count]`` (count, 3) those weights' derivatives
+        along x, y, z (per collider unit); returns count. ``slot_of`` (J,) int64 all -1 (left so).
+        Summing per joint first leaves each joint's map to be read once, not once per corner."""
+        count = 0
         for corner in range(8):
             ox, oy, oz = corner & 1, (corner >> 1) & 1, (corner >> 2) & 1
             fx = tx if ox else 1.0 - tx
@@ -736,28 +664,80 @@ if grid_kernels.available():
                 if q == 0.0:
                     continue
                 joint = table_joints[i, j, k, slot]
-                w = tw * q
-                total += w
-                ds[0] += d0 * q
-                ds[1] += d1 * q
-                ds[2] += d2 * q
-                for a in range(3):
-                    m = maps[joint, a]
-                    moved = (m[0] * y0 + m[1] * y1 + m[2] * y2 + m[3]) * q
-                    for b in range(4):
-                        r[a, b] += w * m[b]
-                    d[a, 0] += moved * d0
-                    d[a, 1] += moved * d1
-                    d[a, 2] += moved * d2
-        total = max(total, 1e-12)
-        size = 0.0
+                s = slot_of[joint]
+                if s < 0:
+                    s = count
+                    slot_of[joint] = s
+                    touched[s] = joint
+                    wsum[s] = 0.0
+                    dsum[s, 0] = dsum[s, 1] = dsum[s, 2] = 0.0
+                    count += 1
+                wsum[s] += tw * q
+                dsum[s, 0] += d0 * q
+                dsum[s, 1] += d1 * q
+                dsum[s, 2] += d2 * q
+        for s in range(count):
+            slot_of[touched[s]] = -1
+        return count
+
+    @numba.njit(cache=True, nogil=True)
+    def _blend_one(x, y, z, maps, grid_joints, grid_weights, block_index, block_joints, block_weights, centre,
+                   radius, out, p, slot_of, touched, wsum, dsum):  # pragma: no cover
+        """``out[p]`` (3, 4) = the weight-blended ``maps`` at the rest point (x, y, z); the last four:
+        :func:`_gather_weights`' scratch."""
+        table_joints, table_weights, cx, cy, cz, tx, ty, tz, sx, sy, sz = _weight_source(
+            x, y, z, grid_joints, grid_weights, block_index, block_joints, block_weights, centre, radius)
+        count = _gather_weights(table_joints, table_weights, cx, cy, cz, tx, ty, tz, sx, sy, sz, slot_of, touched,
+                                wsum, dsum)
+        total = 0.0
+        for s in range(count):
+            total += wsum[s]
+        scale = 1.0 / max(total, 1e-12)
         for a in range(3):
-            image = (r[a, 0] * y0 + r[a, 1] * y1 + r[a, 2] * y2 + r[a, 3]) / total
-            f[a] = image - x[a]
-            size += f[a] * f[a]
-            for c in range(3):
-                jac[a, c] = (r[a, c] + d[a, c] - image * ds[c]) / total
-        return math.sqrt(size)
+            for b in range(4):
+                value = 0.0
+                for s in range(count):
+                    value += wsum[s] * maps[touched[s], a, b]
+                out[p, a, b] = value * scale
+
+    #: Points per task of the weight passes (each task allocates its scratch once).
+    WEIGHT_CHUNK = 1024
+
+    @numba.njit(cache=True, nogil=True, parallel=True)
+    def _blend_kernel(rest, maps, grid_joints, grid_weights, block_index, block_joints, block_weights, centre, radius,
+                      out):  # pragma: no cover
+        """:func:`blend_at` in one pass over the points (numba): ``out`` (m, 3, 4) overwritten."""
+        n = rest.shape[0]
+        for first in numba.prange((n + WEIGHT_CHUNK - 1) // WEIGHT_CHUNK):
+            slot_of = np.full(maps.shape[0], -1, np.int64)
+            touched = np.empty(8 * GRID_INFLUENCES, np.int64)
+            wsum = np.empty(8 * GRID_INFLUENCES)
+            dsum = np.empty((8 * GRID_INFLUENCES, 3))
+            for p in range(first * WEIGHT_CHUNK, min(n, first * WEIGHT_CHUNK + WEIGHT_CHUNK)):
+                _blend_one(rest[p, 0], rest[p, 1], rest[p, 2], maps, grid_joints, grid_weights, block_index,
+                           block_joints, block_weights, centre, radius, out, p, slot_of, touched, wsum, dsum)
+
+    @numba.njit(cache=True, nogil=True, parallel=True)
+    def _skinned_rest_kernel(points, rest, maps, grid_joints, grid_weights, block_index, block_joints, block_weights,
+                             centre, radius, iterations, blend, inverse):  # pragma: no cover
+        """:func:`skinned_rest` in one pass over the points (numba): ``rest`` (m, 3) is moved in
+        place, ``inverse`` (m, 3, 3) overwritten; ``blend`` (m, 3, 4) scratch."""
+        n = points.shape[0]
+        for first in numba.prange((n + WEIGHT_CHUNK - 1) // WEIGHT_CHUNK):
+            slot_of = np.full(maps.shape[0], -1, np.int64)
+            touched = np.empty(8 * GRID_INFLUENCES, np.int64)
+            wsum = np.empty(8 * GRID_INFLUENCES)
+            dsum = np.empty((8 * GRID_INFLUENCES, 3))
+            for p in range(first * WEIGHT_CHUNK, min(n, first * WEIGHT_CHUNK + WEIGHT_CHUNK)):
+                for _ in range(iterations):
+                    _blend_one(rest[p, 0], rest[p, 1], rest[p, 2], maps, grid_joints, grid_weights, block_index,
+                               block_joints, block_weights, centre, radius, blend, p, slot_of, touched, wsum, dsum)
+                    m = blend[p]
+                    _inverse3(m, inverse[p])
+                    inv = inverse[p]
+                    dx, dy, dz = points[p, 0] - m[0, 3], points[p, 1] - m[1, 3], points[p, 2] - m[2, 3]
+                    for a in range(3):
+                        rest[p, a] = inv[a, 0] * dx + inv[a, 1] * dy + inv[a, 2] * dz
 
     @numba.njit(cache=True, nogil=True)
     def _inverse3(m, out):  # pragma: no cover
@@ -775,6 +755,50 @@ if grid_kernels.available():
         out[1, 2] = (m[0, 2] * m[1, 0] - m[0, 0] * m[1, 2]) / det
         out[2, 2] = (m[0, 0] * m[1, 1] - m[0, 1] * m[1, 0]) / det
 
+
+_newton_kernel = None
+if grid_kernels.available():
+    import numba
+
+    @numba.njit(cache=True, nogil=True)
+    def _newton_terms_one(y0, y1, y2, x, maps, field, centre, radius, f, jac, slot_of, touched, wsum,
+                          dsum):  # pragma: no cover
+        """``f`` (3,) = F and ``jac`` (3, 3) = J_F of :func:`newton_rest` at the rest point (y0, y1,
+        y2) for the posed point ``x`` (3,); returns |F|. The last four: :func:`_gather_weights`'
+        scratch."""
+        table_joints, table_weights, cx, cy, cz, tx, ty, tz, sx, sy, sz = _weight_source(
+            y0, y1, y2, field[0], field[1], field[2], field[3], field[4], centre, radius)
+        count = _gather_weights(table_joints, table_weights, cx, cy, cz, tx, ty, tz, sx, sy, sz, slot_of, touched,
+                                wsum, dsum)
+        total = ds0 = ds1 = ds2 = 0.0
+        for s in range(count):
+            total += wsum[s]
+            ds0 += dsum[s, 0]
+            ds1 += dsum[s, 1]
+            ds2 += dsum[s, 2]
+        total = max(total, 1e-12)
+        size = 0.0
+        for a in range(3):
+            r0 = r1 = r2 = r3 = e0 = e1 = e2 = 0.0
+            for s in range(count):
+                m = maps[touched[s], a]
+                w = wsum[s]
+                r0 += w * m[0]
+                r1 += w * m[1]
+                r2 += w * m[2]
+                r3 += w * m[3]
+                moved = m[0] * y0 + m[1] * y1 + m[2] * y2 + m[3]
+                e0 += moved * dsum[s, 0]
+                e1 += moved * dsum[s, 1]
+                e2 += moved * dsum[s, 2]
+            image = (r0 * y0 + r1 * y1 + r2 * y2 + r3) / total
+            f[a] = image - x[a]
+            size += f[a] * f[a]
+            jac[a, 0] = (r0 + e0 - image * ds0) / total
+            jac[a, 1] = (r1 + e1 - image * ds1) / total
+            jac[a, 2] = (r2 + e2 - image * ds2) / total
+        return math.sqrt(size)
+
     @numba.njit(cache=True, nogil=True, parallel=True)
     def _newton_kernel(points, rest, maps, grid_joints, grid_weights, block_index, block_joints, block_weights, centre,
                        radius, iterations, max_step,
@@ -790,13 +814,15 @@ if grid_kernels.available():
             f_trial = np.empty(3)
             jac_trial = np.empty((3, 3))
             inv = np.empty((3, 3))
-            r = np.empty((3, 4))
-            d = np.empty((3, 3))
-            ds = np.empty(3)
+            slot_of = np.full(maps.shape[0], -1, np.int64)
+            touched = np.empty(8 * GRID_INFLUENCES, np.int64)
+            wsum = np.empty(8 * GRID_INFLUENCES)
+            dsum = np.empty((8 * GRID_INFLUENCES, 3))
             for p in range(first * chunk, min(n, first * chunk + chunk)):
                 x = points[p]
                 y0, y1, y2 = rest[p, 0], rest[p, 1], rest[p, 2]
-                size = _newton_terms_one(y0, y1, y2, x, maps, field, centre, radius, f, jac, r, d, ds)
+                size = _newton_terms_one(y0, y1, y2, x, maps, field, centre, radius, f, jac, slot_of, touched, wsum,
+                                         dsum)
                 for _ in range(iterations):
                     if size <= tolerance:
                         break
@@ -810,7 +836,7 @@ if grid_kernels.available():
                     moved = False
                     for _h in range(halvings + 1):
                         trial = _newton_terms_one(y0 + s0, y1 + s1, y2 + s2, x, maps, field, centre, radius, f_trial,
-                                                  jac_trial, r, d, ds)
+                                                  jac_trial, slot_of, touched, wsum, dsum)
                         if trial < size:  # the terms at the new point are kept for the next step
                             y0, y1, y2 = y0 + s0, y1 + s1, y2 + s2
                             size = trial
