@@ -556,10 +556,9 @@ def carry_to_rest(points: np.ndarray, point: np.ndarray, joint: np.ndarray, rigi
     Returns ``(keep (k,) int64, rest (k, 3), inverse (k, 3, 3))``: the candidates kept (indices
     into the m rows, in order), their rest points and the linear maps that pull a rest-frame
     gradient back to the posed frame (``grad_x = inverse^T grad_rest``)."""
-    rigid_inverse = to_rest[joint, :, :3]
-    x = np.ascontiguousarray(points[point], np.float64)
     if iterations == 0:
-        return np.arange(len(point)), rigid, rigid_inverse
+        return np.arange(len(point)), rigid, to_rest[joint, :, :3]
+    x = np.ascontiguousarray(points[point], np.float64)
     if solver == "fixed-point":
         rest, inverse = skinned_rest(x, rigid, posed, field, centre, radius, iterations, fused)
         converged = np.ones(len(point), bool)
@@ -567,10 +566,12 @@ def carry_to_rest(points: np.ndarray, point: np.ndarray, joint: np.ndarray, rigi
         rest, inverse, converged = _newton_through_grid(x, rigid, posed, field, centre, radius,
                                                         iterations, fused)
     wild = np.flatnonzero(np.einsum("ma,ma->m", rest - rigid, rest - rigid) > (DIVERGED * radius) ** 2)
-    rest[wild], inverse[wild] = rigid[wild], rigid_inverse[wild]
+    rest[wild], inverse[wild] = rigid[wild], to_rest[joint[wild], :, :3]
     has_converged = np.zeros(len(points), bool)
     has_converged[point[converged]] = True
     keep = np.flatnonzero(converged | ~has_converged[point])
+    if len(keep) == len(point):  # nothing dropped: no copies of the rows
+        return keep, rest, inverse
     return keep, rest[keep], inverse[keep]
 
 
@@ -1034,7 +1035,8 @@ class ArticulatedNeuralCollider(Collider):
                                               self.allowed, self.part_boxes)
         keep, rest, inverse = carry_to_rest(local, point, joint, rigid, to_rest, posed, self.weights, self.centre,
                                             self.radius, self.arch.skinning_iterations, self.arch.skinning_solver)
-        point, joint = point[keep], joint[keep]
+        if len(keep) < len(point):
+            point, joint = point[keep], joint[keep]
         n = len(local)
         best = np.full(n, np.inf)
         best_row = np.zeros(n, np.int64)
