@@ -27,8 +27,8 @@ Per-part fields in each joint's rest frame, composed by a minimum (COAP-style), 
   layer gets a per-part bias ``embedding_j + condition @ code_j``; ``code_j`` holds the rotations
   (relative to the rest pose, minus the identity) of joint j against its parent and of its
   children against it (:func:`pose_codes`): what bends the skin near the part. A bias of the
-  first layer is all the condition is, so the fused CPU kernel of the static network answers a
-  part's points unchanged (its first bias replaced).
+  first layer is all the condition is, so the fused CPU kernel of the static network answers
+  all parts' points in one call, each point taking its part's first bias.
 - **Composition**: ``d(x) = min_j f(x_j; j, code_j)`` over the candidates (the union of the
   parts, as the exact kind answers a self-overlapping skin); the normal is the chosen part's
   gradient through its rigid map, ``(A_j^-1)[:3, :3]^T grad f``; the surface velocity is the
