@@ -139,18 +139,24 @@ def mlp_with_gradient(body, features, radius, first_bias=None):
 
 # -- the whole network in one fused CPU kernel ------------------------------------------------
 
-def fused_network_query(network, x, want_gradient: bool, first_bias=None):
+def fused_network_query(network, x, want_gradient: bool, first_bias=None, part=None):
     """Distance (n,) and, when asked, gradient (n, 3) of the grid ``network`` at collider-frame
     points ``x`` (n, 3) by one fused CPU kernel for the whole network (numba; inference only,
     the query fast path). ``first_bias`` (hidden_width,) float32 numpy, when given, is added to
-    the first layer's bias."""
+    the first layer's bias (the articulated network's per-part condition, :mod:`.neural_skinned`);
+    with ``part`` (n,) int64 it is (P, hidden_width), one row per part, and point p takes row
+    ``part[p]``."""
     import torch
 
     linears = linear_layers(network.body)
     u = ((x - network.centre) / network.radius).contiguous().numpy()
     weights = tuple(m.weight.detach().numpy() for m in linears[:-1])
     biases = tuple(m.bias.detach().numpy() for m in linears[:-1])
-    if first_bias is not None:
+    part_biases = None
+    if part is not None:
+        part_biases = np.ascontiguousarray(biases[0] + first_bias, np.float32)
+        part = np.ascontiguousarray(part, np.int64)
+    elif first_bias is not None:
         biases = (np.ascontiguousarray(biases[0] + first_bias, np.float32),) + biases[1:]
     out = linears[-1]
     n = len(u)
@@ -160,7 +166,7 @@ def fused_network_query(network, x, want_gradient: bool, first_bias=None):
     grid_kernels.network_query(u, network.table.detach().numpy(), spec.resolution, spec.offset, spec.rows,
                                spec.dense, spec.smooth, weights, biases, out.weight.detach().numpy()[0],
                                float(out.bias.detach()[0]), float(network.radius), want_gradient,
-                               distance, gradient)
+                               distance, gradient, part, part_biases)
     return torch.from_numpy(distance), (torch.from_numpy(gradient) if want_gradient else None)
 
 
@@ -218,12 +224,12 @@ def grid_network_class():
             """Whether the fused CPU kernels serve points on ``x``'s device."""
             return self.fused and x.device.type == "cpu" and grid_kernels.available()
 
-        def fused_query(self, x, want_gradient: bool, first_bias=None):
+        def fused_query(self, x, want_gradient: bool, first_bias=None, part=None):
             """:func:`fused_network_query` of this network: distance (n,) and, when asked,
             gradient (n, 3) at collider-frame points ``x`` (n, 3); same values as
             :meth:`value_and_gradient`. ``first_bias``: the articulated network's per-part
             condition (:mod:`.neural_skinned`)."""
-            return fused_network_query(self, x, want_gradient, first_bias)
+            return fused_network_query(self, x, want_gradient, first_bias, part)
 
         def value_and_gradient(self, x):
             """Distance (n,) and its gradient (n, 3) at collider-frame points ``x`` (n, 3).

@@ -27,8 +27,8 @@ Per-part fields in each joint's rest frame, composed by a minimum (COAP-style), 
   layer gets a per-part bias ``embedding_j + condition @ code_j``; ``code_j`` holds the rotations
   (relative to the rest pose, minus the identity) of joint j against its parent and of its
   children against it (:func:`pose_codes`): what bends the skin near the part. A bias of the
-  first layer is all the condition is, so the fused CPU kernel of the static network answers a
-  part's points unchanged (its first bias replaced).
+  first layer is all the condition is, so the fused CPU kernel of the static network answers
+  all parts' points in one call, each point taking its part's first bias.
 - **Composition**: ``d(x) = min_j f(x_j; j, code_j)`` over the candidates (the union of the
   parts, as the exact kind answers a self-overlapping skin); the normal is the chosen part's
   gradient through its rigid map, ``(A_j^-1)[:3, :3]^T grad f``; the surface velocity is the
@@ -554,10 +554,9 @@ def carry_to_rest(points: np.ndarray, point: np.ndarray, joint: np.ndarray, rigi
     Returns ``(keep (k,) int64, rest (k, 3), inverse (k, 3, 3))``: the candidates kept (indices
     into the m rows, in order), their rest points and the linear maps that pull a rest-frame
     gradient back to the posed frame (``grad_x = inverse^T grad_rest``)."""
-    rigid_inverse = to_rest[joint, :, :3]
-    x = np.ascontiguousarray(points[point], np.float64)
     if iterations == 0:
-        return np.arange(len(point)), rigid, rigid_inverse
+        return np.arange(len(point)), rigid, to_rest[joint, :, :3]
+    x = np.ascontiguousarray(points[point], np.float64)
     if solver == "fixed-point":
         rest, inverse = skinned_rest(x, rigid, posed, field, centre, radius, iterations, fused)
         converged = np.ones(len(point), bool)
@@ -565,10 +564,12 @@ def carry_to_rest(points: np.ndarray, point: np.ndarray, joint: np.ndarray, rigi
         rest, inverse, converged = _newton_through_grid(x, rigid, posed, field, centre, radius,
                                                         iterations, fused)
     wild = np.flatnonzero(np.einsum("ma,ma->m", rest - rigid, rest - rigid) > (DIVERGED * radius) ** 2)
-    rest[wild], inverse[wild] = rigid[wild], rigid_inverse[wild]
+    rest[wild], inverse[wild] = rigid[wild], to_rest[joint[wild], :, :3]
     has_converged = np.zeros(len(points), bool)
     has_converged[point[converged]] = True
     keep = np.flatnonzero(converged | ~has_converged[point])
+    if len(keep) == len(point):  # nothing dropped: no copies of the rows
+        return keep, rest, inverse
     return keep, rest[keep], inverse[keep]
 
 
@@ -639,85 +640,13 @@ if grid_kernels.available():
         return grid_joints, grid_weights, cx, cy, cz, tx, ty, tz, sx, sy, sz
 
     @numba.njit(cache=True, nogil=True)
-    def _blend_one(x, y, z, maps, grid_joints, grid_weights, block_index, block_joints, block_weights, centre,
-                   radius, out, p):  # pragma: no cover
-        """``out[p]`` (3, 4) = the weight-blended ``maps`` at the rest point (x, y, z)."""
-        table_joints, table_weights, cx, cy, cz, tx, ty, tz, _, _, _ = _weight_source(
-            x, y, z, grid_joints, grid_weights, block_index, block_joints, block_weights, centre, radius)
-        for a in range(3):
-            for b in range(4):
-                out[p, a, b] = 0.0
-        total = 0.0
-        for corner in range(8):
-            ox, oy, oz = corner & 1, (corner >> 1) & 1, (corner >> 2) & 1
-            tw = (tx if ox else 1.0 - tx) * (ty if oy else 1.0 - ty) * (tz if oz else 1.0 - tz)
-            i, j, k = cx + ox, cy + oy, cz + oz
-            for slot in range(table_joints.shape[3]):
-                w = tw * table_weights[i, j, k, slot] / 255.0
-                if w == 0.0:
-                    continue
-                total += w
-                joint = table_joints[i, j, k, slot]
-                for a in range(3):
-                    for b in range(4):
-                        out[p, a, b] += w * maps[joint, a, b]
-        scale = 1.0 / max(total, 1e-12)
-        for a in range(3):
-            for b in range(4):
-                out[p, a, b] *= scale
-
-    @numba.njit(cache=True, nogil=True, parallel=True)
-    def _blend_kernel(rest, maps, grid_joints, grid_weights, block_index, block_joints, block_weights, centre, radius,
-                      out):  # pragma: no cover
-        """:func:`blend_at` in one pass over the points (numba): ``out`` (m, 3, 4) overwritten."""
-        for p in numba.prange(rest.shape[0]):
-            _blend_one(rest[p, 0], rest[p, 1], rest[p, 2], maps, grid_joints, grid_weights, block_index, block_joints,
-                       block_weights, centre, radius, out, p)
-
-    @numba.njit(cache=True, nogil=True, parallel=True)
-    def _skinned_rest_kernel(points, rest, maps, grid_joints, grid_weights, block_index, block_joints, block_weights,
-                             centre, radius, iterations, blend, inverse):  # pragma: no cover
-        """:func:`skinned_rest` in one pass over the points (numba): ``rest`` (m, 3) is moved in
-        place, ``inverse`` (m, 3, 3) overwritten; ``blend`` (m, 3, 4) scratch."""
-        for p in numba.prange(points.shape[0]):
-            for _ in range(iterations):
-                _blend_one(rest[p, 0], rest[p, 1], rest[p, 2], maps, grid_joints, grid_weights, block_index,
-                           block_joints, block_weights, centre, radius, blend, p)
-                m = blend[p]
-                c00 = m[1, 1] * m[2, 2] - m[1, 2] * m[2, 1]
-                c01 = m[1, 2] * m[2, 0] - m[1, 0] * m[2, 2]
-                c02 = m[1, 0] * m[2, 1] - m[1, 1] * m[2, 0]
-                det = m[0, 0] * c00 + m[0, 1] * c01 + m[0, 2] * c02
-                det = det if det != 0.0 else 1e-300
-                inv = inverse[p]
-                inv[0, 0], inv[1, 0], inv[2, 0] = c00 / det, c01 / det, c02 / det
-                inv[0, 1] = (m[0, 2] * m[2, 1] - m[0, 1] * m[2, 2]) / det
-                inv[1, 1] = (m[0, 0] * m[2, 2] - m[0, 2] * m[2, 0]) / det
-                inv[2, 1] = (m[0, 1] * m[2, 0] - m[0, 0] * m[2, 1]) / det
-                inv[0, 2] = (m[0, 1] * m[1, 2] - m[0, 2] * m[1, 1]) / det
-                inv[1, 2] = (m[0, 2] * m[1, 0] - m[0, 0] * m[1, 2]) / det
-                inv[2, 2] = (m[0, 0] * m[1, 1] - m[0, 1] * m[1, 0]) / det
-                dx, dy, dz = points[p, 0] - m[0, 3], points[p, 1] - m[1, 3], points[p, 2] - m[2, 3]
-                for a in range(3):
-                    rest[p, a] = inv[a, 0] * dx + inv[a, 1] * dy + inv[a, 2] * dz
-
-
-_newton_kernel = None
-if grid_kernels.available():
-    import numba
-
-    @numba.njit(cache=True, nogil=True)
-    def _newton_terms_one(y0, y1, y2, x, maps, field, centre, radius, f, jac,
-                          r, d, ds):  # pragma: no cover
-        """``f`` (3,) = F and ``jac`` (3, 3) = J_F of :func:`newton_rest` at the rest point (y0, y1,
-        y2) for the posed point ``x`` (3,); returns |F|. ``r`` (3, 4), ``d`` (3, 3), ``ds`` (3,):
-        scratch."""
-        table_joints, table_weights, cx, cy, cz, tx, ty, tz, sx, sy, sz = _weight_source(
-            y0, y1, y2, field[0], field[1], field[2], field[3], field[4], centre, radius)
-        r[:] = 0.0
-        d[:] = 0.0
-        ds[:] = 0.0
-        total = 0.0
+    def _gather_weights(table_joints, table_weights, cx, cy, cz, tx, ty, tz, sx, sy, sz, slot_of, touched, wsum,
+                        dsum):  # pragma: no cover
+        """The 8 corners' weights summed per joint: ``touched[:count]`` the joints, ``wsum[:count]``
+        their interpolated raw weights and ``dsum[:count]`` (count, 3) those weights' derivatives
+        along x, y, z (per collider unit); returns count. ``slot_of`` (J,) int64 all -1 (left so).
+        Summing per joint first leaves each joint's map to be read once, not once per corner."""
+        count = 0
         for corner in range(8):
             ox, oy, oz = corner & 1, (corner >> 1) & 1, (corner >> 2) & 1
             fx = tx if ox else 1.0 - tx
@@ -734,28 +663,80 @@ if grid_kernels.available():
                 if q == 0.0:
                     continue
                 joint = table_joints[i, j, k, slot]
-                w = tw * q
-                total += w
-                ds[0] += d0 * q
-                ds[1] += d1 * q
-                ds[2] += d2 * q
-                for a in range(3):
-                    m = maps[joint, a]
-                    moved = (m[0] * y0 + m[1] * y1 + m[2] * y2 + m[3]) * q
-                    for b in range(4):
-                        r[a, b] += w * m[b]
-                    d[a, 0] += moved * d0
-                    d[a, 1] += moved * d1
-                    d[a, 2] += moved * d2
-        total = max(total, 1e-12)
-        size = 0.0
+                s = slot_of[joint]
+                if s < 0:
+                    s = count
+                    slot_of[joint] = s
+                    touched[s] = joint
+                    wsum[s] = 0.0
+                    dsum[s, 0] = dsum[s, 1] = dsum[s, 2] = 0.0
+                    count += 1
+                wsum[s] += tw * q
+                dsum[s, 0] += d0 * q
+                dsum[s, 1] += d1 * q
+                dsum[s, 2] += d2 * q
+        for s in range(count):
+            slot_of[touched[s]] = -1
+        return count
+
+    @numba.njit(cache=True, nogil=True)
+    def _blend_one(x, y, z, maps, grid_joints, grid_weights, block_index, block_joints, block_weights, centre,
+                   radius, out, p, slot_of, touched, wsum, dsum):  # pragma: no cover
+        """``out[p]`` (3, 4) = the weight-blended ``maps`` at the rest point (x, y, z); the last four:
+        :func:`_gather_weights`' scratch."""
+        table_joints, table_weights, cx, cy, cz, tx, ty, tz, sx, sy, sz = _weight_source(
+            x, y, z, grid_joints, grid_weights, block_index, block_joints, block_weights, centre, radius)
+        count = _gather_weights(table_joints, table_weights, cx, cy, cz, tx, ty, tz, sx, sy, sz, slot_of, touched,
+                                wsum, dsum)
+        total = 0.0
+        for s in range(count):
+            total += wsum[s]
+        scale = 1.0 / max(total, 1e-12)
         for a in range(3):
-            image = (r[a, 0] * y0 + r[a, 1] * y1 + r[a, 2] * y2 + r[a, 3]) / total
-            f[a] = image - x[a]
-            size += f[a] * f[a]
-            for c in range(3):
-                jac[a, c] = (r[a, c] + d[a, c] - image * ds[c]) / total
-        return math.sqrt(size)
+            for b in range(4):
+                value = 0.0
+                for s in range(count):
+                    value += wsum[s] * maps[touched[s], a, b]
+                out[p, a, b] = value * scale
+
+    #: Points per task of the weight passes (each task allocates its scratch once).
+    WEIGHT_CHUNK = 1024
+
+    @numba.njit(cache=True, nogil=True, parallel=True)
+    def _blend_kernel(rest, maps, grid_joints, grid_weights, block_index, block_joints, block_weights, centre, radius,
+                      out):  # pragma: no cover
+        """:func:`blend_at` in one pass over the points (numba): ``out`` (m, 3, 4) overwritten."""
+        n = rest.shape[0]
+        for first in numba.prange((n + WEIGHT_CHUNK - 1) // WEIGHT_CHUNK):
+            slot_of = np.full(maps.shape[0], -1, np.int64)
+            touched = np.empty(8 * GRID_INFLUENCES, np.int64)
+            wsum = np.empty(8 * GRID_INFLUENCES)
+            dsum = np.empty((8 * GRID_INFLUENCES, 3))
+            for p in range(first * WEIGHT_CHUNK, min(n, first * WEIGHT_CHUNK + WEIGHT_CHUNK)):
+                _blend_one(rest[p, 0], rest[p, 1], rest[p, 2], maps, grid_joints, grid_weights, block_index,
+                           block_joints, block_weights, centre, radius, out, p, slot_of, touched, wsum, dsum)
+
+    @numba.njit(cache=True, nogil=True, parallel=True)
+    def _skinned_rest_kernel(points, rest, maps, grid_joints, grid_weights, block_index, block_joints, block_weights,
+                             centre, radius, iterations, blend, inverse):  # pragma: no cover
+        """:func:`skinned_rest` in one pass over the points (numba): ``rest`` (m, 3) is moved in
+        place, ``inverse`` (m, 3, 3) overwritten; ``blend`` (m, 3, 4) scratch."""
+        n = points.shape[0]
+        for first in numba.prange((n + WEIGHT_CHUNK - 1) // WEIGHT_CHUNK):
+            slot_of = np.full(maps.shape[0], -1, np.int64)
+            touched = np.empty(8 * GRID_INFLUENCES, np.int64)
+            wsum = np.empty(8 * GRID_INFLUENCES)
+            dsum = np.empty((8 * GRID_INFLUENCES, 3))
+            for p in range(first * WEIGHT_CHUNK, min(n, first * WEIGHT_CHUNK + WEIGHT_CHUNK)):
+                for _ in range(iterations):
+                    _blend_one(rest[p, 0], rest[p, 1], rest[p, 2], maps, grid_joints, grid_weights, block_index,
+                               block_joints, block_weights, centre, radius, blend, p, slot_of, touched, wsum, dsum)
+                    m = blend[p]
+                    _inverse3(m, inverse[p])
+                    inv = inverse[p]
+                    dx, dy, dz = points[p, 0] - m[0, 3], points[p, 1] - m[1, 3], points[p, 2] - m[2, 3]
+                    for a in range(3):
+                        rest[p, a] = inv[a, 0] * dx + inv[a, 1] * dy + inv[a, 2] * dz
 
     @numba.njit(cache=True, nogil=True)
     def _inverse3(m, out):  # pragma: no cover
@@ -773,6 +754,50 @@ if grid_kernels.available():
         out[1, 2] = (m[0, 2] * m[1, 0] - m[0, 0] * m[1, 2]) / det
         out[2, 2] = (m[0, 0] * m[1, 1] - m[0, 1] * m[1, 0]) / det
 
+
+_newton_kernel = None
+if grid_kernels.available():
+    import numba
+
+    @numba.njit(cache=True, nogil=True)
+    def _newton_terms_one(y0, y1, y2, x, maps, field, centre, radius, f, jac, slot_of, touched, wsum,
+                          dsum):  # pragma: no cover
+        """``f`` (3,) = F and ``jac`` (3, 3) = J_F of :func:`newton_rest` at the rest point (y0, y1,
+        y2) for the posed point ``x`` (3,); returns |F|. The last four: :func:`_gather_weights`'
+        scratch."""
+        table_joints, table_weights, cx, cy, cz, tx, ty, tz, sx, sy, sz = _weight_source(
+            y0, y1, y2, field[0], field[1], field[2], field[3], field[4], centre, radius)
+        count = _gather_weights(table_joints, table_weights, cx, cy, cz, tx, ty, tz, sx, sy, sz, slot_of, touched,
+                                wsum, dsum)
+        total = ds0 = ds1 = ds2 = 0.0
+        for s in range(count):
+            total += wsum[s]
+            ds0 += dsum[s, 0]
+            ds1 += dsum[s, 1]
+            ds2 += dsum[s, 2]
+        total = max(total, 1e-12)
+        size = 0.0
+        for a in range(3):
+            r0 = r1 = r2 = r3 = e0 = e1 = e2 = 0.0
+            for s in range(count):
+                m = maps[touched[s], a]
+                w = wsum[s]
+                r0 += w * m[0]
+                r1 += w * m[1]
+                r2 += w * m[2]
+                r3 += w * m[3]
+                moved = m[0] * y0 + m[1] * y1 + m[2] * y2 + m[3]
+                e0 += moved * dsum[s, 0]
+                e1 += moved * dsum[s, 1]
+                e2 += moved * dsum[s, 2]
+            image = (r0 * y0 + r1 * y1 + r2 * y2 + r3) / total
+            f[a] = image - x[a]
+            size += f[a] * f[a]
+            jac[a, 0] = (r0 + e0 - image * ds0) / total
+            jac[a, 1] = (r1 + e1 - image * ds1) / total
+            jac[a, 2] = (r2 + e2 - image * ds2) / total
+        return math.sqrt(size)
+
     @numba.njit(cache=True, nogil=True, parallel=True)
     def _newton_kernel(points, rest, maps, grid_joints, grid_weights, block_index, block_joints, block_weights, centre,
                        radius, iterations, max_step,
@@ -788,13 +813,15 @@ if grid_kernels.available():
             f_trial = np.empty(3)
             jac_trial = np.empty((3, 3))
             inv = np.empty((3, 3))
-            r = np.empty((3, 4))
-            d = np.empty((3, 3))
-            ds = np.empty(3)
+            slot_of = np.full(maps.shape[0], -1, np.int64)
+            touched = np.empty(8 * GRID_INFLUENCES, np.int64)
+            wsum = np.empty(8 * GRID_INFLUENCES)
+            dsum = np.empty((8 * GRID_INFLUENCES, 3))
             for p in range(first * chunk, min(n, first * chunk + chunk)):
                 x = points[p]
                 y0, y1, y2 = rest[p, 0], rest[p, 1], rest[p, 2]
-                size = _newton_terms_one(y0, y1, y2, x, maps, field, centre, radius, f, jac, r, d, ds)
+                size = _newton_terms_one(y0, y1, y2, x, maps, field, centre, radius, f, jac, slot_of, touched, wsum,
+                                         dsum)
                 for _ in range(iterations):
                     if size <= tolerance:
                         break
@@ -808,7 +835,7 @@ if grid_kernels.available():
                     moved = False
                     for _h in range(halvings + 1):
                         trial = _newton_terms_one(y0 + s0, y1 + s1, y2 + s2, x, maps, field, centre, radius, f_trial,
-                                                  jac_trial, r, d, ds)
+                                                  jac_trial, slot_of, touched, wsum, dsum)
                         if trial < size:  # the terms at the new point are kept for the next step
                             y0, y1, y2 = y0 + s0, y1 + s1, y2 + s2
                             size = trial
@@ -1006,20 +1033,18 @@ class ArticulatedNeuralCollider(Collider):
                                               self.allowed, self.part_boxes)
         keep, rest, inverse = carry_to_rest(local, point, joint, rigid, to_rest, posed, self.weights, self.centre,
                                             self.radius, self.arch.skinning_iterations, self.arch.skinning_solver)
-        point, joint = point[keep], joint[keep]
+        if len(keep) < len(point):
+            point, joint = point[keep], joint[keep]
         n = len(local)
         best = np.full(n, np.inf)
         best_row = np.zeros(n, np.int64)
-        gradient = np.zeros((len(point), 3)) if want_gradient else None
+        distance, gradient = self._part_values(rest, joint, bias, want_gradient)
         bounds = np.searchsorted(joint, np.arange(self.arch.joints + 1))
-        for j in range(self.arch.joints):
+        for j in range(self.arch.joints):  # the union: the least over a point's parts, the first on a tie
             rows = np.arange(bounds[j], bounds[j + 1])
             if not len(rows):
                 continue
-            d, g = self._part_values(rest[rows], j, bias[j], want_gradient)
-            if want_gradient:
-                gradient[rows] = g
-            at = point[rows]
+            d, at = distance[rows], point[rows]
             better = d < best[at]
             best[at[better]] = d[better]
             best_row[at[better]] = rows[better]
@@ -1037,10 +1062,12 @@ class ArticulatedNeuralCollider(Collider):
             m = blend_at(rest[best_row], moving, self.weights, self.centre, self.radius)
         return best, g, np.einsum("nab,nb->na", m, homogeneous)
 
-    def _part_values(self, rest: np.ndarray, joint: int, bias: np.ndarray, want_gradient: bool):
-        """Distance (m,) and rest-frame gradient (m, 3) (or None) of part ``joint`` at its
-        rest-frame points (m, 3) float64, with the conservative box rule beyond the grid's cube:
-        the value at the cube's nearest point plus the way there (the normal along it)."""
+    def _part_values(self, rest: np.ndarray, joint: np.ndarray, bias: np.ndarray, want_gradient: bool):
+        """Distance (m,) and rest-frame gradient (m, 3) (or None) at rest-frame points (m, 3)
+        float64 of parts ``joint`` (m,) int64, the parts' first biases ``bias`` (J, H) float32
+        (one network call for all parts: the fused kernel takes each point's bias by its part),
+        with the conservative box rule beyond the grid's cube: the value at the cube's nearest
+        point plus the way there (the normal along it)."""
         torch = self._torch
         lo, hi = self.centre - self.radius, self.centre + self.radius
         clamped = np.clip(rest, lo, hi)
@@ -1050,13 +1077,14 @@ class ArticulatedNeuralCollider(Collider):
             threads = torch.get_num_threads()
             grid_kernels.set_threads(threads)
             try:
-                d, g = grid.fused_query(x, want_gradient, bias)
+                d, g = grid.fused_query(x, want_gradient, bias, joint)
             finally:
                 if torch.get_num_threads() != threads:
                     torch.set_num_threads(threads)  # numba's OpenMP pool resets it (neural.py)
         else:
             with torch.inference_mode():
-                code_bias = torch.as_tensor(bias, device=self._device)
+                rows = torch.as_tensor(joint, device=self._device)
+                code_bias = torch.as_tensor(bias, device=self._device)[rows]
                 u = (x - grid.centre) / grid.radius
                 features, jacobian = grid.encode_parts(u, want_gradient)
                 d, gf = grid.head(features, code_bias)

@@ -119,8 +119,8 @@ if numba is not None:
 
     @numba.njit(cache=True, fastmath=True, nogil=True)
     def _query_block(u, order, start, m, table, dtable, resolution, offset, rows, dense, smooth, weights,
-                     biases, w_out, b_out, scale, want_gradient, distance, gradient, dtime, ub, corner_rows,
-                     corner_weights, feature, dfeature, jac, act, g, g_next, out):
+                     biases, w_out, b_out, scale, want_gradient, distance, gradient, dtime, part, part_biases,
+                     ub, corner_rows, corner_weights, feature, dfeature, jac, act, g, g_next, out):
         """One block of ``network_query_timed``: its ``m`` points from ``start`` in ``order``,
         with the scratch arrays of its run."""
         depth = len(weights)
@@ -136,6 +136,11 @@ if numba is not None:
             w = weights[k]
             for o in range(w.shape[0]):
                 act[k, o, :] = biases[k][o]
+            if k == 0 and part.shape[0] > 0:  # each point's own first bias (its part's)
+                for q in range(m):
+                    row = part_biases[part[order[start + q]]]
+                    for o in range(w.shape[0]):
+                        act[0, o, q] = row[o]
             _multiply_add(w, feature if k == 0 else act[k - 1], act[k])
             for o in range(w.shape[0]):
                 s = act[k, o]
@@ -185,7 +190,7 @@ if numba is not None:
                 dtime[order[start + q]] = gt * scale
 
     def network_query_timed(u, table, dtable, resolution, offset, rows, dense, smooth, weights, biases, w_out,
-                            b_out, scale, want_gradient, distance, gradient, dtime):
+                            b_out, scale, want_gradient, distance, gradient, dtime, part=None, part_biases=None):
         """The whole network at normalised points ``u`` (n, 3), fused: encoding, ReLU MLP
         (``weights[k]`` (out, in), ``biases[k]`` (out,)), linear output ``w_out`` (in,),
         ``b_out``; ``distance`` (n,) = output * ``scale``; when ``want_gradient``, ``gradient``
@@ -195,16 +200,22 @@ if numba is not None:
         d features . the encoding of ``dtable``. Points sorted by bucket (``_bucket_order``), then
         in blocks of QUERY_BLOCK points (``_query_block``): the encoding, the MLP forward and
         backward for the whole block, each loop's point index innermost (float32 SIMD); scratch
-        arrays allocated once per run of blocks. Inference only."""
+        arrays allocated once per run of blocks. Inference only. With ``part`` (n,) int64 and
+        ``part_biases`` (P, out of the first layer) float32, point p's first layer takes the bias
+        ``part_biases[part[p]]`` in place of ``biases[0]`` (the articulated network's parts in one
+        call, :mod:`.neural_skinned`)."""
+        if part is None:
+            part = np.zeros(0, np.int64)
+            part_biases = np.zeros((0, weights[0].shape[0]), np.float32)
         # Scratch arrays once per run of blocks (not per block); 8 runs per thread balance the load.
         blocks = (len(u) + QUERY_BLOCK - 1) // QUERY_BLOCK
         _network_query(u, table, dtable, resolution, offset, rows, dense, smooth, weights, biases, w_out,
-                       b_out, scale, want_gradient, distance, gradient, dtime,
+                       b_out, scale, want_gradient, distance, gradient, dtime, part, part_biases,
                        min(blocks, 8 * numba.get_num_threads()))
 
     @numba.njit(cache=True, fastmath=True, nogil=True, parallel=True)
     def _network_query(u, table, dtable, resolution, offset, rows, dense, smooth, weights, biases, w_out,
-                       b_out, scale, want_gradient, distance, gradient, dtime, runs):
+                       b_out, scale, want_gradient, distance, gradient, dtime, part, part_biases, runs):
         """``network_query_timed`` in ``runs`` runs of blocks."""
         n = u.shape[0]
         n_in = resolution.shape[0] * table.shape[1]
@@ -229,12 +240,13 @@ if numba is not None:
             for b in range(run * blocks // runs, (run + 1) * blocks // runs):
                 _query_block(u, order, b * block, min(n, b * block + block) - b * block, table, dtable,
                              resolution, offset, rows, dense, smooth, weights, biases, w_out, b_out,
-                             scale, want_gradient, distance, gradient, dtime, ub, corner_rows, corner_weights,
+                             scale, want_gradient, distance, gradient, dtime, part, part_biases, ub, corner_rows,
+                             corner_weights,
                              feature, dfeature, jac, act, g, g_next, out)
 
     def network_query(u, table, resolution, offset, rows, dense, smooth, weights, biases, w_out, b_out,
-                      scale, want_gradient, distance, gradient):
+                      scale, want_gradient, distance, gradient, part=None, part_biases=None):
         """``network_query_timed`` of a static network (no time derivative)."""
         network_query_timed(u, table, np.zeros((0, table.shape[1]), table.dtype), resolution, offset, rows,
                             dense, smooth, weights, biases, w_out, b_out, scale, want_gradient, distance,
-                            gradient, np.zeros(0, np.float32))
+                            gradient, np.zeros(0, np.float32), part, part_biases)
