@@ -26,9 +26,9 @@ def test_bench_of_a_character_measures_both_kinds_at_clip_times_and_random_poses
                                  "--steps", 20, "--samples", 8000, "--batch-size", 1024, "--threads", 1,
                                  "--models", tmp_path / "models", "--quiet")
     assert code == 0, err
-    code, out, err = collider_here(capsys, "bench", SAMPLE, "--fit-size", 1.0, "--quick", "--sizes", "2000",
-                                   "--accuracy-points", 600, "--times", 2, "--poses", 3, "--repeats", 3,
-                                   "--cell-seconds", 0.2, "--threads", 1, "--models", tmp_path / "models",
+    code, out, err = collider_here(capsys, "bench", SAMPLE, "--fit-size", 1.0, "--quick", "--sizes", "500",
+                                   "--accuracy-points", 300, "--times", 2, "--poses", 3, "--repeats", 3,
+                                   "--cell-seconds", 0.1, "--threads", 1, "--models", tmp_path / "models",
                                    "--output", tmp_path / "out", "--cache", tmp_path / "cache", "--quiet")
     assert code == 0, err
     report = json.loads((tmp_path / "out" / "bench.json").read_text())
@@ -39,10 +39,10 @@ def test_bench_of_a_character_measures_both_kinds_at_clip_times_and_random_poses
         assert [p["perturbed"] for p in accuracy["clip_times"]["poses"]] == [False] * 2
         assert [p["perturbed"] for p in accuracy["random_poses"]["poses"]] == [True] * 3
         for part in ("clip_times", "random_poses"):
-            assert accuracy[part]["band_1mm"]["points"] == 600 and accuracy[part]["band_10mm"]["points"] == 600
+            assert accuracy[part]["band_1mm"]["points"] == 300 and accuracy[part]["band_10mm"]["points"] == 300
         assert accuracy["band_1mm"] == accuracy["random_poses"]["band_1mm"]  # what the tables rank by
         cells = {(t["path"], t["mode"], t["points"]) for t in row["timings"]}
-        assert cells == {(p, m, 2000) for p in ("embedded", "served") for m in SKINNED_MODES}
+        assert cells == {(p, m, 500) for p in ("embedded", "served") for m in SKINNED_MODES}
     # The same poses for both candidates; the exact kind is the truth itself at every one of them.
     assert rows["skinned"]["accuracy"]["random_poses"]["poses"] == \
         rows["neural-cylinder-neural"]["accuracy"]["random_poses"]["poses"]
@@ -57,7 +57,7 @@ def test_bench_of_a_character_measures_both_kinds_at_clip_times_and_random_poses
     assert "Skinned: 2 joints, clips animation 0. Errors at 2 random clip times" in markdown
     assert "Errors against the exact skin (its union) at 3 random poses" in markdown
     assert "| collider | clip times | random poses |" in markdown
-    assert "Reference time: distance+normal+contact+velocity, random pose on 2k points" in markdown
+    assert "Reference time: distance+normal+contact+velocity, random pose on 500 points" in markdown
     assert "| neural-skinned cylinder-neural | " in out
 
 

@@ -67,6 +67,10 @@ class SkinnedPlanConfig:
                 raise ValueError(f"{option} must be a positive number of random {option[2:]}, got {value!r}")
 
 
+#: ``collider bench --quick CHARACTER``: fewer poses.
+QUICK_PLAN = SkinnedPlanConfig(times=4, poses=4)
+
+
 def plan_skinned(sha256: str, transform: np.ndarray, config: SkinnedPlanConfig, models_root: Path | None,
                  mesh_path: str) -> Plan:
     """The candidates of the character file with ``sha256``, placed by ``transform`` (4, 4)."""

@@ -47,7 +47,7 @@ def register(subparsers) -> None:
                     "spread, process CPU time; unstable figures retimed, no front called from "
                     "them: docs/accuracy.md). Writes bench.json (every raw figure and the machine), "
                     "bench.md (tables) and bench-DEVICE.png (error vs time, Pareto front).")
-    bench.add_argument("mesh", help="mesh file (OBJ, PLY, STL, OFF, GLB)")
+    bench.add_argument("mesh", help="mesh file (OBJ, PLY, STL, OFF, GLB), or a skinned character (glTF with a skin, USD)")
     add_placement_arguments(bench)
     bench.add_argument("--quick", action="store_true",
                        help="a small run (about a minute): 10k and 40k points, voxel 32 and 64, 5 rounds")
@@ -96,8 +96,8 @@ def register(subparsers) -> None:
     skinned = bench.add_argument_group(
         "skinned characters", "when MESH is a skinned character (glTF with a skin, USD), its exact skinned "
         "kind and the articulated networks (kind neural-skinned) of --models made from it are benched: errors "
-        "at --times random clip times (asked by clip and time) and at --poses random poses (every joint turned "
-        "by up to 15 deg, asked by joint transforms), apart, against the exact skin at each pose; queries "
+        "at --times random clip times (asked by clip and time) and at --poses random poses (every joint turned, "
+        "asked by joint transforms), apart, against the exact skin at each pose; queries "
         "(distance, and distance+normal+contact+velocity) at one random clip time and at one random pose; "
         "--kinds: some of skinned,neural-skinned; --loop as the model; --quick: 4 times, 4 poses")
     skinned.add_argument("--poses", type=int, default=None,
@@ -240,7 +240,7 @@ def run_skinned(args, config, cache: Path) -> dict:
     from collider_server.making.characters import skinned_from_file
     from collider_server.making.placement import MeshPlacement
 
-    from ..bench.skinned import SkinnedPlanConfig, run_skinned_bench
+    from ..bench.skinned import QUICK_PLAN, SkinnedPlanConfig, run_skinned_bench
     from .options import placement_from_args
 
     kept = [option for option, value in (("--resolutions", args.resolutions), ("--max-memory", args.max_memory),
@@ -250,9 +250,7 @@ def run_skinned(args, config, cache: Path) -> dict:
         raise ValueError(f"{', '.join(kept)}: not for a skinned character; its bench measures the exact skinned "
                          f"kind and the articulated networks of the repository (train one with `collider train "
                          f"{args.mesh} --name NAME`)")
-    plan = SkinnedPlanConfig()
-    if args.quick:
-        plan = dataclasses.replace(plan, times=4, poses=4)
+    plan = QUICK_PLAN if args.quick else SkinnedPlanConfig()
     if args.kinds is not None:
         plan = dataclasses.replace(plan, kinds=tuple(k.strip() for k in args.kinds.split(",") if k.strip()))
     if args.times is not None:
