@@ -208,13 +208,16 @@ def _devices_of(candidate: Candidate, devices) -> list[str]:
 
 def time_all(candidates: list[Candidate], colliders: dict, devices, points: np.ndarray, config: BenchConfig,
              cache: Path, rows: dict, show_progress: bool, modes: dict = MODES,
-             reference_mode: str = REFERENCE_MODE, at: float | None = None) -> dict:
+             reference_mode: str = REFERENCE_MODE, at: float | None = None,
+             asked: dict[str, dict] | None = None) -> dict:
     """Time every cell of every candidate in interleaved rounds (:mod:`.timing`): embedded, and
     behind one real ``collider serve`` per device when served is asked for. Appends each cell's
     figures to its row (also when interrupted); returns the run's timing summary.
 
     modes : the query modes timed (name -> fields); reference_mode : the one ranked by
-    at : seconds, when animated colliders are asked (every call at this one time)"""
+    at : seconds, when animated colliders are asked (every call at this one time)
+    asked : per mode, the pose keywords of its queries (a skinned collider's ``clip`` and
+        ``time``, or ``joint_transforms``), instead of ``at``"""
     from contextlib import ExitStack
 
     policy = config.timing
@@ -246,8 +249,10 @@ def time_all(candidates: list[Candidate], colliders: dict, devices, points: np.n
                         for path in config.paths:
                             if path == "served" and device not in clients:
                                 continue
+                            keywords = asked[mode] if asked is not None else {"time": at}
                             call, clocks = _query_call(path, embedded.get((candidate.name, device)),
-                                                       clients.get(device), candidate.name, device, fields, at)
+                                                       clients.get(device), candidate.name, device, fields,
+                                                       keywords)
                             timing = Timing(path, device, mode, size,
                                             reference=(mode == reference_mode and size == biggest
                                                        and path == "embedded"))
@@ -296,17 +301,18 @@ def _load_on(candidate: Candidate, device: str):
     return load_collider(candidate.path, device)
 
 
-def _query_call(path: str, collider, client, name: str, device: str, fields, at: float | None = None):
-    """``(call(points), cpu clocks)`` of one (collider, path, device, fields), at ``at`` seconds."""
+def _query_call(path: str, collider, client, name: str, device: str, fields, keywords: dict):
+    """``(call(points), cpu clocks)`` of one (collider, path, device, fields), asked with the
+    query's pose ``keywords`` (``time``; a skinned collider's ``clip``, ``joint_transforms``)."""
     if path == "embedded":
         def call(chunk):
-            result = collider.query(chunk, fields, time=at)
+            result = collider.query(chunk, fields, **keywords)
             if device != "cpu":
                 _synchronize(device)
             return result
 
         return call, (process_cpu_clock(),)
-    return (lambda chunk: client.query(name, chunk, fields=fields, time=at)), (process_cpu_clock(),
+    return (lambda chunk: client.query(name, chunk, fields=fields, **keywords)), (process_cpu_clock(),
                                                                               client.server_cpu_clock)
 
 

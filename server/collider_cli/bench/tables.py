@@ -74,9 +74,12 @@ def _digits(value: float) -> int:
 def accuracy_table(report: dict) -> str:
     """Errors against the exact SDF in the +-1 mm and +-10 mm bands, build cost and memory."""
     n = report["config"]["accuracy_points"]
-    animation = report.get("animation")
+    animation, skinned = report.get("animation"), report.get("skinned")
     against = ("the exact SDF" if animation is None else
                f"the exact interpolated mesh at {len(animation['times_s'])} random times (above), pooled,")
+    if skinned:
+        against = (f"the exact skin (its union) at {report['config']['plan']['poses']} random poses (above; "
+                   "the clip times in the table below), pooled,")
     out = [(f"Errors against {against} on {n:,} points per band (mm, deg); sign errors among "
            "points with abs(d) > 0.2 mm; memory: what the collider holds."), "",
            ("| collider | +-1 mm: distance mean / p99 / max | sign | normal mean / p99 | "
@@ -145,7 +148,8 @@ def summary(report: dict) -> str:
         f"{_load(m['load_average_start'])} at start, {_load(m['load_average_end'])} at the end; "
         f"{report['seconds'] / 60:.1f} min in all"
         + (f"; {timing_info['rounds']} timing rounds" if timing_info.get("rounds") else "") + ".", "",
-        *_mesh_lines(report), *_animation_lines(report), time_tables(report), "", accuracy_table(report), "",
+        *_mesh_lines(report), *_animation_lines(report), *_skinned_lines(report), time_tables(report), "",
+        accuracy_table(report), "", *_pose_set_table(report),
         ratio_table(report), "",
     ]
     for device in report["config"]["devices"]:
@@ -170,6 +174,38 @@ def _animation_lines(report: dict) -> list[str]:
             f"{'looping' if a['loop'] else 'clamped'}. Errors at {len(a['times_s'])} random times drawn uniformly "
             f"over [0, {a['duration_s']:g}) s (between frames): {times} s; every query timed at "
             f"t = {a['timing_time_s']:.4f} s."), ""]
+
+
+def _skinned_lines(report: dict) -> list[str]:
+    """A skinned bench's character, its pose sets and the poses its queries were timed at."""
+    s = report.get("skinned")
+    if not s:
+        return []
+    plan, at = report["config"]["plan"], s["timed_at"]
+    return [(f"Skinned: {s['joints']} joints, clips {', '.join(str(c) for c in s['clips']) or 'none'}. Errors at "
+             f"{plan['times']} random clip times (asked by clip and time) and at {plan['poses']} random poses "
+             f"(random clip times, every joint's local rotation then turned by up to {s['perturb_deg']:g} deg; asked "
+             f"by joint transforms), apart; queries timed at clip {at['clip_times']['clip']} "
+             f"t = {at['clip_times']['time_s']:.4f} s (clip time) and at one more random pose (random pose)."), ""]
+
+
+def _pose_set_table(report: dict) -> list[str]:
+    """A skinned bench's +-1 mm band errors in each pose set, side by side."""
+    from collider_server.making.evaluation import SKINNED_POSE_SETS
+
+    if not report.get("skinned"):
+        return []
+    out = ["+-1 mm band per pose set (mm, deg): distance mean / p99 / max, sign errors, normal mean.", "",
+           "| collider | " + " | ".join(n.replace("_", " ") for n in SKINNED_POSE_SETS) + " |",
+           "|---|" + "---|" * len(SKINNED_POSE_SETS)]
+    for r in report["colliders"]:
+        cells = []
+        for name in SKINNED_POSE_SETS:
+            a = r["accuracy"][name]["band_1mm"]
+            cells.append(f"{a['distance_mean_mm']:.4f} / {a['distance_p99_mm']:.3f} / {a['distance_max_mm']:.3f}, "
+                         f"{a['sign_errors_percent']:.3f} %, {a['normal_mean_deg']:.2f}")
+        out.append(f"| {r['label']} | " + " | ".join(cells) + " |")
+    return [*out, ""]
 
 
 def _mesh_lines(report: dict) -> list[str]:

@@ -38,6 +38,10 @@ ANIMATED_MODES: dict[str, tuple[str, ...]] = {
     "distance": ("distance",),
     "distance+normal+contact+velocity": ("distance", "normal", "contact", "velocity"),
 }
+#: A skinned collider's: the animated modes at a clip time (asked by clip and time) and at a random
+#: pose (asked by joint transforms, the joints still).
+SKINNED_MODES: dict[str, tuple[str, ...]] = {
+    f"{mode}, {where}": fields for where in ("clip time", "random pose") for mode, fields in ANIMATED_MODES.items()}
 
 
 @dataclass(frozen=True)

@@ -47,7 +47,7 @@ def register(subparsers) -> None:
                     "spread, process CPU time; unstable figures retimed, no front called from "
                     "them: docs/accuracy.md). Writes bench.json (every raw figure and the machine), "
                     "bench.md (tables) and bench-DEVICE.png (error vs time, Pareto front).")
-    bench.add_argument("mesh", help="mesh file (OBJ, PLY, STL, OFF, GLB)")
+    bench.add_argument("mesh", help="mesh file (OBJ, PLY, STL, OFF, GLB), or a skinned character (glTF with a skin, USD)")
     add_placement_arguments(bench)
     bench.add_argument("--quick", action="store_true",
                        help="a small run (about a minute): 10k and 40k points, voxel 32 and 64, 5 rounds")
@@ -91,7 +91,17 @@ def register(subparsers) -> None:
     animated.add_argument("--keyframes", default=None,
                           help="voxel keyframe counts, 'all' = one per frame (default 5,13,all)")
     animated.add_argument("--times", type=int, default=None,
-                          help="random times the errors are measured at (default 8)")
+                          help="random times the errors are measured at (default 8; a character: random clip "
+                               "times)")
+    skinned = bench.add_argument_group(
+        "skinned characters", "when MESH is a skinned character (glTF with a skin, USD), its exact skinned "
+        "kind and the articulated networks (kind neural-skinned) of --models made from it are benched: errors "
+        "at --times random clip times (asked by clip and time) and at --poses random poses (every joint turned, "
+        "asked by joint transforms), apart, against the exact skin at each pose; queries "
+        "(distance, and distance+normal+contact+velocity) at one random clip time and at one random pose; "
+        "--kinds: some of skinned,neural-skinned; --loop as the model; --quick: 4 times, 4 poses")
+    skinned.add_argument("--poses", type=int, default=None,
+                         help="random poses off the clips the errors are measured at (default 8)")
     bench.add_argument("--output", type=Path, default=None,
                        help="folder of the results: bench.json, bench.md, bench-DEVICE.png (default out/bench-MESH)")
     add_cache_argument(bench)
@@ -99,13 +109,15 @@ def register(subparsers) -> None:
     bench.set_defaults(func=run_bench_command)
 
 
-def bench_config(args):
+def bench_config(args, character: bool = False):
+    """The :class:`~collider_cli.bench.run.BenchConfig` of the options (``character``: a skinned
+    character's bench, whose --kinds are its own)."""
     from ..bench import QUICK, BenchConfig
     from ..bench.budget import size_bytes
 
     base = QUICK if args.quick else BenchConfig()
     plan = base.plan
-    if args.kinds is not None:
+    if args.kinds is not None and not character:
         plan = dataclasses.replace(plan, kinds=tuple(k.strip() for k in args.kinds.split(",") if k.strip()))
     if args.resolutions is not None:
         plan = dataclasses.replace(plan, resolutions=_ints(args.resolutions))
@@ -157,16 +169,23 @@ def animated_plan_config(args):
 
 
 def run_bench_command(args) -> int:
+    from collider_server.making.characters import is_skinned_character
+
     from ..bench import run_bench
     from ..bench.report import interrupted_line, summary, write_outputs
 
-    config = bench_config(args)
+    character = args.animation is None and is_skinned_character(args.mesh)
+    config = bench_config(args, character)
     config.check()
     _check_device(config.devices)
     output = args.output or Path("out") / f"bench-{Path(args.mesh).stem}"
     cache = cache_dir(args)
-    if args.animation is not None:
+    if character:
+        report = run_skinned(args, config, cache)
+    elif args.animation is not None:
         report = run_animated(args, config, cache)
+    elif args.poses is not None:
+        raise ValueError("--poses is for a skinned character (glTF with a skin, USD)")
     elif (args.fps, args.keyframes, args.times) != (None, None, None) or args.loop:
         raise ValueError("--fps, --loop/--clamp, --keyframes and --times need --animation")
     else:
@@ -212,6 +231,41 @@ def run_animated(args, config, cache: Path) -> dict:
                                 show_progress=not args.quiet)
     report["mesh"]["check"] = check.to_dict()
     return report
+
+
+def run_skinned(args, config, cache: Path) -> dict:
+    """The skinned bench of the character ``args.mesh`` (placed as every command does)."""
+    import time
+
+    from collider_server.making.characters import skinned_from_file
+    from collider_server.making.placement import MeshPlacement
+
+    from ..bench.skinned import QUICK_PLAN, SkinnedPlanConfig, run_skinned_bench
+    from .options import placement_from_args
+
+    kept = [option for option, value in (("--resolutions", args.resolutions), ("--max-memory", args.max_memory),
+                                         ("--train-minutes", args.train_minutes), ("--presets", args.presets),
+                                         ("--fps", args.fps), ("--keyframes", args.keyframes)) if value is not None]
+    if kept:
+        raise ValueError(f"{', '.join(kept)}: not for a skinned character; its bench measures the exact skinned "
+                         f"kind and the articulated networks of the repository (train one with `collider train "
+                         f"{args.mesh} --name NAME`)")
+    plan = QUICK_PLAN if args.quick else SkinnedPlanConfig()
+    if args.kinds is not None:
+        plan = dataclasses.replace(plan, kinds=tuple(k.strip() for k in args.kinds.split(",") if k.strip()))
+    if args.times is not None:
+        plan = dataclasses.replace(plan, times=args.times)
+    if args.poses is not None:
+        plan = dataclasses.replace(plan, poses=args.poses)
+    plan.check()
+    started = time.perf_counter()
+    placement = placement_from_args(args) or MeshPlacement()
+    exact, read, transform = skinned_from_file(args.mesh, "skinned", placement, loop=args.loop, padding=plan.padding)
+    seconds = time.perf_counter() - started
+    for note in read.notes:
+        print(f"{args.mesh}: {note}", file=sys.stderr)
+    return run_skinned_bench(exact, read, transform, config, plan, cache=cache, models_root=args.models,
+                             mesh_path=str(args.mesh), exact_seconds=seconds, show_progress=not args.quiet)
 
 
 def add_hints(report: dict, args) -> None:

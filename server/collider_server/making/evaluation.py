@@ -252,6 +252,31 @@ def skinned_error_figures(collider: Collider, skin: Skin, poses: RandomPoses, po
 SKINNED_POSE_SETS = ("clip_times", "random_poses")
 
 
+def skinned_pose_sets(skin: Skin, times: int, poses: int, seed: int) -> dict[str, RandomPoses]:
+    """The two pose sets a skinned model is measured at (``collider eval`` and ``collider
+    bench``), drawn by :func:`~collider_server.engine.skinning.random_poses`: ``clip_times``,
+    ``times`` random clips at uniform random times (none turned), and ``random_poses``, ``poses``
+    random clip times with every joint's local rotation turned."""
+    return {"clip_times": random_poses(skin, times, seed, perturbed_share=0.0),
+            "random_poses": random_poses(skin, poses, seed + 1, perturbed_share=1.0)}
+
+
+def pose_set_figures(collider: Collider, skin: Skin, drawn: dict[str, RandomPoses], points: int, seed: int,
+                     sets: tuple[str, ...] = ("band_1mm", "band_10mm", "box"), on_pose=lambda: None) -> dict:
+    """Per pose set of ``drawn`` (:func:`skinned_pose_sets`): :func:`skinned_error_figures` with
+    ``points`` per point set split evenly over the set's poses, plus ``points_per_pose`` and
+    ``poses`` (each pose's clip, time in seconds, and whether it was turned)."""
+    report = {}
+    for offset, (name, drawn_poses) in enumerate(drawn.items()):
+        per_pose = -(-points // len(drawn_poses))
+        report[name] = {
+            **skinned_error_figures(collider, skin, drawn_poses, per_pose, seed + 1000 * offset, sets, on_pose),
+            "points_per_pose": per_pose,
+            "poses": [{"clip": c, "time_s": float(t), "perturbed": bool(p)}
+                      for c, t, p in zip(drawn_poses.clips, drawn_poses.times, drawn_poses.perturbed)]}
+    return report
+
+
 def evaluate_skinned_collider(collider: Collider, skin: Skin, points: int = 100_000, times: int = 16,
                               poses: int = 16, seed: int = 1234, path: Path | None = None,
                               show_progress: bool = True) -> dict:
@@ -266,18 +291,10 @@ def evaluate_skinned_collider(collider: Collider, skin: Skin, points: int = 100_
     whether it was turned) and ``points_per_pose``."""
     if isinstance(points, bool) or not isinstance(points, (int, np.integer)) or points < 1:
         raise ValueError(f"points (per set) must be a positive integer, got {points!r}")
-    drawn = {"clip_times": random_poses(skin, times, seed, perturbed_share=0.0),
-             "random_poses": random_poses(skin, poses, seed + 1, perturbed_share=1.0)}
+    drawn = skinned_pose_sets(skin, times, poses, seed)
     report: dict = {"perturb_deg": drawn["random_poses"].perturb_deg, "seed": seed}
     with progress(times + poses + 1, f"eval {collider.info.name}", "pose", show_progress) as bar:
-        for offset, (name, drawn_poses) in enumerate(drawn.items()):
-            per_pose = -(-points // len(drawn_poses))
-            report[name] = {
-                **skinned_error_figures(collider, skin, drawn_poses, per_pose, seed + 1000 * offset,
-                                        on_pose=lambda: bar.update(1)),
-                "points_per_pose": per_pose,
-                "poses": [{"clip": c, "time_s": float(t), "perturbed": bool(p)}
-                          for c, t, p in zip(drawn_poses.clips, drawn_poses.times, drawn_poses.perturbed)]}
+        report.update(pose_set_figures(collider, skin, drawn, points, seed, on_pose=lambda: bar.update(1)))
         first = drawn["random_poses"]
         probe = Mesh(skin_vertices(skin, first.transforms[0]), skin.faces, "posed")
         timed = band_sets(probe, min(points, QUERY_POINTS), seed, collider.info.meters_per_unit)["band_1mm"]
