@@ -1,0 +1,112 @@
+"""The self-intersection finder's fast paths (numba, CPU): the broad phase (pairs of overlapping
+face boxes, sweep and prune) and a pre-filter that drops the candidates Moller's test would drop
+first. :mod:`.intersections` calls them when numba is present; its numpy functions
+(:func:`~.intersections.overlapping_boxes`, :func:`~.intersections.crossings`) stay the reference
+and decide every answer: the broad phase finds the same set of pairs, and the pre-filter keeps a
+superset of what the test keeps (a margin of half the tolerance covers its rounding), so a
+mesh's crossings are the same with or without numba.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+try:
+    import numba
+except ImportError:  # the finder still works (numpy), only slower
+    numba = None
+
+if numba is not None:
+    _jit = numba.njit(cache=True, fastmath=False, nogil=True)
+
+    @_jit
+    def _sweep(lo, hi, axis):
+        """Pairs (i, j) of boxes ``lo``, ``hi`` (n, 3) float64 that overlap (touching counts),
+        in the order of a sweep along ``axis``; each once, unordered within the pair."""
+        n = lo.shape[0]
+        order = np.argsort(lo[:, axis], kind="mergesort")
+        capacity = 16 * n + 16
+        out = np.empty((capacity, 2), np.int64)
+        m = 0
+        for s in range(n):
+            i = order[s]
+            end = hi[i, axis]
+            for t in range(s + 1, n):
+                j = order[t]
+                if lo[j, axis] > end:
+                    break
+                if (lo[i, 0] <= hi[j, 0] and lo[j, 0] <= hi[i, 0] and lo[i, 1] <= hi[j, 1]
+                        and lo[j, 1] <= hi[i, 1] and lo[i, 2] <= hi[j, 2] and lo[j, 2] <= hi[i, 2]):
+                    if m == out.shape[0]:
+                        grown = np.empty((2 * m, 2), np.int64)
+                        grown[:m] = out
+                        out = grown
+                    out[m, 0] = i
+                    out[m, 1] = j
+                    m += 1
+        return out[:m]
+
+    @_jit
+    def _straddle(d0, d1, d2, tol, slack):
+        """Whether a triangle whose corners are ``d0``, ``d1``, ``d2`` from a plane may have
+        corners on both sides of it or two in it (:func:`~.intersections._straddles` with the
+        tolerance widened by ``slack`` both ways: never False where that one is True)."""
+        high = max(max(d0, d1), d2)
+        low = min(min(d0, d1), d2)
+        zeros = ((abs(d0) <= tol + slack) + (abs(d1) <= tol + slack) + (abs(d2) <= tol + slack))
+        return (high > tol - slack and low < -tol + slack) or zeros >= 2
+
+    @_jit
+    def _may_cross(tri, unit, pairs, tol, slack):
+        """(m,) bool per candidate pair (m, 2) of triangles ``tri`` (f, 3, 3) with unit normals
+        ``unit`` (f, 3): each triangle may straddle the other's plane, before and after the
+        corners the two share (same position) are put on it, and they share fewer than two
+        corners (Moller's first tests, as :func:`~.intersections.crossings` makes them)."""
+        m = pairs.shape[0]
+        keep = np.zeros(m, np.bool_)
+        da = np.empty(3)
+        db = np.empty(3)
+        for p in range(m):
+            a = pairs[p, 0]
+            b = pairs[p, 1]
+            for k in range(3):
+                da[k] = ((tri[a, k, 0] - tri[b, 0, 0]) * unit[b, 0] + (tri[a, k, 1] - tri[b, 0, 1]) * unit[b, 1]
+                         + (tri[a, k, 2] - tri[b, 0, 2]) * unit[b, 2])
+                db[k] = ((tri[b, k, 0] - tri[a, 0, 0]) * unit[a, 0] + (tri[b, k, 1] - tri[a, 0, 1]) * unit[a, 1]
+                         + (tri[b, k, 2] - tri[a, 0, 2]) * unit[a, 2])
+            if not (_straddle(da[0], da[1], da[2], tol, slack) and _straddle(db[0], db[1], db[2], tol, slack)):
+                continue
+            shared = 0  # corners of a at a corner of b
+            for i in range(3):
+                on_b = False
+                for j in range(3):
+                    if (tri[a, i, 0] == tri[b, j, 0] and tri[a, i, 1] == tri[b, j, 1]
+                            and tri[a, i, 2] == tri[b, j, 2]):
+                        on_b = True
+                        da[i] = 0.0
+                        db[j] = 0.0
+                shared += on_b
+            if shared >= 2:
+                continue
+            keep[p] = _straddle(da[0], da[1], da[2], tol, slack) and _straddle(db[0], db[1], db[2], tol, slack)
+        return keep
+
+def box_pairs(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """(m, 2) int64 pairs ``i < j`` of the boxes ``lo``, ``hi`` (n, 3) float64 that overlap
+    (touching counts): the set :func:`~.intersections.overlapping_boxes` finds, in (i, j) order."""
+    if len(lo) < 2:
+        return np.zeros((0, 2), np.int64)
+    lo = np.ascontiguousarray(lo, dtype=np.float64)
+    hi = np.ascontiguousarray(hi, dtype=np.float64)
+    axis = int(np.argmax(hi.max(axis=0) - lo.min(axis=0)))  # the longest: thinnest slabs
+    found = _sweep(lo, hi, axis)
+    pairs = np.stack([found.min(axis=1), found.max(axis=1)], axis=1)
+    return pairs[np.lexsort((pairs[:, 1], pairs[:, 0]))]
+
+
+def may_cross(tri: np.ndarray, unit: np.ndarray, pairs: np.ndarray, tol: float) -> np.ndarray:
+    """(m,) bool: the candidate ``pairs`` (m, 2) of triangles ``tri`` (f, 3, 3) float64 with unit
+    normals ``unit`` (f, 3) that Moller's test must look at (each straddles the other's plane,
+    ``tol`` as in :func:`~.intersections.crossings`, widened by half of it for rounding)."""
+    return _may_cross(np.ascontiguousarray(tri), np.ascontiguousarray(unit), np.ascontiguousarray(pairs),
+                      tol, 0.5 * tol)
