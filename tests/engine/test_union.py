@@ -336,7 +336,7 @@ def test_the_numba_finder_gives_the_numpy_references_pairs_and_segments(load_sha
     """The fast path (numba broad phase and pre-filter, :mod:`.intersection_kernels`) against the
     numpy reference: the same box pairs, and the same crossing pairs, segments and coplanar flags,
     bit for bit, on meshes that cross (two boxes, two spots, random triangles, coplanar
-    overlapping boxes, two faces sharing a corner) and ones that do not (spot, a posed skinned arm)."""
+    overlapping boxes, faces sharing a corner, folded or in one plane) and ones that do not (spot, a posed skinned arm)."""
     from collider_server.engine import intersection_kernels, intersections
     from collider_server.engine.skinning import pose_at, skin_vertices
     from collider_server.making.skinned import skinned_arm
@@ -348,7 +348,9 @@ def test_the_numba_finder_gives_the_numpy_references_pairs_and_segments(load_sha
     arm = skinned_arm()
     spot = load_shared_mesh("spot.obj")
     folded = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0.2, 0.2, -0.5], [0.3, 0.1, 0.5]], float)
-    meshes = [Mesh(folded, np.array([[0, 1, 2], [0, 3, 4]])), boxes_mesh(CUBE, BAR), boxes_mesh(((0, 0, 0), (1, 1, 1)), ((0.5, 0, 0), (1.5, 1, 1))),
+    fan = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0], [-0.2, 1, 0], [-1, 0.1, 0]], float)
+    meshes = [Mesh(folded, np.array([[0, 1, 2], [0, 3, 4]])), Mesh(fan, np.array([[0, 1, 2], [0, 3, 4], [0, 4, 5]])),
+              boxes_mesh(CUBE, BAR), boxes_mesh(((0, 0, 0), (1, 1, 1)), ((0.5, 0, 0), (1.5, 1, 1))),
               self_overlapping_spot(load_shared_mesh), Mesh(random.reshape(-1, 3), np.arange(240).reshape(-1, 3)),
               spot, Mesh(skin_vertices(arm, pose_at(arm, "wave", 0.7, "loop")[0]), arm.faces)]
     crossing = 0
@@ -363,4 +365,4 @@ def test_the_numba_finder_gives_the_numpy_references_pairs_and_segments(load_sha
         assert np.array_equal(fast.segments, slow.segments)
         assert np.array_equal(fast.coplanar, slow.coplanar)
         crossing += len(slow) > 0
-    assert crossing == 5
+    assert crossing == 6

@@ -60,8 +60,9 @@ if numba is not None:
     def _may_cross(tri, unit, pairs, tol, slack):
         """(m,) bool per candidate pair (m, 2) of triangles ``tri`` (f, 3, 3) with unit normals
         ``unit`` (f, 3): each triangle may straddle the other's plane, before and after the
-        corners the two share (same position) are put on it, and they share fewer than two
-        corners (Moller's first tests, as :func:`~.intersections.crossings` makes them)."""
+        corners the two share (same position) are put on it, they share fewer than two corners,
+        and (sharing one) their segments do not leave it on opposite sides (Moller's tests, as
+        :func:`~.intersections.crossings` makes them, with margins)."""
         m = pairs.shape[0]
         keep = np.zeros(m, np.bool_)
         da = np.empty(3)
@@ -77,6 +78,7 @@ if numba is not None:
             if not (_straddle(da[0], da[1], da[2], tol, slack) and _straddle(db[0], db[1], db[2], tol, slack)):
                 continue
             shared = 0  # corners of a at a corner of b
+            ka = kb = -1
             for i in range(3):
                 on_b = False
                 for j in range(3):
@@ -85,11 +87,95 @@ if numba is not None:
                         on_b = True
                         da[i] = 0.0
                         db[j] = 0.0
+                        ka = i
+                        kb = j
                 shared += on_b
             if shared >= 2:
                 continue
-            keep[p] = _straddle(da[0], da[1], da[2], tol, slack) and _straddle(db[0], db[1], db[2], tol, slack)
+            if not (_straddle(da[0], da[1], da[2], tol, slack) and _straddle(db[0], db[1], db[2], tol, slack)):
+                continue
+            if shared == 1 and _apart_at_corner(tri, unit, a, b, ka, kb, da, db, tol, slack):
+                continue
+            keep[p] = True
         return keep
+
+    @_jit
+    def _beyond_corner(tri, t, k, d, direction, tol, slack):
+        """Triangle ``t`` with its corner ``k`` on the other's plane (the shared one) and its
+        distances ``d`` (3,) to that plane: +1 or -1, the side along ``direction`` on which its
+        segment in that plane leaves the corner, where the other two corners lie clearly on either
+        side of the plane (the segment ends on the edge between them) or one clearly in it and one
+        clearly off it (the segment ends at the first); 0 in other cases or too close to tell."""
+        i = (k + 1) % 3
+        j = (k + 2) % 3
+        low = tol - slack
+        high = tol + slack
+        if abs(d[i]) > high and abs(d[j]) > high and d[i] * d[j] < 0.0:
+            u = d[i] / (d[i] - d[j])
+        elif abs(d[i]) <= low and abs(d[j]) > high:
+            u = 0.0
+        elif abs(d[j]) <= low and abs(d[i]) > high:
+            u = 1.0
+        else:
+            return 0
+        along = 0.0
+        norm = 0.0
+        for c in range(3):
+            x = tri[t, i, c] + u * (tri[t, j, c] - tri[t, i, c]) - tri[t, k, c]
+            along += x * direction[c]
+            norm += direction[c] * direction[c]
+        if abs(along) <= 1e3 * high * norm ** 0.5:
+            return 0
+        return 1 if along > 0.0 else -1
+
+    @_jit
+    def _apart_at_corner(tri, unit, a, b, ka, kb, da, db, tol, slack):
+        """Two triangles sharing one corner (``ka`` of ``a``, ``kb`` of ``b``) that meet in that
+        corner only: both lie clearly in one plane and an edge separates them clearly (the
+        coplanar test's axes), or each crosses the other's plane through the corner and their
+        segments on the planes' common line leave it on opposite sides."""
+        if abs(da[0]) <= tol - slack and abs(da[1]) <= tol - slack and abs(da[2]) <= tol - slack \
+                and abs(db[0]) <= tol - slack and abs(db[1]) <= tol - slack and abs(db[2]) <= tol - slack:
+            return _separated_in_plane(tri, unit, a, b, tol - slack)
+        direction = np.empty(3)
+        direction[0] = unit[a, 1] * unit[b, 2] - unit[a, 2] * unit[b, 1]
+        direction[1] = unit[a, 2] * unit[b, 0] - unit[a, 0] * unit[b, 2]
+        direction[2] = unit[a, 0] * unit[b, 1] - unit[a, 1] * unit[b, 0]
+        side_a = _beyond_corner(tri, a, ka, da, direction, tol, slack)
+        side_b = _beyond_corner(tri, b, kb, db, direction, tol, slack)
+        return side_a * side_b < 0
+
+    @_jit
+    def _separated_in_plane(tri, unit, a, b, gap):
+        """Coplanar triangles ``a``, ``b``: one of their six edge normals, in the plane of the two
+        coordinates ``a``'s normal is least oblique to, separates them by more than ``-gap``
+        (:func:`~.intersections._coplanar_overlap`'s axes and rule, with ``gap`` below its
+        tolerance)."""
+        drop = 0
+        for c in range(1, 3):
+            if abs(unit[a, c]) > abs(unit[a, drop]):
+                drop = c
+        x = 1 if drop == 0 else 0
+        y = 1 if drop == 2 else 2
+        for owner in (a, b):
+            for k in range(3):
+                ex = tri[owner, (k + 1) % 3, x] - tri[owner, k, x]
+                ey = tri[owner, (k + 1) % 3, y] - tri[owner, k, y]
+                length = max((ex * ex + ey * ey) ** 0.5, 1e-300)
+                nx = -ey / length
+                ny = ex / length
+                lo_a = hi_a = tri[a, 0, x] * nx + tri[a, 0, y] * ny
+                lo_b = hi_b = tri[b, 0, x] * nx + tri[b, 0, y] * ny
+                for c in range(1, 3):
+                    va = tri[a, c, x] * nx + tri[a, c, y] * ny
+                    vb = tri[b, c, x] * nx + tri[b, c, y] * ny
+                    lo_a = min(lo_a, va)
+                    hi_a = max(hi_a, va)
+                    lo_b = min(lo_b, vb)
+                    hi_b = max(hi_b, vb)
+                if hi_a <= lo_b + gap or hi_b <= lo_a + gap:
+                    return True
+        return False
 
 def box_pairs(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     """(m, 2) int64 pairs ``i < j`` of the boxes ``lo``, ``hi`` (n, 3) float64 that overlap
