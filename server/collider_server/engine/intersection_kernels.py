@@ -21,8 +21,8 @@ if numba is not None:
 
     @_jit
     def _sweep(lo, hi, axis):
-        """Pairs (i, j) of boxes ``lo``, ``hi`` (n, 3) float64 that overlap (touching counts),
-        in the order of a sweep along ``axis``; each once, unordered within the pair."""
+        """(m, 2) int64 pairs i < j of boxes ``lo``, ``hi`` (n, 3) float64 that overlap (touching
+        counts), found by a sweep along ``axis``, each once, in (i, j) order."""
         n = lo.shape[0]
         order = np.argsort(lo[:, axis], kind="mergesort")
         capacity = 16 * n + 16
@@ -41,10 +41,14 @@ if numba is not None:
                         grown = np.empty((2 * m, 2), np.int64)
                         grown[:m] = out
                         out = grown
-                    out[m, 0] = i
-                    out[m, 1] = j
+                    out[m, 0] = min(i, j)
+                    out[m, 1] = max(i, j)
                     m += 1
-        return out[:m]
+        key = np.sort(out[:m, 0] * n + out[:m, 1])
+        pairs = np.empty((m, 2), np.int64)
+        pairs[:, 0] = key // n
+        pairs[:, 1] = key % n
+        return pairs
 
     @_jit
     def _straddle(d0, d1, d2, tol, slack):
@@ -185,9 +189,7 @@ def box_pairs(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     lo = np.ascontiguousarray(lo, dtype=np.float64)
     hi = np.ascontiguousarray(hi, dtype=np.float64)
     axis = int(np.argmax(hi.max(axis=0) - lo.min(axis=0)))  # the longest: thinnest slabs
-    found = _sweep(lo, hi, axis)
-    pairs = np.stack([found.min(axis=1), found.max(axis=1)], axis=1)
-    return pairs[np.lexsort((pairs[:, 1], pairs[:, 0]))]
+    return _sweep(lo, hi, axis)
 
 
 def may_cross(tri: np.ndarray, unit: np.ndarray, pairs: np.ndarray, tol: float) -> np.ndarray:
