@@ -1,5 +1,5 @@
-"""The self-intersection finder's fast paths (numba, CPU): the broad phase (pairs of overlapping
-face boxes, sweep and prune) and a pre-filter that drops the candidates Moller's test would drop
+"""The self-intersection finder's fast paths (numba, CPU): the broad phase of meshes up to
+:data:`SWEEP_MAX_BOXES` faces (pairs of overlapping face boxes, sweep and prune) and a pre-filter that drops the candidates Moller's test would drop
 first. :mod:`.intersections` calls them when numba is present; its numpy functions
 (:func:`~.intersections.overlapping_boxes`, :func:`~.intersections.crossings`) stay the reference
 and decide every answer: the broad phase finds the same set of pairs, and the pre-filter keeps a
@@ -15,6 +15,10 @@ try:
     import numba
 except ImportError:  # the finder still works (numpy), only slower
     numba = None
+
+#: Faces up to which the sweep beats the numpy grid (:func:`~.intersections.overlapping_boxes`):
+#: 2x sooner on the 8k-face walker, 1.3x slower on the 69k-face bunny (one slab holds too many).
+SWEEP_MAX_BOXES = 20_000
 
 if numba is not None:
     _jit = numba.njit(cache=True, fastmath=False, nogil=True)

@@ -70,7 +70,7 @@ def self_intersections(vertices: np.ndarray, faces: np.ndarray, fast: bool = Tru
     tol = RELATIVE_TOLERANCE * max(scale, 1e-300)
     area_ok = length > tol * tol
     unit = normals / np.where(area_ok, length, 1.0)[:, None]
-    if fast:
+    if fast and len(faces) <= kernels.SWEEP_MAX_BOXES:
         candidates = kernels.box_pairs(tri.min(axis=1), tri.max(axis=1))
     else:
         candidates = overlapping_boxes(tri.min(axis=1), tri.max(axis=1))
