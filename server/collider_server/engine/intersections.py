@@ -14,6 +14,10 @@ and the overlap of the two segments. Corners within ``1e-12`` of the mesh's size
 as on it. Faces that share an edge (by position, so vertices split along texture seams count as
 shared) are never a crossing, nor a pair that meets only at its shared corner; coplanar pairs
 cross when their interiors overlap (a separating-axis test in their plane).
+
+Where numba is installed, :mod:`.intersection_kernels` finds the candidates of meshes up to
+20,000 faces and drops those the test would drop first; these numpy functions stay the reference
+and decide every pair (the same answer either way).
 """
 
 from __future__ import annotations
