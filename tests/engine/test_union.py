@@ -330,3 +330,39 @@ def test_the_kdtree_kind_answers_from_the_unions_vertices_not_the_buried_ones():
     point = np.array([[0.0421, 0.0, -0.0295]])
     distance = collider.query(point, ["distance"]).distance[0]
     assert distance < -0.05  # a buried corner would answer about -0.0005
+
+
+def test_the_numba_finder_gives_the_numpy_references_pairs_and_segments(load_shared_mesh):
+    """The fast path (numba broad phase and pre-filter, :mod:`.intersection_kernels`) against the
+    numpy reference: the same box pairs, and the same crossing pairs, segments and coplanar flags,
+    bit for bit, on meshes that cross (two boxes, two spots, random triangles, coplanar
+    overlapping boxes, faces sharing a corner, folded or in one plane) and ones that do not (spot, a posed skinned arm)."""
+    from collider_server.engine import intersection_kernels, intersections
+    from collider_server.engine.skinning import pose_at, skin_vertices
+    from collider_server.making.skinned import skinned_arm
+
+    if intersection_kernels.numba is None:
+        pytest.skip("numba is not installed")
+    rng = np.random.default_rng(3)
+    random = rng.uniform(0.0, 1.0, (80, 1, 3)) + rng.normal(0.0, 0.15, (80, 3, 3))
+    arm = skinned_arm()
+    spot = load_shared_mesh("spot.obj")
+    folded = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0.2, 0.2, -0.5], [0.3, 0.1, 0.5]], float)
+    fan = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0], [-0.2, 1, 0], [-1, 0.1, 0]], float)
+    meshes = [Mesh(folded, np.array([[0, 1, 2], [0, 3, 4]])), Mesh(fan, np.array([[0, 1, 2], [0, 3, 4], [0, 4, 5]])),
+              boxes_mesh(CUBE, BAR), boxes_mesh(((0, 0, 0), (1, 1, 1)), ((0.5, 0, 0), (1.5, 1, 1))),
+              self_overlapping_spot(load_shared_mesh), Mesh(random.reshape(-1, 3), np.arange(240).reshape(-1, 3)),
+              spot, Mesh(skin_vertices(arm, pose_at(arm, "wave", 0.7, "loop")[0]), arm.faces)]
+    crossing = 0
+    for mesh in meshes:
+        tri = mesh.vertices[mesh.faces]
+        reference = intersections.overlapping_boxes(tri.min(axis=1), tri.max(axis=1))
+        reference = reference[np.lexsort((reference[:, 1], reference[:, 0]))]
+        assert np.array_equal(intersection_kernels.box_pairs(tri.min(axis=1), tri.max(axis=1)), reference)
+        slow = self_intersections(mesh.vertices, mesh.faces, fast=False)
+        fast = self_intersections(mesh.vertices, mesh.faces)
+        assert np.array_equal(fast.pairs, slow.pairs)
+        assert np.array_equal(fast.segments, slow.segments)
+        assert np.array_equal(fast.coplanar, slow.coplanar)
+        crossing += len(slow) > 0
+    assert crossing == 6
