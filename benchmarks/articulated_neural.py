@@ -111,11 +111,11 @@ def main() -> int:
     if (args.model is None) == (args.train_minutes is None):
         parser.error("give --model or --train-minutes")
     skin = make_walker().skin()
-    exact = skinned_collider(skin, "walker", loop=True)
     print(f"load average at start: {os.getloadavg()[0]:.1f}")
     if args.model is not None:
         collider = load_collider(args.model)
         size = args.model.stat().st_size
+        skin = collider.skin  # the walker as the model holds it (e.g. placed Z up by `collider train`)
     else:
         config = TrainConfig(max_minutes=args.train_minutes, threads=args.threads, batch_size=4096)
         result = train_articulated(skin, "walker-neural", config, loop=True)
@@ -123,6 +123,7 @@ def main() -> int:
         path = save_collider(collider, args.save or Path("/tmp/walker-neural.safetensors"))
         size = path.stat().st_size
         print(result.summary())
+    exact = skinned_collider(skin, "walker", loop=True)
     training = collider.info.settings.get("training", {})
     print(f"model: {size / 1e6:.2f} MB; trained {training.get('steps_done')} steps in "
           f"{training.get('seconds')} s; best validation {training.get('best_validation_1mm_mm')} mm")
