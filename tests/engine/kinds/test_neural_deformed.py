@@ -81,7 +81,7 @@ def test_the_preset_is_the_static_grid_plus_one_field_per_frame():
     assert preset.spatial() == PRESETS["grid"]  # the rest pose: the static preset
     arch = DeformedGridArchitecture(keyframes=61)
     assert arch.parameter_count() == GridArchitecture().parameter_count() + 61 * 17 ** 3 * 3
-    with pytest.raises(ValueError, match="deformation_resolution must be an integer >= 1"):
+    with pytest.raises(ValueError, match="deformation_resolution must be a positive integer, got 0"):
         DeformedGridArchitecture(deformation_resolution=0)
 
 
