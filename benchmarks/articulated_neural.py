@@ -110,13 +110,13 @@ def main() -> int:
     args = parser.parse_args()
     if (args.model is None) == (args.train_minutes is None):
         parser.error("give --model or --train-minutes")
-    skin = make_walker().skin()
     print(f"load average at start: {os.getloadavg()[0]:.1f}")
     if args.model is not None:
         collider = load_collider(args.model)
         size = args.model.stat().st_size
         skin = collider.skin  # the walker as the model holds it (e.g. placed Z up by `collider train`)
     else:
+        skin = make_walker().skin()
         config = TrainConfig(max_minutes=args.train_minutes, threads=args.threads, batch_size=4096)
         result = train_articulated(skin, "walker-neural", config, loop=True)
         collider = result.collider
