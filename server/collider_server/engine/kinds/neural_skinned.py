@@ -14,7 +14,10 @@ Per-part fields in each joint's rest frame, composed by a minimum (COAP-style), 
   rest surface). Joint j is a candidate for x when the label at ``x_j`` is j itself or, with
   ``neighbours``, j's parent or one of its children (the region a bent joint's blend reaches).
   A point with no candidate (far from the body) takes the joint whose part box (the rest
-  vertices it dominates, padded) is nearest to its ``x_j``.
+  vertices it dominates, padded) is nearest to its ``x_j``. With the architecture's
+  ``candidate_rule`` ``retry-labels``, a point none of whose candidates reaches a root through the
+  skinning (below) is tried again with the parts the label grid names at its rigid images
+  (:func:`labels_seen`); :func:`parts_through_skinning` is the rule's one home.
 - **Through the skinning** (:func:`carry_to_rest`): each candidate's rigid image is carried on to
   the rest point y that linear blend skinning takes to x, ``sum_k w_k(y) A_k [y, 1] = x``, by
   damped Newton steps (:func:`newton_rest`, the architecture's ``skinning_solver`` ``newton``) or
