@@ -20,7 +20,8 @@ time does not depend on the values) for distance + normal + contact; the median 
 
 ``--candidate-rules own-label retry-labels`` measures the model through each candidate rule (the
 architecture's ``candidate_rule``; the network is the same, only the parts a point is answered
-by differ), interleaved, the mean candidates per point beside; without it, the model's own rule.
+by differ), interleaved, the mean candidates per point beside, each read from the model file;
+without it, the model's own rule.
 """
 
 from __future__ import annotations
@@ -151,7 +152,8 @@ def main() -> int:
     torch.set_num_threads(args.threads)
     colliders = {}
     for rule in args.candidate_rules or [collider.arch.candidate_rule]:
-        copy = load_collider(path) if colliders else collider  # one collider per rule
+        # One collider per rule, each from the file (a trained one's table rounds to 8 bits there).
+        copy = load_collider(path) if args.candidate_rules else collider
         copy.arch = dataclasses.replace(copy.arch, candidate_rule=rule)  # the same network, other candidates
         colliders[rule] = copy
     clip_poses = random_poses(skin, args.clip_times, args.seed, perturbed_share=0.0).transforms
