@@ -17,11 +17,17 @@ time does not depend on the values) for distance + normal + contact; the median 
 
     python benchmarks/articulated_neural.py --model models/walker-neural.safetensors
     python benchmarks/articulated_neural.py --train-minutes 10   # trains one first (not saved)
+
+``--candidate-rules own-label retry-labels`` measures the model through each candidate rule (the
+architecture's ``candidate_rule``; the network is the same, only the parts a point is answered
+by differ), interleaved, the mean candidates per point beside, each read from the model file;
+without it, the model's own rule.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import os
 import sys
 import time
@@ -33,6 +39,7 @@ sys.path[:0] = [str(Path(__file__).resolve().parents[1] / "server"), str(Path(__
 
 from collider_server.engine.collider import ColliderInfo
 from collider_server.engine.kinds.neural import PRESETS, NeuralCollider, architecture_dict, build_network
+from collider_server.engine.kinds.neural_skinned import CANDIDATE_RULES, parts_through_skinning, rest_maps
 from collider_server.engine.meshes import Mesh
 from collider_server.engine.modelfile import load_collider, save_collider
 from collider_server.engine.skinning import PERTURB_DEG, pose_at, random_poses, skin_vertices
@@ -46,12 +53,18 @@ from collider_server.making.walker import make_walker
 
 def accuracy(collider, exact, skin, poses, points_per_pose: int, seed: int) -> dict:
     """Errors of ``collider`` against ``exact`` in the +-1 mm band at each of ``poses``."""
-    errors, truths, answers, angles = [], [], [], []
+    errors, truths, answers, angles, candidates = [], [], [], [], []
     for p, transforms in enumerate(poses):
         mesh = Mesh(skin_vertices(skin, transforms), skin.faces, "posed")
         points = surface_band_points(mesh, points_per_pose, 1e-3, seed + p)
         truth = exact.query(points, ("distance", "normal"), joint_transforms=transforms)
         answer = collider.query(points, ("distance", "normal"), joint_transforms=transforms)
+        to_rest, posed = rest_maps(skin.skeleton, transforms)
+        rows = parts_through_skinning(points, to_rest, posed, collider.labels, collider.centre, collider.radius,
+                                      collider.allowed, collider.part_boxes, collider.weights,
+                                      collider.arch.skinning_iterations, collider.arch.skinning_solver,
+                                      collider.arch.candidate_rule)[0]
+        candidates.append(len(rows) / len(points))
         errors.append(np.abs(answer.distance - truth.distance))
         truths.append(truth.distance)
         answers.append(answer.distance)
@@ -63,12 +76,14 @@ def accuracy(collider, exact, skin, poses, points_per_pose: int, seed: int) -> d
     return {"poses": len(poses), "points": len(error), "mean_mm": error.mean() * 1e3,
             "p99_mm": np.percentile(error, 99) * 1e3, "max_mm": error.max() * 1e3,
             "sign_errors_pct": wrong.mean() * 100, "sign_errors_beyond_0.2mm_pct": wrong[clear].mean() * 100,
-            "normal_mean_deg": angle.mean(), "normal_p99_deg": np.percentile(angle, 99)}
+            "normal_mean_deg": angle.mean(), "normal_p99_deg": np.percentile(angle, 99),
+            "candidates": float(np.mean(candidates))}
 
 
-def timing(collider, skin, rounds: int, seed: int, threads: int) -> dict:
-    """Median (min - max) seconds per 1M points: articulated d+n+c+v at a new pose each round,
-    the static grid network of the rest mesh d+n+c, interleaved."""
+def timing(colliders: dict, skin, rounds: int, seed: int, threads: int) -> dict:
+    """Median (min - max) seconds per 1M points: each of ``colliders`` (name -> articulated
+    collider) d+n+c+v at a new pose each round, the static grid network of the rest mesh d+n+c,
+    interleaved."""
     import torch
 
     torch.set_num_threads(threads)
@@ -82,14 +97,16 @@ def timing(collider, skin, rounds: int, seed: int, threads: int) -> dict:
     static_points = surface_band_points(rest, 1_000_000, 1e-2, seed)
     poses = random_poses(skin, rounds, seed + 1, perturbed_share=0.5).transforms
     _, velocities = pose_at(skin, skin.clips[0].name, 0.3)
-    times = {"articulated d+n+c+v (new pose)": [], "static grid d+n+c": []}
+    times: dict = {f"articulated {name} d+n+c+v (new pose)": [] for name in colliders}
+    times["static grid d+n+c"] = []
     for r in range(rounds):
         mesh = Mesh(skin_vertices(skin, poses[r]), skin.faces, "posed")
         points = surface_band_points(mesh, 1_000_000, 1e-2, seed + 10 + r)
-        started = time.perf_counter()
-        collider.query(points, ("distance", "normal", "contact", "velocity"), joint_transforms=poses[r],
-                       joint_velocities=velocities)
-        times["articulated d+n+c+v (new pose)"].append(time.perf_counter() - started)
+        for name, collider in colliders.items():
+            started = time.perf_counter()
+            collider.query(points, ("distance", "normal", "contact", "velocity"), joint_transforms=poses[r],
+                           joint_velocities=velocities)
+            times[f"articulated {name} d+n+c+v (new pose)"].append(time.perf_counter() - started)
         started = time.perf_counter()
         static.query(static_points, ("distance", "normal", "contact"))
         times["static grid d+n+c"].append(time.perf_counter() - started)
@@ -107,13 +124,16 @@ def main() -> int:
     parser.add_argument("--rounds", type=int, default=5)
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--seed", type=int, default=2026)
+    parser.add_argument("--candidate-rules", nargs="+", choices=CANDIDATE_RULES, default=None,
+                        help="measure the model through each of these candidate rules (default: its own)")
     args = parser.parse_args()
     if (args.model is None) == (args.train_minutes is None):
         parser.error("give --model or --train-minutes")
     print(f"load average at start: {os.getloadavg()[0]:.1f}")
     if args.model is not None:
-        collider = load_collider(args.model)
-        size = args.model.stat().st_size
+        path = args.model
+        collider = load_collider(path)
+        size = path.stat().st_size
         skin = collider.skin  # the walker as the model holds it (e.g. placed Z up by `collider train`)
     else:
         skin = make_walker().skin()
@@ -130,23 +150,32 @@ def main() -> int:
     import torch
 
     torch.set_num_threads(args.threads)
-    # The one rule of random poses (engine.skinning.random_poses), as collider eval draws them.
-    figures = {"clip times": accuracy(collider, exact, skin,
-                                      random_poses(skin, args.clip_times, args.seed, perturbed_share=0.0).transforms,
-                                      args.points, args.seed),
-               f"poses off the clips ({PERTURB_DEG:g} deg)": accuracy(
-                   collider, exact, skin, random_poses(skin, args.poses, args.seed + 5).transforms,
-                   args.points, args.seed + 1000)}
-    for name, f in figures.items():
-        print(f"{name}: {f['poses']} poses, {f['points']:,} points in the +-1 mm band: mean {f['mean_mm']:.4f} / "
-              f"p99 {f['p99_mm']:.3f} / max {f['max_mm']:.2f} mm, sign errors {f['sign_errors_pct']:.3f} % "
-              f"({f['sign_errors_beyond_0.2mm_pct']:.3f} % beyond 0.2 mm), normals {f['normal_mean_deg']:.2f} / "
-              f"{f['normal_p99_deg']:.1f} deg")
-    speed = timing(collider, skin, args.rounds, args.seed + 7, args.threads)
+    colliders = {}
+    for rule in args.candidate_rules or [collider.arch.candidate_rule]:
+        # One collider per rule, each from the file (a trained one's table rounds to 8 bits there).
+        copy = load_collider(path) if args.candidate_rules else collider
+        copy.arch = dataclasses.replace(copy.arch, candidate_rule=rule)  # the same network, other candidates
+        colliders[rule] = copy
+    clip_poses = random_poses(skin, args.clip_times, args.seed, perturbed_share=0.0).transforms
+    off_poses = random_poses(skin, args.poses, args.seed + 5).transforms
+    for rule, each in colliders.items():
+        # The one rule of random poses (engine.skinning.random_poses), as collider eval draws them.
+        figures = {"clip times": accuracy(each, exact, skin, clip_poses, args.points, args.seed),
+                   f"poses off the clips ({PERTURB_DEG:g} deg)": accuracy(each, exact, skin, off_poses, args.points,
+                                                                          args.seed + 1000)}
+        for name, f in figures.items():
+            print(f"[{rule}] {name}: {f['poses']} poses, {f['points']:,} points in the +-1 mm band: mean "
+                  f"{f['mean_mm']:.4f} / p99 {f['p99_mm']:.3f} / max {f['max_mm']:.2f} mm, sign errors "
+                  f"{f['sign_errors_pct']:.3f} % ({f['sign_errors_beyond_0.2mm_pct']:.3f} % beyond 0.2 mm), normals "
+                  f"{f['normal_mean_deg']:.2f} / {f['normal_p99_deg']:.1f} deg, {f['candidates']:.3f} candidates "
+                  f"per point")
+    speed = timing(colliders, skin, args.rounds, args.seed + 7, args.threads)
     for name, (median, low, high) in speed.items():
         print(f"{name}: {median:.3f} s per 1M points ({low:.3f}-{high:.3f}, {args.rounds} rounds)")
-    ratio = speed["articulated d+n+c+v (new pose)"][0] / speed["static grid d+n+c"][0]
-    print(f"articulated / static: {ratio:.2f}x; load average at end: {os.getloadavg()[0]:.1f}")
+    for rule in colliders:
+        ratio = speed[f"articulated {rule} d+n+c+v (new pose)"][0] / speed["static grid d+n+c"][0]
+        print(f"articulated {rule} / static: {ratio:.2f}x")
+    print(f"load average at end: {os.getloadavg()[0]:.1f}")
     return 0
 
 

@@ -21,8 +21,13 @@ clip times and off-clip poses apart. Variants (``--variants``), interleaved per 
 - a ``+metric`` suffix: the distance divided by the stretch along the normal, ``d_rest / |J^-T
   grad d_rest|`` (J the map's Jacobian at the rest point)
 
+Each grid variant is measured with every candidate rule of ``--rules`` (``own-label``,
+``retry-labels``: the architecture's ``candidate_rule``, :func:`parts_through_skinning`), a row
+each, with the mean candidates per point kept; ``newton-surface`` takes the own-label candidates.
+
     python benchmarks/skinning_floor.py
     python benchmarks/skinning_floor.py --variants fp2-w48 newton-w48 newton-w48+metric --points 2000
+    python benchmarks/skinning_floor.py --variants newton-b128 --rules own-label retry-labels
 """
 
 from __future__ import annotations
@@ -93,6 +98,8 @@ def main() -> int:
     parser.add_argument("--points", type=int, default=5000)
     parser.add_argument("--iterations", type=int, default=8, help="Newton steps")
     parser.add_argument("--seed", type=int, default=2026)
+    parser.add_argument("--rules", nargs="+", default=["own-label"], choices=ns.CANDIDATE_RULES,
+                        help="candidate rules, each grid variant with each")
     args = parser.parse_args()
     print(f"load average at start: {os.getloadavg()[0]:.2f}")
     skin = make_walker().skin()
@@ -132,52 +139,57 @@ def main() -> int:
         clip = skin.clips[rng.integers(len(skin.clips))]
         poses.append(("clip", pose_at(skin, clip.name, rng.uniform(0.0, clip.duration_s))[0]))
     poses += [("off", t) for t in sample_poses(skin, args.poses, args.seed + 5, perturbed_share=1.0)]
-    errors = {(v, kind): [] for v in args.variants for kind in ("clip", "off")}
-    signs = {(v, kind): [] for v in args.variants for kind in ("clip", "off")}
-    seconds = dict.fromkeys(args.variants, 0.0)
+    rows = [(v, rule) for v in args.variants for rule in (["own-label"] if "surface" in v else args.rules)]
+    errors = {(row, kind): [] for row in rows for kind in ("clip", "off")}
+    signs = {(row, kind): [] for row in rows for kind in ("clip", "off")}
+    candidates = {(row, kind): [] for row in rows for kind in ("clip", "off")}
+    seconds = dict.fromkeys(rows, 0.0)
+    truths: dict = {"clip": [], "off": []}
     for p, (kind, transforms) in enumerate(poses):
         mesh = Mesh(skin_vertices(skin, transforms), skin.faces, "posed")
         points = surface_band_points(mesh, args.points, 1e-3, args.seed + 100 + p)
         truth = exact.query(points, "distance", joint_transforms=transforms).distance
+        truths[kind].append(np.abs(truth))
         to_rest, posed = ns.rest_maps(skin.skeleton, transforms)
-        point, joint, rigid = ns.part_candidates(points, to_rest, labels, centre, radius, allowed, boxes)
-        for variant in args.variants:
+        point, _, rigid = ns.part_candidates(points, to_rest, labels, centre, radius, allowed, boxes)
+        for variant, rule in rows:
             started = time.perf_counter()
             method, source = variant.split("+")[0].split("-")
             metric = variant.endswith("+metric")
             grid, weights = weight_functions[source]
             if source != "surface":  # the query's rule (its numba passes)
                 solver, steps = ("fixed-point", 2) if method == "fp2" else ("newton", args.iterations)
-                keep, kept, _ = ns.carry_to_rest(points, point, joint, rigid, to_rest, posed, grid, centre, radius,
-                                                 steps, solver)
-                ok = np.zeros(len(point), bool)
-                ok[keep] = True
-                rest = rigid.copy()
-                rest[keep] = kept
+                at, _, rest, _ = ns.parts_through_skinning(points, to_rest, posed, labels, centre, radius, allowed,
+                                                           boxes, grid, steps, solver, rule)
             else:
                 rest, _, ok = ns.newton_rest(points[point], rigid, posed, weights, args.iterations)
-            seconds[variant] += time.perf_counter() - started
+                # The minimum over the candidates kept (converged; all, where none did).
+                keep = ok | ~np.bincount(point, ok, len(points)).astype(bool)[point]
+                at, rest = point[keep], rest[keep]
+            seconds[variant, rule] += time.perf_counter() - started
             d, closest, face = rest_sdf.query(rest)
             if metric:
                 g = rest_sdf.gradient(rest, d, closest, face)
                 w, dw = weights(rest)
                 jacobian = ns.skinning_jacobian(rest, posed, w, dw)
                 d = d / np.linalg.norm(np.linalg.solve(np.swapaxes(jacobian, 1, 2), g[..., None])[..., 0], axis=1)
-            # The minimum over the candidates kept (converged; all, where none did).
-            d = np.where(ok | ~np.bincount(point, ok, len(points)).astype(bool)[point], d, np.inf)
             best = np.full(len(points), np.inf)
-            np.minimum.at(best, point, d)
-            errors[variant, kind].append(np.abs(best - truth))
-            signs[variant, kind].append(np.sign(best) != np.sign(truth))
+            np.minimum.at(best, at, d)
+            errors[(variant, rule), kind].append(np.abs(best - truth))
+            signs[(variant, rule), kind].append(np.sign(best) != np.sign(truth))
+            candidates[(variant, rule), kind].append(len(at) / len(points))
         print(f"pose {p + 1}/{len(poses)} ({kind}) done, load {os.getloadavg()[0]:.2f}", flush=True)
-    print(f"{'variant':24s} {'clip times: mean / p99 / max mm, sign %':44s} {'off the clips':44s} map s")
-    for variant in args.variants:
-        row = f"{variant:24s}"
+    print(f"{'variant':36s} {'clip times: mean / p99 / max mm, sign % (beyond 0.2 mm), candidates':66s} "
+          f"{'off the clips':66s} map s")
+    for row in rows:
+        line = f"{row[0] + ' ' + row[1]:36s}"
         for kind in ("clip", "off"):
-            e = np.concatenate(errors[variant, kind]) * 1e3
-            s = np.concatenate(signs[variant, kind]).mean() * 100
-            row += f" {e.mean():7.4f} / {np.percentile(e, 99):6.3f} / {e.max():7.2f}, {s:5.2f} %".ljust(45)
-        print(row + f" {seconds[variant]:.1f}")
+            e = np.concatenate(errors[row, kind]) * 1e3
+            wrong = np.concatenate(signs[row, kind])
+            clear = np.concatenate(truths[kind]) > 2e-4
+            line += (f" {e.mean():7.4f} / {np.percentile(e, 99):6.3f} / {e.max():7.2f}, {wrong.mean() * 100:5.2f} % "
+                     f"({wrong[clear].mean() * 100:5.2f} %), {np.mean(candidates[row, kind]):.3f}").ljust(67)
+        print(line + f" {seconds[row]:.1f}")
     print(f"load average at end: {os.getloadavg()[0]:.2f}")
     return 0
 

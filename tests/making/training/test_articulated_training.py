@@ -13,6 +13,7 @@ from collider_server.engine.kinds.neural_skinned import (
     ArticulatedNeuralCollider,
     allowed_labels,
     carry_to_rest,
+    labels_seen,
     part_candidates,
     rest_maps,
     skinned_rest,
@@ -29,10 +30,11 @@ from collider_server.making.training import TrainConfig
 from collider_server.making.training.articulated import sample_poses, train_articulated
 
 #: A small field (4 levels up to 64 cells, 2^12 rows) so that a few hundred steps train it; the
-#: map of the preset (Newton steps through the weight grid and its fine blocks near the skin).
+#: map and the candidate rule of the preset (Newton steps through the weight grid and its fine
+#: blocks near the skin; points with no root tried again).
 SMALL = ArticulatedGridArchitecture(levels=4, max_resolution=64, table_log2=12, table_dtype="float16",
                                     label_resolution=32, skinning_solver="newton", skinning_iterations=8,
-                                    fine_weight_resolution=96)
+                                    fine_weight_resolution=96, candidate_rule="retry-labels")
 
 
 @pytest.fixture(scope="module")
@@ -120,6 +122,9 @@ def test_the_fused_candidate_kernel_equals_the_numpy_rule(trained):
     for a, b in zip(fused, reference):
         np.testing.assert_array_equal(a, b)
     assert set(np.unique(fused[0])) == set(range(len(points)))  # every point has a part
+    seen = [labels_seen(points, to_rest, collider.labels, collider.centre, collider.radius, fused=f)
+            for f in (True, False)]
+    np.testing.assert_array_equal(seen[0], seen[1])
 
 
 def _pose(transforms):
@@ -221,16 +226,39 @@ def test_the_fused_newton_pass_equals_the_numpy_rule(trained):
         assert close.mean() > 0.97, close.mean()
 
 
+def test_a_model_file_from_before_the_candidate_retry_answers_as_before(trained):
+    skin, result, _ = trained
+    collider = result.collider
+    info = collider.info
+    old_arch = {k: v for k, v in info.settings["architecture"].items() if k != "candidate_rule"}
+    old_info = dataclasses.replace(info, settings={**info.settings, "architecture": old_arch})
+    old = ArticulatedNeuralCollider.from_tensors(old_info, collider.tensors())
+    assert old.arch.candidate_rule == "own-label"
+    # Its answers are the first rule's: part_candidates, then carry_to_rest (no second pass).
+    transforms = sample_poses(skin, 1, seed=23)[0]
+    to_rest, posed = rest_maps(skin.skeleton, transforms)
+    points = surface_band_points(Mesh(skin_vertices(skin, transforms), skin.faces, "posed"), 3000, 1e-2, 9)
+    point, joint, rigid = part_candidates(points, to_rest, old.labels, old.centre, old.radius, old.allowed,
+                                          old.part_boxes)
+    keep, rest, _ = carry_to_rest(points, point, joint, rigid, to_rest, posed, old.weights, old.centre, old.radius,
+                                  old.arch.skinning_iterations, old.arch.skinning_solver)
+    distance, _ = old._part_values(rest, joint[keep], old.pose(None, _pose(transforms))[3], False)
+    expected = np.full(len(points), np.inf)
+    np.minimum.at(expected, point[keep], distance)
+    np.testing.assert_array_equal(old.query(points, "distance", joint_transforms=transforms).distance, expected)
+
+
 def test_a_model_file_from_before_the_newton_map_loads_with_its_own_map(trained):
     skin, result, _ = trained
     collider = result.collider
     tensors = {k: v for k, v in collider.tensors().items() if not k.startswith(NETWORK_PREFIX + "weight_block")}
     info = collider.info
     old_arch = {k: v for k, v in info.settings["architecture"].items()
-                if k not in ("skinning_solver", "fine_weight_resolution", "weight_blocks")}
+                if k not in ("skinning_solver", "fine_weight_resolution", "weight_blocks", "candidate_rule")}
     old_info = dataclasses.replace(info, settings={**info.settings, "architecture": old_arch})
     old = ArticulatedNeuralCollider.from_tensors(old_info, tensors)
     assert old.arch.skinning_solver == "fixed-point" and not len(old.weights.block_joints)
+    assert collider.arch.candidate_rule == "retry-labels" and old.arch.candidate_rule == "own-label"
     points = surface_band_points(Mesh(skin.vertices, skin.faces, "rest"), 500, 1e-3, 2)
     assert np.isfinite(old.query(points, "distance", clip="wave", time=0.5).distance).all()
     with pytest.raises(ValueError, match="skinning_solver must be one of fixed-point, newton"):

@@ -14,7 +14,10 @@ Per-part fields in each joint's rest frame, composed by a minimum (COAP-style), 
   rest surface). Joint j is a candidate for x when the label at ``x_j`` is j itself or, with
   ``neighbours``, j's parent or one of its children (the region a bent joint's blend reaches).
   A point with no candidate (far from the body) takes the joint whose part box (the rest
-  vertices it dominates, padded) is nearest to its ``x_j``.
+  vertices it dominates, padded) is nearest to its ``x_j``. With the architecture's
+  ``candidate_rule`` ``retry-labels``, a point none of whose candidates reaches a root through the
+  skinning (below) is tried again with the parts the label grid names at its rigid images
+  (:func:`labels_seen`); :func:`parts_through_skinning` is the rule's one home.
 - **Through the skinning** (:func:`carry_to_rest`): each candidate's rigid image is carried on to
   the rest point y that linear blend skinning takes to x, ``sum_k w_k(y) A_k [y, 1] = x``, by
   damped Newton steps (:func:`newton_rest`, the architecture's ``skinning_solver`` ``newton``) or
@@ -64,6 +67,11 @@ NO_PART = 255
 NETWORK_PREFIX = "network."
 #: How a part's rigid rest image is carried on through the skinning (:func:`carry_to_rest`).
 SKINNING_SOLVERS = ("fixed-point", "newton")
+#: Which parts a point may belong to (:func:`parts_through_skinning`): ``own-label`` (the first
+#: files': joint j where the label at its rigid image is its own) or ``retry-labels`` (the same,
+#: then, where none of a point's candidates reaches a root through the skinning, the parts the
+#: label grid names at the point's rigid images are tried).
+CANDIDATE_RULES = ("own-label", "retry-labels")
 #: Cells per side of a block of the fine weight field (:func:`weight_field`).
 BLOCK_CELLS = 4
 
@@ -90,6 +98,8 @@ class ArticulatedGridArchitecture(GridArchitecture):
     fine_weight_resolution : cells per side of the finer weight grid kept in blocks near the rest
         surface (:func:`weight_field`; a multiple of :data:`BLOCK_CELLS`); 0: none
     weight_blocks : how many blocks of it the model holds (set by the training)
+    candidate_rule : :data:`CANDIDATE_RULES`: ``"own-label"`` (the first model files') or
+        ``"retry-labels"`` (a second pass where none of a point's candidates reached a root)
     """
 
     joints: int = 1
@@ -101,6 +111,7 @@ class ArticulatedGridArchitecture(GridArchitecture):
     skinning_solver: str = "fixed-point"
     fine_weight_resolution: int = 0
     weight_blocks: int = 0
+    candidate_rule: str = "own-label"
     table_log2: int = 17
     table_dtype: str = "int8"
     encoding: str = "articulated-grid"
@@ -116,6 +127,9 @@ class ArticulatedGridArchitecture(GridArchitecture):
         if self.skinning_solver not in SKINNING_SOLVERS:
             raise ValueError(f"architecture skinning_solver must be one of {', '.join(SKINNING_SOLVERS)}, "
                              f"got {self.skinning_solver!r}")
+        if self.candidate_rule not in CANDIDATE_RULES:
+            raise ValueError(f"architecture candidate_rule must be one of {', '.join(CANDIDATE_RULES)}, "
+                             f"got {self.candidate_rule!r}")
         if self.joints >= NO_PART:
             raise ValueError(f"an articulated network has at most {NO_PART - 1} joints, got {self.joints}")
 
@@ -271,6 +285,69 @@ if grid_kernels.available():
                     nearest, nearest_gap = j, gap
             if not any_part:
                 mask[nearest, p] = True
+
+
+def labels_seen(points: np.ndarray, to_rest: np.ndarray, labels: np.ndarray, centre, radius: float,
+                fused: bool = True) -> np.ndarray:
+    """(J, n) bool: whether the label grid names joint j at the rigid image ``x_k = A_k^-1 x`` of
+    point p through any joint k (:data:`NO_PART` names none): the parts a point is tried with
+    where none of its own-label candidates reached a root (``candidate_rule`` ``retry-labels``,
+    :func:`parts_through_skinning`). ``points`` (n, 3) float64, collider frame at the pose; the
+    rest as :func:`part_candidates`. One numba pass (:func:`_labels_seen`) when numba is there and
+    ``fused``, else numpy (the reference)."""
+    points = np.ascontiguousarray(points, np.float64)
+    centre = np.asarray(centre, np.float64)
+    if fused and _labels_seen is not None:
+        seen = np.empty((len(to_rest), len(points)), np.bool_)
+        _labels_seen(points, np.ascontiguousarray(to_rest, np.float64), labels, centre, float(radius), seen)
+        return seen
+    n, joints = len(points), len(to_rest)
+    resolution = labels.shape[0]
+    seen = np.zeros((joints, n), bool)
+    for k in range(joints):
+        rest = points @ to_rest[k, :, :3].T + to_rest[k, :, 3]
+        cell = np.floor(((rest - centre) / radius + 1.0) * 0.5 * resolution).astype(np.int64)
+        named = ((cell >= 0) & (cell < resolution)).all(axis=1)
+        c = cell[named]
+        label = labels[c[:, 0], c[:, 1], c[:, 2]].astype(np.int64)
+        some = label < joints
+        seen[label[some], np.flatnonzero(named)[some]] = True
+    return seen
+
+
+_labels_seen = None
+if grid_kernels.available():
+
+    @numba.njit(cache=True, nogil=True, parallel=True)
+    def _labels_seen(points, to_rest, labels, centre, radius, seen):  # pragma: no cover
+        """:func:`labels_seen` in one pass over the points (numba, parallel): ``seen`` (J, n) bool
+        is overwritten."""
+        n = points.shape[0]
+        joints = to_rest.shape[0]
+        resolution = labels.shape[0]
+        for p in numba.prange(n):
+            for j in range(joints):
+                seen[j, p] = False
+            x, y, z = points[p, 0], points[p, 1], points[p, 2]
+            for k in range(joints):
+                m = to_rest[k]
+                inside = True
+                ci = cj = ck = 0
+                for a in range(3):
+                    r = m[a, 0] * x + m[a, 1] * y + m[a, 2] * z + m[a, 3]
+                    c = math.floor(((r - centre[a]) / radius + 1.0) * 0.5 * resolution)
+                    if c < 0 or c >= resolution:
+                        inside = False
+                    if a == 0:
+                        ci = c
+                    elif a == 1:
+                        cj = c
+                    else:
+                        ck = c
+                if inside:
+                    label = labels[ci, cj, ck]
+                    if label < joints:
+                        seen[label, p] = True
 
 
 #: Largest skinning weights kept per corner of the weight grid.
@@ -541,7 +618,8 @@ DIVERGED = 0.25
 
 def carry_to_rest(points: np.ndarray, point: np.ndarray, joint: np.ndarray, rigid: np.ndarray,
                   to_rest: np.ndarray, posed: np.ndarray, field, centre, radius: float,
-                  iterations: int, solver: str = "fixed-point", fused: bool = True):
+                  iterations: int, solver: str = "fixed-point", fused: bool = True,
+                  failed: np.ndarray | None = None):
     """Each candidate's rest-pose point and the linear part of its map there: candidates
     ``point`` (m,) (indices into ``points`` (n, 3), the posed points), ``joint`` (m,), their
     parts' rigid images ``rigid`` (m, 3) (``to_rest`` (J, 3, 4) of :func:`rest_maps`), carried on
@@ -553,7 +631,9 @@ def carry_to_rest(points: np.ndarray, point: np.ndarray, joint: np.ndarray, rigi
 
     Returns ``(keep (k,) int64, rest (k, 3), inverse (k, 3, 3))``: the candidates kept (indices
     into the m rows, in order), their rest points and the linear maps that pull a rest-frame
-    gradient back to the posed frame (``grad_x = inverse^T grad_rest``)."""
+    gradient back to the posed frame (``grad_x = inverse^T grad_rest``).
+    ``failed`` (n,) bool, when given, is set True at the points that have rows of which none
+    converged (:func:`parts_through_skinning` tries them again)."""
     if iterations == 0:
         return np.arange(len(point)), rigid, to_rest[joint, :, :3]
     x = np.ascontiguousarray(points[point], np.float64)
@@ -567,10 +647,66 @@ def carry_to_rest(points: np.ndarray, point: np.ndarray, joint: np.ndarray, rigi
     rest[wild], inverse[wild] = rigid[wild], to_rest[joint[wild], :, :3]
     has_converged = np.zeros(len(points), bool)
     has_converged[point[converged]] = True
+    if failed is not None:
+        failed[point[~has_converged[point]]] = True
     keep = np.flatnonzero(converged | ~has_converged[point])
     if len(keep) == len(point):  # nothing dropped: no copies of the rows
         return keep, rest, inverse
     return keep, rest[keep], inverse[keep]
+
+
+def parts_through_skinning(points: np.ndarray, to_rest: np.ndarray, posed: np.ndarray, labels: np.ndarray,
+                           centre, radius: float, allowed: np.ndarray, part_boxes: np.ndarray, field,
+                           iterations: int, solver: str, rule: str = "own-label", fused: bool = True):
+    """Each point's candidate parts and their rest points: the candidate rule (``rule``,
+    :data:`CANDIDATE_RULES`) in its one home, for the query and the training alike.
+
+    :func:`part_candidates` (the label at each part's rigid image), carried on through the
+    skinning by :func:`carry_to_rest`; with ``retry-labels``, a point none of whose candidates
+    reached a root is tried again with the parts :func:`labels_seen` names at its rigid images
+    (those not tried yet): where one of them reaches a root, those rows replace the first ones
+    (else the first ones stay). ``points`` (n, 3) float64, collider frame at the pose;
+    ``to_rest`` (J, 3, 4) and ``posed`` (J, 4, 4) (:func:`rest_maps`); the rest as
+    :func:`part_candidates` and :func:`carry_to_rest`.
+
+    Returns ``(point (k,) int64, joint (k,) int64, rest (k, 3), inverse (k, 3, 3))`` float64: one
+    row per candidate kept, sorted by joint (within a joint by point, the retried rows after the
+    first ones), every point with at least one row."""
+    if rule not in CANDIDATE_RULES:
+        raise ValueError(f"candidate rule must be one of {', '.join(CANDIDATE_RULES)}, got {rule!r}")
+    point, joint, rigid = part_candidates(points, to_rest, labels, centre, radius, allowed, part_boxes, fused)
+    failed = np.zeros(len(points), bool) if rule == "retry-labels" else None
+    keep, rest, inverse = carry_to_rest(points, point, joint, rigid, to_rest, posed, field, centre, radius,
+                                        iterations, solver, fused, failed)
+    if len(keep) < len(point):
+        point, joint = point[keep], joint[keep]
+    if failed is None or not failed.any():
+        return point, joint, rest, inverse
+    lost = np.flatnonzero(failed)
+    seen = labels_seen(points[lost], to_rest, labels, centre, radius, fused)
+    where = np.full(len(points), -1, np.int64)
+    where[lost] = np.arange(len(lost))
+    tried = where[point] >= 0
+    seen[joint[tried], where[point[tried]]] = False  # tried already
+    retry_joint, column = np.nonzero(seen)
+    if not len(column):
+        return point, joint, rest, inverse
+    retry_point = lost[column]
+    retry_rigid = np.einsum("mab,mb->ma", to_rest[retry_joint, :, :3], points[retry_point]) + to_rest[retry_joint, :, 3]
+    still = np.zeros(len(points), bool)
+    keep, retry_rest, retry_inverse = carry_to_rest(points, retry_point, retry_joint, retry_rigid, to_rest, posed,
+                                                    field, centre, radius, iterations, solver, fused, still)
+    retry_point, retry_joint = retry_point[keep], retry_joint[keep]
+    found = np.zeros(len(points), bool)
+    found[retry_point] = True
+    found &= ~still  # a root reached: these rows replace the first ones
+    first = ~found[point]
+    second = found[retry_point]
+    joint = np.concatenate([joint[first], retry_joint[second]])
+    order = np.argsort(joint.astype(np.int16), kind="stable")  # a radix sort: parts are < 255
+    return (np.concatenate([point[first], retry_point[second]])[order], joint[order],
+            np.concatenate([rest[first], retry_rest[second]])[order],
+            np.concatenate([inverse[first], retry_inverse[second]])[order])
 
 
 def _newton_through_grid(points, rigid, posed, field, centre, radius: float, iterations: int,
@@ -1029,12 +1165,9 @@ class ArticulatedNeuralCollider(Collider):
 
     def evaluate_at(self, local, want_gradient, time, skeleton=None):
         to_rest, posed, moving, bias = self.pose(time, skeleton)
-        point, joint, rigid = part_candidates(local, to_rest, self.labels, self.centre, self.radius,
-                                              self.allowed, self.part_boxes)
-        keep, rest, inverse = carry_to_rest(local, point, joint, rigid, to_rest, posed, self.weights, self.centre,
-                                            self.radius, self.arch.skinning_iterations, self.arch.skinning_solver)
-        if len(keep) < len(point):
-            point, joint = point[keep], joint[keep]
+        point, joint, rest, inverse = parts_through_skinning(
+            local, to_rest, posed, self.labels, self.centre, self.radius, self.allowed, self.part_boxes, self.weights,
+            self.arch.skinning_iterations, self.arch.skinning_solver, self.arch.candidate_rule)
         n = len(local)
         best = np.full(n, np.inf)
         best_row = np.zeros(n, np.int64)

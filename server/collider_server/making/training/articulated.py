@@ -6,8 +6,8 @@ random times with every joint's local rotation turned by up to ``perturb_deg`` a
 axis), at each the skin posed by linear blend skinning and its exact signed distance and gradient
 (:class:`~collider_server.engine.meshes.ExactSDF`, the exact ``skinned`` kind's truth) at
 ``samples / poses`` points drawn as a static mesh's are (near the posed surface, then uniform in
-its padded box). Each sample keeps its candidate parts (``part_candidates``: the rule the query
-uses) with its point in each part's rest frame and the pose's codes.
+its padded box). Each sample keeps its candidate parts (``parts_through_skinning``: the rule the
+query uses) with its point in each part's rest frame and the pose's codes.
 
 Loss per batch: the distance is the minimum over a sample's candidates of the shared network's
 value (what the query answers), L1 against the truth, plus ``normal_weight`` (1 - cos) between the
@@ -31,10 +31,9 @@ from ...engine.kinds.neural_skinned import (
     ArticulatedNeuralCollider,
     allowed_labels,
     build_articulated_network,
-    carry_to_rest,
     part_boxes,
-    part_candidates,
     part_labels,
+    parts_through_skinning,
     pose_codes,
     rest_maps,
     weight_field,
@@ -51,9 +50,10 @@ from .schedule import RunClock, cosine_learning_rate, make_optimizer, set_traini
 #: The preset ``collider train CHARACTER`` uses: the static ``grid`` preset's field (2^17 rows
 #: per hashed level in 8 bits) shared by the parts; the map to the rest pose by 8 damped Newton
 #: steps through the 48^3 weight grid and blocks of a 128^3 one near the rest surface (the
-#: walker's floor without a network: docs/neural.md).
+#: walker's floor without a network: docs/neural.md); a point none of whose candidates reaches a
+#: root tried again with the parts the label grid names at its rigid images (``retry-labels``).
 ARTICULATED_PRESET = ArticulatedGridArchitecture(skinning_solver="newton", skinning_iterations=8,
-                                                 fine_weight_resolution=128)
+                                                 fine_weight_resolution=128, candidate_rule="retry-labels")
 #: The fine weight field's blocks reach this many fine cells beyond the rest surface.
 FINE_WEIGHT_BAND_CELLS = 1.0
 #: Training poses and validation poses of a run (the rest pose is one of the training poses).
@@ -108,10 +108,9 @@ def make_samples(skin: Skin, poses: np.ndarray, per_pose: int, point_sampler, ar
             points, near = point_sampler(mesh, p)
             distance, gradient = exact_values(ExactSDF(mesh), points)
             to_rest, posed = rest_maps(skeleton, transforms)
-            point, joint, rest = part_candidates(points, to_rest, labels, centre, radius, allowed, boxes)
-            keep, rest, inverse = carry_to_rest(points, point, joint, rest, to_rest, posed, weights, centre,
-                                                radius, arch.skinning_iterations, arch.skinning_solver)
-            point, joint = point[keep], joint[keep]
+            point, joint, rest, inverse = parts_through_skinning(
+                points, to_rest, posed, labels, centre, radius, allowed, boxes, weights, arch.skinning_iterations,
+                arch.skinning_solver, arch.candidate_rule)
             order = np.argsort(point, kind="stable")
             parts["distance"].append(distance)
             parts["gradient"].append(gradient)
