@@ -204,16 +204,23 @@ def part_candidates(points: np.ndarray, to_rest: np.ndarray, labels: np.ndarray,
         take = np.flatnonzero(mask[j])
         rows_point.append(take)
         rows_joint.append(np.full(len(take), j, np.int64))
-        rows_rest.append(points[take] @ to_rest[j, :, :3].T + to_rest[j, :, 3])
+        rows_rest.append(rigid_images(points[take], to_rest[j]))
     return np.concatenate(rows_point), np.concatenate(rows_joint), np.concatenate(rows_rest)
+
+
+def rigid_images(points: np.ndarray, to_rest: np.ndarray) -> np.ndarray:
+    """(m, 3) float64: points (m, 3) through one part's map ``to_rest`` (3, 4), summed in one fixed
+    order, ``x m[:, 0] + y m[:, 1] + z m[:, 2] + m[:, 3]`` (elementwise, not a BLAS product: the
+    numba pass :func:`_candidate_rows` sums in the same order, so both give the same bits)."""
+    return points[:, 0:1] * to_rest[:, 0] + points[:, 1:2] * to_rest[:, 1] + points[:, 2:3] * to_rest[:, 2] \
+        + to_rest[:, 3]
 
 
 def candidate_rows(points: np.ndarray, to_rest: np.ndarray, mask: np.ndarray):
     """:func:`part_candidates`' rows from its (J, n) bool ``mask`` in one numba pass
     (:func:`_candidate_rows`: counts per joint and block of points, their prefix sums, then the
-    rows written in place), ``points`` (n, 3) float64, ``to_rest`` (J, 3, 4). The rest points are
-    the same products as the numpy reference's, summed in the written order (they may differ from
-    BLAS's in the last bit)."""
+    rows written in place), ``points`` (n, 3) float64, ``to_rest`` (J, 3, 4); the rest points
+    summed as :func:`rigid_images` sums them."""
     joints, n = mask.shape
     blocks = max(1, min(256, n // 4096))
     counts = np.empty((joints, blocks), np.int64)
@@ -323,7 +330,7 @@ if grid_kernels.available():
                         point[r] = p
                         joint[r] = j
                         x, y, z = points[p, 0], points[p, 1], points[p, 2]
-                        for a in range(3):
+                        for a in range(3):  # rigid_images' order
                             rest[r, a] = x * m[a, 0] + y * m[a, 1] + z * m[a, 2] + m[a, 3]
                         r += 1
 
