@@ -12,6 +12,7 @@ from collider_server.engine.kinds.neural_skinned import (
     blend_at,
     carried_rows,
     carry_to_rest,
+    clamp_to_cube,
     part_boxes,
     part_candidates,
     part_labels,
@@ -92,6 +93,20 @@ def test_the_pull_back_is_the_transposed_map_times_the_gradient(arm):
     np.testing.assert_allclose(pull_back(gradient, inverse, row), pull_back(gradient, inverse, row, fused=False),
                                rtol=0, atol=1e-14)
     np.testing.assert_allclose(pull_back(gradient, inverse, row)[0], inverse[row[0]].T @ gradient[row[0]], atol=1e-14)
+
+
+def test_the_clamp_into_the_cube_is_numpy_s_bit_for_bit(arm):
+    _, centre, radius = arm[:3]
+    rest = centre + radius * np.random.default_rng(7).uniform(-1.3, 1.3, (5000, 3))
+    rest[:3] = centre + radius  # on the cube's corner: inside
+    lo, hi = centre - radius, centre + radius
+    clamped, outside = clamp_to_cube(rest, lo, hi)
+    reference = clamp_to_cube(rest, lo, hi, fused=False)
+    assert clamped.dtype == np.float32
+    np.testing.assert_array_equal(clamped, reference[0])
+    np.testing.assert_array_equal(outside, reference[1])
+    assert 0 < len(outside) < len(rest) and outside[0] >= 3
+    np.testing.assert_array_equal(clamped, np.clip(rest, lo, hi).astype(np.float32))
 
 
 def test_the_newton_kernel_s_velocity_is_the_skinning_s_motion_at_its_rest_point(arm):

@@ -987,6 +987,21 @@ if grid_kernels.available():
                         velocity[p, a] = v
 
 
+def clamp_to_cube(rest: np.ndarray, lo: np.ndarray, hi: np.ndarray, fused: bool = True):
+    """Rest points (m, 3) float64 clamped into the box ``lo``..``hi`` (3,) and rounded to float32
+    (the network's input), and which rows were outside it: ``(clamped (m, 3) float32, outside
+    (k,) int64)``. One numba pass (no float64 copies) when numba is there and ``fused``, else
+    numpy."""
+    if fused and _clamp_kernel is not None:
+        clamped = np.empty(rest.shape, np.float32)
+        flag = np.empty(len(rest), np.bool_)
+        _clamp_kernel(np.ascontiguousarray(rest, np.float64), np.asarray(lo, np.float64), np.asarray(hi, np.float64),
+                      clamped, flag)
+        return clamped, np.flatnonzero(flag)
+    inside = np.clip(rest, lo, hi)
+    return inside.astype(np.float32), np.flatnonzero((rest != inside).any(axis=1))
+
+
 def union_of_parts(distance: np.ndarray, point: np.ndarray, usable: np.ndarray, n: int,
                    fused: bool = True) -> tuple[np.ndarray, np.ndarray]:
     """The union over each point's parts: the least ``distance`` (m,) of its ``usable`` (m,) bool
@@ -1026,9 +1041,22 @@ def pull_back(gradient: np.ndarray, inverse: np.ndarray, row: np.ndarray, fused:
     return np.einsum("na,nab->nb", gradient[row], inverse[row])
 
 
-_union_kernel = _pull_back_kernel = None
+_union_kernel = _pull_back_kernel = _clamp_kernel = None
 if grid_kernels.available():
     import numba
+
+    @numba.njit(cache=True, nogil=True, parallel=True)
+    def _clamp_kernel(rest, lo, hi, clamped, flag):  # pragma: no cover
+        """:func:`clamp_to_cube` over the rows (numba): ``clamped`` (m, 3) float32 and ``flag`` (m,)
+        bool overwritten."""
+        for p in numba.prange(rest.shape[0]):
+            out = False
+            for a in range(3):
+                v = rest[p, a]
+                c = min(max(v, lo[a]), hi[a])
+                out = out or c != v
+                clamped[p, a] = np.float32(c)
+            flag[p] = out
 
     @numba.njit(cache=True, nogil=True)
     def _union_kernel(distance, point, usable, best, best_row):  # pragma: no cover
@@ -1262,8 +1290,8 @@ class ArticulatedNeuralCollider(Collider):
         point plus the way there (the normal along it)."""
         torch = self._torch
         lo, hi = self.centre - self.radius, self.centre + self.radius
-        clamped = np.clip(rest, lo, hi)
-        x = torch.as_tensor(clamped, dtype=torch.float32, device=self._device)
+        clamped, outside = clamp_to_cube(rest, lo, hi)
+        x = torch.as_tensor(clamped, device=self._device)
         grid = self.network.grid
         if grid.can_fuse(x):
             threads = torch.get_num_threads()
@@ -1283,13 +1311,12 @@ class ArticulatedNeuralCollider(Collider):
                 g = torch.einsum("nlf,nlfd->nd", gf, jacobian) if want_gradient else None
         d = d.double().cpu().numpy()
         g = g.double().cpu().numpy() if want_gradient else None
-        away = rest - clamped
-        outside = np.flatnonzero(away.any(axis=1))
         if len(outside):
-            gap = np.linalg.norm(away[outside], axis=1)
+            away = rest[outside] - np.clip(rest[outside], lo, hi)
+            gap = np.linalg.norm(away, axis=1)
             d[outside] = np.maximum(d[outside], 0.0) + gap
             if want_gradient:
-                g[outside] = away[outside] / gap[:, None]
+                g[outside] = away / gap[:, None]
         return d, g
 
     def tensors(self):
