@@ -656,7 +656,9 @@ def carried_rows(points: np.ndarray, point: np.ndarray, joint: np.ndarray, rigid
     else:
         rest, inverse, converged, velocity = _newton_through_grid(x, rigid, posed, field, centre, radius,
                                                                   iterations, fused, moving)
-    wild = np.flatnonzero(np.einsum("ma,ma->m", rest - rigid, rest - rigid) > (DIVERGED * radius) ** 2)
+    moved = rest - rigid
+    wild = np.flatnonzero(np.einsum("ma,ma->m", moved, moved) > (DIVERGED * radius) ** 2)
+    del moved
     if len(wild):
         rest[wild], inverse[wild] = rigid[wild], to_rest[joint[wild], :, :3]
         if velocity is not None:  # the rigid image's own blend (rare)
