@@ -17,6 +17,7 @@ time does not depend on the values) for distance + normal + contact; the median 
 
     python benchmarks/articulated_neural.py --model models/walker-neural.safetensors
     python benchmarks/articulated_neural.py --train-minutes 10   # trains one first (not saved)
+    python benchmarks/articulated_neural.py --model models/walker-neural.safetensors --no-accuracy  # time only
 
 ``--candidate-rules own-label retry-labels`` measures the model through each candidate rule (the
 architecture's ``candidate_rule``; the network is the same, only the parts a point is answered
@@ -126,6 +127,7 @@ def main() -> int:
     parser.add_argument("--seed", type=int, default=2026)
     parser.add_argument("--candidate-rules", nargs="+", choices=CANDIDATE_RULES, default=None,
                         help="measure the model through each of these candidate rules (default: its own)")
+    parser.add_argument("--no-accuracy", action="store_true", help="time the query only (no accuracy part)")
     args = parser.parse_args()
     if (args.model is None) == (args.train_minutes is None):
         parser.error("give --model or --train-minutes")
@@ -143,7 +145,7 @@ def main() -> int:
         path = save_collider(collider, args.save or Path("/tmp/walker-neural.safetensors"))
         size = path.stat().st_size
         print(result.summary())
-    exact = skinned_collider(skin, "walker", loop=True)
+    exact = None if args.no_accuracy else skinned_collider(skin, "walker", loop=True)
     training = collider.info.settings.get("training", {})
     print(f"model: {size / 1e6:.2f} MB; trained {training.get('steps_done')} steps in "
           f"{training.get('seconds')} s; best validation {training.get('best_validation_1mm_mm')} mm")
@@ -158,7 +160,7 @@ def main() -> int:
         colliders[rule] = copy
     clip_poses = random_poses(skin, args.clip_times, args.seed, perturbed_share=0.0).transforms
     off_poses = random_poses(skin, args.poses, args.seed + 5).transforms
-    for rule, each in colliders.items():
+    for rule, each in ({} if args.no_accuracy else colliders).items():
         # The one rule of random poses (engine.skinning.random_poses), as collider eval draws them.
         figures = {"clip times": accuracy(each, exact, skin, clip_poses, args.points, args.seed),
                    f"poses off the clips ({PERTURB_DEG:g} deg)": accuracy(each, exact, skin, off_poses, args.points,

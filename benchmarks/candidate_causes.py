@@ -52,22 +52,10 @@ def every_part(collider, rest_sdf, transforms, points):
     point = np.tile(np.arange(n), joints)
     rigid = np.einsum("mab,mb->ma", to_rest[joint, :, :3], points[point]) + to_rest[joint, :, 3]
     arch = collider.arch
-    failed = np.zeros(n, bool)
-    keep, rest, _ = ns.carry_to_rest(points, point, joint, rigid, to_rest, posed, collider.weights, collider.centre,
-                                     collider.radius, arch.skinning_iterations, arch.skinning_solver, failed=failed)
-    # Rows kept where the point has a converged one are the converged rows; a failed point's none.
-    converged = np.zeros(len(point), bool)
-    converged[keep] = True
-    converged &= ~failed[point]
-    if len(keep) < len(point):  # the dropped rows' roots: carried again, alone
-        full = np.empty((len(point), 3))
-        full[keep] = rest
-        lost = np.setdiff1d(np.arange(len(point)), keep)
-        _, again, _ = ns.carry_to_rest(points, point[lost], joint[lost], rigid[lost], to_rest, posed,
-                                       collider.weights, collider.centre, collider.radius,
-                                       arch.skinning_iterations, arch.skinning_solver)
-        full[lost] = again
-        rest = full
+    # Every row carried (the dropped ones too) and whether it reached a root.
+    carried = ns.carried_rows(points, point, joint, rigid, to_rest, posed, collider.weights, collider.centre,
+                              collider.radius, arch.skinning_iterations, arch.skinning_solver)
+    rest, converged = carried.rest, carried.converged
     floor = rest_sdf.query(rest)[0].reshape(joints, n)
     bias = collider.pose(None, SkeletonPose(joint_transforms=transforms))[3]
     network = collider._part_values(rest, joint, bias, False)[0].reshape(joints, n)

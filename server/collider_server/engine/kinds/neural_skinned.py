@@ -211,13 +211,40 @@ def part_candidates(points: np.ndarray, to_rest: np.ndarray, labels: np.ndarray,
                         np.ascontiguousarray(part_boxes, np.float64), mask)
     else:
         mask = _candidate_mask_numpy(points, to_rest, labels, centre, radius, allowed, part_boxes)
+    if fused and _candidate_rows is not None:
+        return candidate_rows(points, to_rest, mask)
     rows_point, rows_joint, rows_rest = [], [], []
     for j in range(len(to_rest)):
         take = np.flatnonzero(mask[j])
         rows_point.append(take)
         rows_joint.append(np.full(len(take), j, np.int64))
-        rows_rest.append(points[take] @ to_rest[j, :, :3].T + to_rest[j, :, 3])
+        rows_rest.append(rigid_images(points[take], to_rest[j]))
     return np.concatenate(rows_point), np.concatenate(rows_joint), np.concatenate(rows_rest)
+
+
+def rigid_images(points: np.ndarray, to_rest: np.ndarray) -> np.ndarray:
+    """(m, 3) float64: points (m, 3) through one part's map ``to_rest`` (3, 4), summed in one fixed
+    order, ``x m[:, 0] + y m[:, 1] + z m[:, 2] + m[:, 3]`` (elementwise, not a BLAS product: the
+    numba pass :func:`_candidate_rows` sums in the same order, so both give the same bits)."""
+    return points[:, 0:1] * to_rest[:, 0] + points[:, 1:2] * to_rest[:, 1] + points[:, 2:3] * to_rest[:, 2] \
+        + to_rest[:, 3]
+
+
+def candidate_rows(points: np.ndarray, to_rest: np.ndarray, mask: np.ndarray):
+    """:func:`part_candidates`' rows from its (J, n) bool ``mask`` in one numba pass
+    (:func:`_candidate_rows`: counts per joint and block of points, their prefix sums, then the
+    rows written in place), ``points`` (n, 3) float64, ``to_rest`` (J, 3, 4); the rest points
+    summed as :func:`rigid_images` sums them."""
+    joints, n = mask.shape
+    blocks = max(1, min(256, n // 4096))
+    counts = np.empty((joints, blocks), np.int64)
+    _candidate_counts(np.ascontiguousarray(mask), blocks, counts)
+    offsets = np.concatenate([[0], np.cumsum(counts.ravel())]).astype(np.int64)
+    total = int(offsets[-1])
+    point, joint, rest = np.empty(total, np.int64), np.empty(total, np.int64), np.empty((total, 3))
+    _candidate_rows(points, np.ascontiguousarray(to_rest, np.float64), np.ascontiguousarray(mask), blocks,
+                    offsets[:-1].reshape(joints, blocks), point, joint, rest)
+    return point, joint, rest
 
 
 def _candidate_mask_numpy(points, to_rest, labels, centre, radius, allowed, part_boxes) -> np.ndarray:
@@ -348,6 +375,41 @@ if grid_kernels.available():
                     label = labels[ci, cj, ck]
                     if label < joints:
                         seen[label, p] = True
+
+
+_candidate_counts = _candidate_rows = None
+if grid_kernels.available():
+    import numba
+
+    @numba.njit(cache=True, nogil=True, parallel=True)
+    def _candidate_counts(mask, blocks, counts):  # pragma: no cover
+        """``counts`` (J, blocks) = the candidates of each joint in each block of points."""
+        joints, n = mask.shape
+        for b in numba.prange(blocks):
+            lo, hi = b * n // blocks, (b + 1) * n // blocks
+            for j in range(joints):
+                c = 0
+                for p in range(lo, hi):
+                    c += mask[j, p]
+                counts[j, b] = c
+
+    @numba.njit(cache=True, nogil=True, parallel=True)
+    def _candidate_rows(points, to_rest, mask, blocks, offsets, point, joint, rest):  # pragma: no cover
+        """The rows of :func:`candidate_rows`, each (joint, block) from its ``offsets`` (J, blocks)."""
+        joints, n = mask.shape
+        for b in numba.prange(blocks):
+            lo, hi = b * n // blocks, (b + 1) * n // blocks
+            for j in range(joints):
+                r = offsets[j, b]
+                m = to_rest[j]
+                for p in range(lo, hi):
+                    if mask[j, p]:
+                        point[r] = p
+                        joint[r] = j
+                        x, y, z = points[p, 0], points[p, 1], points[p, 2]
+                        for a in range(3):  # rigid_images' order
+                            rest[r, a] = x * m[a, 0] + y * m[a, 1] + z * m[a, 2] + m[a, 3]
+                        r += 1
 
 
 #: Largest skinning weights kept per corner of the weight grid.
@@ -618,8 +680,7 @@ DIVERGED = 0.25
 
 def carry_to_rest(points: np.ndarray, point: np.ndarray, joint: np.ndarray, rigid: np.ndarray,
                   to_rest: np.ndarray, posed: np.ndarray, field, centre, radius: float,
-                  iterations: int, solver: str = "fixed-point", fused: bool = True,
-                  failed: np.ndarray | None = None):
+                  iterations: int, solver: str = "fixed-point", fused: bool = True):
     """Each candidate's rest-pose point and the linear part of its map there: candidates
     ``point`` (m,) (indices into ``points`` (n, 3), the posed points), ``joint`` (m,), their
     parts' rigid images ``rigid`` (m, 3) (``to_rest`` (J, 3, 4) of :func:`rest_maps`), carried on
@@ -627,62 +688,115 @@ def carry_to_rest(points: np.ndarray, point: np.ndarray, joint: np.ndarray, rigi
     and map where the steps diverged (:data:`DIVERGED`), or :func:`newton_rest` through the weight
     grid (tolerance and longest step shares of ``radius``), whose rows that did not converge are
     dropped where their point has one that did (else they keep the rigid image and map where they
-    went further than :data:`DIVERGED`). The rule both the query and the training use.
+    went further than :data:`DIVERGED`). The rule both the query and the training use
+    (:func:`carried_rows`, which keeps every row and says which count).
 
     Returns ``(keep (k,) int64, rest (k, 3), inverse (k, 3, 3))``: the candidates kept (indices
     into the m rows, in order), their rest points and the linear maps that pull a rest-frame
-    gradient back to the posed frame (``grad_x = inverse^T grad_rest``).
-    ``failed`` (n,) bool, when given, is set True at the points that have rows of which none
-    converged (:func:`parts_through_skinning` tries them again)."""
+    gradient back to the posed frame (``grad_x = inverse^T grad_rest``)."""
+    carried = carried_rows(points, point, joint, rigid, to_rest, posed, field, centre, radius, iterations, solver,
+                           fused)
+    keep = np.flatnonzero(carried.usable)
+    if len(keep) == len(point):  # nothing dropped: no copies of the rows
+        return keep, carried.rest, carried.inverse
+    return keep, carried.rest[keep], carried.inverse[keep]
+
+
+class CarriedRows(NamedTuple):
+    """:func:`carried_rows`' answer for m candidate rows: ``usable`` (m,) bool (the rows
+    :func:`carry_to_rest` keeps), ``rest`` (m, 3) and ``inverse`` (m, 3, 3) float64 (as
+    :func:`carry_to_rest`'s, for every row), ``velocity`` (m, 3) float64 or None: the skinning's
+    motion at each rest point, ``sum_k w_k(rest) dA_k/dt @ [rest, 1]`` (collider units per second),
+    where ``moving`` was given and the solver's pass had the weights there at hand (the Newton
+    kernel); else None (:func:`blend_at` then); ``converged`` (m,) bool: the rows that reached a
+    root (every row of the fixed-point steps and of rigid parts)."""
+
+    usable: np.ndarray
+    rest: np.ndarray
+    inverse: np.ndarray
+    velocity: np.ndarray | None
+    converged: np.ndarray
+
+
+def carried_rows(points: np.ndarray, point: np.ndarray, joint: np.ndarray, rigid: np.ndarray,
+                 to_rest: np.ndarray, posed: np.ndarray, field, centre, radius: float, iterations: int,
+                 solver: str = "fixed-point", fused: bool = True, moving: np.ndarray | None = None) -> CarriedRows:
+    """:func:`carry_to_rest`'s rule without dropping rows (the query's: no copies of the rows) and,
+    with ``moving`` (J, 3, 4) (``dA_j/dt``, :meth:`ArticulatedNeuralCollider.pose`), the velocity
+    at each row's rest point from the Newton kernel's last weights (:class:`CarriedRows`)."""
+    m = len(point)
     if iterations == 0:
-        return np.arange(len(point)), rigid, to_rest[joint, :, :3]
+        return CarriedRows(np.ones(m, bool), rigid, to_rest[joint, :, :3], None, np.ones(m, bool))
     x = np.ascontiguousarray(points[point], np.float64)
+    velocity = None
     if solver == "fixed-point":
         rest, inverse = skinned_rest(x, rigid, posed, field, centre, radius, iterations, fused)
-        converged = np.ones(len(point), bool)
+        converged = np.ones(m, bool)
     else:
-        rest, inverse, converged = _newton_through_grid(x, rigid, posed, field, centre, radius,
-                                                        iterations, fused)
-    wild = np.flatnonzero(np.einsum("ma,ma->m", rest - rigid, rest - rigid) > (DIVERGED * radius) ** 2)
-    rest[wild], inverse[wild] = rigid[wild], to_rest[joint[wild], :, :3]
+        rest, inverse, converged, velocity = _newton_through_grid(x, rigid, posed, field, centre, radius,
+                                                                  iterations, fused, moving)
+    moved = rest - rigid
+    wild = np.flatnonzero(np.einsum("ma,ma->m", moved, moved) > (DIVERGED * radius) ** 2)
+    del moved
+    if len(wild):
+        rest[wild], inverse[wild] = rigid[wild], to_rest[joint[wild], :, :3]
+        if velocity is not None:  # the rigid image's own blend (rare)
+            velocity[wild] = _velocity_at(rigid[wild], moving, field, centre, radius)
+    if converged.all():
+        return CarriedRows(converged, rest, inverse, velocity, converged)
     has_converged = np.zeros(len(points), bool)
     has_converged[point[converged]] = True
-    if failed is not None:
-        failed[point[~has_converged[point]]] = True
-    keep = np.flatnonzero(converged | ~has_converged[point])
-    if len(keep) == len(point):  # nothing dropped: no copies of the rows
-        return keep, rest, inverse
-    return keep, rest[keep], inverse[keep]
+    return CarriedRows(converged | ~has_converged[point], rest, inverse, velocity, converged)
+
+
+def _velocity_at(rest: np.ndarray, moving: np.ndarray, field, centre, radius: float) -> np.ndarray:
+    """(m, 3) float64: the skinning's motion ``sum_k w_k(y) dA_k/dt @ [y, 1]`` at rest points
+    ``rest`` (m, 3) (:func:`blend_at` of ``moving`` (J, 3, 4))."""
+    homogeneous = np.concatenate([rest, np.ones((len(rest), 1))], axis=1)
+    return np.einsum("nab,nb->na", blend_at(rest, moving, field, centre, radius), homogeneous)
 
 
 def parts_through_skinning(points: np.ndarray, to_rest: np.ndarray, posed: np.ndarray, labels: np.ndarray,
                            centre, radius: float, allowed: np.ndarray, part_boxes: np.ndarray, field,
                            iterations: int, solver: str, rule: str = "own-label", fused: bool = True):
-    """Each point's candidate parts and their rest points: the candidate rule (``rule``,
-    :data:`CANDIDATE_RULES`) in its one home, for the query and the training alike.
+    """Each point's candidate parts and their rest points, the rows :func:`carry_to_rest` would
+    keep (:func:`candidate_rows_through_skinning`, the rule's one home, with the unusable rows
+    dropped): ``(point (k,) int64, joint (k,) int64, rest (k, 3), inverse (k, 3, 3))`` float64,
+    sorted by joint, every point with at least one row."""
+    point, joint, carried = candidate_rows_through_skinning(points, to_rest, posed, labels, centre, radius, allowed,
+                                                            part_boxes, field, iterations, solver, rule, fused)
+    if carried.usable.all():  # nothing dropped: no copies of the rows
+        return point, joint, carried.rest, carried.inverse
+    keep = np.flatnonzero(carried.usable)
+    return point[keep], joint[keep], carried.rest[keep], carried.inverse[keep]
 
-    :func:`part_candidates` (the label at each part's rigid image), carried on through the
-    skinning by :func:`carry_to_rest`; with ``retry-labels``, a point none of whose candidates
-    reached a root is tried again with the parts :func:`labels_seen` names at its rigid images
-    (those not tried yet): where one of them reaches a root, those rows replace the first ones
-    (else the first ones stay). ``points`` (n, 3) float64, collider frame at the pose;
-    ``to_rest`` (J, 3, 4) and ``posed`` (J, 4, 4) (:func:`rest_maps`); the rest as
-    :func:`part_candidates` and :func:`carry_to_rest`.
 
-    Returns ``(point (k,) int64, joint (k,) int64, rest (k, 3), inverse (k, 3, 3))`` float64: one
-    row per candidate kept, sorted by joint (within a joint by point, the retried rows after the
-    first ones), every point with at least one row."""
+def candidate_rows_through_skinning(points: np.ndarray, to_rest: np.ndarray, posed: np.ndarray, labels: np.ndarray,
+                                    centre, radius: float, allowed: np.ndarray, part_boxes: np.ndarray, field,
+                                    iterations: int, solver: str, rule: str = "own-label", fused: bool = True,
+                                    moving: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, CarriedRows]:
+    """The candidate rule (``rule``, :data:`CANDIDATE_RULES`) in its one home, for the query and
+    the training alike: :func:`part_candidates` (the label at each part's rigid image), carried on
+    through the skinning by :func:`carried_rows`; with ``retry-labels``, a point none of whose
+    candidates reached a root is tried again with the parts :func:`labels_seen` names at its
+    rigid images (those not tried yet): where one of them reaches a root, those rows replace the
+    first ones (else the first ones stay). ``points`` (n, 3) float64, collider frame at the pose;
+    ``to_rest`` (J, 3, 4) and ``posed`` (J, 4, 4) (:func:`rest_maps`); ``moving`` (J, 3, 4) as
+    :func:`carried_rows`'; the rest as :func:`part_candidates` and :func:`carry_to_rest`.
+
+    Returns ``(point (m,) int64, joint (m,) int64, rows)``: every row (:class:`CarriedRows`; the
+    union reads only the ``usable`` ones), sorted by joint (within a joint by point, the retried
+    rows after the first ones), one row per point and joint, every point with a usable row."""
     if rule not in CANDIDATE_RULES:
         raise ValueError(f"candidate rule must be one of {', '.join(CANDIDATE_RULES)}, got {rule!r}")
     point, joint, rigid = part_candidates(points, to_rest, labels, centre, radius, allowed, part_boxes, fused)
-    failed = np.zeros(len(points), bool) if rule == "retry-labels" else None
-    keep, rest, inverse = carry_to_rest(points, point, joint, rigid, to_rest, posed, field, centre, radius,
-                                        iterations, solver, fused, failed)
-    if len(keep) < len(point):
-        point, joint = point[keep], joint[keep]
-    if failed is None or not failed.any():
-        return point, joint, rest, inverse
-    lost = np.flatnonzero(failed)
+    carried = carried_rows(points, point, joint, rigid, to_rest, posed, field, centre, radius, iterations, solver,
+                           fused, moving)
+    if rule != "retry-labels" or carried.converged.all():
+        return point, joint, carried
+    reached = np.zeros(len(points), bool)
+    reached[point[carried.converged]] = True
+    lost = np.unique(point[~reached[point]])  # points with rows, none of which reached a root
     seen = labels_seen(points[lost], to_rest, labels, centre, radius, fused)
     where = np.full(len(points), -1, np.int64)
     where[lost] = np.arange(len(lost))
@@ -690,46 +804,55 @@ def parts_through_skinning(points: np.ndarray, to_rest: np.ndarray, posed: np.nd
     seen[joint[tried], where[point[tried]]] = False  # tried already
     retry_joint, column = np.nonzero(seen)
     if not len(column):
-        return point, joint, rest, inverse
+        return point, joint, carried
     retry_point = lost[column]
-    retry_rigid = np.einsum("mab,mb->ma", to_rest[retry_joint, :, :3], points[retry_point]) + to_rest[retry_joint, :, 3]
-    still = np.zeros(len(points), bool)
-    keep, retry_rest, retry_inverse = carry_to_rest(points, retry_point, retry_joint, retry_rigid, to_rest, posed,
-                                                    field, centre, radius, iterations, solver, fused, still)
-    retry_point, retry_joint = retry_point[keep], retry_joint[keep]
+    retry_rigid = (np.einsum("mab,mb->ma", to_rest[retry_joint, :, :3], points[retry_point])
+                   + to_rest[retry_joint, :, 3])
+    again = carried_rows(points, retry_point, retry_joint, retry_rigid, to_rest, posed, field, centre, radius,
+                         iterations, solver, fused, moving)
     found = np.zeros(len(points), bool)
-    found[retry_point] = True
-    found &= ~still  # a root reached: these rows replace the first ones
-    first = ~found[point]
-    second = found[retry_point]
+    found[retry_point[again.converged]] = True  # a root reached: these rows replace the first ones
+    first, second = ~found[point], found[retry_point]
     joint = np.concatenate([joint[first], retry_joint[second]])
     order = np.argsort(joint.astype(np.int16), kind="stable")  # a radix sort: parts are < 255
-    return (np.concatenate([point[first], retry_point[second]])[order], joint[order],
-            np.concatenate([rest[first], retry_rest[second]])[order],
-            np.concatenate([inverse[first], retry_inverse[second]])[order])
+
+    def joined(a, b):
+        return np.concatenate([a[first], b[second]])[order]
+
+    velocity = None if carried.velocity is None or again.velocity is None else joined(carried.velocity,
+                                                                                      again.velocity)
+    rows = CarriedRows(joined(carried.usable, again.usable), joined(carried.rest, again.rest),
+                       joined(carried.inverse, again.inverse), velocity, joined(carried.converged, again.converged))
+    return joined(point, retry_point), joint[order], rows
 
 
 def _newton_through_grid(points, rigid, posed, field, centre, radius: float, iterations: int,
-                         fused: bool = True):
+                         fused: bool = True, moving: np.ndarray | None = None):
     """:func:`newton_rest` through the weight grid (:func:`weights_and_gradient`), its tolerance
     :data:`NEWTON_TOLERANCE` and longest step :data:`NEWTON_MAX_STEP` times ``radius``: one numba
-    pass (:func:`_newton_kernel`) when numba is there and ``fused``, else numpy."""
+    pass (:func:`_newton_kernel`) when numba is there and ``fused``, else numpy. Returns
+    ``newton_rest``'s three and the velocity (m, 3) at the rest points (:func:`_velocity_at`) from
+    the kernel's last weights where ``moving`` (J, 3, 4) is given and the kernel ran, else None."""
     centre = np.asarray(centre, np.float64)
     tolerance, max_step = NEWTON_TOLERANCE * radius, NEWTON_MAX_STEP * radius
     if fused and _newton_kernel is not None:
         rest = np.array(rigid, np.float64, order="C")
         inverse = np.empty((len(rest), 3, 3))
         converged = np.empty(len(rest), np.bool_)
+        if moving is None:
+            maps, velocity = np.zeros((0, 3, 4)), np.empty((0, 3))
+        else:
+            maps, velocity = np.ascontiguousarray(moving, np.float64), np.empty((len(rest), 3))
         _newton_kernel(np.ascontiguousarray(points, np.float64), rest, np.ascontiguousarray(posed[:, :3, :]),
                        *field, centre, float(radius), iterations, max_step, tolerance,
-                       NEWTON_HALVINGS, inverse, converged)
-        return rest, inverse, converged
+                       NEWTON_HALVINGS, inverse, converged, maps, velocity)
+        return rest, inverse, converged, (None if moving is None else velocity)
     joints = len(posed)
 
     def weights(y):
         return weights_and_gradient(y, field, centre, radius, joints)
 
-    return newton_rest(points, rigid, posed, weights, iterations, max_step, tolerance)
+    return (*newton_rest(points, rigid, posed, weights, iterations, max_step, tolerance), None)
 
 
 _blend_kernel = _skinned_rest_kernel = None
@@ -795,9 +918,10 @@ if grid_kernels.available():
             d0, d1, d2 = gx * fy * fz, fx * gy * fz, fx * fy * gz
             i, j, k = cx + ox, cy + oy, cz + oz
             for slot in range(table_joints.shape[3]):
-                q = table_weights[i, j, k, slot] / 255.0
-                if q == 0.0:
+                raw = table_weights[i, j, k, slot]
+                if raw == 0:  # (before the division: most corners hold 1-2 joints)
                     continue
+                q = raw / 255.0
                 joint = table_joints[i, j, k, slot]
                 s = slot_of[joint]
                 if s < 0:
@@ -899,8 +1023,9 @@ if grid_kernels.available():
     def _newton_terms_one(y0, y1, y2, x, maps, field, centre, radius, f, jac, slot_of, touched, wsum,
                           dsum):  # pragma: no cover
         """``f`` (3,) = F and ``jac`` (3, 3) = J_F of :func:`newton_rest` at the rest point (y0, y1,
-        y2) for the posed point ``x`` (3,); returns |F|. The last four: :func:`_gather_weights`'
-        scratch."""
+        y2) for the posed point ``x`` (3,); returns ``(|F|, count)``. The last four:
+        :func:`_gather_weights`' scratch (``touched[:count]``, ``wsum[:count]``: the point's joints
+        and raw weights, as left there)."""
         table_joints, table_weights, cx, cy, cz, tx, ty, tz, sx, sy, sz = _weight_source(
             y0, y1, y2, field[0], field[1], field[2], field[3], field[4], centre, radius)
         count = _gather_weights(table_joints, table_weights, cx, cy, cz, tx, ty, tz, sx, sy, sz, slot_of, touched,
@@ -932,14 +1057,17 @@ if grid_kernels.available():
             jac[a, 0] = (r0 + e0 - image * ds0) / total
             jac[a, 1] = (r1 + e1 - image * ds1) / total
             jac[a, 2] = (r2 + e2 - image * ds2) / total
-        return math.sqrt(size)
+        return math.sqrt(size), count
 
     @numba.njit(cache=True, nogil=True, parallel=True)
     def _newton_kernel(points, rest, maps, grid_joints, grid_weights, block_index, block_joints, block_weights, centre,
-                       radius, iterations, max_step,
-                       tolerance, halvings, inverse, converged):  # pragma: no cover
+                       radius, iterations, max_step, tolerance, halvings, inverse, converged, moving,
+                       velocity):  # pragma: no cover
         """:func:`newton_rest` through the weight grid in one pass over the points (numba):
-        ``rest`` (m, 3) moved in place, ``inverse`` (m, 3, 3) and ``converged`` (m,) overwritten."""
+        ``rest`` (m, 3) moved in place, ``inverse`` (m, 3, 3) and ``converged`` (m,) overwritten.
+        Where ``moving`` (J, 3, 4) has rows (else (0, 3, 4)), ``velocity`` (m, 3) is overwritten
+        with :func:`blend_at`'s ``sum_k w_k dA_k/dt`` at the final rest point applied to it: the
+        weights of the last accepted evaluation there (no second lookup)."""
         field = (grid_joints, grid_weights, block_index, block_joints, block_weights)
         n = points.shape[0]
         chunk = 1024
@@ -953,11 +1081,16 @@ if grid_kernels.available():
             touched = np.empty(8 * GRID_INFLUENCES, np.int64)
             wsum = np.empty(8 * GRID_INFLUENCES)
             dsum = np.empty((8 * GRID_INFLUENCES, 3))
+            kept_joints = np.empty(8 * GRID_INFLUENCES, np.int64)  # the accepted point's weights
+            kept_weights = np.empty(8 * GRID_INFLUENCES)
             for p in range(first * chunk, min(n, first * chunk + chunk)):
                 x = points[p]
                 y0, y1, y2 = rest[p, 0], rest[p, 1], rest[p, 2]
-                size = _newton_terms_one(y0, y1, y2, x, maps, field, centre, radius, f, jac, slot_of, touched, wsum,
-                                         dsum)
+                size, count = _newton_terms_one(y0, y1, y2, x, maps, field, centre, radius, f, jac, slot_of, touched,
+                                                wsum, dsum)
+                kept = count
+                kept_joints[:count] = touched[:count]
+                kept_weights[:count] = wsum[:count]
                 for _ in range(iterations):
                     if size <= tolerance:
                         break
@@ -970,13 +1103,16 @@ if grid_kernels.available():
                     s0, s1, s2 = s0 * shrink, s1 * shrink, s2 * shrink
                     moved = False
                     for _h in range(halvings + 1):
-                        trial = _newton_terms_one(y0 + s0, y1 + s1, y2 + s2, x, maps, field, centre, radius, f_trial,
-                                                  jac_trial, slot_of, touched, wsum, dsum)
+                        trial, count = _newton_terms_one(y0 + s0, y1 + s1, y2 + s2, x, maps, field, centre, radius,
+                                                         f_trial, jac_trial, slot_of, touched, wsum, dsum)
                         if trial < size:  # the terms at the new point are kept for the next step
                             y0, y1, y2 = y0 + s0, y1 + s1, y2 + s2
                             size = trial
                             f[:] = f_trial
                             jac[:] = jac_trial
+                            kept = count
+                            kept_joints[:count] = touched[:count]
+                            kept_weights[:count] = wsum[:count]
                             moved = True
                             break
                         s0, s1, s2 = 0.5 * s0, 0.5 * s1, 0.5 * s2
@@ -985,6 +1121,112 @@ if grid_kernels.available():
                 _inverse3(jac, inverse[p])
                 rest[p, 0], rest[p, 1], rest[p, 2] = y0, y1, y2
                 converged[p] = size <= tolerance
+                if moving.shape[0]:
+                    # As _blend_one then the velocity's product, in the same order: the same numbers.
+                    total = 0.0
+                    for s in range(kept):
+                        total += kept_weights[s]
+                    scale = 1.0 / max(total, 1e-12)
+                    for a in range(3):
+                        v = 0.0
+                        for b in range(4):
+                            value = 0.0
+                            for s in range(kept):
+                                value += kept_weights[s] * moving[kept_joints[s], a, b]
+                            value *= scale
+                            v += value * (y0 if b == 0 else y1 if b == 1 else y2 if b == 2 else 1.0)
+                        velocity[p, a] = v
+
+
+def clamp_to_cube(rest: np.ndarray, lo: np.ndarray, hi: np.ndarray, fused: bool = True):
+    """Rest points (m, 3) float64 clamped into the box ``lo``..``hi`` (3,) and rounded to float32
+    (the network's input), and which rows were outside it: ``(clamped (m, 3) float32, outside
+    (k,) int64)``. One numba pass (no float64 copies) when numba is there and ``fused``, else
+    numpy."""
+    if fused and _clamp_kernel is not None:
+        clamped = np.empty(rest.shape, np.float32)
+        flag = np.empty(len(rest), np.bool_)
+        _clamp_kernel(np.ascontiguousarray(rest, np.float64), np.asarray(lo, np.float64), np.asarray(hi, np.float64),
+                      clamped, flag)
+        return clamped, np.flatnonzero(flag)
+    inside = np.clip(rest, lo, hi)
+    return inside.astype(np.float32), np.flatnonzero((rest != inside).any(axis=1))
+
+
+def union_of_parts(distance: np.ndarray, point: np.ndarray, usable: np.ndarray, n: int,
+                   fused: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """The union over each point's parts: the least ``distance`` (m,) of its ``usable`` (m,) bool
+    rows, the first in row order on a tie (rows sorted by joint, then point, as
+    :func:`part_candidates` gives them: the lowest joint). ``point`` (m,) int64 indexes the n
+    points, each with at least one usable row. Returns ``(best (n,) float64, best_row (n,)
+    int64)``. One numba pass over the rows (:func:`_union_kernel`) when numba is there and
+    ``fused``, else numpy joint by joint (the reference)."""
+    best = np.full(n, np.inf)
+    best_row = np.zeros(n, np.int64)
+    if fused and _union_kernel is not None:
+        _union_kernel(np.ascontiguousarray(distance), np.ascontiguousarray(point, np.int64),
+                      np.ascontiguousarray(usable, np.bool_), best, best_row)
+        return best, best_row
+    rows = np.flatnonzero(usable)
+    # Runs of rows of one joint: a point occurs once in each (part_candidates' order).
+    starts = np.flatnonzero(np.diff(point[rows], prepend=np.iinfo(np.int64).max) <= 0)
+    for lo, hi in zip(starts, [*starts[1:], len(rows)]):
+        r = rows[lo:hi]
+        d, at = distance[r], point[r]
+        better = d < best[at]
+        best[at[better]] = d[better]
+        best_row[at[better]] = r[better]
+    return best, best_row
+
+
+def pull_back(gradient: np.ndarray, inverse: np.ndarray, row: np.ndarray, fused: bool = True) -> np.ndarray:
+    """(n, 3) float64: the rest-frame gradients ``gradient`` (m, 3) of rows ``row`` (n,) int64
+    pulled back to the posed frame through their maps ``inverse`` (m, 3, 3): ``inverse[r]^T
+    gradient[r]``. One numba pass (no gathered copies) when numba is there and ``fused``, else
+    numpy."""
+    if fused and _pull_back_kernel is not None:
+        out = np.empty((len(row), 3))
+        _pull_back_kernel(np.ascontiguousarray(gradient), np.ascontiguousarray(inverse),
+                          np.ascontiguousarray(row, np.int64), out)
+        return out
+    return np.einsum("na,nab->nb", gradient[row], inverse[row])
+
+
+_union_kernel = _pull_back_kernel = _clamp_kernel = None
+if grid_kernels.available():
+    import numba
+
+    @numba.njit(cache=True, nogil=True, parallel=True)
+    def _clamp_kernel(rest, lo, hi, clamped, flag):  # pragma: no cover
+        """:func:`clamp_to_cube` over the rows (numba): ``clamped`` (m, 3) float32 and ``flag`` (m,)
+        bool overwritten."""
+        for p in numba.prange(rest.shape[0]):
+            out = False
+            for a in range(3):
+                v = rest[p, a]
+                c = min(max(v, lo[a]), hi[a])
+                out = out or c != v
+                clamped[p, a] = np.float32(c)
+            flag[p] = out
+
+    @numba.njit(cache=True, nogil=True)
+    def _union_kernel(distance, point, usable, best, best_row):  # pragma: no cover
+        """:func:`union_of_parts` in row order: ``best`` (n,) +inf and ``best_row`` (n,) updated."""
+        for r in range(point.shape[0]):
+            if usable[r]:
+                p = point[r]
+                if distance[r] < best[p]:
+                    best[p] = distance[r]
+                    best_row[p] = r
+
+    @numba.njit(cache=True, nogil=True, parallel=True)
+    def _pull_back_kernel(gradient, inverse, row, out):  # pragma: no cover
+        """:func:`pull_back` over the points (numba): ``out`` (n, 3) overwritten."""
+        for p in numba.prange(row.shape[0]):
+            r = row[p]
+            for b in range(3):
+                out[p, b] = gradient[r, 0] * inverse[r, 0, b] + gradient[r, 1] * inverse[r, 1, b] \
+                    + gradient[r, 2] * inverse[r, 2, b]
 
 
 def part_labels(skin: Skin, centre, radius: float, resolution: int, band: float) -> np.ndarray:
@@ -1165,29 +1407,23 @@ class ArticulatedNeuralCollider(Collider):
 
     def evaluate_at(self, local, want_gradient, time, skeleton=None):
         to_rest, posed, moving, bias = self.pose(time, skeleton)
-        point, joint, rest, inverse = parts_through_skinning(
+        point, joint, (usable, rest, inverse, velocity, _) = candidate_rows_through_skinning(
             local, to_rest, posed, self.labels, self.centre, self.radius, self.allowed, self.part_boxes, self.weights,
-            self.arch.skinning_iterations, self.arch.skinning_solver, self.arch.candidate_rule)
+            self.arch.skinning_iterations, self.arch.skinning_solver, self.arch.candidate_rule,
+            moving=moving if want_gradient and moving is not None else None)
         n = len(local)
-        best = np.full(n, np.inf)
-        best_row = np.zeros(n, np.int64)
+        # Every row goes through the network (the few dropped ones too: cheaper than copies of the rows).
         distance, gradient = self._part_values(rest, joint, bias, want_gradient)
-        bounds = np.searchsorted(joint, np.arange(self.arch.joints + 1))
-        for j in range(self.arch.joints):  # the union: the least over a point's parts, the first on a tie
-            rows = np.arange(bounds[j], bounds[j + 1])
-            if not len(rows):
-                continue
-            d, at = distance[rows], point[rows]
-            better = d < best[at]
-            best[at[better]] = d[better]
-            best_row[at[better]] = rows[better]
+        best, best_row = union_of_parts(distance, point, usable, n)
         if not want_gradient:
             return best, None, None
         # Through the map to the rest pose: grad_x f(B x) = B^T grad f (B: the part's rigid map,
         # or the skinning's inverse at the point).
-        g = np.einsum("na,nab->nb", gradient[best_row], inverse[best_row])
+        g = pull_back(gradient, inverse, best_row)
         if moving is None:
             return best, g, None
+        if velocity is not None:  # the Newton kernel's, at the chosen row's rest point
+            return best, g, velocity[best_row]
         homogeneous = np.concatenate([rest[best_row], np.ones((n, 1))], axis=1)
         if self.arch.skinning_iterations == 0:  # the chosen part's rigid motion
             m = moving[joint[best_row]]
@@ -1203,8 +1439,8 @@ class ArticulatedNeuralCollider(Collider):
         point plus the way there (the normal along it)."""
         torch = self._torch
         lo, hi = self.centre - self.radius, self.centre + self.radius
-        clamped = np.clip(rest, lo, hi)
-        x = torch.as_tensor(clamped, dtype=torch.float32, device=self._device)
+        clamped, outside = clamp_to_cube(rest, lo, hi)
+        x = torch.as_tensor(clamped, device=self._device)
         grid = self.network.grid
         if grid.can_fuse(x):
             threads = torch.get_num_threads()
@@ -1224,13 +1460,12 @@ class ArticulatedNeuralCollider(Collider):
                 g = torch.einsum("nlf,nlfd->nd", gf, jacobian) if want_gradient else None
         d = d.double().cpu().numpy()
         g = g.double().cpu().numpy() if want_gradient else None
-        away = rest - clamped
-        outside = np.flatnonzero(away.any(axis=1))
         if len(outside):
-            gap = np.linalg.norm(away[outside], axis=1)
+            away = rest[outside] - np.clip(rest[outside], lo, hi)
+            gap = np.linalg.norm(away, axis=1)
             d[outside] = np.maximum(d[outside], 0.0) + gap
             if want_gradient:
-                g[outside] = away[outside] / gap[:, None]
+                g[outside] = away / gap[:, None]
         return d, g
 
     def tensors(self):

@@ -1,0 +1,129 @@
+"""The query passes of kind ``neural-skinned`` beside their references, with no network and no
+training (the generated arm at a bent pose): the candidate rows written from the mask, the union
+over a point's parts, the gradient's pull-back and the velocity the Newton kernel leaves at each
+rest point."""
+
+import numpy as np
+import pytest
+
+from collider_server.engine.kinds import grid_kernels
+from collider_server.engine.kinds.neural_skinned import (
+    allowed_labels,
+    blend_at,
+    carried_rows,
+    carry_to_rest,
+    clamp_to_cube,
+    part_boxes,
+    part_candidates,
+    part_labels,
+    pull_back,
+    rest_maps,
+    union_of_parts,
+    weight_field,
+)
+from collider_server.engine.meshes import Mesh
+from collider_server.engine.skinning import pose_at, skin_vertices
+from collider_server.making.sampling import surface_band_points
+from collider_server.making.skinned import skinned_arm
+from collider_server.making.training.data import normalisation
+
+pytestmark = pytest.mark.skipif(not grid_kernels.available(), reason="the fast passes are numba's")
+
+
+@pytest.fixture(scope="module")
+def arm():
+    """The arm with the elbow bent (wave at 0.5 s), its rest pose's labels, boxes and weight field,
+    and points in the +-10 mm band of the posed skin plus some far from it."""
+    skin = skinned_arm()
+    centre, radius = normalisation(Mesh(skin.vertices, skin.faces, "rest"), 0.1)
+    cell = 2.0 * radius / 32
+    labels = part_labels(skin, centre, radius, 32, band=3.0 * cell)
+    boxes = part_boxes(skin, cell)
+    field = weight_field(skin, centre, radius, 16, 64, 2.0 * radius / 64)
+    transforms, velocities = pose_at(skin, "wave", 0.5)
+    to_rest, posed = rest_maps(skin.skeleton, transforms)
+    moving = (velocities @ skin.skeleton.inverse_bind)[:, :3, :]
+    band = surface_band_points(Mesh(skin_vertices(skin, transforms), skin.faces, "posed"), 4000, 1e-2, 3)
+    points = np.concatenate([band, np.random.default_rng(4).uniform(-0.4, 0.9, (500, 3))])
+    return skin, centre, radius, labels, boxes, field, to_rest, posed, moving, points
+
+
+def _candidates(arm, neighbours=True, fused=True):
+    skin, centre, radius, labels, boxes, _, to_rest, _, _, points = arm
+    return part_candidates(points, to_rest, labels, centre, radius, allowed_labels(skin.skeleton.parents, neighbours),
+                           boxes, fused=fused)
+
+
+def test_the_candidate_rows_written_from_the_mask_are_the_numpy_rule_s_bit_for_bit(arm):
+    fused, reference = _candidates(arm, fused=True), _candidates(arm, fused=False)
+    for a, b in zip(fused, reference):
+        assert a.dtype == b.dtype
+        np.testing.assert_array_equal(a, b)
+    point, joint, _ = fused
+    assert len(point) > len(arm[-1])  # with neighbours some points have several parts
+    # Sorted by joint, then point.
+    assert np.all(np.diff(joint) >= 0)
+    assert np.all(np.diff(point)[np.diff(joint) == 0] > 0)
+
+
+def test_the_union_takes_the_least_usable_row_and_the_lowest_joint_on_a_tie(arm):
+    point, _, _ = _candidates(arm)
+    n = len(arm[-1])
+    rng = np.random.default_rng(5)
+    distance = np.round(rng.uniform(-1.0, 1.0, len(point)), 1)  # many ties
+    usable = rng.uniform(size=len(point)) > 0.1
+    usable[np.unique(point, return_index=True)[1]] = True  # every point keeps a row
+    best, row = union_of_parts(distance, point, usable, n)
+    reference = union_of_parts(distance, point, usable, n, fused=False)
+    np.testing.assert_array_equal(best, reference[0])
+    np.testing.assert_array_equal(row, reference[1])
+    # The rule itself, point by point.
+    for p in rng.choice(n, 300, replace=False):
+        mine = np.flatnonzero((point == p) & usable)
+        least = distance[mine].min()
+        assert best[p] == least
+        assert row[p] == mine[distance[mine] == least][0]  # the first row: the lowest joint
+    assert not np.isin(row, np.flatnonzero(~usable)).any()
+
+
+def test_the_pull_back_is_the_transposed_map_times_the_gradient(arm):
+    rng = np.random.default_rng(6)
+    gradient, inverse = rng.normal(size=(800, 3)), rng.normal(size=(800, 3, 3))
+    row = rng.integers(0, 800, 500)
+    np.testing.assert_allclose(pull_back(gradient, inverse, row), pull_back(gradient, inverse, row, fused=False),
+                               rtol=0, atol=1e-14)
+    np.testing.assert_allclose(pull_back(gradient, inverse, row)[0], inverse[row[0]].T @ gradient[row[0]], atol=1e-14)
+
+
+def test_the_clamp_into_the_cube_is_numpy_s_bit_for_bit(arm):
+    _, centre, radius = arm[:3]
+    rest = centre + radius * np.random.default_rng(7).uniform(-1.3, 1.3, (5000, 3))
+    rest[:3] = centre + radius  # on the cube's corner: inside
+    lo, hi = centre - radius, centre + radius
+    clamped, outside = clamp_to_cube(rest, lo, hi)
+    reference = clamp_to_cube(rest, lo, hi, fused=False)
+    assert clamped.dtype == np.float32
+    np.testing.assert_array_equal(clamped, reference[0])
+    np.testing.assert_array_equal(outside, reference[1])
+    assert 0 < len(outside) < len(rest) and outside[0] >= 3
+    np.testing.assert_array_equal(clamped, np.clip(rest, lo, hi).astype(np.float32))
+
+
+def test_the_newton_kernel_s_velocity_is_the_skinning_s_motion_at_its_rest_point(arm):
+    _, centre, radius, _, _, field, to_rest, posed, moving, points = arm
+    point, joint, rigid = _candidates(arm, neighbours=False)
+    args = (points, point, joint, rigid, to_rest, posed, field, centre, radius, 8, "newton")
+    carried = carried_rows(*args, moving=moving)
+    # The rows and maps are carry_to_rest's (which drops the unusable rows).
+    keep, rest, inverse = carry_to_rest(*args)
+    np.testing.assert_array_equal(np.flatnonzero(carried.usable), keep)
+    np.testing.assert_array_equal(carried.rest[keep], rest)
+    np.testing.assert_array_equal(carried.inverse[keep], inverse)
+    # The velocity: the weights' blend of the maps' motion at the final rest point (blend_at).
+    homogeneous = np.concatenate([carried.rest, np.ones((len(point), 1))], axis=1)
+    expected = np.einsum("nab,nb->na", blend_at(carried.rest, moving, field, centre, radius), homogeneous)
+    assert np.abs(expected).max() > 0.1  # the elbow bends: the skin moves
+    np.testing.assert_allclose(carried.velocity, expected, rtol=0, atol=1e-12)
+    # Without the kernel (numpy) or without a motion there is none: blend_at answers then.
+    assert carried_rows(*args, fused=False, moving=moving).velocity is None
+    assert carried_rows(*args).velocity is None
