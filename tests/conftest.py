@@ -56,6 +56,35 @@ def load_shared_mesh() -> Callable:
     return load
 
 
+@pytest.fixture(scope="session")
+def built_once(tmp_path_factory) -> Callable:
+    """``built_once(name, build)`` -> a folder that ``build(folder)`` filled, built once per test
+    run: under ``-n`` (pytest-xdist) the first worker that asks builds it under a file lock in the
+    run's temporary folder, which every worker shares, and the others wait for it (a quick bench
+    or a trained model, made twice on two workers, took twice the CPU of a busy CI host). A build
+    that raised is built again by the next worker that asks. Read the folder; do not change it."""
+    import os
+    import shutil
+
+    from filelock import FileLock
+
+    root = tmp_path_factory.getbasetemp()
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        root = root.parent  # the run's folder; each worker's own is popen-gwN inside it
+
+    def get(name: str, build: Callable[[Path], None]) -> Path:
+        folder, done = root / name, root / f"{name}.built"
+        with FileLock(str(root / f"{name}.lock")):
+            if not done.is_file():
+                shutil.rmtree(folder, ignore_errors=True)  # what a failed build left
+                folder.mkdir()
+                build(folder)
+                done.touch()
+        return folder
+
+    return get
+
+
 # -- devices ---------------------------------------------------------------------------------
 
 
