@@ -85,6 +85,34 @@ def built_once(tmp_path_factory) -> Callable:
     return get
 
 
+#: The public RiggedSimple glTF character (a cylinder bending at its one inner joint).
+CHARACTER = REPO_ROOT / "tests" / "data" / "gltf" / "RiggedSimple.gltf"
+
+
+@pytest.fixture(scope="session")
+def trained_character(built_once) -> dict:
+    """``collider train RiggedSimple.gltf --name cylinder-neural --fit-size 1.0`` for 20 steps (8,000
+    samples, batches of 1,024, one thread), run in this process once per test run:
+    ``{"models": folder holding cylinder-neural.safetensors, "code": exit code, "out": stdout,
+    "err": stderr}``. Copy the model file before anything writes into it (``collider eval``)."""
+    import contextlib
+    import io
+    import json
+
+    def train(folder: Path) -> None:
+        from collider_cli import main
+
+        out, err = io.StringIO(), io.StringIO()
+        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+            code = main(["train", str(CHARACTER), "--name", "cylinder-neural", "--fit-size", "1.0", "--steps",
+                         "20", "--samples", "8000", "--batch-size", "1024", "--threads", "1", "--models",
+                         str(folder / "models"), "--quiet"])
+        (folder / "run.json").write_text(json.dumps({"code": code, "out": out.getvalue(), "err": err.getvalue()}))
+
+    folder = built_once("trained-character", train)
+    return {"models": folder / "models", **json.loads((folder / "run.json").read_text())}
+
+
 # -- devices ---------------------------------------------------------------------------------
 
 
