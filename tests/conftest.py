@@ -62,7 +62,8 @@ def built_once(tmp_path_factory) -> Callable:
     run: under ``-n`` (pytest-xdist) the first worker that asks builds it under a file lock in the
     run's temporary folder, which every worker shares, and the others wait for it (a quick bench
     or a trained model, made twice on two workers, took twice the CPU of a busy CI host). A build
-    that raised is built again by the next worker that asks. Read the folder; do not change it."""
+    that raised is built again by the next worker that asks. Never change what other tests read
+    in it (a collider cache inside may gain entries)."""
     import os
     import shutil
 
