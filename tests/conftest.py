@@ -56,6 +56,64 @@ def load_shared_mesh() -> Callable:
     return load
 
 
+@pytest.fixture(scope="session")
+def built_once(tmp_path_factory) -> Callable:
+    """``built_once(name, build)`` -> a folder that ``build(folder)`` filled, built once per test
+    run: under ``-n`` (pytest-xdist) the first worker that asks builds it under a file lock in the
+    run's temporary folder, which every worker shares, and the others wait for it (a quick bench
+    or a trained model, made twice on two workers, took twice the CPU of a busy CI host). A build
+    that raised is built again by the next worker that asks. Never change what other tests read
+    in it (a collider cache inside may gain entries)."""
+    import os
+    import shutil
+
+    from filelock import FileLock
+
+    root = tmp_path_factory.getbasetemp()
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        root = root.parent  # the run's folder; each worker's own is popen-gwN inside it
+
+    def get(name: str, build: Callable[[Path], None]) -> Path:
+        folder, done = root / name, root / f"{name}.built"
+        with FileLock(str(root / f"{name}.lock")):
+            if not done.is_file():
+                shutil.rmtree(folder, ignore_errors=True)  # what a failed build left
+                folder.mkdir()
+                build(folder)
+                done.touch()
+        return folder
+
+    return get
+
+
+#: The public RiggedSimple glTF character (a cylinder bending at its one inner joint).
+CHARACTER = REPO_ROOT / "tests" / "data" / "gltf" / "RiggedSimple.gltf"
+
+
+@pytest.fixture(scope="session")
+def trained_character(built_once) -> dict:
+    """``collider train RiggedSimple.gltf --name cylinder-neural --fit-size 1.0`` for 20 steps (8,000
+    samples, batches of 1,024, one thread), run in this process once per test run:
+    ``{"models": folder holding cylinder-neural.safetensors, "code": exit code, "out": stdout,
+    "err": stderr}``. Copy the model file before anything writes into it (``collider eval``)."""
+    import contextlib
+    import io
+    import json
+
+    def train(folder: Path) -> None:
+        from collider_cli import main
+
+        out, err = io.StringIO(), io.StringIO()
+        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+            code = main(["train", str(CHARACTER), "--name", "cylinder-neural", "--fit-size", "1.0", "--steps",
+                         "20", "--samples", "8000", "--batch-size", "1024", "--threads", "1", "--models",
+                         str(folder / "models"), "--quiet"])
+        (folder / "run.json").write_text(json.dumps({"code": code, "out": out.getvalue(), "err": err.getvalue()}))
+
+    folder = built_once("trained-character", train)
+    return {"models": folder / "models", **json.loads((folder / "run.json").read_text())}
+
+
 # -- devices ---------------------------------------------------------------------------------
 
 

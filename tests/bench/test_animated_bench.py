@@ -18,12 +18,17 @@ ARM = ["examples/animations/arm.obj", "--animation", "examples/animations/arm.pc
 
 
 @pytest.fixture(scope="module")
-def arm_bench(tmp_path_factory):
-    out = tmp_path_factory.mktemp("bench-arm")
-    result = collider("bench", *(str(ROOT / a) if a.startswith("examples/") else a for a in ARM), "--quick",
-                      "--quiet", "--output", out / "result", "--cache", out / "cache")
-    assert result.returncode == 0, result.stdout + result.stderr
-    return out / "result", json.loads((out / "result" / "bench.json").read_text()), result.stdout
+def arm_bench(built_once):
+    """``collider bench ARM --quick`` run once per test run: (result folder, report dict, stdout)."""
+
+    def bench(out: Path) -> None:
+        result = collider("bench", *(str(ROOT / a) if a.startswith("examples/") else a for a in ARM), "--quick",
+                          "--quiet", "--output", out / "result", "--cache", out / "cache")
+        assert result.returncode == 0, result.stdout + result.stderr
+        (out / "stdout.txt").write_text(result.stdout)
+
+    out = built_once("quick-bench-arm", bench)
+    return out / "result", json.loads((out / "result" / "bench.json").read_text()), (out / "stdout.txt").read_text()
 
 
 @pytest.mark.slow

@@ -315,14 +315,18 @@ def collider_here(capsys, *args):
 
 
 @pytest.fixture(scope="module")
-def quick_bench(tmp_path_factory, bunny):
-    """``collider bench BUNNY --quick`` run once: (output folder, report dict, stdout)."""
-    mesh = bunny
-    out = tmp_path_factory.mktemp("bench")
-    result = collider("bench", mesh, "--quick", "--quiet", "--models", REPO_ROOT / "models",
-                      "--output", out / "result", "--cache", out / "cache")
-    assert result.returncode == 0, result.stdout + result.stderr
-    return out, json.loads((out / "result" / "bench.json").read_text()), result.stdout
+def quick_bench(built_once, bunny):
+    """``collider bench BUNNY --quick`` run once per test run (every worker's tests read the same
+    one): (output folder, report dict, stdout)."""
+
+    def bench(out: Path) -> None:
+        result = collider("bench", bunny, "--quick", "--quiet", "--models", REPO_ROOT / "models",
+                          "--output", out / "result", "--cache", out / "cache")
+        assert result.returncode == 0, result.stdout + result.stderr
+        (out / "stdout.txt").write_text(result.stdout)
+
+    out = built_once("quick-bench", bench)
+    return out, json.loads((out / "result" / "bench.json").read_text()), (out / "stdout.txt").read_text()
 
 
 @pytest.mark.slow

@@ -8,6 +8,7 @@ otherwise than it was drawn. Structure and accuracy are asserted, never timings.
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -21,11 +22,12 @@ SAMPLE = Path(__file__).parents[1] / "data" / "gltf" / "RiggedSimple.gltf"
 
 
 @pytest.mark.slow
-def test_bench_of_a_character_measures_both_kinds_at_clip_times_and_random_poses(tmp_path, capsys):
-    code, _, err = collider_here(capsys, "train", SAMPLE, "--name", "cylinder-neural", "--fit-size", 1.0,
-                                 "--steps", 20, "--samples", 8000, "--batch-size", 1024, "--threads", 1,
-                                 "--models", tmp_path / "models", "--quiet")
-    assert code == 0, err
+def test_bench_of_a_character_measures_both_kinds_at_clip_times_and_random_poses(tmp_path, capsys,
+                                                                                 trained_character):
+    # The network: a copy of the shared 20-step `collider train SAMPLE` (tests/conftest.py).
+    assert trained_character["code"] == 0, trained_character["err"]
+    (tmp_path / "models").mkdir()
+    shutil.copy(trained_character["models"] / "cylinder-neural.safetensors", tmp_path / "models")
     code, out, err = collider_here(capsys, "bench", SAMPLE, "--fit-size", 1.0, "--quick", "--sizes", "500",
                                    "--accuracy-points", 300, "--times", 2, "--poses", 3, "--repeats", 3,
                                    "--cell-seconds", 0.1, "--threads", 1, "--models", tmp_path / "models",

@@ -5,6 +5,7 @@ line, exit 2, no traceback for each bad input."""
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -86,13 +87,12 @@ def test_bad_characters_are_one_line_errors(capsys, tmp_path):
                       "--bake takes some of ['mesh', 'voxel'] for arm")
 
 
-def test_train_character_makes_its_articulated_network(capsys, tmp_path):
-    code, out, err = run(capsys, "train", SAMPLE, "--name", "cylinder-neural", "--fit-size", 1.0,
-                         "--steps", 20, "--samples", 8000, "--batch-size", 1024, "--threads", 1,
-                         "--models", tmp_path, "--quiet")
+def test_train_character_makes_its_articulated_network(trained_character):
+    """``collider train SAMPLE`` (the shared run of ``trained_character``: 20 steps)."""
+    code, out, err = trained_character["code"], trained_character["out"], trained_character["err"]
     assert code == 0, err
     assert "kind neural-skinned: 2 joints" in out and "20 steps" in out
-    collider = load_collider(tmp_path / "cylinder-neural.safetensors")
+    collider = load_collider(trained_character["models"] / "cylinder-neural.safetensors")
     assert collider.info.kind == "neural-skinned" and collider.skin.skeleton.joint_count == 2
     answer = collider.query(np.zeros((1, 3)), "distance", clip=None, time=0.5)
     assert np.isfinite(answer.distance).all()
@@ -103,16 +103,16 @@ def test_train_character_refuses_a_mesh_preset_in_one_line(capsys, tmp_path):
                       "--preset is for meshes and vertex caches")
 
 
-def test_eval_of_skinned_models_reports_clip_times_and_random_poses(capsys, tmp_path):
+def test_eval_of_skinned_models_reports_clip_times_and_random_poses(capsys, tmp_path, trained_character):
     """`collider eval` of the exact and the articulated model of a public glTF character: each pose
     set reported apart, against the exact skin of the file at each pose; the exact kind's errors
-    nil, the figures stored and shown by `collider info`."""
+    nil, the figures stored and shown by `collider info`. (The network: a copy of the shared
+    20-step run of ``trained_character``, eval writes its figures into the file.)"""
     code, _, err = run(capsys, "bake", SAMPLE, "--kind", "skinned", "--name", "cylinder", "--fit-size", 1.0,
                        "--models", tmp_path)
     assert code == 0, err
-    code, _, err = run(capsys, "train", SAMPLE, "--name", "cylinder-neural", "--fit-size", 1.0, "--steps", 20,
-                       "--samples", 8000, "--batch-size", 1024, "--threads", 1, "--models", tmp_path, "--quiet")
-    assert code == 0, err
+    assert trained_character["code"] == 0, trained_character["err"]
+    shutil.copy(trained_character["models"] / "cylinder-neural.safetensors", tmp_path)
     reports = {}
     for model in ("cylinder", "cylinder-neural"):
         report = tmp_path / f"{model}.json"

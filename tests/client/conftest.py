@@ -71,19 +71,21 @@ def _save_arm_neural(root: Path) -> None:
 
 
 @pytest.fixture(scope="session")
-def models_dir(tmp_path_factory) -> Path:
+def models_dir(built_once) -> Path:
     """A model repository with ``sphere`` (radius 0.1 m at the origin) and ``box``
     (0.2 x 0.1 x 0.05 m at the origin), voxel colliders, and the animated ``pulse`` (exact) and
     ``pulse-voxel`` (keyframe grids) of the pulsing sphere, the skinned ``arm`` and its
     articulated network ``arm-neural``; metres."""
     pytest.importorskip("collider_server", reason="the engine (server extras) is not installed")
-    root = tmp_path_factory.mktemp("models")
-    _bake("sphere", root)
-    _bake("box", root)
-    _bake_pulse(root)
-    _save_arm(root)
-    _save_arm_neural(root)
-    return root
+
+    def make(root: Path) -> None:
+        _bake("sphere", root)
+        _bake("box", root)
+        _bake_pulse(root)
+        _save_arm(root)
+        _save_arm_neural(root)
+
+    return built_once("client-models", make)  # one for every worker: the arm's network trains once
 
 
 @pytest.fixture(scope="session")
