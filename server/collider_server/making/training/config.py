@@ -22,7 +22,7 @@ DEFAULT_STEPS = 20_000
 #: The keyframes preset's warm start: the share of the run (its steps or its budget, whichever ends
 #: it) that trains the preset's static grid on the animation's first frame before the keyframe
 #: tables start from it (docs/neural.md, "Why the keyframe tables learn slower").
-WARM_START_SHARE = 0.25
+WARM_START_SHARE = 0.1
 
 
 @dataclass
