@@ -136,6 +136,17 @@ def test_a_keyframes_run_starts_every_table_from_a_static_grid_of_the_first_fram
     assert [entry["phase"] for entry in last.history] == ["first frame", "keyframes", "keyframes"]
 
 
+def test_the_progress_bar_names_the_phase(sphere, tmp_path, capsys):
+    animation, _ = sphere
+    checkpoint = tmp_path / "bar.ckpt.safetensors"
+    warm = {"samples": 4000, "warm_start": 0.6, "validate_every": 2}
+    train_animated_neural(animation, "bar", config(steps=2, **warm), checkpoint=checkpoint)
+    assert "first frame: step 2 (" in capsys.readouterr().err  # the bar as it closed, in the warm start
+    train_animated_neural(animation, "bar", config(steps=3, **warm), checkpoint=checkpoint)
+    err = capsys.readouterr().err
+    assert "in its first frame phase" in err and "keyframes: step 3 (" in err
+
+
 def test_the_warm_start_is_the_keyframes_presets_share_of_the_run():
     from collider_server.making.training.config import WARM_START_SHARE
 
