@@ -91,6 +91,73 @@ def test_a_run_resumes_only_for_the_same_animation(sphere, tmp_path):
                               show_progress=False)
 
 
+def test_a_keyframes_run_starts_every_table_from_a_static_grid_of_the_first_frame(sphere, tmp_path):
+    """The warm start: the static grid trains on the first frame for the run's first share, then
+    every keyframe table starts from its table (its MLP kept) and the tables train apart; a run
+    interrupted in either phase resumes in it, and across the boundary."""
+    from safetensors.torch import load_file
+
+    from collider_server.making.training import read_checkpoint_state
+    from collider_server.making.training.schedule import cosine_learning_rate
+
+    animation, _ = sphere
+    checkpoint = tmp_path / "warm.ckpt.safetensors"
+    warm = {"samples": 4000, "warm_start": 0.6, "validate_every": 2}
+    # 2 steps, both before 0.6 of them: the static grid's only, and the model is it at every time.
+    first = train_animated_neural(animation, "w", config(steps=2, **warm), checkpoint=checkpoint, show_progress=False)
+    assert first.warm_steps == 2 and "(the first 2 on the first frame: the warm start)" in first.summary()
+    assert read_checkpoint_state(checkpoint)["phase"] == "first frame"
+    static = {k[len("model."):]: v.numpy() for k, v in load_file(str(checkpoint)).items() if k.startswith("model.")}
+    assert static["table"].ndim == 2  # the static grid's one table
+    weights = {k: v.detach().numpy() for k, v in first.collider.network.state_dict().items()}
+    assert weights["table"].shape == (5, *static["table"].shape)
+    assert all(np.array_equal(table, static["table"]) for table in weights["table"])
+    assert all(np.array_equal(weights[k], v) for k, v in static.items() if k != "table")
+    distances = [first.collider.query(np.array([[0.1, 0.0, 0.0]]), ["distance"], time=t).distance for t in (0.0, 0.7)]
+    assert distances[0] == pytest.approx(distances[1], abs=1e-7)
+
+    # Resumed with 3 steps: 2 / 3 of the run is past 0.6, so the tables start from the static grid at
+    # once and train one step apart; Adam's first step moves a weight by at most the learning rate.
+    crossed = train_animated_neural(animation, "w", config(steps=3, **warm), checkpoint=checkpoint,
+                                    show_progress=False)
+    state = read_checkpoint_state(checkpoint)
+    assert crossed.steps == 3 and crossed.warm_steps == 2 and state["phase"] == "keyframes"
+    moved = {k[len("model."):]: v.numpy() for k, v in load_file(str(checkpoint)).items() if k.startswith("model.")}
+    lr = cosine_learning_rate(2 / 3, *TrainConfig(preset="keyframes").resolved_learning_rates())
+    assert moved["table"].shape == weights["table"].shape
+    assert np.abs(moved["table"] - static["table"]).max() <= 1.001 * lr < 0.25 * np.abs(static["table"]).max()
+    assert not np.array_equal(moved["table"][0], moved["table"][-1])  # the tables diverge
+    for key in (k for k in static if k.startswith("body.")):
+        assert np.abs(moved[key] - static[key]).max() <= 1.001 * lr, key
+
+    # Resumed in the keyframes phase: its tables and Adam go on.
+    last = train_animated_neural(animation, "w", config(steps=4, **warm), checkpoint=checkpoint, show_progress=False)
+    assert last.steps == 4 and last.warm_steps == 2 and read_checkpoint_state(checkpoint)["phase"] == "keyframes"
+    assert [entry["phase"] for entry in last.history] == ["first frame", "keyframes", "keyframes"]
+
+
+def test_the_progress_bar_names_the_phase(sphere, tmp_path, capsys):
+    animation, _ = sphere
+    checkpoint = tmp_path / "bar.ckpt.safetensors"
+    warm = {"samples": 4000, "warm_start": 0.6, "validate_every": 2}
+    train_animated_neural(animation, "bar", config(steps=2, **warm), checkpoint=checkpoint)
+    assert "first frame: step 2 (" in capsys.readouterr().err  # the bar as it closed, in the warm start
+    train_animated_neural(animation, "bar", config(steps=3, **warm), checkpoint=checkpoint)
+    err = capsys.readouterr().err
+    assert "in its first frame phase" in err and "keyframes: step 3 (" in err
+
+
+def test_the_warm_start_is_the_keyframes_presets_share_of_the_run():
+    from collider_server.making.training.config import WARM_START_SHARE
+
+    assert TrainConfig(preset="keyframes").resolved_warm_start() == WARM_START_SHARE > 0
+    assert TrainConfig(preset="keyframes", warm_start=0).resolved_warm_start() == 0
+    assert TrainConfig(preset="deformed").resolved_warm_start() == 0 == TrainConfig().resolved_warm_start()
+    for bad in (1.0, -0.1, float("nan")):
+        with pytest.raises(ValueError, match=r"warm_start must be a share of the run in \[0, 1\)"):
+            TrainConfig(preset="keyframes", warm_start=bad).check()
+
+
 def test_presets_fit_their_shape(sphere):
     from collider_server.making.training import train_neural
 
@@ -214,6 +281,7 @@ def test_an_animation_gets_the_preset_that_measures_better(sphere):
     import re
 
     from collider_server.making.training import choose_animated_preset
+    from collider_server.making.training.config import WARM_START_SHARE
 
     animation, _ = sphere
     settings = TrainConfig(preset="keyframes", samples=10_000, batch_size=2048, threads=2)
@@ -221,6 +289,9 @@ def test_an_animation_gets_the_preset_that_measures_better(sphere):
     deformed, keyframes = choice.trials
     assert (deformed.preset, keyframes.preset) == ("deformed", "keyframes")
     assert deformed.steps == keyframes.steps == 30
+    # The keyframe tables' trial as their run trains them: the warm start's share of its steps first.
+    assert keyframes.warm_steps == sum(i / 30 < WARM_START_SHARE for i in range(30)) > 0
+    assert deformed.warm_steps == 0
     assert deformed.mean_mm < keyframes.mean_mm, choice.reason
     assert choice.preset == "deformed" and choice.fit is not None and len(choice.fit.fields) == 13
     assert choice.reason.startswith(f"preset deformed: {deformed.mean_mm:.3f} mm mean / "

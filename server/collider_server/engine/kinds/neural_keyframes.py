@@ -68,6 +68,15 @@ def keyframe_segments(times, duration_s: float, keyframes: int):
     return key, (position - key).astype(np.float32)
 
 
+def keyframe_weights(static_weights: dict, keyframes: int) -> dict:
+    """A keyframe network's weights (``state_dict``) that answer as the static grid network of
+    ``static_weights`` (its ``spatial()`` grid) does at every time: its (rows, F) table in each of
+    the ``keyframes`` tables (K, rows, F), its MLP and normalisation as they are (the keyframes
+    preset's warm start, ``making.training``)."""
+    return {name: value.unsqueeze(0).repeat(keyframes, 1, 1) if name == "table" else value
+            for name, value in static_weights.items()}
+
+
 def build_keyframe_network(arch: KeyframeGridArchitecture, centre, radius: float):
     """The torch module for ``arch`` (centre (3,) and radius: the normalisation, collider frame
     and units); see the module docstring."""

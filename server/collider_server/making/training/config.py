@@ -7,6 +7,7 @@ import math
 from dataclasses import asdict, dataclass, field
 
 from ...engine.kinds.neural import ANIMATED_PRESETS, DEFAULT_PRESET, PRESETS, Architecture, GridArchitecture
+from ...engine.kinds.neural_keyframes import KeyframeGridArchitecture
 
 #: Adam's learning rate, initial and final (cosine decay), per kind of network: feature tables
 #: learn best at the large rate instant-NGP uses; the paper's MLP at 1e-3.
@@ -18,6 +19,10 @@ NORMAL_WEIGHTS = {"fourier": 0.05, "grid": 0.1}
 VALIDATIONS_PER_BUDGET = 30
 #: Steps of a run given neither a time budget nor a step count.
 DEFAULT_STEPS = 20_000
+#: The keyframes preset's warm start: the share of the run (its steps or its budget, whichever ends
+#: it) that trains the preset's static grid on the animation's first frame before the keyframe
+#: tables start from it (docs/neural.md, "Why the keyframe tables learn slower").
+WARM_START_SHARE = 0.1
 
 
 @dataclass
@@ -49,6 +54,8 @@ class TrainConfig:
     seed: int = 0
     threads: int | None = None
     architecture: dict = field(default_factory=dict)
+    #: The keyframes preset's warm start (a share of the run in [0, 1), 0: none); None: WARM_START_SHARE.
+    warm_start: float | None = None
 
     def resolved_architecture(self) -> Architecture | GridArchitecture:
         presets = {**PRESETS, **ANIMATED_PRESETS}
@@ -76,6 +83,14 @@ class TrainConfig:
             return DEFAULT_STEPS
         return self.steps
 
+    def resolved_warm_start(self) -> float:
+        """The share of the run that trains the static grid on the first frame before the keyframe
+        tables (the keyframes preset's warm start): the given one, else WARM_START_SHARE; 0 for
+        any other preset."""
+        if not isinstance(self.resolved_architecture(), KeyframeGridArchitecture):
+            return 0.0
+        return WARM_START_SHARE if self.warm_start is None else self.warm_start
+
     def resolved_normal_weight(self) -> float:
         return NORMAL_WEIGHTS[self._encoding()] if self.normal_weight is None else self.normal_weight
 
@@ -99,6 +114,8 @@ class TrainConfig:
             raise ValueError(f"threads must be >= 1, got {self.threads}")
         if self.validate_every < 1 or self.validation_points < 1:
             raise ValueError("validate_every and validation_points must be >= 1")
+        if self.warm_start is not None and not (math.isfinite(self.warm_start) and 0 <= self.warm_start < 1):
+            raise ValueError(f"warm_start must be a share of the run in [0, 1) (None: the preset's), got {self.warm_start}")
         if not (math.isfinite(self.padding) and self.padding >= 0):
             raise ValueError(f"padding must be a finite number >= 0, got {self.padding}")
         self.resolved_architecture()

@@ -7,6 +7,7 @@ import sys
 import time
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -17,7 +18,7 @@ from ...engine.collider import ColliderInfo
 from ...engine.kinds.animated_neural import AnimatedNeuralCollider
 from ...engine.kinds.neural import ANIMATED_PRESETS, NeuralCollider, architecture_dict, build_network
 from ...engine.kinds.neural_deformed import DeformedGridArchitecture
-from ...engine.kinds.neural_keyframes import KeyframeGridArchitecture, keyframe_segments
+from ...engine.kinds.neural_keyframes import KeyframeGridArchitecture, keyframe_segments, keyframe_weights
 from ...engine.meshes import ExactSDF, Mesh
 from ..bake import animation_source, mesh_source, padded_box
 from .checkpoints import (
@@ -44,7 +45,8 @@ from .schedule import RunClock, cosine_learning_rate, make_optimizer, set_traini
 class TrainResult:
     """A finished run: the collider (best validated weights), the best +-1 mm validation error
     (mm), the steps and seconds of training (a resumed run's whole, not this process's), the
-    validations, the settings, and when the best weights were validated (step, seconds)."""
+    validations, the settings, when the best weights were validated (step, seconds), and the
+    steps of a keyframes run's warm start (the static grid on the first frame; among ``steps``)."""
 
     collider: NeuralCollider
     best_validation_mm: float
@@ -54,6 +56,7 @@ class TrainResult:
     config: TrainConfig = field(default_factory=TrainConfig)
     best_step: int = 0
     best_seconds: float = 0.0
+    warm_steps: int = 0
 
     def summary(self) -> str:
         """What the run's budget bought, in one line: steps, samples and rate, why it stopped,
@@ -70,6 +73,8 @@ class TrainResult:
             head = f"{bought}: the step cap, reached after {minutes:.1f} of the {budget:g} minutes"
         else:
             head = f"the {budget:g}-minute budget bought {bought}"
+        if self.warm_steps:
+            head += f" (the first {self.warm_steps:,} on the first frame: the warm start)"
         return (f"{head}; best mean error in the +-1 mm band {self.best_validation_mm:.4f} mm "
                 f"(the best of {len(self.history)} validations: step {self.best_step:,}, "
                 f"{self.best_seconds / 60:.1f} min)")
@@ -143,13 +148,18 @@ def train_animated_neural(animation: AnimatedMesh, name: str, config: TrainConfi
         key, frac = keyframe_segments(times, duration, arch.keyframes)
         return torch.from_numpy(key), torch.from_numpy(frac)
 
+    def first_frame():
+        """The first frame's exact samples, box samples over every frame's box (the deformed
+        preset's rest pose; the keyframes preset's warm start)."""
+        rest = animation.frame(0)
+        return make_training_data(rest, ExactSDF(rest), config, meters_per_unit, show_progress,
+                                  box=padded_box(animation, config.padding))
+
     def samples():
         validation = animated_validation_sets(animation, config.validation_points, config.seed + 100,
                                               meters_per_unit)
         if deformed:
-            rest = animation.frame(0)
-            data = make_training_data(rest, ExactSDF(rest), config, meters_per_unit, show_progress,
-                                      box=padded_box(animation, config.padding))
+            data = first_frame()
         else:
             data = make_animated_training_data(animation, config, meters_per_unit, show_progress)
         return data, {k: (p, d, inputs(t)) for k, (p, d, t) in validation.items()}
@@ -173,15 +183,83 @@ def train_animated_neural(animation: AnimatedMesh, name: str, config: TrainConfi
                         meters_per_unit=meters_per_unit, source=animation_source(animation, transform),
                         animation=keyed.to_dict())
     return _train(animation, info, config, arch, samples, inputs, AnimatedNeuralCollider,
-                  run_identity(animation, config, meters_per_unit), device, checkpoint, show_progress, prepare)
+                  run_identity(animation, config, meters_per_unit), device, checkpoint, show_progress, prepare,
+                  first_frame)
+
+
+#: The phases of a keyframes run with a warm start (``TrainConfig.warm_start``), as a checkpoint
+#: and the progress bar name them: the static grid on the first frame, then the keyframe tables.
+WARM_PHASE, KEYFRAME_PHASE = "first frame", "keyframes"
+
+
+@dataclass
+class Batches:
+    """What one phase of a run trains on (tensors on the run's device): the samples' points (n, 3),
+    per-sample network inputs after the point, exact distances (n,), unit gradients (n, 3) and
+    near mask (n,)."""
+
+    points: Any
+    inputs: tuple
+    target: Any
+    target_gradient: Any
+    near: Any
+
+    @classmethod
+    def of(cls, data, inputs: tuple, device: str) -> Batches:
+        import torch
+
+        return cls(torch.from_numpy(data.points).to(device), tuple(a.to(device) for a in inputs),
+                   torch.from_numpy(data.distance).to(device), torch.from_numpy(data.gradient).to(device),
+                   torch.from_numpy(data.near).to(device))
+
+
+def train_step(network, optimizer, batches: Batches, index, radius: float, normal_weight: float) -> float:
+    """One optimiser step of ``network`` on the samples ``index`` (int64 tensor) of ``batches``:
+    L1 on the distance over the normalisation ``radius``, plus ``normal_weight`` times ``1 -
+    cos`` between the network's gradient and the exact one on the near samples. Returns the loss."""
+    import torch
+
+    x = batches.points[index]
+    x_inputs = tuple(a[index] for a in batches.inputs)
+    mask = batches.near[index]
+    # The normal term lives on the near samples only; a batch without any (possible with
+    # a small near_fraction) would make its mean, and the logged loss, NaN.
+    want_normals = normal_weight > 0 and bool(mask.any())
+    if want_normals and hasattr(network, "value_and_gradient"):
+        # The analytic gradient is made of differentiable ops: one backward pass.
+        prediction, grad = network.value_and_gradient(x, *x_inputs)
+    elif want_normals:
+        x.requires_grad_(True)
+        prediction = network(x, *x_inputs)
+        (grad,) = torch.autograd.grad(prediction.sum(), x, create_graph=True)
+    else:
+        prediction = network(x, *x_inputs)
+    loss = (prediction - batches.target[index]).abs().mean() / radius
+    if want_normals:
+        cosine = torch.nn.functional.cosine_similarity(grad[mask], batches.target_gradient[index][mask], dim=1)
+        loss = loss + normal_weight * (1 - cosine).mean()
+    optimizer.zero_grad(set_to_none=True)
+    loss.backward()
+    optimizer.step()
+    return float(loss.detach())
 
 
 def _train(shape, info: ColliderInfo, config: TrainConfig, arch, samples, inputs, collider_class, identity: dict,
-           device: str | None, checkpoint: Path | None, show_progress: bool, prepare=None) -> TrainResult:
+           device: str | None, checkpoint: Path | None, show_progress: bool, prepare=None,
+           first_frame=None) -> TrainResult:
     """The loop of both: ``samples()`` makes the training data and the validation sets
     ``{band: (points, distance, inputs)}``; ``inputs(times)`` the network's per-sample inputs
     after the point (none for a static network); ``prepare(network, centre, radius)``, when
-    given, sets what the network does not train (before the clock)."""
+    given, sets what the network does not train (before the clock); ``first_frame()``, the
+    first frame's samples, which a keyframes run's warm start trains the static grid on.
+
+    The warm start (``config.resolved_warm_start()`` > 0, keyframe tables only): until that
+    share of the run (:meth:`RunClock.fraction`) the static grid of the keyframe network
+    (``arch.spatial()``) trains on the first frame; then every keyframe table starts from its
+    table and the MLP is kept (:func:`keyframe_weights`), with a fresh Adam, and the tables
+    train on. Validated at random times throughout (a static grid is the keyframe network of
+    equal tables); its best weights and the checkpoint name their phase, so that a run resumes
+    in either."""
     import torch
 
     from ...engine.devices import resolve_device
@@ -199,23 +277,39 @@ def _train(shape, info: ColliderInfo, config: TrainConfig, arch, samples, inputs
     network = network.to(device)
     first_lr, last_lr = config.resolved_learning_rates()
     normal_weight = config.resolved_normal_weight()
-    optimizer = make_optimizer(network, first_lr, fused=isinstance(arch, KeyframeGridArchitecture))
+    keyframed = isinstance(arch, KeyframeGridArchitecture)
+    optimizer = make_optimizer(network, first_lr, fused=keyframed)
+
+    # A checkpoint of another run is refused before the samples are made.
+    saved = read_checkpoint_state(checkpoint) if checkpoint is not None and checkpoint.is_file() else None
+    if saved is not None:
+        check_resumable(checkpoint, saved.get("run"), identity)
+    share = config.resolved_warm_start()
+    phase = None  # a static network's run has one phase; a keyframes run names its own
+    if keyframed:  # a checkpoint written before the warm start (no phase) holds keyframe tables
+        phase = saved.get("phase", KEYFRAME_PHASE) if saved is not None else (
+            WARM_PHASE if share > 0 else KEYFRAME_PHASE)
+    warming = phase == WARM_PHASE
+    trained, trained_optimizer = network, optimizer  # the network this phase trains, and its Adam
+    if warming:
+        trained = build_network(arch.spatial(), centre, radius).to(device)
+        trained_optimizer = make_optimizer(trained, first_lr)  # the static grid's, as its own runs
 
     data, validation = samples()
-    points = torch.from_numpy(data.points).to(device)
-    extra = tuple(a.to(device) for a in inputs(data.times))
-    target = torch.from_numpy(data.distance).to(device)
-    target_gradient = torch.from_numpy(data.gradient).to(device)
-    near = torch.from_numpy(data.near).to(device)
+    batches = Batches.of(data, inputs(data.times), device)
+    if warming:
+        main_batches, batches = batches, Batches.of(first_frame(), (), device)
     val = {k: (torch.from_numpy(p).to(device), torch.from_numpy(d).to(device), tuple(a.to(device) for a in e))
            for k, (p, d, e) in validation.items()}
 
     state = {"step": 0, "seconds": 0.0, "best_mm": math.inf, "history": [], "run": identity}
+    if phase is not None:
+        state["phase"] = phase
     best_weights = None
-    if checkpoint is not None and checkpoint.is_file():
-        check_resumable(checkpoint, read_checkpoint_state(checkpoint).get("run"), identity)
-        state = load_checkpoint(checkpoint, network, optimizer)
-        print(f"resuming {checkpoint} at step {state['step']} (same mesh, settings and architecture)",
+    if saved is not None:
+        state = load_checkpoint(checkpoint, trained, trained_optimizer)
+        shown_phase = f" in its {phase} phase" if phase is not None and share > 0 else ""
+        print(f"resuming {checkpoint} at step {state['step']}{shown_phase} (same mesh, settings and architecture)",
               file=sys.stderr)
         best_path = checkpoint.with_name(checkpoint.name + ".best")
         if best_path.is_file():
@@ -227,18 +321,24 @@ def _train(shape, info: ColliderInfo, config: TrainConfig, arch, samples, inputs
     now = time.monotonic()
     started = now - state["seconds"]  # a resumed run's clock goes on where it was saved
     clock = RunClock(config, started, now)
-    analytic = hasattr(network, "value_and_gradient")
+
+    def model_weights() -> dict:
+        """The model's weights as they stand: the keyframe network's (a static grid's in every table)."""
+        weights = trained.state_dict()
+        return keyframe_weights(weights, arch.keyframes) if warming else weights
 
     def evaluate() -> dict:
-        network.eval()
-        with torch.no_grad():
-            errors = {k: float((network(p, *e) - d).abs().mean()) * to_mm for k, (p, d, e) in val.items()}
-        network.train()
+        trained.eval()
+        with torch.no_grad():  # a static grid answers every time alike
+            errors = {k: float(((trained(p) if warming else trained(p, *e)) - d).abs().mean()) * to_mm
+                      for k, (p, d, e) in val.items()}
+        trained.train()
         return errors
 
     def status(rate: float, errors: dict | None, lr: float) -> str:
         shown = "val±1mm -" if errors is None else f"val±1mm {errors['1mm']:.4f}mm best {state['best_mm']:.4f}mm"
-        return f"step {state['step']:,} ({rate:.0f}/s) {shown} lr {lr:.1e}"
+        named = f"{state['phase']}: " if share > 0 and "phase" in state else ""
+        return f"{named}step {state['step']:,} ({rate:.0f}/s) {shown} lr {lr:.1e}"
 
     with clock.progress_bar(f"train {name}", state["step"], now, show_progress) as bar:
         last_loss, errors, lr = float("nan"), None, first_lr
@@ -247,33 +347,17 @@ def _train(shape, info: ColliderInfo, config: TrainConfig, arch, samples, inputs
         while not finished:
             step = state["step"]
             now = time.monotonic()
-            lr = cosine_learning_rate(clock.fraction(step, now), first_lr, last_lr)
-            for group in optimizer.param_groups:
+            fraction = clock.fraction(step, now)
+            if warming and fraction >= share:
+                # The warm start: every keyframe table from the static grid's, its MLP kept.
+                network.load_state_dict(model_weights())
+                trained, trained_optimizer, batches, warming = network, optimizer, main_batches, False
+                state["phase"], state["warm_steps"] = KEYFRAME_PHASE, step
+            lr = cosine_learning_rate(fraction, first_lr, last_lr)
+            for group in trained_optimizer.param_groups:
                 group["lr"] = lr
-            index = torch.randint(0, len(points), (config.batch_size,), generator=generator).to(device)
-            x = points[index]
-            x_inputs = tuple(a[index] for a in extra)
-            mask = near[index]
-            # The normal term lives on the near samples only; a batch without any (possible with
-            # a small near_fraction) would make its mean, and the logged loss, NaN.
-            want_normals = normal_weight > 0 and bool(mask.any())
-            if want_normals and analytic:
-                # The analytic gradient is made of differentiable ops: one backward pass.
-                prediction, grad = network.value_and_gradient(x, *x_inputs)
-            elif want_normals:
-                x.requires_grad_(True)
-                prediction = network(x, *x_inputs)
-                (grad,) = torch.autograd.grad(prediction.sum(), x, create_graph=True)
-            else:
-                prediction = network(x, *x_inputs)
-            loss = (prediction - target[index]).abs().mean() / radius
-            if want_normals:
-                cosine = torch.nn.functional.cosine_similarity(grad[mask], target_gradient[index][mask], dim=1)
-                loss = loss + normal_weight * (1 - cosine).mean()
-            optimizer.zero_grad(set_to_none=True)
-            loss.backward()
-            optimizer.step()
-            last_loss = float(loss.detach())
+            index = torch.randint(0, len(batches.points), (config.batch_size,), generator=generator).to(device)
+            last_loss = train_step(trained, trained_optimizer, batches, index, radius, normal_weight)
             state["step"] = step + 1
             now = time.monotonic()
             finished = clock.finished(state["step"], now)  # the last step is always validated
@@ -281,36 +365,38 @@ def _train(shape, info: ColliderInfo, config: TrainConfig, arch, samples, inputs
             if validating:
                 errors = evaluate()
                 state["history"].append({"step": state["step"], "loss": last_loss, **errors,
-                                         "seconds": time.monotonic() - started})
+                                         "seconds": time.monotonic() - started,
+                                         **({"phase": state["phase"]} if "phase" in state else {})})
                 if errors["1mm"] < state["best_mm"]:
                     state["best_mm"] = errors["1mm"]
                     state["best_step"], state["best_seconds"] = state["step"], time.monotonic() - started
-                    best_weights = {k: v.detach().cpu().clone() for k, v in network.state_dict().items()}
+                    best_weights = {k: v.detach().cpu().clone() for k, v in model_weights().items()}
                     if checkpoint is not None:
                         save_tensors_atomically({k: v.contiguous() for k, v in best_weights.items()},
                                                 checkpoint.with_name(checkpoint.name + ".best"))
                 state["seconds"] = time.monotonic() - started
                 if checkpoint is not None:
-                    save_checkpoint(checkpoint, network, optimizer, state)
+                    save_checkpoint(checkpoint, trained, trained_optimizer, state)
                 clock.validated(time.monotonic())
             if clock.advance(bar, now) or validating:
                 rate = (state["step"] - session[1]) / max(now - session[0], 1e-9)
                 bar.set_postfix_str(status(rate, errors, lr), refresh=False)
 
-    if best_weights is not None:
-        network.load_state_dict(best_weights)
+    network.load_state_dict(best_weights if best_weights is not None else model_weights())
     seconds = state["seconds"] = time.monotonic() - started
     info.domain_min, info.domain_max = lo.tolist(), hi.tolist()
+    warm_steps = state.get("warm_steps", state["step"] if warming else 0)
     info.settings = {
         "architecture": architecture_dict(arch),
         "parameters": arch.parameter_count(),
         "training": {**asdict(config), "steps_done": state["step"], "seconds": round(seconds, 1),
                      "device": device, "device_name": _device_name(device, arch),
-                     "best_validation_1mm_mm": state["best_mm"]},
+                     "best_validation_1mm_mm": state["best_mm"],
+                     **({"warm_start_steps": warm_steps} if keyframed else {})},
     }
     collider = collider_class(info, network.cpu(), device="cpu")
     return TrainResult(collider, state["best_mm"], state["step"], seconds, state["history"], config,
-                       state.get("best_step", 0), state.get("best_seconds", 0.0))
+                       state.get("best_step", 0), state.get("best_seconds", 0.0), warm_steps)
 
 
 def _device_name(device: str, arch) -> str:

@@ -35,12 +35,14 @@ TRIAL_POINTS = 1000
 @dataclass(frozen=True)
 class TrialFigures:
     """One candidate's trial: steps trained and, at the held-out points, the mean distance error
-    (mm) and the sign errors beyond 0.2 mm (percent) in the +-1 mm band."""
+    (mm) and the sign errors beyond 0.2 mm (percent) in the +-1 mm band; of the steps, those of
+    the keyframes preset's warm start (the static grid on the first frame, as the run trains it)."""
 
     preset: str
     steps: int
     mean_mm: float
     sign_percent: float
+    warm_steps: int = 0
 
     def text(self) -> str:
         return f"{self.mean_mm:.3f} mm mean / {self.sign_percent:.2f} % sign after {self.steps} steps"
@@ -69,7 +71,8 @@ def choose_animated_preset(animation: AnimatedMesh, config: TrainConfig, meters_
                            device: str | None = None, show_progress: bool = True,
                            trial_steps: int = TRIAL_STEPS) -> PresetChoice:
     """Train each of :data:`CANDIDATES` for ``trial_steps`` steps (``config``'s settings,
-    fewer samples; each within :data:`TRIAL_SHARE` of ``config.max_minutes``) on ``animation``
+    fewer samples; each within :data:`TRIAL_SHARE` of ``config.max_minutes``; each as its run
+    will train, the keyframes preset with its warm start over the trial's steps) on ``animation``
     (its units and frame), measure every one at the same held-out points and times
     (:data:`TRIAL_TIMES` random times, :data:`TRIAL_POINTS` +-1 mm band points each, seeds apart
     from training's) and take the :func:`better`."""
@@ -97,7 +100,8 @@ def choose_animated_preset(animation: AnimatedMesh, config: TrainConfig, meters_
                                        show_progress=show_progress, **extra)
         band = animated_error_figures(result.collider, animation, held_out, TRIAL_POINTS, config.seed + 300,
                                       sets=("band_1mm",), exact=exact)["band_1mm"]
-        trials.append(TrialFigures(preset, result.steps, band["distance_mean_mm"], band["sign_errors_percent"]))
+        trials.append(TrialFigures(preset, result.steps, band["distance_mean_mm"], band["sign_errors_percent"],
+                                   result.warm_steps))
     chosen = better(trials)
     others = ", ".join(f"{t.preset} {t.mean_mm:.3f} / {t.sign_percent:.2f} %" for t in trials if t is not chosen)
     seconds = time.monotonic() - started
