@@ -87,22 +87,3 @@ def test_the_candidate_rule_is_checked():
     with pytest.raises(ValueError, match="candidate_rule must be one of own-label, retry-labels"):
         ns.ArticulatedGridArchitecture(candidate_rule="everything")
     assert ns.ArticulatedGridArchitecture().candidate_rule == "own-label"  # the first files' rule
-
-
-def test_root_label_answers_each_row_by_the_part_named_where_it_lands(walker):
-    skin, _, _, centre, radius, labels, *_ = walker
-    transforms = random_poses(skin, 1, 2031, perturbed_share=1.0).transforms[0]
-    points = surface_band_points(Mesh(skin_vertices(skin, transforms), skin.faces, "posed"), 4000, 1e-3, 3)
-    retried, retried_rows = _floor(walker, transforms, points, "retry-labels")
-    named, named_rows = _floor(walker, transforms, points, "root-label")
-    # The same rest points (the root does not depend on the part that started it): the same floor.
-    np.testing.assert_array_equal(named, retried)
-    point, joint, rest, _ = named_rows
-    cell = np.floor(((rest - centre) / radius + 1.0) * 0.5 * labels.shape[0]).astype(np.int64)
-    label = labels[cell[:, 0], cell[:, 1], cell[:, 2]].astype(np.int64)
-    some = label != ns.NO_PART
-    np.testing.assert_array_equal(joint[some], label[some])  # each row is its landing place's part
-    # ... which is not always the part it started from.
-    assert set(zip(point.tolist(), joint.tolist())) != set(zip(retried_rows[0].tolist(), retried_rows[1].tolist()))
-    # Sorted by joint, then point, as the query's union takes them.
-    assert (np.lexsort((point, joint)) == np.arange(len(point))).all()

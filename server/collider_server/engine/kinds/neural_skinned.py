@@ -17,11 +17,7 @@ Per-part fields in each joint's rest frame, composed by a minimum (COAP-style), 
   vertices it dominates, padded) is nearest to its ``x_j``. With the architecture's
   ``candidate_rule`` ``retry-labels``, a point none of whose candidates reaches a root through the
   skinning (below) is tried again with the parts the label grid names at its rigid images
-  (:func:`labels_seen`); with ``root-label``, then, each row is answered by the part the label
-  grid names at its rest point (:func:`named_at_root`: the root does not depend on the joint it
-  started from, so the part that conditions the field follows where the point lands, and each
-  part's field is trained and asked on its own region only);
-  :func:`candidate_rows_through_skinning` is the rule's one home.
+  (:func:`labels_seen`); :func:`parts_through_skinning` is the rule's one home.
 - **Through the skinning** (:func:`carry_to_rest`): each candidate's rigid image is carried on to
   the rest point y that linear blend skinning takes to x, ``sum_k w_k(y) A_k [y, 1] = x``, by
   damped Newton steps (:func:`newton_rest`, the architecture's ``skinning_solver`` ``newton``) or
@@ -75,7 +71,7 @@ SKINNING_SOLVERS = ("fixed-point", "newton")
 #: files': joint j where the label at its rigid image is its own) or ``retry-labels`` (the same,
 #: then, where none of a point's candidates reaches a root through the skinning, the parts the
 #: label grid names at the point's rigid images are tried).
-CANDIDATE_RULES = ("own-label", "retry-labels", "root-label")
+CANDIDATE_RULES = ("own-label", "retry-labels")
 #: Cells per side of a block of the fine weight field (:func:`weight_field`).
 BLOCK_CELLS = 4
 
@@ -102,10 +98,8 @@ class ArticulatedGridArchitecture(GridArchitecture):
     fine_weight_resolution : cells per side of the finer weight grid kept in blocks near the rest
         surface (:func:`weight_field`; a multiple of :data:`BLOCK_CELLS`); 0: none
     weight_blocks : how many blocks of it the model holds (set by the training)
-    candidate_rule : :data:`CANDIDATE_RULES`: ``"own-label"`` (the first model files'),
-        ``"retry-labels"`` (a second pass where none of a point's candidates reached a root) or
-        ``"root-label"`` (that, then each row answered by the part the label grid names at its
-        rest point: :func:`named_at_root`)
+    candidate_rule : :data:`CANDIDATE_RULES`: ``"own-label"`` (the first model files') or
+        ``"retry-labels"`` (a second pass where none of a point's candidates reached a root)
     """
 
     joints: int = 1
@@ -798,40 +792,8 @@ def candidate_rows_through_skinning(points: np.ndarray, to_rest: np.ndarray, pos
     point, joint, rigid = part_candidates(points, to_rest, labels, centre, radius, allowed, part_boxes, fused)
     carried = carried_rows(points, point, joint, rigid, to_rest, posed, field, centre, radius, iterations, solver,
                            fused, moving)
-    if rule != "own-label" and not carried.converged.all():
-        point, joint, carried = _retried(points, point, joint, carried, to_rest, posed, labels, centre, radius, field,
-                                         iterations, solver, fused, moving)
-    if rule == "root-label":
-        return named_at_root(point, joint, carried, labels, centre, radius)
-    return point, joint, carried
-
-
-def named_at_root(point: np.ndarray, joint: np.ndarray, rows: CarriedRows, labels: np.ndarray, centre,
-                  radius: float) -> tuple[np.ndarray, np.ndarray, CarriedRows]:
-    """Rows (``point``, ``joint`` (m,) int64, ``rows``) with each row's joint replaced by the part
-    the label grid ``labels`` names at its rest point (kept where it names none or lies outside
-    the grid's cube ``centre +- radius``), re-sorted by joint, then point."""
-    resolution = labels.shape[0]
-    cell = np.floor(((rows.rest - np.asarray(centre, np.float64)) / radius + 1.0) * 0.5 * resolution).astype(np.int64)
-    inside = ((cell >= 0) & (cell < resolution)).all(axis=1)
-    named = joint.copy()
-    c = cell[inside]
-    label = labels[c[:, 0], c[:, 1], c[:, 2]].astype(np.int64)
-    some = label != NO_PART
-    named[np.flatnonzero(inside)[some]] = label[some]
-    if np.array_equal(named, joint):
-        return point, joint, rows
-    order = np.lexsort((point, named))
-    velocity = None if rows.velocity is None else rows.velocity[order]
-    return point[order], named[order], CarriedRows(rows.usable[order], rows.rest[order], rows.inverse[order],
-                                                   velocity, rows.converged[order])
-
-
-def _retried(points, point, joint, carried: CarriedRows, to_rest, posed, labels, centre, radius: float, field,
-             iterations: int, solver: str, fused: bool, moving):
-    """:func:`candidate_rows_through_skinning`'s second pass (``retry-labels``): the rows with those
-    of the points none of whose rows reached a root replaced where a part :func:`labels_seen`
-    names reaches one."""
+    if rule != "retry-labels" or carried.converged.all():
+        return point, joint, carried
     reached = np.zeros(len(points), bool)
     reached[point[carried.converged]] = True
     lost = np.unique(point[~reached[point]])  # points with rows, none of which reached a root
