@@ -38,6 +38,37 @@ def test_animate_frames_keeps_the_motion_and_its_duration(capsys, tmp_path, arm_
                       "--frames must be an integer >= 2, got 1")
 
 
+def test_animate_spot_bend_bends_the_shipped_cow_once_and_bakes_it_clamped(capsys, tmp_path):
+    """The spot cow (examples/meshes/spot.obj, Y up in the file) written Z up, its feet at z = 0:
+    still at the start, its tail swung 30 degrees about the vertical axis and the whole cow moved
+    5 cm along x at the end (the head, which does not bend, only moved); clamped, and baked so."""
+    from collider_server.making.animation_files import load_animation, read_obj
+
+    code, out, err = run(capsys, "animate", "spot-bend", "--output", tmp_path, "--bake", "mesh", "--models",
+                         tmp_path / "models", "--quiet")
+    assert code == 0, err
+    assert "25 frames at 12 fps (2 s, clamped)" in out and "--fps 12 --clamp --kind mesh" in out
+    spot = load_animation(tmp_path / "spot-bend.obj", tmp_path / "spot-bend.pc2", 12.0, False)
+    assert not spot.timeline.loop
+    first, last = spot.frames[0], spot.frames[-1]
+    rest = read_obj("examples/meshes/spot.obj").vertices
+    # Z up: the file's y is z, its z is -y; the feet at z = 0.
+    np.testing.assert_allclose(first[:, 0], rest[:, 0], atol=1e-6)
+    np.testing.assert_allclose(first[:, 1], -rest[:, 2], atol=1e-6)
+    np.testing.assert_allclose(first[:, 2] - first[:, 2].min(), rest[:, 1] - rest[:, 1].min(), atol=1e-6)
+    assert abs(first[:, 2].min()) < 1e-6
+    head, tail = rest[:, 2] < -0.1, rest[:, 2] > 0.5  # the file's z: head at -z, tail at +z
+    moved = last - first
+    np.testing.assert_allclose(moved[head], np.tile([0.05, 0.0, 0.0], (head.sum(), 1)), atol=1e-6)
+    assert np.abs(moved[:, 2]).max() < 1e-6  # turned about the vertical axis: no vertex rises or falls
+    # The tail turned 30 degrees about the vertical axis (through the pivot 0.2 m along the body).
+    before, after = first[tail][:, :2] - [0.0, -0.2], last[tail][:, :2] - [0.05, -0.2]
+    turn = np.degrees(np.arctan2(np.cross(before, after), (before * after).sum(axis=1)))
+    np.testing.assert_allclose(np.abs(turn), 30.0, atol=1e-3)
+    code, out, err = run(capsys, "info", "spot-bend", "--models", tmp_path / "models")
+    assert code == 0 and "clamps" in out, (out, err)
+
+
 def write_pc2(path, frames):
     with PC2Writer(path, frames.shape[1]) as writer:
         for frame in frames:

@@ -24,8 +24,9 @@ def register(subparsers) -> None:
     p.add_argument("name", choices=sorted(GENERATED), help="which animation")
     p.add_argument("--output", type=Path, default=Path("out/animations"),
                    help="folder of NAME.obj and NAME.pc2 (default out/animations)")
-    p.add_argument("--mesh", type=Path, default=Path("examples/meshes/stanford-bunny.obj"),
-                   help="twisting-bunny: the bunny OBJ (default %(default)s)")
+    p.add_argument("--mesh", type=Path, default=None,
+                   help="twisting-bunny: the bunny OBJ (default examples/meshes/stanford-bunny.obj); spot-bend: "
+                        "the spot OBJ (default examples/meshes/spot.obj)")
     p.add_argument("--frames", type=int, default=None,
                    help="frames over the same motion and duration (default: as above; e.g. "
                         "twisting-bunny --frames 61 is 61 frames at 30 fps over its 2 s)")
@@ -40,9 +41,14 @@ def register(subparsers) -> None:
     p.set_defaults(func=run_animate)
 
 
-def make_animation(name: str, mesh: Path, frames: int | None = None):
+#: The mesh file each generated animation of a mesh reads when ``--mesh`` is not given.
+MESHES = {"twisting-bunny": Path("examples/meshes/stanford-bunny.obj"), "spot-bend": Path("examples/meshes/spot.obj")}
+
+
+def make_animation(name: str, mesh: Path | None = None, frames: int | None = None):
     """The generated animation ``name`` (:data:`~collider_server.making.animations.GENERATED`),
-    with ``frames`` frames over its duration when given (the frame rate follows)."""
+    with ``frames`` frames over its duration when given (the frame rate follows); ``mesh``: the
+    file of an animation of a mesh (default :data:`MESHES`')."""
     from collider_server.making import animations
     from collider_server.making.animation_files import read_obj
 
@@ -51,15 +57,15 @@ def make_animation(name: str, mesh: Path, frames: int | None = None):
 
         return walk_animation(make_walker(), frames)
     function = {"arm": animations.bending_arm, "pulsing-sphere": animations.pulsing_sphere,
-                "twisting-bunny": animations.twisting_bunny}[name]
+                "twisting-bunny": animations.twisting_bunny, "spot-bend": animations.bending_spot}[name]
     timing = {}
     if frames is not None:
         # The generator's own duration: its default frames and rate.
         defaults = inspect.signature(function).parameters
         duration_s = (defaults["frames"].default - 1) / defaults["fps"].default
         timing = {"frames": frames, "fps": (frames - 1) / duration_s}
-    if name == "twisting-bunny":
-        return function(read_obj(mesh), **timing)
+    if name in MESHES:
+        return function(read_obj(mesh or MESHES[name]), **timing)
     made = function(**timing)
     return made[0] if name == "pulsing-sphere" else made
 
@@ -83,8 +89,9 @@ def run_animate(args) -> int:
     animation = make_animation(args.name, args.mesh, args.frames)
     timeline = animation.timeline
     obj, pc2 = write_animation(animation, args.output, args.name)
+    ends = "looping" if timeline.loop else "clamped"
     print(f"wrote {obj} and {pc2}: {timeline.frames} frames at {timeline.frame_rate_hz:g} fps "
-          f"({timeline.duration_s:g} s, looping), {animation.vertex_count:,} vertices, metres")
+          f"({timeline.duration_s:g} s, {ends}), {animation.vertex_count:,} vertices, metres")
     if args.name == "walker":
         character = write_walker_character(args.output)
     if "skinned" in kinds:
@@ -99,7 +106,8 @@ def run_animate(args) -> int:
                                           show_progress=not args.quiet)
         path = save_collider(collider, repository.path(name))
         print(f"wrote {path} ({path.stat().st_size:,} bytes, kind {kind}, animated); the same as: "
-              f"collider bake {obj} --animation {pc2} --fps {timeline.frame_rate_hz:g} --loop "
+              f"collider bake {obj} --animation {pc2} --fps {timeline.frame_rate_hz:g} "
+              f"--{'loop' if timeline.loop else 'clamp'} "
               f"--kind {kind} --name {name}"
               + (f" --resolution {args.resolution}" + (f" --keyframes {args.keyframes}"
                                                        if args.keyframes else "")
