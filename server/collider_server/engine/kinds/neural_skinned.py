@@ -247,19 +247,24 @@ def candidate_rows(points: np.ndarray, to_rest: np.ndarray, mask: np.ndarray):
     return point, joint, rest
 
 
+def labels_at(rest: np.ndarray, labels: np.ndarray, centre, radius: float) -> np.ndarray:
+    """(m,) int64: the label grid's ``labels`` (R, R, R) over the cube ``centre +- radius`` at rest
+    points ``rest`` (m, 3), :data:`NO_PART` outside the cube (numpy; :func:`_label_at` per point
+    in the numba passes)."""
+    resolution = labels.shape[0]
+    cell = np.floor(((rest - centre) / radius + 1.0) * 0.5 * resolution).astype(np.int64)
+    inside = ((cell >= 0) & (cell < resolution)).all(axis=1)
+    label = np.full(len(rest), NO_PART, np.int64)
+    c = cell[inside]
+    label[inside] = labels[c[:, 0], c[:, 1], c[:, 2]]
+    return label
+
+
 def _candidate_mask_numpy(points, to_rest, labels, centre, radius, allowed, part_boxes) -> np.ndarray:
     """(J, n) bool: whether joint j is a candidate of point p (:func:`part_candidates`), numpy."""
-    n = len(points)
-    resolution = labels.shape[0]
-    mask = np.zeros((len(to_rest), n), bool)
+    mask = np.zeros((len(to_rest), len(points)), bool)
     for j in range(len(to_rest)):
-        rest = points @ to_rest[j, :, :3].T + to_rest[j, :, 3]
-        cell = np.floor(((rest - centre) / radius + 1.0) * 0.5 * resolution).astype(np.int64)
-        inside = ((cell >= 0) & (cell < resolution)).all(axis=1)
-        label = np.full(n, NO_PART, np.int64)
-        c = cell[inside]
-        label[inside] = labels[c[:, 0], c[:, 1], c[:, 2]]
-        mask[j] = allowed[j, label]
+        mask[j] = allowed[j, labels_at(points @ to_rest[j, :, :3].T + to_rest[j, :, 3], labels, centre, radius)]
     lost = np.flatnonzero(~mask.any(axis=0))
     if len(lost):
         # Far from every part's region: the part whose rest box is nearest to the point's image.
@@ -269,9 +274,23 @@ def _candidate_mask_numpy(points, to_rest, labels, centre, radius, allowed, part
     return mask
 
 
-_candidate_mask = None
+_candidate_mask = _label_at = None
 if grid_kernels.available():
     import numba
+
+    @numba.njit(cache=True, nogil=True, inline="always")
+    def _label_at(m, x, y, z, labels, centre, radius):  # pragma: no cover
+        """:func:`labels_at` of the point (x, y, z) through the map ``m`` (3, 4): its label."""
+        resolution = labels.shape[0]
+        ci = math.floor(((m[0, 0] * x + m[0, 1] * y + m[0, 2] * z + m[0, 3] - centre[0]) / radius + 1.0)
+                        * 0.5 * resolution)
+        cj = math.floor(((m[1, 0] * x + m[1, 1] * y + m[1, 2] * z + m[1, 3] - centre[1]) / radius + 1.0)
+                        * 0.5 * resolution)
+        ck = math.floor(((m[2, 0] * x + m[2, 1] * y + m[2, 2] * z + m[2, 3] - centre[2]) / radius + 1.0)
+                        * 0.5 * resolution)
+        if min(ci, cj, ck) < 0 or max(ci, cj, ck) >= resolution:
+            return NO_PART
+        return labels[ci, cj, ck]
 
     @numba.njit(cache=True, nogil=True, parallel=True)
     def _candidate_mask(points, to_rest, labels, centre, radius, allowed, part_boxes, mask):  # pragma: no cover
@@ -279,33 +298,18 @@ if grid_kernels.available():
         (J, n) bool is overwritten."""
         n = points.shape[0]
         joints = to_rest.shape[0]
-        resolution = labels.shape[0]
         for p in numba.prange(n):
             x, y, z = points[p, 0], points[p, 1], points[p, 2]
             any_part = False
             nearest, nearest_gap = 0, np.inf
             for j in range(joints):
                 m = to_rest[j]
-                inside = True
                 gap = 0.0
-                ci = cj = ck = 0
                 for a in range(3):
                     r = m[a, 0] * x + m[a, 1] * y + m[a, 2] * z + m[a, 3]
-                    c = math.floor(((r - centre[a]) / radius + 1.0) * 0.5 * resolution)
-                    if c < 0 or c >= resolution:
-                        inside = False
-                    if a == 0:
-                        ci = c
-                    elif a == 1:
-                        cj = c
-                    else:
-                        ck = c
                     g = max(part_boxes[j, 0, a] - r, 0.0) + max(r - part_boxes[j, 1, a], 0.0)
                     gap += g * g
-                label = NO_PART
-                if inside:
-                    label = labels[ci, cj, ck]
-                mask[j, p] = allowed[j, label]
+                mask[j, p] = allowed[j, _label_at(m, x, y, z, labels, centre, radius)]
                 if mask[j, p]:
                     any_part = True
                 if gap < nearest_gap:
@@ -328,17 +332,12 @@ def labels_seen(points: np.ndarray, to_rest: np.ndarray, labels: np.ndarray, cen
         seen = np.empty((len(to_rest), len(points)), np.bool_)
         _labels_seen(points, np.ascontiguousarray(to_rest, np.float64), labels, centre, float(radius), seen)
         return seen
-    n, joints = len(points), len(to_rest)
-    resolution = labels.shape[0]
-    seen = np.zeros((joints, n), bool)
+    joints = len(to_rest)
+    seen = np.zeros((joints, len(points)), bool)
     for k in range(joints):
-        rest = points @ to_rest[k, :, :3].T + to_rest[k, :, 3]
-        cell = np.floor(((rest - centre) / radius + 1.0) * 0.5 * resolution).astype(np.int64)
-        named = ((cell >= 0) & (cell < resolution)).all(axis=1)
-        c = cell[named]
-        label = labels[c[:, 0], c[:, 1], c[:, 2]].astype(np.int64)
-        some = label < joints
-        seen[label[some], np.flatnonzero(named)[some]] = True
+        label = labels_at(points @ to_rest[k, :, :3].T + to_rest[k, :, 3], labels, centre, radius)
+        some = np.flatnonzero(label < joints)
+        seen[label[some], some] = True
     return seen
 
 
@@ -351,30 +350,14 @@ if grid_kernels.available():
         is overwritten."""
         n = points.shape[0]
         joints = to_rest.shape[0]
-        resolution = labels.shape[0]
         for p in numba.prange(n):
             for j in range(joints):
                 seen[j, p] = False
             x, y, z = points[p, 0], points[p, 1], points[p, 2]
             for k in range(joints):
-                m = to_rest[k]
-                inside = True
-                ci = cj = ck = 0
-                for a in range(3):
-                    r = m[a, 0] * x + m[a, 1] * y + m[a, 2] * z + m[a, 3]
-                    c = math.floor(((r - centre[a]) / radius + 1.0) * 0.5 * resolution)
-                    if c < 0 or c >= resolution:
-                        inside = False
-                    if a == 0:
-                        ci = c
-                    elif a == 1:
-                        cj = c
-                    else:
-                        ck = c
-                if inside:
-                    label = labels[ci, cj, ck]
-                    if label < joints:
-                        seen[label, p] = True
+                label = _label_at(to_rest[k], x, y, z, labels, centre, radius)
+                if label < joints:
+                    seen[label, p] = True
 
 
 _candidate_counts = _candidate_rows = None
