@@ -45,6 +45,7 @@ from ..progress import progress
 from ..sampling import surface_band_points
 from .config import TrainConfig
 from .data import default_margin, exact_values, normalisation, sample_points
+from .loop import sdf_loss
 from .schedule import RunClock, cosine_learning_rate, make_optimizer, set_training_threads
 
 #: The preset ``collider train CHARACTER`` uses: the static ``grid`` preset's field (2^17 rows
@@ -272,10 +273,8 @@ def train_articulated(skin: Skin, name: str, config: TrainConfig, *, arch: Artic
             near = data.near[index]
             want_normals = normal_weight > 0 and bool(near.any())
             prediction, gradient = data.answer(network, index, want_normals)
-            loss = (prediction - data.distance[index]).abs().mean() / radius
-            if want_normals:
-                cosine = torch.nn.functional.cosine_similarity(gradient[near], data.gradient[index][near], dim=1)
-                loss = loss + normal_weight * (1 - cosine).mean()
+            loss = sdf_loss(prediction, data.distance[index], gradient if want_normals else None,
+                            data.gradient[index], near, radius, normal_weight)
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
             optimizer.step()

@@ -213,6 +213,20 @@ class Batches:
                    torch.from_numpy(data.near).to(device))
 
 
+def sdf_loss(prediction, target, gradient, target_gradient, near, radius: float, normal_weight: float):
+    """The training loss of every network: the L1 of the distance ``prediction`` (m,) against
+    ``target`` (m,) over the normalisation ``radius``, plus ``normal_weight`` times ``1 - cos``
+    between the network's ``gradient`` (m, 3) and ``target_gradient`` (m, 3) on the ``near`` (m,)
+    samples; ``gradient`` None: the distance term alone."""
+    import torch
+
+    loss = (prediction - target).abs().mean() / radius
+    if gradient is not None:
+        cosine = torch.nn.functional.cosine_similarity(gradient[near], target_gradient[near], dim=1)
+        loss = loss + normal_weight * (1 - cosine).mean()
+    return loss
+
+
 def train_step(network, optimizer, batches: Batches, index, radius: float, normal_weight: float) -> float:
     """One optimiser step of ``network`` on the samples ``index`` (int64 tensor) of ``batches``:
     L1 on the distance over the normalisation ``radius``, plus ``normal_weight`` times ``1 -
@@ -234,10 +248,8 @@ def train_step(network, optimizer, batches: Batches, index, radius: float, norma
         (grad,) = torch.autograd.grad(prediction.sum(), x, create_graph=True)
     else:
         prediction = network(x, *x_inputs)
-    loss = (prediction - batches.target[index]).abs().mean() / radius
-    if want_normals:
-        cosine = torch.nn.functional.cosine_similarity(grad[mask], batches.target_gradient[index][mask], dim=1)
-        loss = loss + normal_weight * (1 - cosine).mean()
+    loss = sdf_loss(prediction, batches.target[index], grad if want_normals else None,
+                    batches.target_gradient[index], mask, radius, normal_weight)
     optimizer.zero_grad(set_to_none=True)
     loss.backward()
     optimizer.step()
