@@ -55,6 +55,9 @@ class HookStats:
     colliding_last: int = 0
     colliding_max: int = 0
     deepest_penetration_m: float = 0.0  # most negative signed distance seen (<= 0): the worst penetration
+    # contacts answered deeper than their point could have gone since the last call, each pushed
+    # out by at most its reach (CollisionHook.apply): the collider's answer jumped
+    bounded_pushes: int = 0
     query_s: float = 0.0
     response_s: float = 0.0
     fields: list[str] = field(default_factory=list)
@@ -78,6 +81,12 @@ class CollisionHook:
     check_step : raise :class:`TunnellingError` when a point near a collider moves ``eps`` or
         more relative to it in one step (the limit below which nothing tunnels; see
         :meth:`substeps`)
+
+    A contact never pushes a point further than the point could have gone into the surface since
+    the last call (``eps`` plus its own travel plus the surface's, :meth:`apply`): a signed
+    distance changes no faster than that, so a deeper answer is the collider's error (a learned
+    field wrong off the skin), and a full push would throw the point. Counted in
+    ``stats.bounded_pushes``.
 
     Call :meth:`apply` after each integration step (or substep). Only points inside a collider's
     inflated world box are sent, and only the fields the response needs are asked for: the
@@ -147,6 +156,9 @@ class CollisionHook:
         self.fields = (["distance", "contact", "collides"] + (["velocity"] if moving else [])
                        + (["normal"] if friction is not None else []))
         self.stats = HookStats(fields=list(self.fields))
+        #: The point count of the last call: the same count continues those points, which all
+        #: ended it outside (at eps or beyond by the collider's answers), and so bounds their pushes.
+        self._last_count: int | None = None
 
     #: Most collision substeps of one step (see :meth:`substeps`); beyond, TunnellingError.
     max_substeps = 64
@@ -206,6 +218,11 @@ class CollisionHook:
         Returns ``(positions, velocities, mask)`` with new arrays for the first two and ``mask``
         (n,) bool of the points that were in contact.
 
+        A point's push out is at most its reach, ``eps`` + ``|velocity| dt`` + the colliders'
+        largest surface move over the step (:meth:`collider_moves`), when the call continues the
+        last one (the same point count: every point ended it outside); the first call pushes
+        every point fully out.
+
         A step in which a point moves ``eps`` or more relative to a collider's surface is
         checked at :meth:`substeps` times along the paths (``check_step``), each at its own
         time; a point caught part-way is responded there and moves on with its responded
@@ -218,9 +235,15 @@ class CollisionHook:
         positions = np.asarray(positions)
         n = len(positions)
         poses = [c.pose(t) for c in self.colliders]
-        moves = self.collider_moves(poses, t, dt) if self.check_step else [0.0] * len(poses)
+        surface_moves = self.collider_moves(poses, t, dt)
+        moves = surface_moves if self.check_step else [0.0] * len(poses)
         sweep = np.asarray(velocities, dtype=np.float64) * dt if self.check_step else None
         index = np.flatnonzero(self._near(positions, poses, self.eps + 1e-9, sweep, moves))
+        reach = None
+        if self._last_count == n:
+            reach = (self.eps + max(surface_moves, default=0.0)
+                     + np.linalg.norm(np.asarray(velocities, dtype=np.float64), axis=1) * dt)
+        self._last_count = n
         self.stats.calls += 1
         self.stats.points_total += n
         mask = np.zeros(n, dtype=bool)
@@ -240,7 +263,7 @@ class CollisionHook:
             # Where each point is at t_j on its path (positions hold where it ends the step).
             points = positions[index] - back * velocities[index] * dt
             hit, q = self._respond(points, index, positions, velocities, since, poses_j, t_j, dt,
-                                   (1.0 - back) * dt, back * dt)
+                                   (1.0 - back) * dt, back * dt, reach)
             query_s += q
             mask[index[hit]] = True  # _respond wrote their positions and velocities
             if not self.moving:  # a still surface cannot catch up with a responded point
@@ -292,11 +315,12 @@ class CollisionHook:
         return result, np.asarray(result.collider), [held for _, held in times]
 
     def _respond(self, points, index, positions, velocities, since, poses, t: float, dt: float,
-                 travelled_s: float, remaining_s: float):
+                 travelled_s: float, remaining_s: float, reach: np.ndarray | None):
         """Query ``points`` (the rows ``index`` at time ``t``, ``travelled_s`` into the step and
-        ``remaining_s`` before its end), and for those within eps write the contact, moved on
-        with the responded velocity for ``remaining_s``, and that velocity into ``positions`` /
-        ``velocities`` (in place; ``since`` records when).
+        ``remaining_s`` before its end), and for those within eps write the contact (at most
+        ``reach`` (n,) metres from the point; None: no bound), moved on with the responded
+        velocity for ``remaining_s``, and that velocity into ``positions`` / ``velocities`` (in
+        place; ``since`` records when).
         Returns ``(hit (len(index),) bool, seconds spent in the query)``."""
         q0 = time.perf_counter()
         result, which, held = self._query(points, poses, t, dt)
@@ -311,6 +335,14 @@ class CollisionHook:
         deepest = float(np.min(result.distance[local_index]))
         self.stats.deepest_penetration_m = min(self.stats.deepest_penetration_m, deepest)
         contact = np.asarray(result.contact, dtype=np.float64)[local_index]
+        if reach is not None:
+            push = contact - points[local_index]
+            length = np.linalg.norm(push, axis=1)
+            limit = reach[index[local_index]]
+            over = length > limit
+            if over.any():
+                contact[over] = points[local_index][over] + push[over] * (limit[over] / length[over])[:, None]
+                self.stats.bounded_pushes += int(over.sum())
         # The surface's velocity at the contacts (world frame, m/s): the service's answer.
         if result.velocity is not None:
             v_col = np.asarray(result.velocity, dtype=np.float64)[local_index]

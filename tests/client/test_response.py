@@ -437,6 +437,27 @@ def test_hook_responds_to_integer_velocities_without_truncating(exact_client):
     np.testing.assert_allclose(pos, [[0.1, 0.0, 1e-3]], atol=1e-12)
 
 
+def test_a_push_deeper_than_the_point_could_have_gone_since_the_last_call_is_bounded(exact_client):
+    """A signed distance changes no faster than the point's travel plus the surface's: a point
+    that ended the last call outside and is answered deeper than that (here: the caller put it
+    30 mm into the floor and says it did not move) is pushed out by at most eps + its travel
+    (the floor is still), and counted; a point whose step took it there is pushed fully out; a
+    call with other points (a new count) pushes every point fully out."""
+    hook = CollisionHook(exact_client, [ColliderPlacement("floor")], eps=1e-3)
+    start = np.array([[0.1, 0.0, -3e-3], [0.2, 0.0, 5e-3]])
+    pos, _, mask = hook.apply(start, np.zeros((2, 3)), 0.0, 1e-3)  # the first call: no bound
+    np.testing.assert_allclose(pos[:, 2], [1e-3, 5e-3], atol=1e-9)
+    assert hook.stats.bounded_pushes == 0
+    jumped = np.array([[0.1, 0.0, -30e-3], [0.2, 0.0, -15e-3]])
+    pos, _, mask = hook.apply(jumped, np.array([[0.0, 0.0, 0.0], [0.0, 0.0, -20.0]]), 1e-3, 1e-3)
+    assert mask.all()
+    np.testing.assert_allclose(pos[:, 2], [-29e-3, 1e-3], atol=1e-9)
+    assert hook.stats.bounded_pushes == 1
+    pos, _, _ = hook.apply(np.array([[0.1, 0.0, -30e-3]] * 3), np.zeros((3, 3)), 2e-3, 1e-3)
+    np.testing.assert_allclose(pos[:, 2], 1e-3, atol=1e-9)
+    assert hook.stats.bounded_pushes == 1
+
+
 def test_hook_without_check_step_is_refused_by_default_for_a_fast_point(exact_client):
     hook = CollisionHook(exact_client, [ColliderPlacement("floor")])
     with pytest.raises(TunnellingError, match="speed x dt below eps"):
