@@ -301,6 +301,13 @@ if grid_kernels.available():
         for p in numba.prange(n):
             x, y, z = points[p, 0], points[p, 1], points[p, 2]
             any_part = False
+            for j in range(joints):
+                own = allowed[j, _label_at(to_rest[j], x, y, z, labels, centre, radius)]
+                mask[j, p] = own
+                any_part = any_part or own
+            if any_part:
+                continue
+            # Far from every part's region (few points): the nearest part box, only here.
             nearest, nearest_gap = 0, np.inf
             for j in range(joints):
                 m = to_rest[j]
@@ -309,13 +316,9 @@ if grid_kernels.available():
                     r = m[a, 0] * x + m[a, 1] * y + m[a, 2] * z + m[a, 3]
                     g = max(part_boxes[j, 0, a] - r, 0.0) + max(r - part_boxes[j, 1, a], 0.0)
                     gap += g * g
-                mask[j, p] = allowed[j, _label_at(m, x, y, z, labels, centre, radius)]
-                if mask[j, p]:
-                    any_part = True
                 if gap < nearest_gap:
                     nearest, nearest_gap = j, gap
-            if not any_part:
-                mask[nearest, p] = True
+            mask[nearest, p] = True
 
 
 def labels_seen(points: np.ndarray, to_rest: np.ndarray, labels: np.ndarray, centre, radius: float,
@@ -798,15 +801,46 @@ def candidate_rows_through_skinning(points: np.ndarray, to_rest: np.ndarray, pos
     first, second = ~found[point], found[retry_point]
     joint = np.concatenate([joint[first], retry_joint[second]])
     order = np.argsort(joint.astype(np.int16), kind="stable")  # a radix sort: parts are < 255
+    # Each joined row's source in the first rows followed by the retried ones: one gather per array.
+    source = np.concatenate([np.flatnonzero(first), len(first) + np.flatnonzero(second)])[order]
 
     def joined(a, b):
-        return np.concatenate([a[first], b[second]])[order]
+        return joined_rows(a, b, source, fused)
 
     velocity = None if carried.velocity is None or again.velocity is None else joined(carried.velocity,
                                                                                       again.velocity)
     rows = CarriedRows(joined(carried.usable, again.usable), joined(carried.rest, again.rest),
                        joined(carried.inverse, again.inverse), velocity, joined(carried.converged, again.converged))
     return joined(point, retry_point), joint[order], rows
+
+
+def joined_rows(a: np.ndarray, b: np.ndarray, source: np.ndarray, fused: bool = True) -> np.ndarray:
+    """Rows ``source`` (k,) int64 of ``a`` (m, ...) followed by ``b`` (m', ...) (same dtype and row
+    shape): ``concatenate([a, b])[source]``, in one parallel numba gather (:func:`_join_kernel`,
+    no concatenated copy) when numba is there and ``fused``, else numpy."""
+    if fused and _join_kernel is not None:
+        out = np.empty((len(source),) + a.shape[1:], a.dtype)
+        _join_kernel(np.ascontiguousarray(a).reshape(len(a), -1), np.ascontiguousarray(b).reshape(len(b), -1),
+                     np.ascontiguousarray(source, np.int64), out.reshape(len(source), -1))
+        return out
+    return np.concatenate([a, b])[source]
+
+
+_join_kernel = None
+if grid_kernels.available():
+    import numba
+
+    @numba.njit(cache=True, nogil=True, parallel=True)
+    def _join_kernel(a, b, source, out):  # pragma: no cover
+        """:func:`joined_rows` over the rows (numba): ``out`` (k, w) overwritten from ``a`` (m, w)
+        and ``b`` (m', w)."""
+        m = a.shape[0]
+        for r in numba.prange(source.shape[0]):
+            s = source[r]
+            if s < m:
+                out[r, :] = a[s, :]
+            else:
+                out[r, :] = b[s - m, :]
 
 
 def _newton_through_grid(points, rigid, posed, field, centre, radius: float, iterations: int,
