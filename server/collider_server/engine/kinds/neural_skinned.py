@@ -207,8 +207,9 @@ def part_candidates(points: np.ndarray, to_rest: np.ndarray, labels: np.ndarray,
     centre = np.asarray(centre, np.float64)
     if fused and _candidate_mask is not None:
         mask = np.empty((len(to_rest), len(points)), np.bool_)
+        reach = _posed_label_boxes(to_rest, labels, centre, radius, allowed)
         _candidate_mask(points, np.ascontiguousarray(to_rest), labels, centre, float(radius), allowed,
-                        np.ascontiguousarray(part_boxes, np.float64), mask)
+                        np.ascontiguousarray(part_boxes, np.float64), reach, mask)
     else:
         mask = _candidate_mask_numpy(points, to_rest, labels, centre, radius, allowed, part_boxes)
     if fused and _candidate_rows is not None:
@@ -293,15 +294,21 @@ if grid_kernels.available():
         return labels[ci, cj, ck]
 
     @numba.njit(cache=True, nogil=True, parallel=True)
-    def _candidate_mask(points, to_rest, labels, centre, radius, allowed, part_boxes, mask):  # pragma: no cover
+    def _candidate_mask(points, to_rest, labels, centre, radius, allowed, part_boxes, reach,
+                        mask):  # pragma: no cover
         """:func:`_candidate_mask_numpy` in one pass over the points (numba, parallel): ``mask``
-        (J, n) bool is overwritten."""
+        (J, n) bool is overwritten. ``reach`` (J, 2, 3) (:func:`_posed_label_boxes`): a point outside
+        joint j's box is not j's candidate, and its label is not looked up."""
         n = points.shape[0]
         joints = to_rest.shape[0]
         for p in numba.prange(n):
             x, y, z = points[p, 0], points[p, 1], points[p, 2]
             any_part = False
             for j in range(joints):
+                if (x < reach[j, 0, 0] or x > reach[j, 1, 0] or y < reach[j, 0, 1] or y > reach[j, 1, 1]
+                        or z < reach[j, 0, 2] or z > reach[j, 1, 2]):
+                    mask[j, p] = False
+                    continue
                 own = allowed[j, _label_at(to_rest[j], x, y, z, labels, centre, radius)]
                 mask[j, p] = own
                 any_part = any_part or own
@@ -319,6 +326,56 @@ if grid_kernels.available():
                 if gap < nearest_gap:
                     nearest, nearest_gap = j, gap
             mask[nearest, p] = True
+
+
+def _posed_label_boxes(to_rest: np.ndarray, labels: np.ndarray, centre, radius: float,
+                      allowed: np.ndarray) -> np.ndarray:
+    """(J, 2, 3) float64: per joint j a box (lo, hi) of the posed collider frame outside which no
+    point is j's candidate by its label: the rest-frame box of the label cells where j is allowed
+    (``allowed[j, label]``, :func:`allowed_labels`), padded by a cell (for the rounding of a rigid
+    image near a cell's face), carried to the pose by ``A_j`` (the inverse of ``to_rest`` (J, 3, 4))
+    and boxed again. Empty (lo > hi) where j is allowed nowhere. ``labels`` (R, R, R) uint8 over
+    the cube ``centre +- radius``. What lets :func:`_candidate_mask` skip most joints' lookups
+    (numba's, as that pass)."""
+    resolution = labels.shape[0]
+    # Per label value the least and greatest cell index along each axis holding it (hi -1: none).
+    lo_cell, hi_cell = np.full((256, 3), resolution, np.int64), np.full((256, 3), -1, np.int64)
+    _label_cell_boxes(np.ascontiguousarray(labels), lo_cell, hi_cell)
+    joints = len(to_rest)
+    boxes = np.empty((joints, 2, 3))
+    boxes[:, 0], boxes[:, 1] = np.inf, -np.inf
+    cell = 2.0 * radius / resolution
+    corner = np.array([[(c >> a) & 1 for a in range(3)] for c in range(8)], np.float64)
+    affine = np.zeros((joints, 4, 4))
+    affine[:, :3, :], affine[:, 3, 3] = to_rest, 1.0
+    posed = np.linalg.inv(affine)[:, :3, :]
+    for j in range(joints):
+        named = np.flatnonzero(allowed[j] & (hi_cell[:, 0] >= 0))
+        if not len(named):
+            continue
+        lo = np.asarray(centre) + radius * (2.0 * lo_cell[named].min(axis=0) / resolution - 1.0) - cell
+        hi = np.asarray(centre) + radius * (2.0 * (hi_cell[named].max(axis=0) + 1) / resolution - 1.0) + cell
+        corners = lo + corner * (hi - lo)
+        moved = corners @ posed[j, :, :3].T + posed[j, :, 3]
+        boxes[j, 0], boxes[j, 1] = moved.min(axis=0) - cell, moved.max(axis=0) + cell
+    return boxes
+
+
+_label_cell_boxes = None
+if grid_kernels.available():
+
+    @numba.njit(cache=True, nogil=True)
+    def _label_cell_boxes(labels, lo, hi):  # pragma: no cover
+        """Per label value of ``labels`` (R, R, R) the least (``lo`` (256, 3) int64) and greatest
+        (``hi``) cell index along each axis holding it, updated in one pass over the cells."""
+        r = labels.shape[0]
+        for i in range(r):
+            for j in range(r):
+                for k in range(r):
+                    value = labels[i, j, k]
+                    lo[value, 0], hi[value, 0] = min(lo[value, 0], i), max(hi[value, 0], i)
+                    lo[value, 1], hi[value, 1] = min(lo[value, 1], j), max(hi[value, 1], j)
+                    lo[value, 2], hi[value, 2] = min(lo[value, 2], k), max(hi[value, 2], k)
 
 
 def labels_seen(points: np.ndarray, to_rest: np.ndarray, labels: np.ndarray, centre, radius: float,
