@@ -134,6 +134,27 @@ def test_fused_network_query_matches_the_torch_reference(smooth, features, n):
 
 
 @needs_numba
+def test_fused_network_query_takes_each_point_s_row_of_the_part_bias_table():
+    """The articulated network's parts in one call (:mod:`.neural_skinned`): point p's first
+    layer takes row ``part[p]`` of a bias table, against the torch path with that bias per point;
+    in random order, a partial last block."""
+    network = random_network(seed=21, hidden_layers=2, features=2)
+    x = points(3001, 22, pad=0.05)
+    width = network.body[0].out_features
+    table = (torch.randn(5, width, generator=torch.Generator().manual_seed(23)) * 0.5).numpy()
+    part = np.random.default_rng(24).integers(0, 5, len(x))
+    u = (x - network.centre) / network.radius
+    features, jacobian = network.encode_parts(u, True)
+    reference, g = network.head(features, torch.from_numpy(table)[part])
+    expected = torch.einsum("nlf,nlfd->nd", g, jacobian)
+    distance, gradient = network.fused_query(x, True, table, part)
+    torch.testing.assert_close(distance, reference, rtol=0, atol=1e-5 * float(reference.abs().max()))
+    torch.testing.assert_close(gradient, expected, rtol=0, atol=1e-4 * float(expected.abs().max()))
+    one, _ = network.fused_query(x, True, table[0])  # one bias for all: another answer
+    assert (one - distance).abs().max() > 1e-3 * float(reference.abs().max())
+
+
+@needs_numba
 def test_fused_network_query_of_the_smallest_network():
     """One level of one feature and an MLP one unit wide: fewer inputs and units than the
     gradient's three components (the kernel keeps them in its scratch rows)."""

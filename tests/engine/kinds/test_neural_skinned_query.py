@@ -13,6 +13,7 @@ from collider_server.engine.kinds.neural_skinned import (
     carried_rows,
     carry_to_rest,
     clamp_to_cube,
+    joined_rows,
     part_boxes,
     part_candidates,
     part_labels,
@@ -64,6 +65,18 @@ def test_the_candidate_rows_written_from_the_mask_are_the_numpy_rule_s_bit_for_b
     # Sorted by joint, then point.
     assert np.all(np.diff(joint) >= 0)
     assert np.all(np.diff(point)[np.diff(joint) == 0] > 0)
+
+
+def test_the_retry_s_joined_rows_are_numpy_s_concatenation_and_gather():
+    rng = np.random.default_rng(8)
+    source = rng.permutation(700)[:650]  # rows of the first 500 and of the 200 retried, in any order
+    for make in (lambda m: rng.normal(size=(m, 3, 3)), lambda m: rng.integers(0, 9, m),
+                 lambda m: rng.random(m) < 0.5):
+        a, b = make(500), make(200)
+        fused = joined_rows(a, b, source)
+        assert fused.dtype == a.dtype and fused.shape == (650,) + a.shape[1:]
+        np.testing.assert_array_equal(fused, np.concatenate([a, b])[source])
+        np.testing.assert_array_equal(fused, joined_rows(a, b, source, fused=False))
 
 
 def test_the_union_takes_the_least_usable_row_and_the_lowest_joint_on_a_tie(arm):

@@ -207,8 +207,9 @@ def part_candidates(points: np.ndarray, to_rest: np.ndarray, labels: np.ndarray,
     centre = np.asarray(centre, np.float64)
     if fused and _candidate_mask is not None:
         mask = np.empty((len(to_rest), len(points)), np.bool_)
+        reach = _posed_label_boxes(to_rest, labels, centre, radius, allowed)
         _candidate_mask(points, np.ascontiguousarray(to_rest), labels, centre, float(radius), allowed,
-                        np.ascontiguousarray(part_boxes, np.float64), mask)
+                        np.ascontiguousarray(part_boxes, np.float64), reach, mask)
     else:
         mask = _candidate_mask_numpy(points, to_rest, labels, centre, radius, allowed, part_boxes)
     if fused and _candidate_rows is not None:
@@ -293,14 +294,27 @@ if grid_kernels.available():
         return labels[ci, cj, ck]
 
     @numba.njit(cache=True, nogil=True, parallel=True)
-    def _candidate_mask(points, to_rest, labels, centre, radius, allowed, part_boxes, mask):  # pragma: no cover
+    def _candidate_mask(points, to_rest, labels, centre, radius, allowed, part_boxes, reach,
+                        mask):  # pragma: no cover
         """:func:`_candidate_mask_numpy` in one pass over the points (numba, parallel): ``mask``
-        (J, n) bool is overwritten."""
+        (J, n) bool is overwritten. ``reach`` (J, 2, 3) (:func:`_posed_label_boxes`): a point outside
+        joint j's box is not j's candidate, and its label is not looked up."""
         n = points.shape[0]
         joints = to_rest.shape[0]
         for p in numba.prange(n):
             x, y, z = points[p, 0], points[p, 1], points[p, 2]
             any_part = False
+            for j in range(joints):
+                if (x < reach[j, 0, 0] or x > reach[j, 1, 0] or y < reach[j, 0, 1] or y > reach[j, 1, 1]
+                        or z < reach[j, 0, 2] or z > reach[j, 1, 2]):
+                    mask[j, p] = False
+                    continue
+                own = allowed[j, _label_at(to_rest[j], x, y, z, labels, centre, radius)]
+                mask[j, p] = own
+                any_part = any_part or own
+            if any_part:
+                continue
+            # Far from every part's region (few points): the nearest part box, only here.
             nearest, nearest_gap = 0, np.inf
             for j in range(joints):
                 m = to_rest[j]
@@ -309,13 +323,59 @@ if grid_kernels.available():
                     r = m[a, 0] * x + m[a, 1] * y + m[a, 2] * z + m[a, 3]
                     g = max(part_boxes[j, 0, a] - r, 0.0) + max(r - part_boxes[j, 1, a], 0.0)
                     gap += g * g
-                mask[j, p] = allowed[j, _label_at(m, x, y, z, labels, centre, radius)]
-                if mask[j, p]:
-                    any_part = True
                 if gap < nearest_gap:
                     nearest, nearest_gap = j, gap
-            if not any_part:
-                mask[nearest, p] = True
+            mask[nearest, p] = True
+
+
+def _posed_label_boxes(to_rest: np.ndarray, labels: np.ndarray, centre, radius: float,
+                      allowed: np.ndarray) -> np.ndarray:
+    """(J, 2, 3) float64: per joint j a box (lo, hi) of the posed collider frame outside which no
+    point is j's candidate by its label: the rest-frame box of the label cells where j is allowed
+    (``allowed[j, label]``, :func:`allowed_labels`), padded by a cell (for the rounding of a rigid
+    image near a cell's face), carried to the pose by ``A_j`` (the inverse of ``to_rest`` (J, 3, 4))
+    and boxed again. Empty (lo > hi) where j is allowed nowhere. ``labels`` (R, R, R) uint8 over
+    the cube ``centre +- radius``. What lets :func:`_candidate_mask` skip most joints' lookups
+    (numba's, as that pass)."""
+    resolution = labels.shape[0]
+    # Per label value the least and greatest cell index along each axis holding it (hi -1: none).
+    lo_cell, hi_cell = np.full((256, 3), resolution, np.int64), np.full((256, 3), -1, np.int64)
+    _label_cell_boxes(np.ascontiguousarray(labels), lo_cell, hi_cell)
+    joints = len(to_rest)
+    boxes = np.empty((joints, 2, 3))
+    boxes[:, 0], boxes[:, 1] = np.inf, -np.inf
+    cell = 2.0 * radius / resolution
+    corner = np.array([[(c >> a) & 1 for a in range(3)] for c in range(8)], np.float64)
+    affine = np.zeros((joints, 4, 4))
+    affine[:, :3, :], affine[:, 3, 3] = to_rest, 1.0
+    posed = np.linalg.inv(affine)[:, :3, :]
+    for j in range(joints):
+        named = np.flatnonzero(allowed[j] & (hi_cell[:, 0] >= 0))
+        if not len(named):
+            continue
+        lo = np.asarray(centre) + radius * (2.0 * lo_cell[named].min(axis=0) / resolution - 1.0) - cell
+        hi = np.asarray(centre) + radius * (2.0 * (hi_cell[named].max(axis=0) + 1) / resolution - 1.0) + cell
+        corners = lo + corner * (hi - lo)
+        moved = corners @ posed[j, :, :3].T + posed[j, :, 3]
+        boxes[j, 0], boxes[j, 1] = moved.min(axis=0) - cell, moved.max(axis=0) + cell
+    return boxes
+
+
+_label_cell_boxes = None
+if grid_kernels.available():
+
+    @numba.njit(cache=True, nogil=True)
+    def _label_cell_boxes(labels, lo, hi):  # pragma: no cover
+        """Per label value of ``labels`` (R, R, R) the least (``lo`` (256, 3) int64) and greatest
+        (``hi``) cell index along each axis holding it, updated in one pass over the cells."""
+        r = labels.shape[0]
+        for i in range(r):
+            for j in range(r):
+                for k in range(r):
+                    value = labels[i, j, k]
+                    lo[value, 0], hi[value, 0] = min(lo[value, 0], i), max(hi[value, 0], i)
+                    lo[value, 1], hi[value, 1] = min(lo[value, 1], j), max(hi[value, 1], j)
+                    lo[value, 2], hi[value, 2] = min(lo[value, 2], k), max(hi[value, 2], k)
 
 
 def labels_seen(points: np.ndarray, to_rest: np.ndarray, labels: np.ndarray, centre, radius: float,
@@ -798,15 +858,46 @@ def candidate_rows_through_skinning(points: np.ndarray, to_rest: np.ndarray, pos
     first, second = ~found[point], found[retry_point]
     joint = np.concatenate([joint[first], retry_joint[second]])
     order = np.argsort(joint.astype(np.int16), kind="stable")  # a radix sort: parts are < 255
+    # Each joined row's source in the first rows followed by the retried ones: one gather per array.
+    source = np.concatenate([np.flatnonzero(first), len(first) + np.flatnonzero(second)])[order]
 
     def joined(a, b):
-        return np.concatenate([a[first], b[second]])[order]
+        return joined_rows(a, b, source, fused)
 
     velocity = None if carried.velocity is None or again.velocity is None else joined(carried.velocity,
                                                                                       again.velocity)
     rows = CarriedRows(joined(carried.usable, again.usable), joined(carried.rest, again.rest),
                        joined(carried.inverse, again.inverse), velocity, joined(carried.converged, again.converged))
     return joined(point, retry_point), joint[order], rows
+
+
+def joined_rows(a: np.ndarray, b: np.ndarray, source: np.ndarray, fused: bool = True) -> np.ndarray:
+    """Rows ``source`` (k,) int64 of ``a`` (m, ...) followed by ``b`` (m', ...) (same dtype and row
+    shape): ``concatenate([a, b])[source]``, in one parallel numba gather (:func:`_join_kernel`,
+    no concatenated copy) when numba is there and ``fused``, else numpy."""
+    if fused and _join_kernel is not None:
+        out = np.empty((len(source),) + a.shape[1:], a.dtype)
+        _join_kernel(np.ascontiguousarray(a).reshape(len(a), -1), np.ascontiguousarray(b).reshape(len(b), -1),
+                     np.ascontiguousarray(source, np.int64), out.reshape(len(source), -1))
+        return out
+    return np.concatenate([a, b])[source]
+
+
+_join_kernel = None
+if grid_kernels.available():
+    import numba
+
+    @numba.njit(cache=True, nogil=True, parallel=True)
+    def _join_kernel(a, b, source, out):  # pragma: no cover
+        """:func:`joined_rows` over the rows (numba): ``out`` (k, w) overwritten from ``a`` (m, w)
+        and ``b`` (m', w)."""
+        m = a.shape[0]
+        for r in numba.prange(source.shape[0]):
+            s = source[r]
+            if s < m:
+                out[r, :] = a[s, :]
+            else:
+                out[r, :] = b[s - m, :]
 
 
 def _newton_through_grid(points, rigid, posed, field, centre, radius: float, iterations: int,

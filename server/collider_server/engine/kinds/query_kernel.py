@@ -120,9 +120,9 @@ if numba is not None:
     @numba.njit(cache=True, fastmath=True, nogil=True)
     def _query_block(u, order, start, m, table, dtable, resolution, offset, rows, dense, smooth, weights,
                      biases, w_out, b_out, scale, want_gradient, distance, gradient, dtime, part, part_biases,
-                     ub, corner_rows, corner_weights, feature, dfeature, jac, act, g, g_next, out):
+                     ub, corner_rows, corner_weights, feature, dfeature, jac, act, g, g_next, out, part_row):
         """One block of ``network_query_timed``: its ``m`` points from ``start`` in ``order``,
-        with the scratch arrays of its run."""
+        with the scratch arrays of its run (``part_row`` (block,): the points' parts)."""
         depth = len(weights)
         n_in = feature.shape[0]
         block = out.shape[0]
@@ -138,9 +138,11 @@ if numba is not None:
                 act[k, o, :] = biases[k][o]
             if k == 0 and part.shape[0] > 0:  # each point's own first bias (its part's)
                 for q in range(m):
-                    row = part_biases[part[order[start + q]]]
-                    for o in range(w.shape[0]):
-                        act[0, o, q] = row[o]
+                    part_row[q] = part[order[start + q]]
+                for o in range(w.shape[0]):  # the block's points innermost, as every loop here
+                    a = act[0, o]
+                    for q in range(m):
+                        a[q] = part_biases[part_row[q], o]
             _multiply_add(w, feature if k == 0 else act[k - 1], act[k])
             for o in range(w.shape[0]):
                 s = act[k, o]
@@ -237,12 +239,13 @@ if numba is not None:
             g = np.zeros((widest, block), np.float32)
             g_next = np.zeros((widest, block), np.float32)
             out = np.empty(block, np.float32)
+            part_row = np.empty(block, np.int64)
             for b in range(run * blocks // runs, (run + 1) * blocks // runs):
                 _query_block(u, order, b * block, min(n, b * block + block) - b * block, table, dtable,
                              resolution, offset, rows, dense, smooth, weights, biases, w_out, b_out,
                              scale, want_gradient, distance, gradient, dtime, part, part_biases, ub, corner_rows,
                              corner_weights,
-                             feature, dfeature, jac, act, g, g_next, out)
+                             feature, dfeature, jac, act, g, g_next, out, part_row)
 
     def network_query(u, table, resolution, offset, rows, dense, smooth, weights, biases, w_out, b_out,
                       scale, want_gradient, distance, gradient, part=None, part_biases=None):
