@@ -149,7 +149,10 @@ def test_the_readme_service_snippets_answer(tmp_path):
     curl = [c for c in commands(readme) if c.startswith("curl")]
     python = blocks(readme, ("python",))
     assert curl and python
-    with ServerThread(models=ROOT / "models", device="cpu") as server:
+    # Every shipped model loaded and warmed up, as `collider serve` does: in a fresh checkout the
+    # first warm-up compiles each kind's numba kernels (the articulated walker's take about a
+    # minute on 2 busy cores; cached after), so give it the time a first start takes.
+    with ServerThread(models=ROOT / "models", device="cpu", ready_timeout_s=300.0) as server:
         for command in curl:
             command = command.replace("localhost:8000", f"127.0.0.1:{server.port}")
             out = subprocess.run(command, shell=True, capture_output=True, text=True, timeout=60)

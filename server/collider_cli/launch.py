@@ -118,9 +118,10 @@ class ServerThread:
 
     settings : :class:`~collider_server.service.ServiceSettings` fields; ``compute_threads``
         defaults to this process's torch thread count (the server sets it process-wide)
+    ready_timeout_s : how long entry waits for ``/readyz`` (every model loaded and warmed up)
     """
 
-    def __init__(self, **settings):
+    def __init__(self, ready_timeout_s: float = 120.0, **settings):
         import torch
         import uvicorn
 
@@ -128,6 +129,7 @@ class ServerThread:
 
         self.port = free_port()
         self.url = f"http://{LOOPBACK}:{self.port}"
+        self.ready_timeout_s = ready_timeout_s
         settings.setdefault("compute_threads", torch.get_num_threads())
         self.settings = ServiceSettings(host=LOOPBACK, port=self.port, **settings)
         self.app = create_app(self.settings)
@@ -137,7 +139,7 @@ class ServerThread:
 
     def __enter__(self) -> Self:
         self.thread.start()
-        wait_ready(self.url, timeout_s=60.0)
+        wait_ready(self.url, timeout_s=self.ready_timeout_s)
         return self
 
     def __exit__(self, *exc) -> None:
