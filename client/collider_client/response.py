@@ -157,7 +157,8 @@ class CollisionHook:
                        + (["normal"] if friction is not None else []))
         self.stats = HookStats(fields=list(self.fields))
         #: The point count of the last call: the same count continues those points, which all
-        #: ended it outside (at eps or beyond by the collider's answers), and so bounds their pushes.
+        #: ended it outside (at eps or beyond by the collider's answers; a bounded one on its way
+        #: out), and so bounds their pushes.
         self._last_count: int | None = None
 
     #: Most collision substeps of one step (see :meth:`substeps`); beyond, TunnellingError.
@@ -220,8 +221,8 @@ class CollisionHook:
 
         A point's push out is at most its reach, ``eps`` + ``|velocity| dt`` + the colliders'
         largest surface move over the step (:meth:`collider_moves`), when the call continues the
-        last one (the same point count: every point ended it outside); the first call pushes
-        every point fully out.
+        last one (the same point count: every point ended it outside, or on its way out by its
+        reach); the first call pushes every point fully out.
 
         A step in which a point moves ``eps`` or more relative to a collider's surface is
         checked at :meth:`substeps` times along the paths (``check_step``), each at its own
