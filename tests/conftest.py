@@ -86,6 +86,39 @@ def built_once(tmp_path_factory) -> Callable:
     return get
 
 
+def run_collider(*args):
+    """``collider ARGS`` run in this process, as ``python -m collider_cli`` runs it: a
+    ``subprocess.CompletedProcess`` with its exit status, stdout and stderr. For a test of a
+    command (its options, output and status), not of a process (signals, a pasted line): a
+    subprocess spends about 4 s of CPU importing torch before it starts. Warnings print to stderr
+    as in a fresh interpreter; the CPU threads a training run sets (torch's, the kernels') are
+    restored for the tests after it."""
+    import contextlib
+    import io
+    import subprocess
+    import warnings
+
+    import torch
+
+    from collider_cli import main
+    from collider_server.engine.kinds import grid_kernels
+
+    threads = torch.get_num_threads(), grid_kernels.threads()
+    out, err = io.StringIO(), io.StringIO()
+    try:
+        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err), warnings.catch_warnings():
+            warnings.resetwarnings()
+            warnings.simplefilter("default")
+            try:
+                code = main([str(a) for a in args])
+            except SystemExit as exc:  # argparse's refusals exit 2
+                code = exc.code
+    finally:
+        torch.set_num_threads(threads[0])
+        grid_kernels.set_threads(threads[1])
+    return subprocess.CompletedProcess(["collider", *map(str, args)], code, out.getvalue(), err.getvalue())
+
+
 #: The public RiggedSimple glTF character (a cylinder bending at its one inner joint).
 CHARACTER = REPO_ROOT / "tests" / "data" / "gltf" / "RiggedSimple.gltf"
 

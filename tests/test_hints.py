@@ -9,10 +9,16 @@ unmeasured, a budget bake given another mesh's figures, and eval told the wrong 
 same shell: it must finish with status 0, or, when it is a long job (a training run, a full
 bench), run for a while without an error and end on SIGTERM with status 143 (what an interrupted
 long command returns).
+
+The situations are built once per run (``built_once``: the commands that depend on each other,
+such as the bench of the trained network, in one folder; the independent ones apart), and each
+hint is pasted by a test of its own in a copy of the folder its command left, so that pytest-xdist
+spreads the hints over its workers and no hint runs in what another hint left behind.
 """
 
 from __future__ import annotations
 
+import json
 import os
 import re
 import shutil
@@ -26,21 +32,16 @@ import pytest
 HINT = re.compile(r"next: (collider .+)$|`(collider [^`]+)`", re.MULTILINE)
 #: A pasted hint still running after this long is a long job: it is stopped with SIGTERM.
 LONG_AFTER_S = 20.0
+MODELS = "my models"  # a folder name that needs quoting in a shell
 
 pytestmark = pytest.mark.skipif(shutil.which("collider") is None, reason="the collider command is not installed")
 
 
-@pytest.fixture(scope="module")
-def user(tmp_path_factory):
-    """A user's working folder with a mesh, and the environment they run commands in."""
-    import trimesh
-
-    home = tmp_path_factory.mktemp("user")
-    trimesh.creation.icosphere(subdivisions=3, radius=0.05).export(home / "ball.obj")
-    trimesh.creation.box(extents=(0.08, 0.06, 0.04)).export(home / "box.obj")
+def user_env(home: Path) -> dict:
+    """The environment a user working in ``home`` runs commands in."""
     env = {k: v for k, v in os.environ.items() if k not in ("COLLIDER_MODELS", "XDG_CACHE_HOME")}
     env["XDG_CACHE_HOME"] = str(home / "cache")  # the default cache, in the user's own cache dir
-    return home, env
+    return env
 
 
 def shell(command: str, cwd: Path, env: dict, timeout: float = 300) -> subprocess.CompletedProcess:
@@ -75,73 +76,129 @@ def paste(hint: str, cwd: Path, env: dict) -> str:
     return "0"
 
 
-@pytest.mark.slow
-def test_every_hint_every_command_prints_works_when_pasted(user):
-    home, env = user
-    models = "my models"  # a folder name that needs quoting in a shell
-    printed = []
+# -- the situations: each builder runs its commands in a user's folder and returns what they printed
 
-    bake = shell(f"collider bake ball.obj --name ball-grid --resolution 16 --models '{models}'", home, env)
+
+def add_meshes(home: Path) -> None:
+    import trimesh
+
+    trimesh.creation.icosphere(subdivisions=3, radius=0.05).export(home / "ball.obj")
+    trimesh.creation.box(extents=(0.08, 0.06, 0.04)).export(home / "box.obj")
+
+
+def baked(home: Path, env: dict) -> dict[str, str]:
+    """A voxel bake, ``info`` of it never evaluated, a budget bake given a missing bench, and eval
+    told the wrong unit."""
+    bake = shell(f"collider bake ball.obj --name ball-grid --resolution 16 --models '{MODELS}'", home, env)
     assert bake.returncode == 0, bake.stderr
-    printed.append(("bake", bake.stdout + bake.stderr))
-    assert f"next: collider eval ball-grid --mesh ball.obj --models '{models}'" in bake.stdout
+    assert f"next: collider eval ball-grid --mesh ball.obj --models '{MODELS}'" in bake.stdout
 
-    train = shell(f"collider train ball.obj --name ball-net --models '{models}' --steps 60 --samples 4000 "
+    info = shell(f"collider info ball-grid --models '{MODELS}'", home, env)
+    assert info.returncode == 0 and "not evaluated" in info.stdout, info.stdout + info.stderr
+
+    budget = shell(f"collider bake ball.obj --name ball-pick --models '{MODELS}' --max-error 50mm --kind voxel "
+                   "--quiet --bench box-bench.json", home, env)
+    assert budget.returncode == 2  # no such file: refused in one line, no hint
+
+    units = shell(f"collider eval ball-grid --mesh ball.obj --models '{MODELS}' --units mm --no-save", home, env)
+    assert units.returncode == 2 and "is not the unit ball-grid was made in" in units.stderr
+    return {"bake": bake.stdout + bake.stderr, "info": info.stdout, "eval --units": units.stderr}
+
+
+def trained(home: Path, env: dict) -> dict[str, str]:
+    """A training run, then a bench of its network that leaves a preset unmeasured."""
+    train = shell(f"collider train ball.obj --name ball-net --models '{MODELS}' --steps 60 --samples 4000 "
                   "--batch-size 512 --scale 2 --quiet", home, env)
     assert train.returncode == 0, train.stderr
-    printed.append(("train", train.stdout + train.stderr))
-    assert f"next: collider eval ball-net --mesh ball.obj --models '{models}' --scale 2.0" in train.stdout
+    assert f"next: collider eval ball-net --mesh ball.obj --models '{MODELS}' --scale 2.0" in train.stdout
     # The checkpoint lives beside the model folder, not in the working folder's runs/.
     assert (home / "runs" / "ball-net.ckpt.safetensors").is_file()
 
-    info = shell(f"collider info ball-grid --models '{models}'", home, env)
-    assert info.returncode == 0 and "not evaluated" in info.stdout, info.stdout + info.stderr
-    printed.append(("info", info.stdout))
-
-    bench = shell(f"collider bench ball.obj --kinds neural --scale 2 --models '{models}' --no-served --sizes 1k "
+    bench = shell(f"collider bench ball.obj --kinds neural --scale 2 --models '{MODELS}' --no-served --sizes 1k "
                   "--accuracy-points 2000 --repeats 3 --presets grid,fast --quiet --output bench-out", home, env)
     assert bench.returncode == 0, bench.stderr
-    printed.append(("bench", bench.stdout))
+    return {"train": train.stdout + train.stderr, "bench": bench.stdout}
 
-    budget = shell(f"collider bake ball.obj --name ball-pick --models '{models}' --max-error 50mm --kind voxel "
-                   "--quiet --bench box-bench.json", home, env)
-    assert budget.returncode == 2  # no such file: refused in one line, no hint
+
+def benched_another_mesh(home: Path, env: dict) -> dict[str, str]:
+    """A budget bake given the bench of another mesh."""
     other = shell("collider bench box.obj --kinds kdtree --no-served --sizes 1k --accuracy-points 1000 "
                   "--repeats 3 --quiet --output box-bench", home, env)
     assert other.returncode == 0, other.stderr
-    wrong = shell(f"collider bake ball.obj --name ball-pick --models '{models}' --max-error 50mm "
+    wrong = shell(f"collider bake ball.obj --name ball-pick --models '{MODELS}' --max-error 50mm "
                   "--bench box-bench/bench.json", home, env)
     assert wrong.returncode == 2 and "measured another mesh" in wrong.stderr
-    printed.append(("bake --bench of another mesh", wrong.stderr))
+    return {"bake --bench of another mesh": wrong.stderr}
 
-    units = shell(f"collider eval ball-grid --mesh ball.obj --models '{models}' --units mm --no-save", home, env)
-    assert units.returncode == 2 and "is not the unit ball-grid was made in" in units.stderr
-    printed.append(("eval --units", units.stderr))
 
-    interrupted = subprocess.Popen(f"exec collider train ball.obj --name ball-long --models '{models}' --steps 200000 "
-                                   "--samples 4000 --batch-size 512 --quiet", shell=True, cwd=home, env=env,
-                                   stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+def interrupted(home: Path, env: dict) -> dict[str, str]:
+    """A long training run stopped by SIGTERM once it has a checkpoint."""
+    # --max-minutes puts a validation, and so the first checkpoint, every 1/30 of the budget (6 s
+    # here) instead of every 500 steps (minutes on a loaded 2-core host); what is checked, that the
+    # interrupted run names the command that resumes it and that command resumes, is the same.
+    run = subprocess.Popen(f"exec collider train ball.obj --name ball-long --models '{MODELS}' --steps 200000 "
+                           "--max-minutes 3 --samples 4000 --batch-size 512 --quiet", shell=True, cwd=home, env=env,
+                           stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     deadline = time.monotonic() + 120
     while not (home / "runs" / "ball-long.ckpt.safetensors").is_file() and time.monotonic() < deadline:
         time.sleep(0.5)
-    interrupted.send_signal(signal.SIGTERM)
-    out, err = interrupted.communicate(timeout=60)
-    assert interrupted.returncode == 143, err
-    printed.append(("train, SIGTERM", out + err))
+    run.send_signal(signal.SIGTERM)
+    out, err = run.communicate(timeout=60)
+    assert run.returncode == 143, err
+    return {"train, SIGTERM": out + err}
 
-    found = {name: hints(text) for name, text in printed}
-    assert all(found.values()), {name: text for name, text in printed if not found[name]}
-    outcomes = {}
-    for commands in found.values():
-        for command in commands:
-            if command not in outcomes:
-                outcomes[command] = paste(command, home, env)
-    # Among them: eval after bake and after train, a bench that trains the missing presets, a
-    # training run of one of them, the bench of the right mesh, info, and the resumed training.
-    assert any(c.startswith("collider eval ball-net") for c in outcomes)
-    assert any("--train-minutes 3" in c for c in outcomes)
-    assert any(c.startswith("collider train ball.obj --name ball-fast --preset fast --scale 2.0") for c in outcomes)
-    assert any(c.startswith("collider info ball-grid") for c in outcomes)
-    assert any(c.startswith("collider train ball.obj --name ball-long") for c in outcomes)
+
+#: situation -> the builder of the folder it happens in.
+SITUATIONS = {"bake": baked, "info": baked, "eval --units": baked, "train": trained, "bench": trained,
+              "bake --bench of another mesh": benched_another_mesh, "train, SIGTERM": interrupted}
+
+#: Every hint each situation prints, by the start of its command (a regular expression): a new
+#: hint, not listed here, fails the test of every hint of its situation until it is. Listed so that
+#: neighbours need different folders: two workers taking the first tests build two at once.
+HINTS = [
+    pytest.param("bake", r"collider eval ball-grid --mesh ball\.obj ", id="bake-eval"),
+    pytest.param("train", r"collider eval ball-net ", id="train-eval"),
+    pytest.param("bake --bench of another mesh", r"collider bench ball\.obj$", id="bake-other-mesh-bench"),
+    pytest.param("train, SIGTERM", r"collider train ball\.obj --name ball-long ", id="sigterm-resume"),
+    pytest.param("info", r"collider eval ball-grid --mesh /", id="info-eval"),
+    # a bench that trains the missing presets, and a training run of one of them
+    pytest.param("bench", r"collider bench ball\.obj .*--train-minutes 3", id="bench-train-minutes"),
+    pytest.param("eval --units", r"collider info ball-grid ", id="units-info"),
+    pytest.param("bench", r"collider train ball\.obj --name ball-fast --preset fast --scale 2\.0 ", id="bench-train-fast"),
+]
+
+
+@pytest.fixture(scope="session")
+def situation(built_once):
+    """``situation(name)`` -> (the folder its commands left, what they printed): built once per run."""
+
+    def get(name: str) -> tuple[Path, str]:
+        build = SITUATIONS[name]
+
+        def make(home: Path) -> None:
+            add_meshes(home)
+            (home / "printed.json").write_text(json.dumps(build(home, user_env(home))))
+
+        home = built_once(f"hints-{build.__name__}", make)
+        return home, json.loads((home / "printed.json").read_text())[name]
+
+    return get
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(("name", "pattern"), HINTS)
+def test_every_hint_every_command_prints_works_when_pasted(situation, tmp_path, name, pattern):
+    built, printed = situation(name)
+    found = hints(printed)
+    assert found, printed
+    listed = [p for n, p in (h.values for h in HINTS) if n == name]
+    assert all(any(re.match(p, hint) for p in listed) for hint in found), (found, listed)
+    (hint,) = [hint for hint in found if re.match(pattern, hint)]
+
+    # Pasted in a copy of the folder the command left, as the user's shell and cache directory.
+    home = tmp_path / "user"
+    shutil.copytree(built, home, symlinks=True)
+    paste(hint, home, user_env(home))
     # The bench and bake caches went to the user's cache directory, not the working folder.
-    assert (home / "cache" / "neural-collider" / "colliders").is_dir() and not (home / "out" / "bench-cache").exists()
+    if name == "bake --bench of another mesh":
+        assert (home / "cache" / "neural-collider" / "colliders").is_dir() and not (home / "out" / "bench-cache").exists()

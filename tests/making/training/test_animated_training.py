@@ -5,12 +5,9 @@ surface's normal speed; runs resume only for the same animation; the CLI writes 
 
 from __future__ import annotations
 
-import subprocess
-import sys
-
 import numpy as np
 import pytest
-from tests.conftest import REPO_ROOT
+from tests.conftest import REPO_ROOT, run_collider
 
 from collider_server.engine.kinds import AnimatedNeuralCollider
 from collider_server.engine.modelfile import load_collider
@@ -226,30 +223,25 @@ def test_a_deformed_rest_pose_learns_the_pulsing_sphere_and_its_velocity(sphere,
     assert np.concatenate(velocity_errors).mean() < 0.1 * np.concatenate(speeds).mean()
 
 
-def run_cli(*args):
-    """``collider ARGS`` in a subprocess; the test's timeout (pytest-timeout) is its deadline."""
-    return subprocess.run([sys.executable, "-m", "collider_cli", *args], capture_output=True, text=True)
-
-
 def test_train_an_animation_through_the_cli(tmp_path):
     models = tmp_path / "models"
     common = [str(ARM / "arm.obj"), "--animation", str(ARM / "arm.pc2"), "--name", "arm4d", "--models",
               str(models), "--samples", "4000", "--quiet"]
-    trained = run_cli("train", *common, "--fps", "24", "--steps", "3", "--keyframes", "3")
+    trained = run_collider("train", *common, "--fps", "24", "--steps", "3", "--keyframes", "3")
     assert trained.returncode == 0, trained.stderr
     assert "animated: 3 frames at 2 fps, 1 s, clamps" in trained.stdout
     assert "source 25 frames at 24 fps" in trained.stdout
     collider = load_collider(models / "arm4d.safetensors")
     assert collider.animated and collider.architecture.keyframes == 3
     assert "mesh: 5,056 faces, watertight" in trained.stdout  # the animation's check, as bake prints
-    info = run_cli("info", "arm4d", "--models", str(models))
+    info = run_collider("info", "arm4d", "--models", str(models))
     assert "animation   3 frames at 2 fps, 1 s, clamps" in info.stdout, info.stdout
     assert "mesh: 5,056 faces, watertight, 1 piece, no self-intersections (every frame checked)" in info.stdout
-    query = run_cli("query", "arm4d", "0.3", "0", "0.05", "--time", "0.4", "--fields", "distance,velocity",
+    query = run_collider("query", "arm4d", "0.3", "0", "0.05", "--time", "0.4", "--fields", "distance,velocity",
                     "--models", str(models))
     assert query.returncode == 0 and "velocity=" in query.stdout, query.stderr
     # The same name and checkpoint at another frame rate: refused in one line, the model kept.
-    other = run_cli("train", *common, "--fps", "25", "--steps", "3", "--keyframes", "3")
+    other = run_collider("train", *common, "--fps", "25", "--steps", "3", "--keyframes", "3")
     assert other.returncode == 2
     lines = other.stderr.strip().splitlines()
     assert len(lines) == 1 and "checkpoint of another run, not resumed: timeline differs" in lines[0], other.stderr
@@ -267,7 +259,7 @@ def test_train_an_animation_through_the_cli(tmp_path):
      "has one deformation field per frame of the animation"),
 ])
 def test_train_cli_refuses_mismatched_options_in_one_line(tmp_path, args, message):
-    result = run_cli("train", str(ARM / "arm.obj"), "--name", "x", "--models", str(tmp_path), "--quiet", *args)
+    result = run_collider("train", str(ARM / "arm.obj"), "--name", "x", "--models", str(tmp_path), "--quiet", *args)
     assert result.returncode == 2
     lines = result.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("collider train: error:") and message in lines[0], result.stderr
@@ -319,7 +311,7 @@ def test_train_without_a_preset_says_which_it_took_and_why(tmp_path):
     import re
 
     common = ["--fps", "24", "--models", str(tmp_path / "models"), "--samples", "4000", "--steps", "2"]
-    result = run_cli("train", str(ARM / "arm.obj"), "--animation", str(ARM / "arm.pc2"), "--name", "arm-auto",
+    result = run_collider("train", str(ARM / "arm.obj"), "--animation", str(ARM / "arm.pc2"), "--name", "arm-auto",
                      *common)
     assert result.returncode == 0, result.stderr
     line = re.search(r"^preset (deformed|keyframes): (\d+\.\d{3}) mm mean / \d+\.\d\d % sign after 2 steps, "
@@ -329,7 +321,7 @@ def test_train_without_a_preset_says_which_it_took_and_why(tmp_path):
     assert "measuring presets deformed and keyframes: 2 steps each" in result.stderr
     network = {"keyframes": "(keyframe tables)", "deformed": "(a rest pose and one deformation field per frame)"}
     assert network[line[1]] in result.stdout
-    named = run_cli("train", str(ARM / "arm.obj"), "--animation", str(ARM / "arm.pc2"), "--name", "arm-named",
+    named = run_collider("train", str(ARM / "arm.obj"), "--animation", str(ARM / "arm.pc2"), "--name", "arm-named",
                     "--preset", "keyframes", *common)
     assert named.returncode == 0, named.stderr
     assert "measuring presets" not in named.stderr and not re.search(r"^preset ", named.stdout, re.MULTILINE)

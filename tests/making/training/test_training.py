@@ -5,12 +5,11 @@ from __future__ import annotations
 
 import json
 import re
-import subprocess
-import sys
 
 import numpy as np
 import pytest
 import trimesh
+from tests.conftest import run_collider
 
 from collider_server.engine.meshes import ExactSDF, Mesh
 from collider_server.making.evaluation import evaluate_collider, point_sets
@@ -192,28 +191,21 @@ def test_evaluation_reports_the_points_near_holes_apart(analytic_shape):
     assert "w clear" not in format_report("closed", "mesh", whole)
 
 
-def run_cli(*args, cwd=None):
-    """``collider ARGS`` in a subprocess. No timeout of its own: the test's (pytest-timeout,
-    pyproject.toml) is the deadline, and a busy machine takes longer."""
-    return subprocess.run([sys.executable, "-m", "collider_cli", *args], capture_output=True,
-                          text=True, cwd=cwd)
-
-
 @pytest.mark.slow
 def test_train_then_eval_through_the_cli(sphere_mesh, tmp_path):
     mesh_file = tmp_path / "ball.obj"
     trimesh.Trimesh(sphere_mesh.vertices, sphere_mesh.faces).export(mesh_file)
     models = tmp_path / "models"
-    trained = run_cli("train", str(mesh_file), "--name", "ball", "--preset", "fast", "--samples", "5000",
+    trained = run_collider("train", str(mesh_file), "--name", "ball", "--preset", "fast", "--samples", "5000",
                       "--steps", "40", "--batch-size", "512", "--models", str(models), "--quiet",
                       "--checkpoint", str(tmp_path / "ball.ckpt.safetensors"))
     assert trained.returncode == 0, trained.stderr
     assert (models / "ball.safetensors").is_file()
-    evaluated = run_cli("eval", "ball", "--mesh", str(mesh_file), "--models", str(models), "--points", "2000",
+    evaluated = run_collider("eval", "ball", "--mesh", str(mesh_file), "--models", str(models), "--points", "2000",
                         "--no-reconstruction", "--quiet")
     assert evaluated.returncode == 0, evaluated.stderr
     assert "+-1mm" in evaluated.stdout
-    info = run_cli("info", "ball", "--models", str(models), "--json")
+    info = run_collider("info", "ball", "--models", str(models), "--json")
     accuracy = json.loads(info.stdout)["accuracy"]
     assert accuracy["band_1mm"]["points"] == 2000
     assert accuracy["training_seconds"] > 0
@@ -224,7 +216,7 @@ def test_train_with_a_budget_shows_steps_and_validation_and_says_what_the_budget
     current validation error, the closing line (stdout) the steps the budget bought."""
     mesh_file = tmp_path / "ball.obj"
     trimesh.Trimesh(sphere_mesh.vertices, sphere_mesh.faces).export(mesh_file)
-    result = run_cli("train", str(mesh_file), "--name", "ball", "--preset", "fast", "--samples", "5000",
+    result = run_collider("train", str(mesh_file), "--name", "ball", "--preset", "fast", "--samples", "5000",
                      "--batch-size", "256", "--max-minutes", "0.05", "--models", str(tmp_path / "models"),
                      "--checkpoint", str(tmp_path / "ball.ckpt.safetensors"), "--threads", "1")
     assert result.returncode == 0, result.stderr
@@ -270,7 +262,7 @@ def test_train_refuses_an_unwritable_folder_before_training(sphere_mesh, tmp_pat
     else:
         checkpoint = read_only_folder(tmp_path) / "ball.ckpt.safetensors"
     # A budget of 40,000 steps: were the folder checked only at the end, this would run for long.
-    result = run_cli("train", str(mesh_file), "--name", "ball", "--preset", "fast", "--steps", "40000",
+    result = run_collider("train", str(mesh_file), "--name", "ball", "--preset", "fast", "--steps", "40000",
                      "--samples", "5000", "--models", str(models), "--checkpoint", str(checkpoint))
     assert result.returncode == 2, result.stderr
     last = result.stderr.strip().splitlines()[-1]
@@ -298,7 +290,7 @@ def test_train_cli_reports_bad_meshes_in_one_line(tmp_path, content, message):
     path = tmp_path / "bad.obj"
     if content is not None:
         path.write_text(content)
-    result = run_cli("train", str(path), "--name", "x", "--models", str(tmp_path), "--quiet")
+    result = run_collider("train", str(path), "--name", "x", "--models", str(tmp_path), "--quiet")
     assert result.returncode == 2
     lines = result.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("collider train: error:"), result.stderr
