@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from tests.conftest import REPO_ROOT, run_collider
 
 from collider_cli.bench.budget import (
     Budget,
@@ -38,8 +39,6 @@ from collider_cli.bench.timing import (
     spread,
     time_rounds,
 )
-
-REPO_ROOT = Path(__file__).resolve().parents[2]
 
 
 @pytest.fixture(scope="module")
@@ -305,13 +304,10 @@ def collider(*args):
                           capture_output=True, text=True)
 
 
-def collider_here(capsys, *args):
+def collider_here(*args):
     """The same entry point in this process (no interpreter start-up): (exit code, stdout, stderr)."""
-    from collider_cli import main
-
-    code = main([str(a) for a in args])
-    captured = capsys.readouterr()
-    return code, captured.out, captured.err
+    result = run_collider(*args)
+    return result.returncode, result.stdout, result.stderr
 
 
 @pytest.fixture(scope="module")
@@ -370,13 +366,12 @@ def test_quick_bench_measures_every_kind_embedded_and_served_with_plausible_accu
 
 
 @pytest.mark.slow
-def test_budget_bake_picks_the_fastest_collider_that_meets_it_and_checks_it_afresh(quick_bench, tmp_path, bunny,
-                                                                                   capsys):
+def test_budget_bake_picks_the_fastest_collider_that_meets_it_and_checks_it_afresh(quick_bench, tmp_path, bunny):
     """In this process (the pick is under test, not the interpreter; the bench that made
     bench.json ran as a user runs it)."""
     out, report, _ = quick_bench
     mesh = bunny
-    code, stdout, stderr = collider_here(capsys, "bake", mesh, "--name", "picked", "--models", tmp_path,
+    code, stdout, stderr = collider_here("bake", mesh, "--name", "picked", "--models", tmp_path,
                                          "--max-error", "0.1mm", "--bench", out / "result" / "bench.json",
                                          "--quiet", "--cache", out / "cache")
     assert code == 0, stdout + stderr
@@ -395,7 +390,7 @@ def test_budget_bake_picks_the_fastest_collider_that_meets_it_and_checks_it_afre
     # A memory limit at the shipped network's size: whatever is picked is what rank() says, and a
     # picked network is the trained model's own file (the shipped bunny is smaller than `mesh`).
     limit = next(r for r in report["colliders"] if r["name"] == "neural-bunny")["memory_bytes"]
-    code, stdout, stderr = collider_here(capsys, "bake", mesh, "--name", "small", "--models", tmp_path,
+    code, stdout, stderr = collider_here("bake", mesh, "--name", "small", "--models", tmp_path,
                                          "--max-error", "0.05mm", "--max-memory", str(limit), "--bench",
                                          out / "result" / "bench.json", "--quiet", "--cache", out / "cache")
     assert code == 0, stdout + stderr
@@ -403,7 +398,7 @@ def test_budget_bake_picks_the_fastest_collider_that_meets_it_and_checks_it_afre
     picked = rank(report, Budget(0.05, max_memory_bytes=limit))[0]
     assert info.settings["picked_for_budget"]["candidate"] == picked["name"] and info.kind == picked["kind"]
 
-    code, _, stderr = collider_here(capsys, "bake", mesh, "--name", "none", "--models", tmp_path, "--max-error",
+    code, _, stderr = collider_here("bake", mesh, "--name", "none", "--models", tmp_path, "--max-error",
                                     "0.05mm", "--max-memory", "0.5MB", "--bench", out / "result" / "bench.json",
                                     "--quiet", "--cache", out / "cache")
     assert code == 1
@@ -416,28 +411,28 @@ def test_budget_bake_picks_the_fastest_collider_that_meets_it_and_checks_it_afre
     (["--max-normal-error", "3deg"], "need --max-error"),
     (["--max-error", "0.05mm", "--max-memory", "lots"], "--max-memory must be"),
 ])
-def test_budget_bake_refuses_bad_limits_in_one_line(args, message, tmp_path, bunny, capsys):
-    code, _, err = collider_here(capsys, "bake", bunny, "--name", "x", "--models", tmp_path, *args)
+def test_budget_bake_refuses_bad_limits_in_one_line(args, message, tmp_path, bunny):
+    code, _, err = collider_here("bake", bunny, "--name", "x", "--models", tmp_path, *args)
     assert code == 2 and message in err and "Traceback" not in err
 
 
-def test_bench_refuses_unknown_kinds_and_a_bench_file_of_another_mesh(tmp_path, bunny, capsys):
-    code, _, err = collider_here(capsys, "bench", bunny, "--kinds", "voxel,magic")
+def test_bench_refuses_unknown_kinds_and_a_bench_file_of_another_mesh(tmp_path, bunny):
+    code, _, err = collider_here("bench", bunny, "--kinds", "voxel,magic")
     assert code == 2 and "--kinds must name some of" in err
     other = tmp_path / "bench.json"
     other.write_text(json.dumps({"mesh": {"sha256": "0" * 64, "transform": np.eye(4).tolist(), "path": "x.obj"}}))
-    code, _, err = collider_here(capsys, "bake", bunny, "--name", "x", "--models", tmp_path, "--max-error", "1mm",
+    code, _, err = collider_here("bake", bunny, "--name", "x", "--models", tmp_path, "--max-error", "1mm",
                                  "--bench", other)
     assert code == 2 and "measured another mesh or placement" in err
 
 
-def test_bench_places_the_mesh_like_every_command_and_reports_errors_in_mm(tmp_path, bunny, capsys):
+def test_bench_places_the_mesh_like_every_command_and_reports_errors_in_mm(tmp_path, bunny):
     """The bunny in metres and the same bunny in millimetres (--scale 1000 --units mm) give the
     same physical errors: figures are in mm whatever the collider's units."""
     reports = {}
     for label, placement in (("m", []), ("mm", ["--scale", "1000", "--units", "mm"])):
         out = tmp_path / label
-        code, stdout, err = collider_here(capsys, "bench", bunny, *placement, "--kinds", "kdtree", "--no-served",
+        code, stdout, err = collider_here("bench", bunny, *placement, "--kinds", "kdtree", "--no-served",
                                           "--sizes", "1k", "--accuracy-points", "3000", "--repeats", "1",
                                           "--quiet", "--output", out, "--cache", tmp_path / "cache")
         assert code == 0, stdout + err
@@ -593,7 +588,7 @@ def test_figures_unstable_in_cpu_time_only_are_retimed_too():
     assert t.stable(0.25) and not t.cpu_stable(0.25) and t.retimed == 3 and len(t.cpu_s) == 7
 
 
-def test_an_interrupted_budget_bake_says_where_its_measured_figures_are(tmp_path, capsys, monkeypatch):
+def test_an_interrupted_budget_bake_says_where_its_measured_figures_are(tmp_path, monkeypatch):
     """Issue 35: Ctrl-C during the budget bake's measuring said "the report holds what was
     measured" without saying where: it names the files it wrote, in the cache's budget-NAME/."""
     from collider_cli.bench import run as bench_run
@@ -603,7 +598,7 @@ def test_an_interrupted_budget_bake_says_where_its_measured_figures_are(tmp_path
 
     monkeypatch.setattr(bench_run, "build_all", interrupt)
     cache = tmp_path / "cache"
-    code, _out, err = collider_here(capsys, "bake", REPO_ROOT / "examples/meshes/spot.obj", "--z-up", "--fit-size",
+    code, _out, err = collider_here("bake", REPO_ROOT / "examples/meshes/spot.obj", "--z-up", "--fit-size",
                                    "0.2", "--name", "cut", "--models", tmp_path / "models", "--max-error",
                                    "0.05mm", "--cache", cache, "--quiet")
     assert code == 130, err
