@@ -8,7 +8,18 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from collider_contract import ModelInfo, QueryError, SkeletonPose, Timeline, check_skeleton_pose, skeleton
+from collider_contract import (
+    ModelInfo,
+    ModelQuery,
+    QueryError,
+    SceneCollider,
+    SceneQuery,
+    SkeletonPose,
+    Timeline,
+    check_skeleton_pose,
+    skeleton,
+    wire,
+)
 from collider_contract.skeleton import MAX_CLIP_NAME, require_skeleton_pose
 
 
@@ -219,3 +230,47 @@ def test_a_skinned_model_gives_each_clip_as_a_timeline():
                                                           "max_surface_speed": 0.0}]}
     assert message(ModelInfo("leg", "skinned", skeleton=still), "pose") == (
         "model 'leg''s clip 'pose': a clip's duration must be a number of seconds > 0, got 0.0")
+
+
+def test_a_skeleton_pose_travels_in_a_model_query_and_back():
+    velocities = np.zeros((3, 4, 4))
+    velocities[2, 1, 3] = -0.2
+    query = ModelQuery.build([[0.0, 0.0, 1.0]], "distance", time=0.5, clip="walk")
+    body = query.to_body()
+    assert body["clip"] == "walk" and "joint_transforms" not in body
+    posed = ModelQuery.build([[0.0, 0.0, 1.0]], "velocity", joint_transforms=joints(),
+                             joint_velocities=velocities)
+    body = posed.to_body()
+    assert body["joint_transforms"] is posed.skeleton.joint_transforms
+    for media in (wire.MSGPACK, wire.JSON):
+        for sent in (query, posed):
+            got = ModelQuery.from_body(wire.loads(wire.dumps(sent.to_body(), media), media))
+            assert got.skeleton.key() == sent.skeleton.key() and got.time == sent.time
+    assert ModelQuery.build([[0.0, 0.0, 1.0]]).skeleton is None
+
+
+def test_each_scene_collider_carries_its_own_skeleton_pose():
+    velocities = np.zeros((3, 4, 4))
+    velocities[0, 0, 3] = 1.0
+    sent = SceneQuery.build([[0.0, 0.0, 1.0]], [
+        SceneCollider("leg", clip="wave"),
+        SceneCollider("arm", joint_transforms=joints(), joint_velocities=velocities),
+        "ball"], time=0.25)
+    assert [sent.of_collider(i).skeleton for i in range(3)] == [
+        SkeletonPose(clip="wave"), sent.colliders[1].skeleton, None]
+    assert sent.of_collider(1).skeleton.key() == SkeletonPose(None, joints(), velocities).key()
+    colliders = sent.to_body()["colliders"]
+    # nested in the list of colliders, arrays travel as nested lists
+    assert colliders == [{"model": "leg", "time": 0.25, "clip": "wave"},
+                         {"model": "arm", "time": 0.25, "joint_transforms": joints().tolist(),
+                          "joint_velocities": velocities.tolist()},
+                         {"model": "ball", "time": 0.25}]
+    for media in (wire.MSGPACK, wire.JSON):
+        got = SceneQuery.from_body(wire.loads(wire.dumps(sent.to_body(), media), media))
+        assert [None if p.skeleton is None else p.skeleton.key() for p in got.colliders] == [
+            SkeletonPose("wave").key(), SkeletonPose(None, joints(), velocities).key(), None]
+    with pytest.raises(QueryError) as caught:
+        SceneQuery.from_body({"points": [[0.0, 0.0, 1.0]], "colliders": [
+            {"model": "ball"}, {"model": "leg", "clip": "wave", "joint_transforms": joints().tolist()}]})
+    assert str(caught.value) == ("give colliders[1].clip (with a time) or colliders[1].joint_transforms, "
+                                 "not both")
