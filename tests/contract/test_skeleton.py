@@ -274,3 +274,33 @@ def test_each_scene_collider_carries_its_own_skeleton_pose():
             {"model": "ball"}, {"model": "leg", "clip": "wave", "joint_transforms": joints().tolist()}]})
     assert str(caught.value) == ("give colliders[1].clip (with a time) or colliders[1].joint_transforms, "
                                  "not both")
+
+
+BOOLS = [[[True] * 4] * 4]
+
+
+@pytest.mark.parametrize("extra, message, code", [
+    ({"joint_transforms": "hip"}, "joint_transforms: expected an array (msgpack map or JSON list), got str",
+     "bad-joint-transforms"),
+    ({"joint_transforms": {"dtype": "<f8", "shape": [1, 4, 4], "data": b""}},
+     "joint_transforms: data has 0 bytes but dtype <f8 and shape [1, 4, 4] need 128", "bad-joint-transforms"),
+    ({"joint_transforms": BOOLS}, "joint_transforms: must hold numbers, got bool", "bad-joint-transforms"),
+    ({"joint_transforms": wire.encode_array(np.zeros((1, 4, 4), bool))},
+     "joint_transforms: must hold numbers, got bool", "bad-joint-transforms"),
+    ({"joint_transforms": [np.eye(4).tolist()], "joint_velocities": "still"},
+     "joint_velocities: expected an array (msgpack map or JSON list), got str", "bad-joint-velocities"),
+    ({"joint_transforms": [np.eye(4).tolist()], "joint_velocities": BOOLS},
+     "joint_velocities: must hold numbers, got bool", "bad-joint-velocities"),
+    ({"clip": 3}, "clip must be a clip's name (a string of 1 to 256 characters), got 3", "bad-clip"),
+    ({"clip": None}, "clip must not be null (leave it out for its default)", "bad-clip"),
+    ({"joint_transforms": None}, "joint_transforms must not be null (leave it out for its default)",
+     "bad-joint-transforms"),
+])
+def test_a_bad_skeleton_pose_in_a_body_is_refused_naming_the_key(extra, message, code):
+    for body, where in (({"points": [[0.0, 0.0, 1.0]], **extra}, ""),
+                        ({"points": [[0.0, 0.0, 1.0]], "colliders": [{"model": "ball"},
+                                                                     {"model": "leg", **extra}]},
+                         "colliders[1].")):
+        with pytest.raises(QueryError) as caught:
+            (SceneQuery if where else ModelQuery).from_body(body)
+        assert (str(caught.value), caught.value.code) == (where + message, code)
