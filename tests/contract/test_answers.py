@@ -694,13 +694,14 @@ def test_a_scene_refuses_per_collider_lists_of_another_length():
     scene = SceneQuery.build(points, ["a", "b"], "distance")
     answer_scene_query(scene, [1.0, 1.0], [Sphere(1.0), Sphere(1.0)], [False, False], [{}, {}])
     for args in (([1.0], [Sphere(1.0), Sphere(1.0)]), ([1.0] * 3, [Sphere(1.0), Sphere(1.0)]),
-                 ([1.0, 1.0], [Sphere(1.0)]),
+                 ([1.0, 1.0], [Sphere(1.0)]), ([1.0, 1.0], [Sphere(1.0)] * 3),
                  ([1.0, 1.0], [Sphere(1.0), Sphere(1.0)], [False]),
                  ([1.0, 1.0], [Sphere(1.0), Sphere(1.0)], None, [{}])):
         with pytest.raises(ValueError, match="zip"):
             answer_scene_query(scene, *args)
     answer = (np.ones(1), None, None)
     finish_scene(scene, [0.1, 0.1], [answer, answer])
-    for eps, answers in (([0.1], [answer, answer]), ([0.1, 0.1], [answer]), ([0.1, 0.1], [answer] * 3)):
+    for eps, answers in (([0.1], [answer, answer]), ([0.1, 0.1], [answer]), ([0.1, 0.1], [answer] * 3),
+                         ([0.1], [answer])):
         with pytest.raises(ValueError, match="zip"):
             finish_scene(scene, eps, answers)

@@ -190,6 +190,7 @@ def test_a_clip_is_a_timeline_of_two_frames_over_its_duration():
     assert clip.frame_rate_hz == pytest.approx(0.4) and clip.duration_s == pytest.approx(2.5)
     k, u, rate = clip.locate(3.5)  # looped: 1 s into the clip
     assert k == 0 and u == pytest.approx(0.4) and rate == pytest.approx(0.4)
+    assert Timeline.of_clip(0.5, True).frame_rate_hz == 2.0  # under a second
     held = Timeline.of_clip(2, False)
     assert (held.frames, held.loop, held.max_surface_speed) == (2, False, 0.0)
     assert held.duration_s == 2.0 and held.locate(3.0) == (0, 1.0, 0.0)
@@ -220,8 +221,9 @@ def test_a_skinned_model_gives_each_clip_as_a_timeline():
     assert message(ModelInfo("ball", "mesh"), None) == (
         "model 'ball' has no skeleton: clip applies to skinned models")
     assert message(info, "run") == "model 'leg' has no clip 'run'; its clips: ['walk', 'wave']"
-    assert message(ModelInfo("leg", "skinned", skeleton={"joints": ["hip"], "clips": []}), None) == (
-        "model 'leg' has no clip None; its clips: []")
+    for clipless in ({"joints": ["hip"], "clips": []}, {"joints": ["hip"]}):
+        assert message(ModelInfo("leg", "skinned", skeleton=clipless), None) == (
+            "model 'leg' has no clip None; its clips: []")
     old = {**SKELETON, "clips": [{"name": "walk", "duration_s": 1.2}]}
     assert message(ModelInfo("leg", "skinned", skeleton=old), "walk") == (
         "model 'leg''s clip 'walk' does not record max_surface_speed (made by an older version): "
