@@ -19,6 +19,7 @@ from collider_contract import (
     QueryResult,
     SceneCollider,
     SceneQuery,
+    SkeletonPose,
     answer_model_query,
     answer_scene_query,
     as_pose,
@@ -638,3 +639,69 @@ def test_a_scene_gives_each_point_the_velocity_of_its_nearest_colliders_frame():
     want = [expected[k]["velocity"][i] for i, k in enumerate([0, 1, 0, 1])]
     np.testing.assert_allclose(result.velocity, want, rtol=0, atol=1e-6)
     assert result.velocity.dtype == np.float32
+
+
+class SkinnedSphere(Sphere):
+    """A :class:`Sphere` as a skinned collider's ``Evaluate``: it also takes the skeleton pose
+    and records it (the geometry ignores it)."""
+
+    def __init__(self, radius: float):
+        super().__init__(radius)
+        self.skeletons = []
+
+    def __call__(self, local, want_gradient, gradient_below, time, skeleton=None):
+        self.skeletons.append(skeleton)
+        return super().__call__(local, want_gradient, gradient_below, time)
+
+
+LEG = {"joints": ["hip", "knee"], "parents": [-1, 0], "loop": True,
+       "clips": [{"name": "walk", "duration_s": 1.0, "max_surface_speed": 0.5}]}
+
+
+def test_a_skinned_collider_gets_its_skeleton_pose_and_is_refused_one_that_does_not_fit():
+    points = np.zeros((1, 3)) + 2.0
+    sphere = SkinnedSphere(1.0)
+    query = ModelQuery.build(points, "distance", time=0.5, clip="walk")
+    answer_model_query(query, 1.0, sphere, "model 'leg'", skeleton=LEG)
+    assert sphere.skeletons == [query.skeleton] and sphere.calls[0][3] == 0.5
+    with pytest.raises(QueryError) as refused:
+        answer_model_query(ModelQuery.build(points, "distance", clip="walk"), 1.0, sphere,
+                           "model 'leg'", skeleton=LEG)
+    assert refused.value.code == "missing-time" and len(sphere.calls) == 1
+    with pytest.raises(QueryError) as refused:  # a skeleton pose for a model without a skeleton
+        answer_model_query(query, 1.0, sphere, "model 'ball'")
+    assert refused.value.code == "not-skinned" and len(sphere.calls) == 1
+
+
+def test_a_scene_checks_and_passes_each_colliders_skeleton_pose():
+    points = np.zeros((1, 3)) + 2.0
+    scene = SceneQuery.build(points, [SceneCollider("leg", clip="walk"), "ball"], "distance", time=0.5)
+    spheres = [SkinnedSphere(1.0), Sphere(2.0)]
+    result = answer_scene_query(scene, [1.0, 1.0], spheres, skeletons=[LEG, {}])
+    assert spheres[0].skeletons == [SkeletonPose(clip="walk")] and spheres[1].calls[0][3] == 0.5
+    assert result.collider.tolist() == [1]
+    untimed = SceneQuery.build(points, ["ball", SceneCollider("leg")], "distance")
+    with pytest.raises(QueryError) as refused:  # the skinned leg needs a time, the ball none
+        answer_scene_query(untimed, [1.0, 1.0], [Sphere(1.0), SkinnedSphere(1.0)], skeletons=[{}, LEG])
+    assert str(refused.value).startswith("model 'leg' is skinned: give the time")
+    answer_scene_query(untimed, [1.0, 1.0], [Sphere(1.0), SkinnedSphere(1.0)])  # no skeletons: none
+
+
+def test_a_scene_refuses_per_collider_lists_of_another_length():
+    """One entry per collider in every list given with a scene: a short one is a caller's error,
+    never silently truncated."""
+    points = np.zeros((1, 3)) + 2.0
+    scene = SceneQuery.build(points, ["a", "b"], "distance")
+    answer_scene_query(scene, [1.0, 1.0], [Sphere(1.0), Sphere(1.0)], [False, False], [{}, {}])
+    for args in (([1.0], [Sphere(1.0), Sphere(1.0)]), ([1.0] * 3, [Sphere(1.0), Sphere(1.0)]),
+                 ([1.0, 1.0], [Sphere(1.0)]), ([1.0, 1.0], [Sphere(1.0)] * 3),
+                 ([1.0, 1.0], [Sphere(1.0), Sphere(1.0)], [False]),
+                 ([1.0, 1.0], [Sphere(1.0), Sphere(1.0)], None, [{}])):
+        with pytest.raises(ValueError, match="zip"):
+            answer_scene_query(scene, *args)
+    answer = (np.ones(1), None, None)
+    finish_scene(scene, [0.1, 0.1], [answer, answer])
+    for eps, answers in (([0.1], [answer, answer]), ([0.1, 0.1], [answer]), ([0.1, 0.1], [answer] * 3),
+                         ([0.1], [answer])):
+        with pytest.raises(ValueError, match="zip"):
+            finish_scene(scene, eps, answers)

@@ -9,7 +9,7 @@ import struct
 import numpy as np
 import pytest
 
-from collider_contract.point_cache import PC2Writer, read_pc2, write_obj
+from collider_contract.point_cache import PC2Header, PC2Writer, read_pc2, read_pc2_header, write_obj
 
 
 def test_write_obj_writes_the_vertices_in_order_and_one_based_faces(tmp_path):
@@ -45,6 +45,7 @@ def test_pc2_header_and_frames_round_trip(tmp_path):
     data = path.read_bytes()
     assert len(data) == 32 + 3 * 2 * 3 * 4
     assert struct.unpack("<12siiffi", data[:32]) == (b"POINTCACHE2\0", 1, 2, 0.0, 1.0, 3)
+    assert read_pc2_header(path) == PC2Header(points=2, samples=3, start_frame=0.0, sample_rate=1.0)
     read = read_pc2(path)
     assert read.dtype == np.float32 and read.shape == (3, 2, 3)
     np.testing.assert_array_equal(read, frames.astype(np.float32))
@@ -69,6 +70,11 @@ def _header(version=1, points=2, samples=3):
                   "file has 92 bytes (2.5 frames: the file is 12 bytes short of 3)")),
     ("longer", ("{path}: longer than its header says: the header promises 3 frames of 2 points "
                "(104 bytes), the file has 116 bytes (3.5 frames: the file is 12 bytes short of 4)")),
+    ("whole frames longer", ("{path}: longer than its header says: the header promises 3 frames "
+                            "of 2 points (104 bytes), the file has 128 bytes (4 frames)")),
+    ("a byte longer", ("{path}: longer than its header says: the header promises 3 frames of 2 "
+                      "points (104 bytes), the file has 105 bytes (3.04 frames: the file is 23 "
+                      "bytes short of 4)")),
 ])
 def test_a_malformed_cache_is_refused_naming_the_file_and_the_fault(tmp_path, case, message):
     path = tmp_path / "c.pc2"
@@ -89,6 +95,10 @@ def test_a_malformed_cache_is_refused_naming_the_file_and_the_fault(tmp_path, ca
         path.write_bytes(_header() + body[:-12])
     elif case == "longer":
         path.write_bytes(_header() + body + bytes(12))
+    elif case == "whole frames longer":
+        path.write_bytes(_header() + body + bytes(24))
+    elif case == "a byte longer":  # 3.04 frames: two digits tell it from 3
+        path.write_bytes(_header() + body + bytes(1))
     with pytest.raises(ValueError) as info:
         read_pc2(path)
     assert str(info.value) == message.format(path=path)

@@ -9,6 +9,7 @@ import re
 import pytest
 
 from collider_contract import ModelInfo, Timeline
+from collider_contract.animation import MAX_FRAME_RATE_HZ
 
 
 def test_frames_segments_and_rates():
@@ -82,6 +83,7 @@ def test_a_malformed_wire_form_is_refused():
 def test_the_smallest_animation_and_any_positive_rate_are_accepted():
     line = Timeline(2, 0.5)  # two frames two seconds apart
     assert line.duration_s == 2.0 and line.locate(1.0) == (0, 0.5, 0.5)
+    assert Timeline(2, MAX_FRAME_RATE_HZ).frame_rate_hz == MAX_FRAME_RATE_HZ  # the bound is in
 
 
 @pytest.mark.parametrize("frames, rate, speed, message", [

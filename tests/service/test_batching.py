@@ -531,6 +531,11 @@ def retry_after_after(workers, history, in_flight: int, queued: int, points: int
     # backlog 100 in flight + 100 queued + 50 asked = 250 points -> ceil(250 / 50) = 5 s
     ([(100, 2.0), (100, 0.25)], 100, 100, 50, 100, 5),
     ([(100, 2.0), (100, 0.25), (100, 0.25)], 100, 100, 50, 100, 1),  # 400/s holds 2/3: 0.6 s
+    # 50/s holds 100 of 201 rows, just under half: 404/s, 0.62 s
+    ([(100, 2.0), (101, 0.25)], 100, 100, 50, 101, 1),
+    ([(100, 2.0), (100, 1.0), (100, 0.25)], 100, 100, 50, 100, 3),  # 50, 100, 400/s: 100/s, 2.5 s
+    # only the last RATE_WINDOW (32) batches count: 15 at 50/s and 17 at 400/s -> 400/s, 0.62 s
+    ([(100, 2.0)] * 32 + [(100, 0.25)] * 17, 100, 100, 50, 100, 1),
     ([(100, 0.25)], 1, 99, 2, 100, 1),  # 102 points at 400/s: 0.26 s, rounded up to 1 s
     ([(1, 2.0)], 1, 9, 2, 10, 24),  # 0.5 point/s (below 1/s): 12 points take 24 s
     ([(1, 10.0)], 1, 9, 2, 10, 60),  # 0.1 point/s: 120 s, capped at 60 s
