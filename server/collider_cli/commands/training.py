@@ -61,6 +61,11 @@ def register(subparsers) -> None:
     train.add_argument("--threads", type=int, default=None, help="CPU threads for torch")
     add_animation_arguments(train, "feature tables of preset keyframes, evenly spaced from the first frame to the last "
                                    f"(default: the preset's, {ANIMATED_PRESETS[DEFAULT_ANIMATED_PRESET].keyframes})")
+    train.add_argument("--deformation-resolution", type=int, default=None, metavar="N",
+                       help="cells per side of preset deformed's deformation fields (implies --preset deformed; "
+                            f"default: the preset's, {ANIMATED_PRESETS['deformed'].deformation_resolution}): finer "
+                            "fields follow a larger bend (the fit prints how far they miss) at (N + 1)^3 x 12 bytes "
+                            "per frame; docs/neural.md")
     add_placement_arguments(train)
     add_models_argument(train, "where the model is written")
     train.add_argument("--runs", type=Path, default=None, metavar="DIR",
@@ -138,15 +143,22 @@ def run_train(args) -> int:
         return run_train_character(args)
     check_animation_arguments(args)
     animated = args.animation is not None
-    # An animation without --preset (or --keyframes, the keyframe tables' option) gets the animated
-    # preset that suits its motion, measured once it is loaded.
-    choose = animated and args.preset is None and args.keyframes is None
+    fields = args.deformation_resolution
+    if fields is not None and not animated:
+        raise ValueError("--deformation-resolution needs --animation (the deformed preset's fields follow its frames)")
+    # An animation without --preset (or --keyframes or --deformation-resolution, one preset's options)
+    # gets the animated preset that suits its motion, measured once it is loaded.
+    choose = animated and args.preset is None and args.keyframes is None and fields is None
+    default_preset = ("deformed" if fields is not None else DEFAULT_ANIMATED_PRESET) if animated else DEFAULT_PRESET
+    architecture = {} if args.keyframes is None else {"keyframes": args.keyframes}
+    if fields is not None:
+        architecture["deformation_resolution"] = fields
     config = TrainConfig(
-        preset=args.preset or (DEFAULT_ANIMATED_PRESET if animated else DEFAULT_PRESET), samples=args.samples,
+        preset=args.preset or default_preset, samples=args.samples,
         steps=args.steps, batch_size=args.batch_size,
         learning_rate=args.learning_rate, normal_weight=args.normal_weight,
         max_minutes=args.max_minutes, seed=args.seed, threads=args.threads,
-        architecture={} if args.keyframes is None else {"keyframes": args.keyframes},
+        architecture=architecture,
     )
     check_preset(config, animated)
     placement = placement_from_args(args)

@@ -195,6 +195,32 @@ def test_the_deformation_fit_carries_every_frame_to_the_rest_pose(sphere):
         assert np.abs(rest.numpy() * radius - animation.frames[0]).max() < 1e-5
 
 
+def test_the_deformed_presets_fields_are_the_coarsest_that_follow_the_frames_within_the_memory_cap(sphere):
+    """The preset's rule (fit_deformation_fields): the coarsest resolution whose fit misses no
+    frame by more than the bound, else the finest whose fields fit in the cap. The pulsing
+    sphere's affine motion is held by any field: the coarsest. A 30-degree elbow bend is not:
+    4^3 fields miss it by millimetres, 8^3 by less, and the rule takes 8^3, unless its fields
+    are over the cap or the bound is loose enough for 4^3."""
+    from collider_server.making.animations import bending_arm
+    from collider_server.making.training.data import normalisation
+    from collider_server.making.training.deformation import fields_bytes, fit_deformation_fields
+
+    animation, _ = sphere
+    fit = fit_deformation_fields(animation, *normalisation(animation, 0.1), 1.0, False, resolutions=(4, 8))
+    assert fit.resolution == 4 and len(fit.fields) == 13 and fit.residual_p99.max() < 1e-6
+
+    arm = bending_arm(frames=5, bend_deg=30.0)
+    domain = normalisation(arm, 0.1)
+    fit = fit_deformation_fields(arm, *domain, 1.0, False, resolutions=(4, 8), bound_mm=0.1)
+    assert fit.resolution == 8 and len(fit.fields) == 5
+    assert 1.0 < fit.residual_p99.max() * 1000 < 8.0  # mm: 5.06 measured, 8.64 at 4^3
+    capped = fit_deformation_fields(arm, *domain, 1.0, False, resolutions=(4, 8), bound_mm=0.1,
+                                    cap_bytes=fields_bytes(5, 8) - 1)
+    assert capped.resolution == 4 and len(capped.fields) == 5 and capped.residual_p99.max() > fit.residual_p99.max()
+    loose = fit_deformation_fields(arm, *domain, 1.0, False, resolutions=(4, 8), bound_mm=10.0)
+    assert loose.resolution == 4 and len(loose.fields) == 5
+
+
 def test_a_deformed_rest_pose_learns_the_pulsing_sphere_and_its_velocity(sphere, device):
     """A short run of preset ``deformed``: distances at random times and the surface's velocity
     (the full vector: the sphere's points move with its centre and radius)."""
@@ -257,12 +283,32 @@ def test_train_an_animation_through_the_cli(tmp_path):
     (["--animation", str(ARM / "arm.pc2"), "--fps", "24", "--keyframes", "1"], "keyframes must be an integer >= 2"),
     (["--animation", str(ARM / "arm.pc2"), "--fps", "24", "--preset", "deformed", "--keyframes", "3"],
      "has one deformation field per frame of the animation"),
+    (["--deformation-resolution", "8"], "--deformation-resolution needs --animation"),
+    (["--animation", str(ARM / "arm.pc2"), "--fps", "24", "--preset", "keyframes", "--deformation-resolution", "8"],
+     "preset 'keyframes' has no deformation fields; their resolution (--deformation-resolution) is the deformed"),
+    (["--animation", str(ARM / "arm.pc2"), "--fps", "24", "--deformation-resolution", "0"],
+     "deformation_resolution must be a positive integer, got 0"),
 ])
 def test_train_cli_refuses_mismatched_options_in_one_line(tmp_path, args, message):
     result = run_collider("train", str(ARM / "arm.obj"), "--name", "x", "--models", str(tmp_path), "--quiet", *args)
     assert result.returncode == 2
     lines = result.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("collider train: error:") and message in lines[0], result.stderr
+
+
+def test_the_deformation_resolution_option_trains_the_deformed_preset_at_that_resolution(tmp_path):
+    """``--deformation-resolution N`` names the fields' cells per side and implies the deformed
+    preset (no preset trials); the model and its run's settings keep it."""
+    models = tmp_path / "models"
+    result = run_collider("train", str(ARM / "arm.obj"), "--animation", str(ARM / "arm.pc2"), "--fps", "24",
+                     "--deformation-resolution", "3", "--name", "arm-fields", "--models", str(models),
+                     "--samples", "4000", "--steps", "2")
+    assert result.returncode == 0, result.stderr
+    assert "measuring presets" not in result.stderr
+    assert "deformation fit: the 3^3 fields carry every frame's surface samples to the rest pose within" in result.stderr
+    collider = load_collider(models / "arm-fields.safetensors")
+    assert collider.architecture.deformation_resolution == 3 and collider.architecture.keyframes == 25
+    assert collider.info.settings["training"]["architecture"]["deformation_resolution"] == 3
 
 
 def test_an_animation_gets_the_preset_that_measures_better(sphere):
@@ -286,9 +332,12 @@ def test_an_animation_gets_the_preset_that_measures_better(sphere):
     assert deformed.warm_steps == 0
     assert deformed.mean_mm < keyframes.mean_mm, choice.reason
     assert choice.preset == "deformed" and choice.fit is not None and len(choice.fit.fields) == 13
+    assert choice.fit.resolution == 16  # the preset rule's coarsest: an affine motion
     assert choice.reason.startswith(f"preset deformed: {deformed.mean_mm:.3f} mm mean / "
                                     f"{deformed.sign_percent:.2f} % sign after 30 steps, keyframes "
                                     f"{keyframes.mean_mm:.3f} / {keyframes.sign_percent:.2f} %"), choice.reason
+    # The deformed preset's floor, known before its trial: how far its fields miss the frames.
+    assert "; deformed's 16^3 fields miss the frames by 0.000 mm (99th percentile, frame " in choice.reason
     assert re.search(r"measured in \d+ s; --preset to choose\)$", choice.reason)
 
 
@@ -310,9 +359,12 @@ def test_train_without_a_preset_says_which_it_took_and_why(tmp_path):
     then one line naming the preset taken with both figures; --preset skips the measurement."""
     import re
 
-    common = ["--fps", "24", "--models", str(tmp_path / "models"), "--samples", "4000", "--steps", "2"]
-    result = run_collider("train", str(ARM / "arm.obj"), "--animation", str(ARM / "arm.pc2"), "--name", "arm-auto",
-                     *common)
+    # The pulsing sphere, whose affine motion the preset's coarsest fields hold: whichever preset
+    # 2 steps choose, no finer fit (minutes on the arm) follows.
+    assert run_collider("animate", "pulsing-sphere", "--output", str(tmp_path), "--quiet").returncode == 0
+    sphere = [str(tmp_path / "pulsing-sphere.obj"), "--animation", str(tmp_path / "pulsing-sphere.pc2")]
+    common = ["--fps", "12", "--models", str(tmp_path / "models"), "--samples", "4000", "--steps", "2"]
+    result = run_collider("train", *sphere, "--name", "sphere-auto", *common)
     assert result.returncode == 0, result.stderr
     line = re.search(r"^preset (deformed|keyframes): (\d+\.\d{3}) mm mean / \d+\.\d\d % sign after 2 steps, "
                      r"(deformed|keyframes) (\d+\.\d{3}) / \d+\.\d\d % \(\+-1 mm band", result.stdout, re.MULTILINE)
@@ -321,11 +373,10 @@ def test_train_without_a_preset_says_which_it_took_and_why(tmp_path):
     assert "measuring presets deformed and keyframes: 2 steps each" in result.stderr
     network = {"keyframes": "(keyframe tables)", "deformed": "(a rest pose and one deformation field per frame)"}
     assert network[line[1]] in result.stdout
-    named = run_collider("train", str(ARM / "arm.obj"), "--animation", str(ARM / "arm.pc2"), "--name", "arm-named",
-                    "--preset", "keyframes", *common)
+    named = run_collider("train", *sphere, "--name", "sphere-named", "--preset", "keyframes", *common)
     assert named.returncode == 0, named.stderr
     assert "measuring presets" not in named.stderr and not re.search(r"^preset ", named.stdout, re.MULTILINE)
-    assert load_collider(tmp_path / "models" / "arm-named.safetensors").architecture.keyframes == 9
+    assert load_collider(tmp_path / "models" / "sphere-named.safetensors").architecture.keyframes == 9
 
 
 def test_a_miss_just_over_its_bound_prints_the_digits_that_show_it():

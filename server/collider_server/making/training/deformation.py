@@ -1,8 +1,11 @@
 """The deformation fields of a ``deformed`` network (:mod:`...engine.kinds.neural_deformed`),
-fitted to an animation's vertex correspondences: :func:`fit_deformation`."""
+fitted to an animation's vertex correspondences: :func:`fit_deformation` at one resolution, and
+:func:`fit_deformation_fields`, the preset's rule that picks the resolution by how far the fields
+miss the frames."""
 
 from __future__ import annotations
 
+import sys
 from dataclasses import dataclass
 
 import numpy as np
@@ -15,6 +18,16 @@ from ..progress import format_against, progress
 #: squared misfit at the surface samples, per sample per node: small, it only fills the nodes
 #: no sample constrains (away from the surface) and leaves affine motion unpenalised.
 SMOOTHNESS = 1e-4
+#: Relative residual at which each frame's conjugate gradients stop.
+CG_TOLERANCE = 1e-10
+#: The deformed preset's field resolutions (cells per side), coarsest first: the fields take the
+#: coarsest that misses no frame by more than RESIDUAL_BOUND_MM (99th percentile), else the finest
+#: whose fields fit in FIELDS_BYTES_CAP (:func:`fit_deformation_fields`). A finer field follows a
+#: larger bend (the spot cow's 30 degrees: 2.81 mm at 16^3, 0.81 mm at 32^3; docs/neural.md).
+DEFORMATION_RESOLUTIONS = (16, 32)
+RESIDUAL_BOUND_MM = 0.1
+#: The most bytes the fields of every frame may take (float32) when a finer resolution is chosen.
+FIELDS_BYTES_CAP = 16_000_000
 
 
 @dataclass(frozen=True)
@@ -91,7 +104,7 @@ def fit_deformation(animation: AnimatedMesh, centre, radius: float, resolution: 
             jacobi = sp.diags(1.0 / np.maximum(system.diagonal(), 1e-30))
             for axis in range(3):
                 start = fields[k - 1, :, axis] if k else None
-                fields[k, :, axis], status = cg(system, a.T @ target[:, axis], x0=start, rtol=1e-10,
+                fields[k, :, axis], status = cg(system, a.T @ target[:, axis], x0=start, rtol=CG_TOLERANCE,
                                                 maxiter=5000, M=jacobi)
                 if status != 0 and (not unconverged or unconverged[-1] != k):
                     unconverged.append(k)
@@ -103,6 +116,41 @@ def fit_deformation(animation: AnimatedMesh, centre, radius: float, resolution: 
                 break
     return DeformationFit(fields[:count].astype(np.float32), residual_max[:count], residual_p99[:count],
                           tuple(centre.tolist()), float(radius), resolution, tuple(unconverged))
+
+
+def fields_bytes(frames: int, resolution: int) -> int:
+    """Bytes of the float32 fields of ``frames`` frames at ``resolution`` cells per side."""
+    return frames * (resolution + 1) ** 3 * 3 * 4
+
+
+def fit_deformation_fields(animation: AnimatedMesh, centre, radius: float, meters_per_unit: float,
+                           show_progress: bool = True, resolutions=DEFORMATION_RESOLUTIONS,
+                           bound_mm: float = RESIDUAL_BOUND_MM, cap_bytes: int = FIELDS_BYTES_CAP,
+                           fitted: DeformationFit | None = None) -> DeformationFit:
+    """The deformed preset's fields of ``animation`` (:func:`fit_deformation`'s arguments): of
+    ``resolutions`` (coarsest first) whose fields of every frame take at most ``cap_bytes`` (the
+    first whatever its size), the coarsest whose fit misses no frame by more than ``bound_mm``
+    (99th percentile, millimetres), else the finest. A resolution that misses stops at the first
+    frame it misses (its fit is not kept). ``fitted``, a whole fit of this domain already made
+    (the preset trials'), stands for its resolution's."""
+    frames = len(animation.frames)
+    affordable = [r for r in resolutions if fields_bytes(frames, r) <= cap_bytes] or list(resolutions[:1])
+    bound = bound_mm / (1000.0 * meters_per_unit)
+
+    def fit_at(resolution: int, stop_above: float | None = None) -> DeformationFit:
+        if fitted is not None and fitted.fits(centre, radius, resolution, frames):
+            return fitted
+        return fit_deformation(animation, centre, radius, resolution, show_progress, stop_above=stop_above)
+
+    for resolution in affordable[:-1]:
+        fit = fit_at(resolution, bound)
+        if len(fit.fields) == frames and fit.residual_p99.max() <= bound:
+            return fit
+        if show_progress:
+            print(f"deformation fit: {resolution}^3 fields miss frame {len(fit.fields) - 1} by "
+                  f"{fit.summary(meters_per_unit, bound_mm)}, over {bound_mm:g} mm: {affordable[-1]}^3",
+                  file=sys.stderr)
+    return fit_at(affordable[-1])
 
 
 def _second_differences(side: int):

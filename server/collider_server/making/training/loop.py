@@ -16,7 +16,7 @@ from collider_contract import Timeline
 from ...engine.animated_meshes import AnimatedMesh
 from ...engine.collider import ColliderInfo
 from ...engine.kinds.animated_neural import AnimatedNeuralCollider
-from ...engine.kinds.neural import ANIMATED_PRESETS, NeuralCollider, architecture_dict, build_network
+from ...engine.kinds.neural import ANIMATED_PRESETS, PRESETS, NeuralCollider, architecture_dict, build_network
 from ...engine.kinds.neural_deformed import DeformedGridArchitecture
 from ...engine.kinds.neural_keyframes import KeyframeGridArchitecture, keyframe_segments, keyframe_weights
 from ...engine.meshes import ExactSDF, Mesh
@@ -37,7 +37,7 @@ from .data import (
     normalisation,
     validation_sets,
 )
-from .deformation import DeformationFit, fit_deformation
+from .deformation import DeformationFit, fit_deformation, fit_deformation_fields
 from .schedule import RunClock, cosine_learning_rate, make_optimizer, set_training_threads, training_threads
 
 
@@ -83,6 +83,11 @@ class TrainResult:
 def check_preset(config: TrainConfig, animated: bool):
     """``config`` checked, and its architecture, which must be an animated one (keyframes or
     deformed) for an animation and a static one otherwise (ValueError naming the preset)."""
+    preset = {**PRESETS, **ANIMATED_PRESETS}.get(config.preset)
+    if "deformation_resolution" in config.architecture and preset is not None \
+            and not isinstance(preset, DeformedGridArchitecture):
+        raise ValueError(f"preset {config.preset!r} has no deformation fields; their resolution "
+                         "(--deformation-resolution) is the deformed preset's")
     config.check()
     arch = config.resolved_architecture()
     moving = isinstance(arch, (KeyframeGridArchitecture, DeformedGridArchitecture))
@@ -127,8 +132,9 @@ def train_animated_neural(animation: AnimatedMesh, name: str, config: TrainConfi
     frames and rate in ``info.source``).
 
     Keyframe tables train on samples at random times, the exact interpolated mesh as truth. A
-    deformed network fits its deformation fields to the frames (one per frame, before the clock)
-    and trains its rest pose, the first frame, on that mesh's exact samples (box samples over
+    deformed network fits its deformation fields to the frames (one per frame, before the clock;
+    at the resolution ``config.architecture`` names, else the one the preset's rule picks,
+    :func:`fit_deformation_fields`, which the run's settings then name) and trains its rest pose, the first frame, on that mesh's exact samples (box samples over
     every frame's box: where the deformation sends any point of the domain); ``deformation``, a
     fit of the same fields already made (:func:`choose_animated_preset`'s), is used as it is."""
     arch = check_preset(config, animated=True)
@@ -137,6 +143,14 @@ def train_animated_neural(animation: AnimatedMesh, name: str, config: TrainConfi
     deformed = isinstance(arch, DeformedGridArchitecture)
     if deformed:
         arch = replace(arch, keyframes=timeline.frames)
+        if "deformation_resolution" not in config.architecture:  # the preset's rule picks it
+            centre, radius = normalisation(animation, config.padding)
+            deformation = fit_deformation_fields(animation, centre, radius, meters_per_unit, show_progress,
+                                                 fitted=deformation)
+            # The run's settings (its checkpoint's identity, the model's) say which it took.
+            config = replace(config, architecture={**config.architecture,
+                                                   "deformation_resolution": deformation.resolution})
+            arch = replace(arch, deformation_resolution=deformation.resolution)
 
     def inputs(times):
         """An animated network's per-sample inputs after the point: keyframe segment, fraction
@@ -172,9 +186,9 @@ def train_animated_neural(animation: AnimatedMesh, name: str, config: TrainConfi
         fit = deformation
         if fit is None or not fit.fits(centre, radius, arch.deformation_resolution, arch.keyframes):
             fit = fit_deformation(animation, centre, radius, arch.deformation_resolution, show_progress)
-            if show_progress:
-                print(f"deformation fit: the fields carry every frame's surface samples to the rest pose "
-                      f"within {fit.summary(meters_per_unit)}", file=sys.stderr)
+        if show_progress:
+            print(f"deformation fit: the {fit.resolution}^3 fields carry every frame's surface samples to the "
+                  f"rest pose within {fit.summary(meters_per_unit)}", file=sys.stderr)
         network.deformation.copy_(torch.from_numpy(fit.fields))
 
     # The keyframes' own timeline: the same duration, loop and speed bound, K frames.

@@ -15,7 +15,7 @@ from ..evaluation import animated_error_figures
 from ..sampling import random_times
 from .config import TrainConfig
 from .data import normalisation
-from .deformation import DeformationFit, fit_deformation
+from .deformation import DEFORMATION_RESOLUTIONS, DeformationFit, fit_deformation
 from .loop import train_animated_neural
 
 #: The candidates, in the order they are measured (the first wins a tie).
@@ -51,8 +51,8 @@ class TrialFigures:
 @dataclass(frozen=True)
 class PresetChoice:
     """The animated preset :func:`choose_animated_preset` picked, why (one line), every
-    candidate's figures, the seconds the choice took, and the deformation fit it made (reused by
-    a deformed run)."""
+    candidate's figures, the seconds the choice took, and the deformation fit it made (the preset
+    rule's coarsest resolution; a deformed run reuses it where the rule takes that resolution)."""
 
     preset: str
     reason: str
@@ -89,13 +89,16 @@ def choose_animated_preset(animation: AnimatedMesh, config: TrainConfig, meters_
     trials, fit = [], None
     for preset in CANDIDATES:
         extra = {}
+        trial = replace(trial_config, preset=preset)
         if preset == "deformed":
-            from ...engine.kinds.neural import ANIMATED_PRESETS
-
-            fit = fit_deformation(animation, *normalisation(animation, config.padding),
-                                  ANIMATED_PRESETS["deformed"].deformation_resolution, show_progress)
+            # The trial's fields are the preset rule's coarsest (DEFORMATION_RESOLUTIONS): a few
+            # hundred steps end far above either floor, and a finer fit takes minutes (the spot
+            # cow's 32^3: 6 on a loaded machine), spent only by a run that trains the preset.
+            fit = fit_deformation(animation, *normalisation(animation, config.padding), DEFORMATION_RESOLUTIONS[0],
+                                  show_progress)
             extra["deformation"] = fit
-        result = train_animated_neural(animation, f"{preset} (trial)", replace(trial_config, preset=preset),
+            trial = replace(trial, architecture={"deformation_resolution": fit.resolution})
+        result = train_animated_neural(animation, f"{preset} (trial)", trial,
                                        meters_per_unit=meters_per_unit, device=device,
                                        show_progress=show_progress, **extra)
         band = animated_error_figures(result.collider, animation, held_out, TRIAL_POINTS, config.seed + 300,
@@ -105,8 +108,11 @@ def choose_animated_preset(animation: AnimatedMesh, config: TrainConfig, meters_
     chosen = better(trials)
     others = ", ".join(f"{t.preset} {t.mean_mm:.3f} / {t.sign_percent:.2f} %" for t in trials if t is not chosen)
     seconds = time.monotonic() - started
+    # The deformed preset's floor, known before any step: how far its fields miss the frames.
+    floor = ("" if fit is None else
+             f"deformed's {fit.resolution}^3 fields miss the frames by {fit.summary(meters_per_unit)}; ")
     reason = (f"preset {chosen.preset}: {chosen.text()}, {others} (+-1 mm band, {TRIAL_TIMES} held-out times; "
-              f"measured in {seconds:.0f} s; --preset to choose)")
+              f"{floor}measured in {seconds:.0f} s; --preset to choose)")
     return PresetChoice(chosen.preset, reason, tuple(trials), seconds, fit if chosen.preset == "deformed" else None)
 
 
