@@ -80,8 +80,8 @@ def test_animated_bench_refuses_bad_settings_in_one_line(extra, message, tmp_pat
     assert code == 2 and len(err) == 1 and message in err[0], err
 
 
-def test_bench_options_of_an_animation_need_one(tmp_path, capsys):
-    code, _out, err = collider_here(capsys, "bench", ROOT / "examples/meshes/spot.obj", "--fps", "24",
+def test_bench_options_of_an_animation_need_one(tmp_path):
+    code, _out, err = collider_here("bench", ROOT / "examples/meshes/spot.obj", "--fps", "24",
                                    "--output", tmp_path, "--cache", tmp_path)
     assert code == 2 and "--fps, --loop/--clamp, --keyframes and --times need --animation" in err
 

@@ -22,13 +22,12 @@ SAMPLE = Path(__file__).parents[1] / "data" / "gltf" / "RiggedSimple.gltf"
 
 
 @pytest.mark.slow
-def test_bench_of_a_character_measures_both_kinds_at_clip_times_and_random_poses(tmp_path, capsys,
-                                                                                 trained_character):
+def test_bench_of_a_character_measures_both_kinds_at_clip_times_and_random_poses(tmp_path, trained_character):
     # The network: a copy of the shared 20-step `collider train SAMPLE` (tests/conftest.py).
     assert trained_character["code"] == 0, trained_character["err"]
     (tmp_path / "models").mkdir()
     shutil.copy(trained_character["models"] / "cylinder-neural.safetensors", tmp_path / "models")
-    code, out, err = collider_here(capsys, "bench", SAMPLE, "--fit-size", 1.0, "--quick", "--sizes", "500",
+    code, out, err = collider_here("bench", SAMPLE, "--fit-size", 1.0, "--quick", "--sizes", "500",
                                    "--accuracy-points", 300, "--times", 2, "--poses", 3, "--repeats", 3,
                                    "--cell-seconds", 0.1, "--threads", 1, "--models", tmp_path / "models",
                                    "--output", tmp_path / "out", "--cache", tmp_path / "cache", "--quiet")
@@ -69,14 +68,14 @@ def test_bench_of_a_character_measures_both_kinds_at_clip_times_and_random_poses
     (["--train-minutes", "1"], "--train-minutes: not for a skinned character; its bench measures the exact"),
     (["--kinds", "neural-skinned"], "nothing to measure: neural-skinned: no articulated network of this character"),
 ])
-def test_bench_of_a_character_refuses_what_it_cannot_do_in_one_line(extra, message, tmp_path, capsys):
-    code, _, err = collider_here(capsys, "bench", SAMPLE, *extra, "--models", tmp_path, "--output", tmp_path,
+def test_bench_of_a_character_refuses_what_it_cannot_do_in_one_line(extra, message, tmp_path):
+    code, _, err = collider_here("bench", SAMPLE, *extra, "--models", tmp_path, "--output", tmp_path,
                                  "--cache", tmp_path, "--quiet")
     lines = err.strip().splitlines()
     assert code == 2 and len(lines) == 1 and message in lines[0], err
 
 
-def test_poses_need_a_character(tmp_path, capsys):
-    code, _, err = collider_here(capsys, "bench", Path(__file__).parents[2] / "examples/meshes/spot.obj",
+def test_poses_need_a_character(tmp_path):
+    code, _, err = collider_here("bench", Path(__file__).parents[2] / "examples/meshes/spot.obj",
                                  "--poses", 3, "--output", tmp_path, "--cache", tmp_path)
     assert code == 2 and "--poses is for a skinned character (glTF with a skin, USD)" in err
