@@ -4,11 +4,12 @@ network's.
 
 Accuracy: at ``--clip-times`` random times of the walker's clips and ``--poses`` random poses off
 the clips (``collider_server.engine.skinning.random_poses``: a random clip time, then every joint's
-local rotation turned by up to 15 degrees about a random axis; seeds apart from training's), ``--points`` points per pose in the +-1 mm band (``--band-mm``) of
-the exact skinned surface at that pose (surface samples offset along the face normal): mean / p99
-/ max distance error (and how many points err over 5 mm: a wider band shows a part's field
-drifting off the skin, where cloth meets it), sign errors (all, and where the exact |d| > 0.2 mm), normal error mean / p99
-(degrees). Also the model file's size and its training (steps, seconds).
+local rotation turned by up to 15 degrees about a random axis; seeds apart from training's),
+``--points`` points per pose in the +-1 mm band (``--band-mm``) of the exact skinned surface at
+that pose (surface samples offset along the face normal): mean / p99 / max distance error and how
+many points err over 5 mm (a wider band shows the errors off the skin, where cloth meets it),
+sign errors (all, and where the exact |d| > 0.2 mm), normal error mean / p99 (degrees). Also the
+model file's size and its training (steps, seconds).
 
 Speed: 1M points in the +-10 mm band, per round each candidate once in turn (interleaved, the
 load falls on both alike): the articulated network's distance + normal + contact + velocity at a
