@@ -190,7 +190,8 @@ def allowed_labels(parents: np.ndarray, neighbours: bool) -> np.ndarray:
 
 
 def part_candidates(points: np.ndarray, to_rest: np.ndarray, labels: np.ndarray, centre, radius: float,
-                    allowed: np.ndarray, part_boxes: np.ndarray, fused: bool = True):
+                    allowed: np.ndarray, part_boxes: np.ndarray, fused: bool = True,
+                    rest_boxes: np.ndarray | None = None):
     """The parts each point may belong to (the rule of the module docstring).
 
     points : (n, 3) float64, collider frame at the pose; to_rest : (J, 3, 4) (:func:`rest_maps`)
@@ -199,6 +200,8 @@ def part_candidates(points: np.ndarray, to_rest: np.ndarray, labels: np.ndarray,
     part_boxes : (J, 2, 3) float64, each part's rest box (lo, hi), for points with no candidate
     fused : decide in one numba kernel over the points (:func:`_candidate_mask`) when numba is
         there; else (or False) numpy, joint by joint (the reference)
+    rest_boxes : :func:`label_boxes` of ``labels`` and ``allowed`` where the caller keeps it (a
+        collider: pose-independent), else computed here
     Returns ``(point (k,) int64, joint (k,) int64, rest (k, 3) float64)``: one row per candidate,
     its point's index, the joint and the point in that joint's rest frame; every point has at
     least one row; rows sorted by joint, then point.
@@ -207,7 +210,8 @@ def part_candidates(points: np.ndarray, to_rest: np.ndarray, labels: np.ndarray,
     centre = np.asarray(centre, np.float64)
     if fused and _candidate_mask is not None:
         mask = np.empty((len(to_rest), len(points)), np.bool_)
-        reach = _posed_label_boxes(to_rest, labels, centre, radius, allowed)
+        rest_boxes = label_boxes(labels, centre, radius, allowed) if rest_boxes is None else rest_boxes
+        reach = _posed_label_boxes(to_rest, rest_boxes, 2.0 * radius / labels.shape[0])
         _candidate_mask(points, np.ascontiguousarray(to_rest), labels, centre, float(radius), allowed,
                         np.ascontiguousarray(part_boxes, np.float64), reach, mask)
     else:
@@ -328,36 +332,48 @@ if grid_kernels.available():
             mask[nearest, p] = True
 
 
-def _posed_label_boxes(to_rest: np.ndarray, labels: np.ndarray, centre, radius: float,
-                      allowed: np.ndarray) -> np.ndarray:
-    """(J, 2, 3) float64: per joint j a box (lo, hi) of the posed collider frame outside which no
-    point is j's candidate by its label: the rest-frame box of the label cells where j is allowed
-    (``allowed[j, label]``, :func:`allowed_labels`), padded by a cell (for the rounding of a rigid
-    image near a cell's face), carried to the pose by ``A_j`` (the inverse of ``to_rest`` (J, 3, 4))
-    and boxed again. Empty (lo > hi) where j is allowed nowhere. ``labels`` (R, R, R) uint8 over
-    the cube ``centre +- radius``. What lets :func:`_candidate_mask` skip most joints' lookups
-    (numba's, as that pass)."""
+def label_boxes(labels: np.ndarray, centre, radius: float, allowed: np.ndarray) -> np.ndarray:
+    """(J, 2, 3) float64: per joint j the rest-frame box (lo, hi) of the label cells where j is
+    allowed (``allowed[j, label]``, :func:`allowed_labels`), padded by a cell (for the rounding of
+    a rigid image near a cell's face); empty (lo > hi) where j is allowed nowhere. ``labels``
+    (R, R, R) uint8 over the cube ``centre +- radius``. Pose-independent: a collider computes it
+    once (:func:`_posed_label_boxes` carries it to each pose)."""
     resolution = labels.shape[0]
     # Per label value the least and greatest cell index along each axis holding it (hi -1: none).
     lo_cell, hi_cell = np.full((256, 3), resolution, np.int64), np.full((256, 3), -1, np.int64)
     _label_cell_boxes(np.ascontiguousarray(labels), lo_cell, hi_cell)
-    joints = len(to_rest)
+    joints = len(allowed)
     boxes = np.empty((joints, 2, 3))
     boxes[:, 0], boxes[:, 1] = np.inf, -np.inf
     cell = 2.0 * radius / resolution
-    corner = np.array([[(c >> a) & 1 for a in range(3)] for c in range(8)], np.float64)
+    for j in range(joints):
+        named = np.flatnonzero(allowed[j] & (hi_cell[:, 0] >= 0))
+        if len(named):
+            boxes[j, 0] = np.asarray(centre) + radius * (2.0 * lo_cell[named].min(axis=0) / resolution - 1.0) - cell
+            boxes[j, 1] = np.asarray(centre) + radius * (2.0 * (hi_cell[named].max(axis=0) + 1) / resolution - 1.0) \
+                + cell
+    return boxes
+
+
+#: The 8 corners of a box as shares of its sides (x in bit 0).
+_BOX_CORNERS = np.array([[(c >> a) & 1 for a in range(3)] for c in range(8)], np.float64)
+
+
+def _posed_label_boxes(to_rest: np.ndarray, rest_boxes: np.ndarray, pad: float) -> np.ndarray:
+    """(J, 2, 3) float64: per joint j a box (lo, hi) of the posed collider frame outside which no
+    point is j's candidate by its label: its rest box (:func:`label_boxes`) carried to the pose by
+    ``A_j`` (the inverse of ``to_rest`` (J, 3, 4)), boxed again and padded by ``pad``; empty where
+    the rest box is. What lets :func:`_candidate_mask` skip most joints' lookups."""
+    joints = len(to_rest)
     affine = np.zeros((joints, 4, 4))
     affine[:, :3, :], affine[:, 3, 3] = to_rest, 1.0
     posed = np.linalg.inv(affine)[:, :3, :]
-    for j in range(joints):
-        named = np.flatnonzero(allowed[j] & (hi_cell[:, 0] >= 0))
-        if not len(named):
-            continue
-        lo = np.asarray(centre) + radius * (2.0 * lo_cell[named].min(axis=0) / resolution - 1.0) - cell
-        hi = np.asarray(centre) + radius * (2.0 * (hi_cell[named].max(axis=0) + 1) / resolution - 1.0) + cell
-        corners = lo + corner * (hi - lo)
-        moved = corners @ posed[j, :, :3].T + posed[j, :, 3]
-        boxes[j, 0], boxes[j, 1] = moved.min(axis=0) - cell, moved.max(axis=0) + cell
+    empty = (rest_boxes[:, 0] > rest_boxes[:, 1]).any(axis=1)
+    lo, hi = np.where(empty[:, None], 0.0, rest_boxes[:, 0]), np.where(empty[:, None], 0.0, rest_boxes[:, 1])
+    corners = lo[:, None, :] + _BOX_CORNERS * (hi - lo)[:, None, :]
+    moved = np.einsum("jcb,jab->jca", corners, posed[:, :, :3]) + posed[:, None, :, 3]
+    boxes = np.stack([moved.min(axis=1) - pad, moved.max(axis=1) + pad], axis=1)
+    boxes[empty, 0], boxes[empty, 1] = np.inf, -np.inf
     return boxes
 
 
@@ -817,7 +833,8 @@ def parts_through_skinning(points: np.ndarray, to_rest: np.ndarray, posed: np.nd
 def candidate_rows_through_skinning(points: np.ndarray, to_rest: np.ndarray, posed: np.ndarray, labels: np.ndarray,
                                     centre, radius: float, allowed: np.ndarray, part_boxes: np.ndarray, field,
                                     iterations: int, solver: str, rule: str = "own-label", fused: bool = True,
-                                    moving: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, CarriedRows]:
+                                    moving: np.ndarray | None = None, rest_boxes: np.ndarray | None = None
+                                    ) -> tuple[np.ndarray, np.ndarray, CarriedRows]:
     """The candidate rule (``rule``, :data:`CANDIDATE_RULES`) in its one home, for the query and
     the training alike: :func:`part_candidates` (the label at each part's rigid image), carried on
     through the skinning by :func:`carried_rows`; with ``retry-labels``, a point none of whose
@@ -825,14 +842,16 @@ def candidate_rows_through_skinning(points: np.ndarray, to_rest: np.ndarray, pos
     rigid images (those not tried yet): where one of them reaches a root, those rows replace the
     first ones (else the first ones stay). ``points`` (n, 3) float64, collider frame at the pose;
     ``to_rest`` (J, 3, 4) and ``posed`` (J, 4, 4) (:func:`rest_maps`); ``moving`` (J, 3, 4) as
-    :func:`carried_rows`'; the rest as :func:`part_candidates` and :func:`carry_to_rest`.
+    :func:`carried_rows`'; the rest (``rest_boxes`` too) as :func:`part_candidates` and
+    :func:`carry_to_rest`.
 
     Returns ``(point (m,) int64, joint (m,) int64, rows)``: every row (:class:`CarriedRows`; the
     union reads only the ``usable`` ones), sorted by joint (within a joint by point, the retried
     rows after the first ones), one row per point and joint, every point with a usable row."""
     if rule not in CANDIDATE_RULES:
         raise ValueError(f"candidate rule must be one of {', '.join(CANDIDATE_RULES)}, got {rule!r}")
-    point, joint, rigid = part_candidates(points, to_rest, labels, centre, radius, allowed, part_boxes, fused)
+    point, joint, rigid = part_candidates(points, to_rest, labels, centre, radius, allowed, part_boxes, fused,
+                                          rest_boxes)
     carried = carried_rows(points, point, joint, rigid, to_rest, posed, field, centre, radius, iterations, solver,
                            fused, moving)
     if rule != "retry-labels" or carried.converged.all():
@@ -1435,6 +1454,8 @@ class ArticulatedNeuralCollider(Collider):
         grid = self.network.grid
         self.centre = grid.centre.double().cpu().numpy()
         self.radius = float(grid.radius)
+        #: The label grid's part boxes at rest (pose-independent; each query poses them).
+        self.rest_boxes = label_boxes(self.labels, self.centre, self.radius, self.allowed)
         self.keep = keep
         self._cache: OrderedDict = OrderedDict()
         self._lock = threading.Lock()
@@ -1484,7 +1505,7 @@ class ArticulatedNeuralCollider(Collider):
         point, joint, (usable, rest, inverse, velocity, _) = candidate_rows_through_skinning(
             local, to_rest, posed, self.labels, self.centre, self.radius, self.allowed, self.part_boxes, self.weights,
             self.arch.skinning_iterations, self.arch.skinning_solver, self.arch.candidate_rule,
-            moving=moving if want_gradient and moving is not None else None)
+            moving=moving if want_gradient and moving is not None else None, rest_boxes=self.rest_boxes)
         n = len(local)
         # Every row goes through the network (the few dropped ones too: cheaper than copies of the rows).
         distance, gradient = self._part_values(rest, joint, bias, want_gradient)
