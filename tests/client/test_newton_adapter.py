@@ -4,13 +4,24 @@ sphere of that time. Skips when Newton (the ``newton`` extra) is not installed."
 
 from __future__ import annotations
 
+import importlib.util
+
 import numpy as np
 import pytest
 
 from .conftest import SPHERE_RADIUS_M
 
-newton = pytest.importorskip("newton", reason="Newton is not installed (pip install '.[newton]')")
-wp = pytest.importorskip("warp")
+# Found, not imported, at collection: importing Newton (and Warp) costs seconds in every worker.
+pytestmark = pytest.mark.skipif(importlib.util.find_spec("newton") is None,
+                                reason="Newton is not installed (pip install '.[newton]')")
+
+
+@pytest.fixture(autouse=True)
+def newton_modules():
+    """Newton and Warp as the module's ``newton`` and ``wp``, imported by the first test."""
+    global newton, wp
+    import newton
+    import warp as wp
 
 
 def test_newton_cloth_drop_on_sphere_ends_outside(models_dir):
