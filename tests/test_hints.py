@@ -30,6 +30,7 @@ import time
 from pathlib import Path
 
 import pytest
+from tests.conftest import run_collider
 
 HINT = re.compile(r"next: (collider .+)$|`(collider [^`]+)`", re.MULTILINE)
 #: A pasted hint still running after this long is a long job: it is stopped with SIGTERM.
@@ -132,8 +133,10 @@ def baked(home: Path, env: dict) -> dict[str, str]:
     info = shell(f"collider info ball-grid --models '{MODELS}'", home, env)
     assert info.returncode == 0 and "not evaluated" in info.stdout, info.stdout + info.stderr
 
-    budget = shell(f"collider bake ball.obj --name ball-pick --models '{MODELS}' --max-error 50mm --kind voxel "
-                   "--quiet --bench box-bench.json", home, env)
+    # Its refusal prints no hint to paste: run in this process (a shell's Python would spend seconds
+    # importing torch to say it).
+    budget = run_collider("bake", home / "ball.obj", "--name", "ball-pick", "--models", home / MODELS,
+                          "--max-error", "50mm", "--kind", "voxel", "--quiet", "--bench", home / "box-bench.json")
     assert budget.returncode == 2  # no such file: refused in one line, no hint
 
     units = shell(f"collider eval ball-grid --mesh ball.obj --models '{MODELS}' --units mm --no-save", home, env)
@@ -143,7 +146,8 @@ def baked(home: Path, env: dict) -> dict[str, str]:
 
 def trained(home: Path, env: dict) -> dict[str, str]:
     """A training run, then a bench of its network that leaves a preset unmeasured."""
-    train = shell(f"collider train ball.obj --name ball-net --models '{MODELS}' --steps 60 --samples 4000 "
+    # A few steps: the hint, the checkpoint and the bench's unmeasured preset do not depend on how many.
+    train = shell(f"collider train ball.obj --name ball-net --models '{MODELS}' --steps 5 --samples 4000 "
                   "--batch-size 512 --scale 2 --quiet", home, env)
     assert train.returncode == 0, train.stderr
     assert f"next: collider eval ball-net --mesh ball.obj --models '{MODELS}' --scale 2.0" in train.stdout
@@ -169,11 +173,12 @@ def benched_another_mesh(home: Path, env: dict) -> dict[str, str]:
 
 def interrupted(home: Path, env: dict) -> dict[str, str]:
     """A long training run stopped by SIGTERM once it has a checkpoint."""
-    # --max-minutes puts a validation, and so the first checkpoint, every 1/30 of the budget (6 s
+    # --max-minutes puts a validation, and so the first checkpoint, every 1/30 of the budget (2 s
     # here) instead of every 500 steps (minutes on a loaded 2-core host); what is checked, that the
-    # interrupted run names the command that resumes it and that command resumes, is the same.
+    # interrupted run names the command that resumes it and that command resumes, is the same. The
+    # budget outlasts LONG_AFTER_S, so that the pasted command is still a long job when resumed.
     run = subprocess.Popen(f"exec collider train ball.obj --name ball-long --models '{MODELS}' --steps 200000 "
-                           "--max-minutes 3 --samples 4000 --batch-size 512 --quiet", shell=True, cwd=home, env=env,
+                           "--max-minutes 1 --samples 4000 --batch-size 512 --quiet", shell=True, cwd=home, env=env,
                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     deadline = time.monotonic() + 120
     while not (home / "runs" / "ball-long.ckpt.safetensors").is_file() and time.monotonic() < deadline:
