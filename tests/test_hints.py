@@ -7,8 +7,9 @@ how to resume), ``info`` of a model never evaluated, a bench and a budget bake t
 unmeasured, a budget bake given another mesh's figures, and eval told the wrong unit. Each hint
 (a ``next: collider ...`` line or a ``collider ...`` between backticks) is then pasted into the
 same shell: it must finish with status 0, or, when it is a long job (a training run, a full
-bench), run for a while without an error and end on SIGTERM with status 143 (what an interrupted
-long command returns).
+bench, an eval), run without an error until its work is under way (``UNDER_WAY``: a progress bar
+that counted work done, or the line that starts it; at most ``LONG_AFTER_S``) and end on SIGTERM
+with status 143 (what an interrupted long command returns).
 
 The situations are built once per run (``built_once``: the commands that depend on each other,
 such as the bench of the trained network, in one folder; the independent ones apart), and each
@@ -24,14 +25,24 @@ import re
 import shutil
 import signal
 import subprocess
+import threading
 import time
 from pathlib import Path
 
 import pytest
+from tests.conftest import run_collider
 
 HINT = re.compile(r"next: (collider .+)$|`(collider [^`]+)`", re.MULTILINE)
 #: A pasted hint still running after this long is a long job: it is stopped with SIGTERM.
 LONG_AFTER_S = 20.0
+#: A progress bar on stderr that has counted work done (tqdm's "| 1.00/5.00", not "| 0.00/5.00").
+COUNTED = re.compile(r"\| *(?!0\.00/)\d[\d.]*[kMG]?/\d")
+#: What a long job prints on stderr once its work is under way, its command line, files and
+#: models accepted: a progress bar that counted work done (eval's first step, train's first
+#: second), a bench's plan ("bench: building and measuring ...", printed with --quiet too), a
+#: resumed training run's first line. A pasted hint is stopped with SIGTERM once it prints one,
+#: without waiting for LONG_AFTER_S.
+UNDER_WAY = re.compile(COUNTED.pattern + r"|^bench: building and measuring |^resuming ", re.MULTILINE)
 MODELS = "my models"  # a folder name that needs quoting in a shell
 
 pytestmark = pytest.mark.skipif(shutil.which("collider") is None, reason="the collider command is not installed")
@@ -56,24 +67,50 @@ def hints(*outputs: str) -> list[str]:
     return found
 
 
-def paste(hint: str, cwd: Path, env: dict) -> str:
-    """Run ``hint`` as pasted; returns how it ended ("0" or "143 after SIGTERM")."""
+def paste(hint: str, cwd: Path, env: dict, under_way: re.Pattern = UNDER_WAY) -> str:
+    """Run ``hint`` as pasted; returns how it ended ("0", or "143 after SIGTERM": still running
+    once it printed ``under_way`` or after LONG_AFTER_S)."""
     # bash parses the line as typed; exec makes the command itself the process SIGTERM reaches.
     process = subprocess.Popen(["bash", "-c", f"exec {hint}"], cwd=cwd, env=env, stdout=subprocess.PIPE,
-                               stderr=subprocess.PIPE, text=True)
-    try:
-        out, err = process.communicate(timeout=LONG_AFTER_S)
-    except subprocess.TimeoutExpired:
+                               stderr=subprocess.PIPE)
+    out, err = Drained(process.stdout), Drained(process.stderr)
+    deadline = time.monotonic() + LONG_AFTER_S
+    while process.poll() is None and time.monotonic() < deadline and not under_way.search(err.text()):
+        time.sleep(0.1)
+    if process.poll() is None:
         # A long job that started without refusing anything: stop it as a user or a scheduler would.
         process.send_signal(signal.SIGTERM)
-        out, err = process.communicate(timeout=120)
+        process.wait(timeout=120)
         # 143: stopped as a long command stops; -15: the signal came as it was exiting after its
         # work (its SIGTERM handler already handed back), e.g. an eval that took the whole wait.
-        assert process.returncode in (143, -signal.SIGTERM), f"{hint!r} after SIGTERM: {process.returncode}\n{err[-2000:]}"
-        assert "error:" not in err, f"{hint!r}: {err[-2000:]}"
+        assert process.returncode in (143, -signal.SIGTERM), \
+            f"{hint!r} after SIGTERM: {process.returncode}\n{err.all()[-2000:]}"
+        assert "error:" not in err.all(), f"{hint!r}: {err.all()[-2000:]}"
         return "143 after SIGTERM"
-    assert process.returncode == 0, f"{hint!r} exited {process.returncode}:\n{out[-2000:]}\n{err[-2000:]}"
+    assert process.returncode == 0, f"{hint!r} exited {process.returncode}:\n{out.all()[-2000:]}\n{err.all()[-2000:]}"
     return "0"
+
+
+class Drained:
+    """A pipe read to its end by a thread of its own (a full pipe would stop the command):
+    :meth:`text` is what came so far, :meth:`all` all of it (once the command has ended)."""
+
+    def __init__(self, pipe):
+        self._chunks: list[bytes] = []
+        self._thread = threading.Thread(target=self._read, args=(pipe,), daemon=True)
+        self._thread.start()
+
+    def _read(self, pipe) -> None:
+        with pipe:
+            for chunk in iter(lambda: os.read(pipe.fileno(), 65536), b""):
+                self._chunks.append(chunk)
+
+    def text(self) -> str:
+        return b"".join(self._chunks).decode(errors="replace")
+
+    def all(self) -> str:
+        self._thread.join(timeout=60)
+        return self.text()
 
 
 # -- the situations: each builder runs its commands in a user's folder and returns what they printed
@@ -96,8 +133,10 @@ def baked(home: Path, env: dict) -> dict[str, str]:
     info = shell(f"collider info ball-grid --models '{MODELS}'", home, env)
     assert info.returncode == 0 and "not evaluated" in info.stdout, info.stdout + info.stderr
 
-    budget = shell(f"collider bake ball.obj --name ball-pick --models '{MODELS}' --max-error 50mm --kind voxel "
-                   "--quiet --bench box-bench.json", home, env)
+    # Its refusal prints no hint to paste: run in this process (a shell's Python would spend seconds
+    # importing torch to say it).
+    budget = run_collider("bake", home / "ball.obj", "--name", "ball-pick", "--models", home / MODELS,
+                          "--max-error", "50mm", "--kind", "voxel", "--quiet", "--bench", home / "box-bench.json")
     assert budget.returncode == 2  # no such file: refused in one line, no hint
 
     units = shell(f"collider eval ball-grid --mesh ball.obj --models '{MODELS}' --units mm --no-save", home, env)
@@ -107,7 +146,8 @@ def baked(home: Path, env: dict) -> dict[str, str]:
 
 def trained(home: Path, env: dict) -> dict[str, str]:
     """A training run, then a bench of its network that leaves a preset unmeasured."""
-    train = shell(f"collider train ball.obj --name ball-net --models '{MODELS}' --steps 60 --samples 4000 "
+    # A few steps: the hint, the checkpoint and the bench's unmeasured preset do not depend on how many.
+    train = shell(f"collider train ball.obj --name ball-net --models '{MODELS}' --steps 5 --samples 4000 "
                   "--batch-size 512 --scale 2 --quiet", home, env)
     assert train.returncode == 0, train.stderr
     assert f"next: collider eval ball-net --mesh ball.obj --models '{MODELS}' --scale 2.0" in train.stdout
@@ -133,11 +173,12 @@ def benched_another_mesh(home: Path, env: dict) -> dict[str, str]:
 
 def interrupted(home: Path, env: dict) -> dict[str, str]:
     """A long training run stopped by SIGTERM once it has a checkpoint."""
-    # --max-minutes puts a validation, and so the first checkpoint, every 1/30 of the budget (6 s
+    # --max-minutes puts a validation, and so the first checkpoint, every 1/30 of the budget (2 s
     # here) instead of every 500 steps (minutes on a loaded 2-core host); what is checked, that the
-    # interrupted run names the command that resumes it and that command resumes, is the same.
+    # interrupted run names the command that resumes it and that command resumes, is the same. The
+    # budget outlasts LONG_AFTER_S, so that the pasted command is still a long job when resumed.
     run = subprocess.Popen(f"exec collider train ball.obj --name ball-long --models '{MODELS}' --steps 200000 "
-                           "--max-minutes 3 --samples 4000 --batch-size 512 --quiet", shell=True, cwd=home, env=env,
+                           "--max-minutes 1 --samples 4000 --batch-size 512 --quiet", shell=True, cwd=home, env=env,
                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     deadline = time.monotonic() + 120
     while not (home / "runs" / "ball-long.ckpt.safetensors").is_file() and time.monotonic() < deadline:
@@ -198,7 +239,9 @@ def test_every_hint_every_command_prints_works_when_pasted(situation, tmp_path, 
     # Pasted in a copy of the folder the command left, as the user's shell and cache directory.
     home = tmp_path / "user"
     shutil.copytree(built, home, symlinks=True)
-    paste(hint, home, user_env(home))
-    # The bench and bake caches went to the user's cache directory, not the working folder.
-    if name == "bake --bench of another mesh":
+    # The bench of the other mesh's hint runs until its first collider is built (its bar counted
+    # a step): the bench and bake caches went to the user's cache directory, not the working folder.
+    cached = name == "bake --bench of another mesh"
+    paste(hint, home, user_env(home), COUNTED if cached else UNDER_WAY)
+    if cached:
         assert (home / "cache" / "neural-collider" / "colliders").is_dir() and not (home / "out" / "bench-cache").exists()
