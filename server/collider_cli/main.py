@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import importlib.util
 import signal
 import sys
 
@@ -37,6 +38,11 @@ EXTRA_OF_MODULE = {"torch": "serve", "scipy": "serve", "igl": "serve", "safetens
 #: Commands that run long enough to be stopped: SIGTERM ends them like Ctrl-C (what they made is
 #: written), with status 143.
 LONG_COMMANDS = ("simulate", "train", "bench", "bake", "eval")
+
+#: Native extensions a long command loads on its way, imported before SIGTERM is handled: the
+#: interrupt raised while libigl's bindings initialise ended the process in C++'s terminate
+#: (status -6) or with an ImportError traceback (status 1), not with status 143.
+NATIVE_MODULES = ("igl",)
 
 
 class OneLineParser(argparse.ArgumentParser):
@@ -88,6 +94,9 @@ def main(argv: list[str] | None = None) -> int:
     global _terminated
     _terminated = False
     if args.command in LONG_COMMANDS:
+        for name in NATIVE_MODULES:
+            if importlib.util.find_spec(name) is not None:
+                importlib.import_module(name)
         previous = signal.signal(signal.SIGTERM, _raise_terminated)
     try:
         return int(args.func(args) or 0)
