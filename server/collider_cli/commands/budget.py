@@ -14,8 +14,12 @@ from .options import cache_dir, cache_size_line, load_placed_mesh
 
 #: Seed of the check after a pick (``collider eval``'s default; the bench uses 0 and 1).
 FRESH_SEED = 1234
-#: Points per call of the candidates' timing when the bake measures them itself.
+#: How the bake measures the candidates itself (no --bench): points per call of their timing,
+#: points per band of their accuracy, and the timing policy's rounds and seconds per cell
+#: (:class:`~collider_cli.bench.TimingPolicy`; ``collider bench``'s interleaved rounds).
 BUDGET_POINTS = 100_000
+BUDGET_ACCURACY_POINTS = 40_000
+BUDGET_TIMING = {"repeats": 5, "cell_budget_s": 10.0}
 
 
 def add_budget_arguments(bake) -> None:
@@ -153,8 +157,8 @@ def _budget_report(args, budget, mesh, transform, units, meters_per_unit, device
         return report
     plan = PlanConfig(padding=args.padding, train_minutes=args.train_minutes or 0.0,
                       max_memory_bytes=budget.max_memory_bytes or PlanConfig().max_memory_bytes)
-    config = BenchConfig(sizes=(BUDGET_POINTS,), paths=("embedded",), devices=(device,), plan=plan,
-                         timing=TimingPolicy(repeats=5, cell_budget_s=10.0))
+    config = BenchConfig(sizes=(BUDGET_POINTS,), accuracy_points=BUDGET_ACCURACY_POINTS, paths=("embedded",),
+                         devices=(device,), plan=plan, timing=TimingPolicy(**BUDGET_TIMING))
     cache = cache_dir(args)
     print(f"measuring the candidates of {args.mesh} ({device}, embedded, {BUDGET_POINTS:,} points per call) ...",
           file=sys.stderr)
