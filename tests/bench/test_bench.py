@@ -360,8 +360,14 @@ def test_quick_bench_measures_every_kind_embedded_and_served_with_plausible_accu
 
 
 @pytest.mark.slow
-def test_budget_bake_picks_the_fastest_collider_that_meets_it_and_checks_it_afresh(quick_bench, tmp_path, bunny):
-    """In this process (the pick is under test, not the interpreter)."""
+def test_budget_bake_picks_the_fastest_collider_that_meets_it_and_checks_it_afresh(quick_bench, tmp_path, bunny,
+                                                                                  monkeypatch):
+    """In this process (the pick is under test, not the interpreter), its fresh evaluation on
+    20,000 points per set of the bunny instead of 100,000 (the exact distances are most of its
+    cost; test_the_budget_bake_trains_neural_candidates... checks the default)."""
+    from collider_cli.commands import budget
+
+    monkeypatch.setattr(budget, "FRESH_POINTS", 20_000)
     out, report, _ = quick_bench
     mesh = bunny
     code, stdout, stderr = collider_here("bake", mesh, "--name", "picked", "--models", tmp_path,
