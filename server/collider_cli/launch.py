@@ -94,7 +94,8 @@ class ServerProcess:
         return self
 
     def stop(self, timeout_s: float = 30.0) -> int:
-        """SIGTERM, then SIGKILL after ``timeout_s``; the exit status."""
+        """SIGTERM, then SIGKILL after ``timeout_s``; the exit status. A captured output's pipe is
+        closed."""
         if self.process.poll() is None:
             self.process.terminate()
         try:
@@ -102,6 +103,9 @@ class ServerProcess:
         except subprocess.TimeoutExpired:
             self.process.kill()
             return self.process.wait()
+        finally:
+            if self.process.stdout is not None:
+                self.process.stdout.close()
 
 
 @contextlib.contextmanager
