@@ -297,13 +297,6 @@ def test_plan_stops_voxels_at_the_memory_budget_and_lists_every_neural_preset(mo
     assert {s["name"]: s.get("model") for s in other.skipped}["neural-bunny"] == "bunny"
 
 
-def collider(*args):
-    """The ``collider`` command in a subprocess (what a user runs). No timeout of its own: the
-    test's (pytest-timeout, pyproject.toml) is the deadline, and a busy machine takes longer."""
-    return subprocess.run([sys.executable, "-m", "collider_cli", *map(str, args)],
-                          capture_output=True, text=True)
-
-
 def collider_here(*args):
     """The same entry point in this process (no interpreter start-up): (exit code, stdout, stderr)."""
     result = run_collider(*args)
@@ -313,10 +306,11 @@ def collider_here(*args):
 @pytest.fixture(scope="module")
 def quick_bench(built_once, bunny):
     """``collider bench BUNNY --quick`` run once per test run (every worker's tests read the same
-    one): (output folder, report dict, stdout)."""
+    one), in the process of the worker that builds it (its served half behind a real ``collider
+    serve``): (output folder, report dict, stdout)."""
 
     def bench(out: Path) -> None:
-        result = collider("bench", bunny, "--quick", "--quiet", "--models", REPO_ROOT / "models",
+        result = run_collider("bench", bunny, "--quick", "--quiet", "--models", REPO_ROOT / "models",
                           "--output", out / "result", "--cache", out / "cache")
         assert result.returncode == 0, result.stdout + result.stderr
         (out / "stdout.txt").write_text(result.stdout)
@@ -366,9 +360,14 @@ def test_quick_bench_measures_every_kind_embedded_and_served_with_plausible_accu
 
 
 @pytest.mark.slow
-def test_budget_bake_picks_the_fastest_collider_that_meets_it_and_checks_it_afresh(quick_bench, tmp_path, bunny):
-    """In this process (the pick is under test, not the interpreter; the bench that made
-    bench.json ran as a user runs it)."""
+def test_budget_bake_picks_the_fastest_collider_that_meets_it_and_checks_it_afresh(quick_bench, tmp_path, bunny,
+                                                                                  monkeypatch):
+    """In this process (the pick is under test, not the interpreter), its fresh evaluation on
+    20,000 points per set of the bunny instead of 100,000 (the exact distances are most of its
+    cost; test_the_budget_bake_trains_neural_candidates... checks the default)."""
+    from collider_cli.commands import budget
+
+    monkeypatch.setattr(budget, "FRESH_POINTS", 20_000)
     out, report, _ = quick_bench
     mesh = bunny
     code, stdout, stderr = collider_here("bake", mesh, "--name", "picked", "--models", tmp_path,
@@ -537,20 +536,31 @@ def test_the_plot_labels_stay_readable_whatever_the_timings(quick_bench, seed):
 
 
 @pytest.mark.slow
-def test_the_budget_bake_trains_neural_candidates_and_names_every_limit_it_checked(tmp_path):
+def test_the_budget_bake_trains_neural_candidates_and_names_every_limit_it_checked(tmp_path, monkeypatch):
+    """In this process, its measurement made small (what is asserted is which candidates were
+    trained and measured, and the verdict, not their figures): 5,000 points per call and per
+    band, three rounds, 20,000 training samples per network; the pick's fresh evaluation is the
+    bake's own (100,000 points per band)."""
     import trimesh
 
+    from collider_cli.bench import plan
+    from collider_cli.commands import budget
+
+    monkeypatch.setattr(budget, "BUDGET_POINTS", 5_000)
+    monkeypatch.setattr(budget, "BUDGET_ACCURACY_POINTS", 5_000)
+    monkeypatch.setattr(budget, "BUDGET_TIMING", {"repeats": 3, "cell_budget_s": 0.2, "warmup_points": 1_000})
+    monkeypatch.setattr(plan, "BENCH_TRAINING_SAMPLES", 20_000)
     mesh = tmp_path / "ball.obj"
     trimesh.creation.icosphere(subdivisions=3, radius=0.05).export(mesh)
-    result = collider("bake", mesh, "--name", "pick", "--models", tmp_path / "models", "--max-error", "0.5mm",
-                      "--max-normal-error", "20deg", "--max-memory", "3MB", "--train-minutes", "0.05",
+    result = run_collider("bake", mesh, "--name", "pick", "--models", tmp_path / "models", "--max-error", "0.5mm",
+                      "--max-normal-error", "20deg", "--max-memory", "3MB", "--train-minutes", "0.02",
                       "--cache", tmp_path / "cache", "--quiet")
     assert result.returncode == 0, result.stdout + result.stderr
     report = json.loads((tmp_path / "cache" / "budget-pick" / "bench.json").read_text())
     trained = {r["settings"]["preset"] for r in report["colliders"] if r["build"] == "train"}
     from collider_server.engine.kinds.neural import PRESETS
 
-    assert trained == set(PRESETS)  # every preset, trained 0.05 min each, was a candidate
+    assert trained == set(PRESETS)  # every preset, trained 0.02 min each, was a candidate
     assert not [s for s in report["skipped"] if s.get("preset")]
     verdict = next(line for line in result.stdout.splitlines() if "meets the budget" in line)
     assert re.fullmatch(r"fresh evaluation \(seed 1234, 100,000 points per band\) meets the budget: mean distance "

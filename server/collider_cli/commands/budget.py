@@ -14,8 +14,14 @@ from .options import cache_dir, cache_size_line, load_placed_mesh
 
 #: Seed of the check after a pick (``collider eval``'s default; the bench uses 0 and 1).
 FRESH_SEED = 1234
-#: Points per call of the candidates' timing when the bake measures them itself.
+#: Points per set of that check (``collider eval``'s default).
+FRESH_POINTS = 100_000
+#: How the bake measures the candidates itself (no --bench): points per call of their timing,
+#: points per band of their accuracy, and the timing policy's rounds and seconds per cell
+#: (:class:`~collider_cli.bench.TimingPolicy`; ``collider bench``'s interleaved rounds).
 BUDGET_POINTS = 100_000
+BUDGET_ACCURACY_POINTS = 40_000
+BUDGET_TIMING = {"repeats": 5, "cell_budget_s": 10.0}
 
 
 def add_budget_arguments(bake) -> None:
@@ -153,8 +159,8 @@ def _budget_report(args, budget, mesh, transform, units, meters_per_unit, device
         return report
     plan = PlanConfig(padding=args.padding, train_minutes=args.train_minutes or 0.0,
                       max_memory_bytes=budget.max_memory_bytes or PlanConfig().max_memory_bytes)
-    config = BenchConfig(sizes=(BUDGET_POINTS,), paths=("embedded",), devices=(device,), plan=plan,
-                         timing=TimingPolicy(repeats=5, cell_budget_s=10.0))
+    config = BenchConfig(sizes=(BUDGET_POINTS,), accuracy_points=BUDGET_ACCURACY_POINTS, paths=("embedded",),
+                         devices=(device,), plan=plan, timing=TimingPolicy(**BUDGET_TIMING))
     cache = cache_dir(args)
     print(f"measuring the candidates of {args.mesh} ({device}, embedded, {BUDGET_POINTS:,} points per call) ...",
           file=sys.stderr)
@@ -195,13 +201,13 @@ def _build_and_check(args, row, report, budget, mesh, transform, units, meters_p
           f"{seconds * 1e6:.2f} {'CPU ' if basis == 'cpu' else ''}s per 1M points ({device}), mean distance error "
           f"{bench['distance_mean_mm']:.4f} mm, normal {bench['normal_mean_deg']:.2f} deg, "
           f"{format_bytes(row['memory_bytes'])} (measured with seed {report['config']['seed']})")
-    fresh = evaluate_collider(collider, mesh, points=100_000, seed=FRESH_SEED, reconstruction=False,
+    fresh = evaluate_collider(collider, mesh, points=FRESH_POINTS, seed=FRESH_SEED, reconstruction=False,
                               show_progress=not args.quiet)
     checks = budget.checks(fresh["band_1mm"], collider.nbytes())
     print(format_report(args.name, collider.info.kind, fresh))
     verdict = "; ".join(text for _, text in checks)
     if not all(met for met, _ in checks):
-        print(f"fresh evaluation (seed {FRESH_SEED}, 100,000 points per band) misses the budget: {verdict}; "
+        print(f"fresh evaluation (seed {FRESH_SEED}, {FRESH_POINTS:,} points per band) misses the budget: {verdict}; "
               "trying the next candidate", file=sys.stderr)
         return False
     collider.info.name = args.name
@@ -213,7 +219,7 @@ def _build_and_check(args, row, report, budget, mesh, transform, units, meters_p
         "max_memory_bytes": budget.max_memory_bytes, "candidate": row["name"],
         "bench_seconds_per_million": seconds * 1e6}
     path = save_collider(collider, repo.path(args.name))
-    print(f"fresh evaluation (seed {FRESH_SEED}, 100,000 points per band) meets the budget: {verdict}")
+    print(f"fresh evaluation (seed {FRESH_SEED}, {FRESH_POINTS:,} points per band) meets the budget: {verdict}")
     print(f"sign errors: {fresh['band_1mm']['sign_errors_percent']:.2f} % of the +-1 mm band points farther than "
           "0.2 mm from the surface (fresh evaluation, against the exact winding-number sign)"
           + ("" if check.watertight else "; the mesh is not watertight: sign errors gather near its holes"))
