@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from collider_server.engine.meshes import ExactSDF, Mesh
+from collider_server.engine.meshes import ExactSDF, Mesh, unsigned_distance
 from collider_server.making.mesh_files import MeshError, load_mesh
 
 
@@ -161,3 +161,17 @@ def test_text_formats_refuse_binary_data_but_not_other_encodings(tmp_path):
     latin.write_bytes("# Créé à Paris\nv 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\n"
                       "f 1 3 2\nf 1 2 4\nf 1 4 3\nf 2 3 4\n".encode("latin-1"))
     assert load_mesh(latin).faces.shape == (4, 3)
+
+
+def test_the_unsigned_distance_of_a_surface_that_does_not_cross_itself_is_the_exact_sdfs_size():
+    """:func:`unsigned_distance` (no union, no sign: the reconstruction check's other direction)
+    against the exact SDF's magnitude on an icosphere (radius 0.1 m), points inside and out, and
+    against the analytic sphere within the facets' sag."""
+    import trimesh
+
+    sphere = trimesh.creation.icosphere(subdivisions=3, radius=0.1)
+    mesh = Mesh(sphere.vertices, sphere.faces, "sphere")
+    points = np.random.default_rng(3).normal(size=(2000, 3)) * 0.08
+    distance = unsigned_distance(mesh, points)
+    np.testing.assert_allclose(distance, np.abs(ExactSDF(mesh).query(points)[0]), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(distance, np.abs(np.linalg.norm(points, axis=1) - 0.1), rtol=0, atol=1e-3)

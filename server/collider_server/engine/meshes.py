@@ -189,6 +189,20 @@ class ExactSDF:
         return normals
 
 
+def unsigned_distance(mesh: Mesh, points: np.ndarray) -> np.ndarray:
+    """(n,) float64 distance from ``points`` (n, 3) to the nearest of ``mesh``'s own faces, mesh
+    units and frame: no sign, no union (:class:`ExactSDF` builds both), for a surface that does
+    not cross itself (a marching-cubes level set), where the two are the same distance."""
+    import igl
+
+    vertices = np.ascontiguousarray(mesh.vertices, dtype=np.float64)
+    faces = np.ascontiguousarray(mesh.faces, dtype=np.int64)
+    tree = igl.AABB()
+    tree.init(vertices, faces)
+    squared = tree.squared_distance(vertices, faces, np.ascontiguousarray(points, dtype=np.float64))[0]
+    return np.sqrt(np.maximum(squared, 0.0))
+
+
 def barycentric(points: np.ndarray, tri: np.ndarray) -> np.ndarray:
     """(m, 3) barycentric coordinates of ``points`` (m, 3) in triangles ``tri`` (m, 3, 3);
     degenerate triangles give (1, 0, 0)."""
