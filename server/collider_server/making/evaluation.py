@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import time
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -48,28 +49,52 @@ def point_sets(collider: Collider, mesh: Mesh, points: int, seed: int) -> dict[s
     return sets
 
 
+class Reference(NamedTuple):
+    """The exact SDF at a set of points, which every collider measured there is compared with
+    (:func:`exact_reference`): ``distance`` (n,) float64 (collider units, negative inside),
+    ``normal`` (n, 3) float64 unit gradient, ``clear`` (n,) bool: the winding number is clear
+    (:data:`CLEAR_WINDING`); ``points``: the array they were computed at (the only one they
+    answer for: :func:`point_errors` refuses another)."""
+
+    distance: np.ndarray
+    normal: np.ndarray
+    clear: np.ndarray
+    points: np.ndarray
+
+
+def exact_reference(sdf: ExactSDF, points: np.ndarray) -> Reference:
+    """:class:`Reference` of ``sdf`` at ``points`` (n, 3) (collider frame): computed once for a
+    point set that several colliders are measured on (a bench's candidates)."""
+    truth, closest, face = sdf.query(points)
+    winding = sdf.winding_number(points)
+    return Reference(truth, sdf.gradient(points, truth, closest, face),
+                     (winding < CLEAR_WINDING[0]) | (winding > CLEAR_WINDING[1]), points)
+
+
 def point_errors(collider: Collider, sdf: ExactSDF, points: np.ndarray,
-                 time: float | None = None, skeleton: dict | None = None) -> dict[str, np.ndarray]:
+                 time: float | None = None, skeleton: dict | None = None,
+                 reference: Reference | None = None) -> dict[str, np.ndarray]:
     """Per point of ``points`` (collider frame), ``collider`` asked at ``time`` seconds (an
     animated one; ``sdf`` the exact SDF of its surface at that time) and at the skeleton pose
     ``skeleton`` (a skinned one: ``{"clip": name}`` with ``time``, or ``{"joint_transforms": (J,
     4, 4)}``, the query's keywords) against ``sdf``: distance
     error (mm), whether the true sign is decided (|d| > 0.2 mm) and the sign wrong, normal angle
-    error (deg), contact error (mm) and whether the winding number is clear."""
+    error (deg), contact error (mm) and whether the winding number is clear. ``reference``:
+    :func:`exact_reference` of ``sdf`` at ``points`` where the caller has it."""
     to_mm = 1000.0 * collider.info.meters_per_unit
     eps = collider.info.default_eps
-    truth, closest, face = sdf.query(points)
-    true_normal = sdf.gradient(points, truth, closest, face)
+    if reference is not None and reference.points is not points:
+        raise ValueError("the reference was computed at other points than those measured")
+    truth, true_normal, clear, _ = reference if reference is not None else exact_reference(sdf, points)
     result = collider.query(points, ["distance", "normal", "contact"], eps=eps, time=time, **(skeleton or {}))
     cosine = np.clip(np.einsum("ij,ij->i", result.normal.astype(np.float64), true_normal), -1.0, 1.0)
-    winding = sdf.winding_number(points)
     return {
         "distance": np.abs(result.distance.astype(np.float64) - truth) * to_mm,
         "decided": np.abs(truth) * to_mm > SIGN_THRESHOLD_M * 1000.0,
         "sign_wrong": (result.distance < 0) != (truth < 0),
         "normal": np.degrees(np.arccos(cosine)),
         "contact": np.abs(sdf.signed_distance(result.contact.astype(np.float64)) - eps) * to_mm,
-        "clear": (winding < CLEAR_WINDING[0]) | (winding > CLEAR_WINDING[1]),
+        "clear": clear,
     }
 
 
@@ -104,11 +129,12 @@ def summarize(errors: dict[str, np.ndarray]) -> dict:
             "ambiguous_winding_percent": float(100.0 * (1.0 - clear.mean())) if len(clear) else 0.0}
 
 
-def error_figures(collider: Collider, sdf: ExactSDF, points: np.ndarray, time: float | None = None) -> dict:
+def error_figures(collider: Collider, sdf: ExactSDF, points: np.ndarray, time: float | None = None,
+                  reference: Reference | None = None) -> dict:
     """Distance, sign, normal and contact errors of ``collider`` at ``points`` (collider frame,
     at ``time`` seconds for an animated one), for all of them and, under ``clear_winding``, for
     those where the winding number is clear."""
-    return summarize(point_errors(collider, sdf, points, time))
+    return summarize(point_errors(collider, sdf, points, time, reference=reference))
 
 
 def animated_error_figures(collider: Collider, animation: AnimatedMesh, times, points: int, seed: int,
