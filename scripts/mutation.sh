@@ -56,8 +56,9 @@ write_config() {  # the mutmut section of NAME's setup.cfg: files to mutate, tes
   # Help and description texts of CLI options are documentation, not behaviour: not mutated
   # (their first line; the tests check that help states each option's real default).
   printf '%s\n' "do_not_mutate_patterns =" "    \\b(help|description)="
+  # The tests read the shipped models and the examples (their meshes, animations, scripts).
   echo "also_copy ="
-  printf '    %s\n' models mutation_one_thread.py
+  printf '    %s\n' models examples mutation_one_thread.py
 }
 
 make_scratch_copy() {
