@@ -35,7 +35,7 @@ MODULES=(
   # The browser views (viser): their pages are built on a real viser server and driven through
   # their controls' callbacks in process; the page itself is also checked in a real browser
   # (tests/views/test_browser.py, which mutmut cannot see).
-  "views|server/collider_cli/views/*|tests/views/test_view_parts.py tests/views/test_page.py tests/views/test_collider_page.py tests/views/test_cloth_page.py"
+  "views|server/collider_cli/views/*|tests/views/test_view_parts.py tests/views/test_page.py tests/views/test_collider_page.py tests/views/test_cloth_page.py tests/views/test_animated_page.py tests/views/test_skinned_page.py"
 )
 #: The packages, each under server/ or client/, that a scratch copy imports from src/.
 PACKAGES=(client/collider_contract client/collider_client server/collider_server server/collider_cli)
