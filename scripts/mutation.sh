@@ -5,6 +5,8 @@
 #   scripts/mutation.sh                  # every core module (hours on a 2-core machine)
 #   scripts/mutation.sh pose response    # only these (names below)
 #   JOBS=1 scripts/mutation.sh pose      # mutmut workers (default 2)
+#   SAMPLE=150 scripts/mutation.sh pose  # a fresh run of only a random 150 of the mutants (an
+#                                        # estimate; the same draw each time for the same mutants)
 #   RECHECK=1 scripts/mutation.sh pose   # after changing code or tests: bring both into the
 #                                        # scratch copy and re-run the last run's survivors, and
 #                                        # the mutants unchecked (new, or left by an interrupted run)
@@ -33,7 +35,7 @@ MODULES=(
   # The browser views (viser): their pages are built on a real viser server and driven through
   # their controls' callbacks in process; the page itself is also checked in a real browser
   # (tests/views/test_browser.py, which mutmut cannot see).
-  "views|server/collider_cli/views/*|tests/views/test_view_parts.py tests/views/test_page.py tests/views/test_collider_page.py tests/views/test_cloth_page.py"
+  "views|server/collider_cli/views/*|tests/views/test_view_parts.py tests/views/test_page.py tests/views/test_collider_page.py tests/views/test_cloth_page.py tests/views/test_animated_page.py tests/views/test_skinned_page.py"
 )
 #: The packages, each under server/ or client/, that a scratch copy imports from src/.
 PACKAGES=(client/collider_contract client/collider_client server/collider_server server/collider_cli)
@@ -54,8 +56,9 @@ write_config() {  # the mutmut section of NAME's setup.cfg: files to mutate, tes
   # Help and description texts of CLI options are documentation, not behaviour: not mutated
   # (their first line; the tests check that help states each option's real default).
   printf '%s\n' "do_not_mutate_patterns =" "    \\b(help|description)="
+  # The tests read the shipped models and the examples (their meshes, animations, scripts).
   echo "also_copy ="
-  printf '    %s\n' models mutation_one_thread.py
+  printf '    %s\n' models examples mutation_one_thread.py
 }
 
 make_scratch_copy() {
@@ -80,7 +83,7 @@ make_scratch_copy() {
 with_status() {  # the mutants of results.txt with one of the statuses given, one name per line
   local pattern
   pattern=$(IFS="|"; echo "$*")
-  grep -E ": ($pattern)$" results.txt | sed -E "s/^ *//; s/: ($pattern)$//"
+  { grep -E ": ($pattern)$" results.txt || true; } | sed -E "s/^ *//; s/: ($pattern)$//"  # none: no lines
 }
 
 survivors() { with_status survived "no tests"; }
@@ -101,8 +104,9 @@ summarise() {
   for m in $(survivors); do mutmut show "$m" >> survivors.txt 2>&1 || true; done
 }
 
-recheck_list() {  # last run's survivors, then the unchecked mutants (SAMPLE: a random N of them)
+run_list() {  # last run's survivors (none in a fresh run), then the unchecked (SAMPLE: a random N)
   survivors
+  # A fixed random source: the same mutants give the same sample, so a figure can be reproduced.
   with_status "not checked" | shuf --random-source=<(yes) | head -n "${SAMPLE:--0}"
 }
 
@@ -129,16 +133,17 @@ run_module() {
     cd "$dir"
     unset PYTHONPATH
     export OMP_NUM_THREADS=1 NUMBA_NUM_THREADS=1 NUMBA_THREADING_LAYER=workqueue PYTHONPATH=.
-    if [ -n "${RECHECK:-}" ]; then
-      # A first invocation makes the new mutants and collects the new tests' stats, then stops
-      # (no mutant has that name): mutants run in the invocation that collects the stats were
-      # seen to miss the new tests.
+    if [ -n "${RECHECK:-}" ] || [ -n "${SAMPLE:-}" ]; then
+      # A first invocation makes the (new) mutants and collects the (new) tests' stats, then
+      # stops (no mutant has that name): mutants run in the invocation that collects the stats
+      # were seen to miss the new tests. Then only the chosen mutants run.
       mutmut run --max-children 1 collect-stats-only > run.log 2>&1 || true
       mutmut results --all true > results.txt 2>&1 || true
-      local only=()
-      mapfile -t only < <(recheck_list)
-      echo "== $name: rechecking $(survivors | wc -l) survivors and" \
-           "$((${#only[@]} - $(survivors | wc -l))) unchecked mutants"
+      local only=() survived unchecked
+      survived=$(survivors | wc -l); unchecked=$(with_status "not checked" | wc -l)
+      mapfile -t only < <(run_list)
+      echo "== $name: running $survived survivors and $((${#only[@]} - survived)) of" \
+           "$unchecked unchecked mutants"
       if [ ${#only[@]} -gt 0 ]; then
         mutmut run --max-children "$JOBS" "${only[@]}" >> run.log 2>&1 || true
       fi

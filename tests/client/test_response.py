@@ -453,9 +453,13 @@ def test_a_push_deeper_than_the_point_could_have_gone_since_the_last_call_is_bou
     assert mask.all()
     np.testing.assert_allclose(pos[:, 2], [-29e-3, 1e-3], atol=1e-9)
     assert hook.stats.bounded_pushes == 1
-    pos, _, _ = hook.apply(np.array([[0.1, 0.0, -30e-3]] * 3), np.zeros((3, 3)), 2e-3, 1e-3)
+    # Bounded again in the next call: the count adds up over the calls.
+    pos, _, _ = hook.apply(np.array([[0.1, 0.0, -30e-3], [0.2, 0.0, 5e-3]]), np.zeros((2, 3)), 2e-3, 1e-3)
+    np.testing.assert_allclose(pos[:, 2], [-29e-3, 5e-3], atol=1e-9)
+    assert hook.stats.bounded_pushes == 2
+    pos, _, _ = hook.apply(np.array([[0.1, 0.0, -30e-3]] * 3), np.zeros((3, 3)), 3e-3, 1e-3)
     np.testing.assert_allclose(pos[:, 2], 1e-3, atol=1e-9)
-    assert hook.stats.bounded_pushes == 1
+    assert hook.stats.bounded_pushes == 2
 
 
 def test_hook_without_check_step_is_refused_by_default_for_a_fast_point(exact_client):

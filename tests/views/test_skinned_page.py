@@ -49,3 +49,23 @@ def test_the_time_slider_poses_the_character(page, collider):
     tip = pose_at(skin, None, 1.5, "clamp")[0][1, :3, 3]
     np.testing.assert_allclose(bones[0, 1], tip, atol=1e-6)  # joint 1's segment ends at it
     assert np.abs(node(page.server, "/skin").vertices - skin.vertices).max() > 0.05  # it bends
+
+
+def test_a_skin_with_no_clips_is_shown_at_its_rest_pose(collider):
+    """A skin without clips (glTF allows it): no clip dropdown and no time slider; the page draws
+    the skin at its rest pose and says so."""
+    from dataclasses import replace
+
+    from collider_cli.views.skinned import serve_skinned_view
+    from collider_server.engine.kinds.skinned import SkinnedCollider
+    from collider_server.engine.skinning import skin_vertices
+
+    clipless = SkinnedCollider(collider.info, replace(collider.skin, clips=()))
+    page = serve_skinned_view(clipless, host="127.0.0.1", port=0)
+    try:
+        assert page.clip is None and page.time is None
+        rest = skin_vertices(collider.skin, collider.skin.skeleton.rest_world())
+        np.testing.assert_allclose(node(page.server, "/skin").vertices, rest, atol=1e-6)
+        assert page.label.content.startswith("**rest pose**: ") and page.label.content.endswith("no clips")
+    finally:
+        page.server.stop()

@@ -140,3 +140,21 @@ def test_the_newton_kernel_s_velocity_is_the_skinning_s_motion_at_its_rest_point
     # Without the kernel (numpy) or without a motion there is none: blend_at answers then.
     assert carried_rows(*args, fused=False, moving=moving).velocity is None
     assert carried_rows(*args).velocity is None
+
+
+def test_with_no_skinning_steps_each_row_keeps_its_part_s_rigid_image_and_map(arm):
+    """0 iterations (a rigid-parts model): every row is usable and converged at its part's rigid
+    image, and its map is that part's linear map (m, 3, 3), so the gradient's pull-back is the
+    same through the numba pass and numpy."""
+    _, centre, radius, _, _, field, to_rest, posed, _, points = arm
+    point, joint, rigid = _candidates(arm)
+    carried = carried_rows(points, point, joint, rigid, to_rest, posed, field, centre, radius, 0)
+    assert carried.usable.all() and carried.converged.all() and carried.velocity is None
+    np.testing.assert_array_equal(carried.rest, rigid)
+    assert carried.inverse.shape == (len(point), 3, 3)
+    for r in np.random.default_rng(9).choice(len(point), 50, replace=False):
+        np.testing.assert_allclose(carried.inverse[r], np.linalg.inv(posed[joint[r]])[:3, :3], rtol=0, atol=1e-12)
+    gradient = np.random.default_rng(10).normal(size=(len(point), 3))
+    row = np.arange(len(point))
+    np.testing.assert_allclose(pull_back(gradient, carried.inverse, row),
+                               pull_back(gradient, carried.inverse, row, fused=False), rtol=0, atol=1e-14)
