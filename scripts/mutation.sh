@@ -27,8 +27,8 @@ JOBS="${JOBS:-2}"
 SIM=client/collider_client/sim
 MODULES=(
   "contract|client/collider_contract/*|tests/contract"
-  "collider|server/collider_server/engine/collider.py|tests/engine/test_collider.py tests/engine/test_only_colliding.py tests/engine/test_modelfile.py tests/hard_cases/test_engine_hard_cases.py tests/client/test_backends.py"
-  "kinds|server/collider_server/engine/kinds/*|tests/engine/kinds tests/engine/test_modelfile.py tests/engine/test_analytic.py tests/engine/test_only_colliding.py tests/hard_cases/test_engine_hard_cases.py"
+  "collider|server/collider_server/engine/collider.py|tests/engine/test_collider.py tests/engine/test_only_colliding.py tests/engine/test_modelfile.py tests/hard_cases/test_engine_hard_cases.py tests/client/test_backends.py tests/engine/kinds/test_skinned.py"
+  "kinds|server/collider_server/engine/kinds/*|tests/engine/kinds tests/engine/test_modelfile.py tests/engine/test_analytic.py tests/engine/test_only_colliding.py tests/hard_cases/test_engine_hard_cases.py tests/engine/test_real_meshes.py"
   "batching|server/collider_server/service/batching.py|tests/service/test_batching.py"
   "response|client/collider_client/response.py client/collider_client/physics.py client/collider_client/placement.py|tests/client/test_response.py tests/client/test_newton_adapter.py tests/hard_cases/test_simulator_hard_cases.py"
   "sim|$SIM/cloth.py $SIM/output.py $SIM/run.py $SIM/scene.py $SIM/simulator.py|tests/hard_cases/test_simulator_hard_cases.py tests/client/test_scene.py tests/client/test_simulator.py"
