@@ -39,10 +39,6 @@ EXTRA_OF_MODULE = {"torch": "serve", "scipy": "serve", "igl": "serve", "safetens
 #: written), with status 143.
 LONG_COMMANDS = ("simulate", "train", "bench", "bake", "eval")
 
-#: Native extensions a long command loads on its way, imported before SIGTERM is handled: the
-#: interrupt raised while libigl's bindings initialise ended the process in C++'s terminate
-#: (status -6) or with an ImportError traceback (status 1), not with status 143.
-NATIVE_MODULES = ("igl",)
 
 
 class OneLineParser(argparse.ArgumentParser):
@@ -94,9 +90,12 @@ def main(argv: list[str] | None = None) -> int:
     global _terminated
     _terminated = False
     if args.command in LONG_COMMANDS:
-        for name in NATIVE_MODULES:
-            if importlib.util.find_spec(name) is not None:
-                importlib.import_module(name)
+        # The interrupt raised while libigl's bindings initialise ended the process in C++'s
+        # terminate (status -6) or with an ImportError traceback (status 1), not with 143.
+        if importlib.util.find_spec("collider_server") is not None:
+            from collider_server.engine.meshes import load_libigl
+
+            load_libigl()
         previous = signal.signal(signal.SIGTERM, _raise_terminated)
     try:
         return int(args.func(args) or 0)

@@ -12,6 +12,7 @@ so that a contact lands outside the body. Reading mesh files is model making's j
 
 from __future__ import annotations
 
+import importlib.util
 import threading
 from dataclasses import dataclass
 
@@ -187,6 +188,14 @@ class ExactSDF:
         bad = np.linalg.norm(normals, axis=1) < 0.5
         normals[bad] = self._face_normals[face[bad]]
         return normals
+
+
+def load_libigl() -> None:
+    """Import libigl's bindings now, where installed (the exact SDF imports them on first use):
+    for a caller about to handle a signal by raising an exception, since one raised while the
+    bindings initialise ends the process in C++'s terminate instead."""
+    if importlib.util.find_spec("igl") is not None:
+        import igl  # noqa: F401
 
 
 def unsigned_distance(mesh: Mesh, points: np.ndarray) -> np.ndarray:
