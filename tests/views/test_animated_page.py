@@ -11,6 +11,8 @@ frames: 0.125 s (frame 1.5) and 0.3125 s (frame 3.75), on the slider's steps (1/
 from __future__ import annotations
 
 import time
+from dataclasses import replace
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -60,6 +62,9 @@ def test_time_step_and_label_by_hand(pulse):
 
     _, _, collider = pulse
     assert time_step_s(collider) == pytest.approx(1 / 48)  # a quarter of a 12 fps frame
+    # A model whose source names no frame rate (made from no animation file): its own frames'.
+    source = {k: v for k, v in collider.info.source.items() if k != "frame_rate_hz"}
+    assert time_step_s(SimpleNamespace(info=replace(collider.info, source=source))) == pytest.approx(1 / 48)
     loop = Timeline(13, 12.0, loop=True)
     assert time_text(loop, 0.3125) == "**t = 0.3125 s**: frame 3.75 of 0..12 (12 fps, 1 s, loops)"
     assert time_text(loop, 1.0) == "**t = 1 s**: frame 0.00 of 0..12 (12 fps, 1 s, loops)"
