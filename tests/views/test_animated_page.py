@@ -187,3 +187,19 @@ def test_play_runs_the_time_on_and_stops(page):
     assert not player.is_alive(), "play did not stop"
     stopped = page.time.value
     assert page.time_label.content.startswith(f"**t = {stopped:.4g} s**")
+
+
+def test_an_animated_collider_and_a_still_mesh_are_refused_either_way_round(pulse):
+    """The view measures a collider against the exact surface of its own kind: an animated
+    collider with a still mesh, or a still collider with an animation, is refused by name before
+    any server starts."""
+    from collider_cli.views.collider import serve_collider_view
+    from collider_server.making.bake import bake_collider
+
+    animation, _, collider = pulse
+    still = animation.mesh_at(0.0)
+    with pytest.raises(ValueError, match=r"^pulse is animated: the exact mesh must be animated too$"):
+        serve_collider_view(collider, still, host="127.0.0.1", port=0, resolution=RESOLUTION, show_progress=False)
+    ball = bake_collider(still, "voxel", "ball", resolution=16, show_progress=False, device="cpu")
+    with pytest.raises(ValueError, match=r"^ball is static: the exact mesh must be static too$"):
+        serve_collider_view(ball, animation, host="127.0.0.1", port=0, resolution=RESOLUTION, show_progress=False)
