@@ -40,7 +40,6 @@ EXTRA_OF_MODULE = {"torch": "serve", "scipy": "serve", "igl": "serve", "safetens
 LONG_COMMANDS = ("simulate", "train", "bench", "bake", "eval")
 
 
-
 class OneLineParser(argparse.ArgumentParser):
     """An argparse parser whose refusals are one line (``collider bake: error: ...``) and
     exit status 2, like every other user error of the command."""
@@ -91,7 +90,7 @@ def main(argv: list[str] | None = None) -> int:
     _terminated = False
     if args.command in LONG_COMMANDS:
         # The interrupt raised while libigl's bindings initialise ended the process in C++'s
-        # terminate (status -6) or with an ImportError traceback (status 1), not with 143.
+        # terminate (status -6) or with a traceback (status 1), not with 143.
         if importlib.util.find_spec("collider_server") is not None:
             from collider_server.engine.meshes import load_libigl
 
