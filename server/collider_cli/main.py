@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import argparse
 import importlib
-import importlib.util
 import signal
 import sys
 
@@ -91,10 +90,9 @@ def main(argv: list[str] | None = None) -> int:
     if args.command in LONG_COMMANDS:
         # The interrupt raised while libigl's bindings initialise ended the process in C++'s
         # terminate (status -6) or with a traceback (status 1), not with 143.
-        if importlib.util.find_spec("collider_server") is not None:
-            from collider_server.engine.meshes import load_libigl
+        from collider_server.engine.meshes import load_libigl  # one distribution: always there
 
-            load_libigl()
+        load_libigl()
         previous = signal.signal(signal.SIGTERM, _raise_terminated)
     try:
         return int(args.func(args) or 0)

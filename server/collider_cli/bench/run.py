@@ -201,14 +201,13 @@ def point_sets(mesh: Mesh, config: BenchConfig, meters_per_unit: float) -> dict[
 ACCURACY_BANDS = ("band_1mm", "band_10mm")
 
 
-def candidate_row(candidate: Candidate, collider, sdf: ExactSDF, sets: dict, references: dict | None = None) -> dict:
+def candidate_row(candidate: Candidate, collider, sdf: ExactSDF, sets: dict, references: dict) -> dict:
     """Everything but the timings of one candidate: accuracy per band, build cost, memory.
     ``references``: band -> the exact SDF at its points (:func:`exact_reference`), the same for
     every candidate."""
     from collider_server.making.evaluation import error_figures
 
-    references = references or {}
-    accuracy = {band: error_figures(collider, sdf, sets[band], reference=references.get(band))
+    accuracy = {band: error_figures(collider, sdf, sets[band], reference=references[band])
                 for band in ACCURACY_BANDS}
     return {**candidate.to_dict(), "file_bytes": int(candidate.path.stat().st_size),
             "memory_bytes": int(collider.nbytes()), "accuracy": accuracy, "timings": []}
