@@ -87,3 +87,68 @@ def test_the_candidate_rule_is_checked():
     with pytest.raises(ValueError, match="candidate_rule must be one of own-label, retry-labels"):
         ns.ArticulatedGridArchitecture(candidate_rule="everything")
     assert ns.ArticulatedGridArchitecture().candidate_rule == "own-label"  # the first files' rule
+
+
+def test_the_query_answers_from_the_groups_as_from_the_joined_rows(walker):
+    """The query takes the first and the retried rows as two groups (no join of a million rows):
+    distance, normal and velocity are those of the joined rows (candidate_rows_through_skinning)
+    through the network, the union and the pull-back, bit for bit, at a pose where points are
+    retried (an untrained network with random weights: the parts answer apart)."""
+    import dataclasses
+
+    import torch
+
+    from collider_contract.skeleton import SkeletonPose
+    from collider_server.engine.skinning import pose_at
+
+    skin, _, exact, centre, radius, labels, boxes, field, _ = walker
+    arch = ns.ArticulatedGridArchitecture(joints=skin.skeleton.joint_count, skinning_solver="newton",
+                                          skinning_iterations=8, fine_weight_resolution=128,
+                                          weight_blocks=len(field.block_joints), candidate_rule="retry-labels",
+                                          table_log2=12, levels=4, max_resolution=64)
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(5)
+        network = ns.build_articulated_network(arch, centre, radius)
+        with torch.no_grad():
+            network.grid.table.normal_(0.0, 0.1)
+            network.embedding.normal_(0.0, 0.1)
+            network.condition.normal_(0.0, 0.1)
+    network.labels.copy_(torch.from_numpy(labels))
+    network.part_boxes.copy_(torch.from_numpy(boxes))
+    network.set_weight_field(field)
+    info = dataclasses.replace(exact.info, kind=ns.ArticulatedNeuralCollider.kind,
+                               settings={**exact.info.settings, "architecture": dataclasses.asdict(arch)})
+    collider = ns.ArticulatedNeuralCollider(info, skin, network.eval(), device="cpu")
+    transforms = random_poses(skin, 1, 2031, perturbed_share=1.0).transforms[0]
+    _, velocities = pose_at(skin, skin.clips[0].name, 0.3)
+    points = surface_band_points(Mesh(skin_vertices(skin, transforms), skin.faces, "posed"), 4000, 1e-3, 3)
+    pose = SkeletonPose(joint_transforms=transforms, joint_velocities=velocities)
+    distance_now, gradient_now, velocity_now = collider.evaluate_at(points, True, None, pose)
+    # The reference: the joined rows, as the query took them before the groups.
+    to_rest, posed, moving, bias = collider.pose(None, pose)
+    mine = (collider.labels, collider.centre, collider.radius, collider.allowed, collider.part_boxes, collider.weights)
+    first, retried = ns.candidate_groups_through_skinning(points, to_rest, posed, *mine, 8, "newton", "retry-labels",
+                                                          moving=moving)
+    assert retried is not None and 0 < retried.rows.usable.sum() < 0.01 * len(points)  # some points retried
+    point, joint, rows = ns.candidate_rows_through_skinning(points, to_rest, posed, *mine, 8, "newton", "retry-labels",
+                                                            moving=moving)
+    # The network's values per group, as the query asks them (the fused kernel's float32 rounding
+    # depends on a row's block), then moved to the joined rows by (point, joint): one row each.
+    values = [collider._part_values(g.rows.rest, g.joint, bias, True) for g in (first, retried)]
+    joints = skin.skeleton.joint_count
+    keys = np.concatenate([first.point * joints + first.joint, retried.point * joints + retried.joint])
+    found = np.unique(retried.point[retried.rows.usable])  # the points answered by their retried rows
+    kept = np.concatenate([~np.isin(first.point, found), np.isin(retried.point, found)])
+    order = np.argsort(np.where(kept, keys, -1), kind="stable")
+    source = order[np.searchsorted(np.where(kept, keys, -1)[order], point * joints + joint)]
+    distance = np.concatenate([values[0][0], values[1][0]])[source]
+    gradient = np.concatenate([values[0][1], values[1][1]])[source]
+    np.testing.assert_array_equal(np.concatenate([first.rows.rest, retried.rows.rest])[source], rows.rest)
+    best, best_row = ns.union_of_parts(distance, point, rows.usable, len(points))
+    np.testing.assert_array_equal(distance_now, best)
+    np.testing.assert_array_equal(gradient_now, ns.pull_back(gradient, rows.inverse, best_row))
+    np.testing.assert_array_equal(velocity_now, rows.velocity[best_row])
+    # The retried points answer from their retried rows (the first ones, which found no root, are
+    # not usable there).
+    assert not first.rows.usable[np.isin(first.point, found)].any()
+    assert np.isfinite(distance_now[found]).all()

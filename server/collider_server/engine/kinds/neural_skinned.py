@@ -830,11 +830,21 @@ def parts_through_skinning(points: np.ndarray, to_rest: np.ndarray, posed: np.nd
     return point[keep], joint[keep], carried.rest[keep], carried.inverse[keep]
 
 
-def candidate_rows_through_skinning(points: np.ndarray, to_rest: np.ndarray, posed: np.ndarray, labels: np.ndarray,
-                                    centre, radius: float, allowed: np.ndarray, part_boxes: np.ndarray, field,
-                                    iterations: int, solver: str, rule: str = "own-label", fused: bool = True,
-                                    moving: np.ndarray | None = None, rest_boxes: np.ndarray | None = None
-                                    ) -> tuple[np.ndarray, np.ndarray, CarriedRows]:
+class CandidateRows(NamedTuple):
+    """A group of candidate rows (:func:`candidate_groups_through_skinning`): ``point`` (m,) int64
+    (indices into the query's points), ``joint`` (m,) int64 and ``rows`` (:class:`CarriedRows`)."""
+
+    point: np.ndarray
+    joint: np.ndarray
+    rows: CarriedRows
+
+
+def candidate_groups_through_skinning(points: np.ndarray, to_rest: np.ndarray, posed: np.ndarray,
+                                      labels: np.ndarray, centre, radius: float, allowed: np.ndarray,
+                                      part_boxes: np.ndarray, field, iterations: int, solver: str,
+                                      rule: str = "own-label", fused: bool = True, moving: np.ndarray | None = None,
+                                      rest_boxes: np.ndarray | None = None
+                                      ) -> tuple[CandidateRows, CandidateRows | None]:
     """The candidate rule (``rule``, :data:`CANDIDATE_RULES`) in its one home, for the query and
     the training alike: :func:`part_candidates` (the label at each part's rigid image), carried on
     through the skinning by :func:`carried_rows`; with ``retry-labels``, a point none of whose
@@ -845,9 +855,12 @@ def candidate_rows_through_skinning(points: np.ndarray, to_rest: np.ndarray, pos
     :func:`carried_rows`'; the rest (``rest_boxes`` too) as :func:`part_candidates` and
     :func:`carry_to_rest`.
 
-    Returns ``(point (m,) int64, joint (m,) int64, rows)``: every row (:class:`CarriedRows`; the
-    union reads only the ``usable`` ones), sorted by joint (within a joint by point, the retried
-    rows after the first ones), one row per point and joint, every point with a usable row."""
+    Returns ``(first, retried)`` (:class:`CandidateRows`), the rows as they were carried, not
+    joined (the query's: no copies of a million rows for the few retried ones): the first rows
+    (sorted by joint, then point) and the retried ones (the same order; None where none were
+    tried), ``usable`` telling in each which rows count. A point's usable rows are all in one
+    group: where a retried row reached a root, none of the point's first rows is usable
+    (:func:`candidate_rows_through_skinning` joins the two)."""
     if rule not in CANDIDATE_RULES:
         raise ValueError(f"candidate rule must be one of {', '.join(CANDIDATE_RULES)}, got {rule!r}")
     point, joint, rigid = part_candidates(points, to_rest, labels, centre, radius, allowed, part_boxes, fused,
@@ -855,7 +868,7 @@ def candidate_rows_through_skinning(points: np.ndarray, to_rest: np.ndarray, pos
     carried = carried_rows(points, point, joint, rigid, to_rest, posed, field, centre, radius, iterations, solver,
                            fused, moving)
     if rule != "retry-labels" or carried.converged.all():
-        return point, joint, carried
+        return CandidateRows(point, joint, carried), None
     reached = np.zeros(len(points), bool)
     reached[point[carried.converged]] = True
     lost = np.unique(point[~reached[point]])  # points with rows, none of which reached a root
@@ -866,7 +879,7 @@ def candidate_rows_through_skinning(points: np.ndarray, to_rest: np.ndarray, pos
     seen[joint[tried], where[point[tried]]] = False  # tried already
     retry_joint, column = np.nonzero(seen)
     if not len(column):
-        return point, joint, carried
+        return CandidateRows(point, joint, carried), None
     retry_point = lost[column]
     retry_rigid = (np.einsum("mab,mb->ma", to_rest[retry_joint, :, :3], points[retry_point])
                    + to_rest[retry_joint, :, 3])
@@ -874,20 +887,47 @@ def candidate_rows_through_skinning(points: np.ndarray, to_rest: np.ndarray, pos
                          iterations, solver, fused, moving)
     found = np.zeros(len(points), bool)
     found[retry_point[again.converged]] = True  # a root reached: these rows replace the first ones
-    first, second = ~found[point], found[retry_point]
-    joint = np.concatenate([joint[first], retry_joint[second]])
+    lost_rows = np.flatnonzero(found[point])
+    first_usable = carried.usable.copy() if len(lost_rows) else carried.usable
+    first_usable[lost_rows] = False
+    return (CandidateRows(point, joint, carried._replace(usable=first_usable)),
+            CandidateRows(retry_point, retry_joint, again._replace(usable=again.usable & found[retry_point])))
+
+
+def candidate_rows_through_skinning(points: np.ndarray, to_rest: np.ndarray, posed: np.ndarray, labels: np.ndarray,
+                                    centre, radius: float, allowed: np.ndarray, part_boxes: np.ndarray, field,
+                                    iterations: int, solver: str, rule: str = "own-label", fused: bool = True,
+                                    moving: np.ndarray | None = None, rest_boxes: np.ndarray | None = None
+                                    ) -> tuple[np.ndarray, np.ndarray, CarriedRows]:
+    """:func:`candidate_groups_through_skinning`'s two groups joined into one: the first rows of
+    the points whose retried rows reached no root, then those retried rows, in one order.
+
+    Returns ``(point (m,) int64, joint (m,) int64, rows)``: every row (:class:`CarriedRows`; the
+    union reads only the ``usable`` ones), sorted by joint (within a joint by point, the retried
+    rows after the first ones), one row per point and joint, every point with a usable row."""
+    first, retried = candidate_groups_through_skinning(points, to_rest, posed, labels, centre, radius, allowed,
+                                                       part_boxes, field, iterations, solver, rule, fused, moving,
+                                                       rest_boxes)
+    if retried is None:
+        return first
+    found = np.zeros(len(points), bool)
+    found[retried.point[retried.rows.usable]] = True
+    keep_first, keep_second = ~found[first.point], found[retried.point]
+    joint = np.concatenate([first.joint[keep_first], retried.joint[keep_second]])
     order = np.argsort(joint.astype(np.int16), kind="stable")  # a radix sort: parts are < 255
     # Each joined row's source in the first rows followed by the retried ones: one gather per array.
-    source = np.concatenate([np.flatnonzero(first), len(first) + np.flatnonzero(second)])[order]
+    source = np.concatenate([np.flatnonzero(keep_first), len(keep_first) + np.flatnonzero(keep_second)])[order]
 
     def joined(a, b):
         return joined_rows(a, b, source, fused)
 
+    carried, again = first.rows, retried.rows
+    usable = joined(carried.usable, again.usable)
     velocity = None if carried.velocity is None or again.velocity is None else joined(carried.velocity,
                                                                                       again.velocity)
-    rows = CarriedRows(joined(carried.usable, again.usable), joined(carried.rest, again.rest),
-                       joined(carried.inverse, again.inverse), velocity, joined(carried.converged, again.converged))
-    return joined(point, retry_point), joint[order], rows
+    rows = CarriedRows(usable, joined(carried.rest, again.rest), joined(carried.inverse, again.inverse), velocity,
+                       joined(carried.converged, again.converged))
+    return joined(first.point, retried.point), joint[order], rows
 
 
 def joined_rows(a: np.ndarray, b: np.ndarray, source: np.ndarray, fused: bool = True) -> np.ndarray:
@@ -1251,8 +1291,8 @@ def union_of_parts(distance: np.ndarray, point: np.ndarray, usable: np.ndarray, 
     """The union over each point's parts: the least ``distance`` (m,) of its ``usable`` (m,) bool
     rows, the first in row order on a tie (rows sorted by joint, then point, as
     :func:`part_candidates` gives them: the lowest joint). ``point`` (m,) int64 indexes the n
-    points, each with at least one usable row. Returns ``(best (n,) float64, best_row (n,)
-    int64)``. One numba pass over the rows (:func:`_union_kernel`) when numba is there and
+    points. Returns ``(best (n,) float64, best_row (n,) int64)`` (+inf and 0 at a point with no
+    usable row). One numba pass over the rows (:func:`_union_kernel`) when numba is there and
     ``fused``, else numpy joint by joint (the reference)."""
     best = np.full(n, np.inf)
     best_row = np.zeros(n, np.int64)
@@ -1502,28 +1542,45 @@ class ArticulatedNeuralCollider(Collider):
 
     def evaluate_at(self, local, want_gradient, time, skeleton=None):
         to_rest, posed, moving, bias = self.pose(time, skeleton)
-        point, joint, (usable, rest, inverse, velocity, _) = candidate_rows_through_skinning(
+        groups = [group for group in candidate_groups_through_skinning(
             local, to_rest, posed, self.labels, self.centre, self.radius, self.allowed, self.part_boxes, self.weights,
             self.arch.skinning_iterations, self.arch.skinning_solver, self.arch.candidate_rule,
             moving=moving if want_gradient and moving is not None else None, rest_boxes=self.rest_boxes)
+            if group is not None]
         n = len(local)
         # Every row goes through the network (the few dropped ones too: cheaper than copies of the rows).
-        distance, gradient = self._part_values(rest, joint, bias, want_gradient)
-        best, best_row = union_of_parts(distance, point, usable, n)
+        values = [self._part_values(g.rows.rest, g.joint, bias, want_gradient) for g in groups]
+        # The union over each group; a point's usable rows are all in one group (the retried rows of
+        # the points whose retry reached a root, else the first), so the groups' unions never compete.
+        unions = [union_of_parts(d, g.point, g.rows.usable, n) for g, (d, _) in zip(groups, values)]
+        best, best_row = unions[0]
+        retried = None
+        if len(unions) > 1:
+            retried = np.flatnonzero(unions[1][0] < best)
+            best[retried] = unions[1][0][retried]
         if not want_gradient:
             return best, None, None
+
+        def chosen(take):
+            """(n, ...): ``take(i, rows)`` of group i at each point's chosen row."""
+            out = take(0, best_row)
+            if retried is not None and len(retried):
+                out[retried] = take(1, unions[1][1][retried])
+            return out
+
         # Through the map to the rest pose: grad_x f(B x) = B^T grad f (B: the part's rigid map,
         # or the skinning's inverse at the point).
-        g = pull_back(gradient, inverse, best_row)
+        g = chosen(lambda i, rows: pull_back(values[i][1], groups[i].rows.inverse, rows))
         if moving is None:
             return best, g, None
-        if velocity is not None:  # the Newton kernel's, at the chosen row's rest point
-            return best, g, velocity[best_row]
-        homogeneous = np.concatenate([rest[best_row], np.ones((n, 1))], axis=1)
+        if all(group.rows.velocity is not None for group in groups):  # the Newton kernel's, at the rest point
+            return best, g, chosen(lambda i, rows: groups[i].rows.velocity[rows])
+        rest = chosen(lambda i, rows: groups[i].rows.rest[rows])
+        homogeneous = np.concatenate([rest, np.ones((n, 1))], axis=1)
         if self.arch.skinning_iterations == 0:  # the chosen part's rigid motion
-            m = moving[joint[best_row]]
+            m = moving[chosen(lambda i, rows: groups[i].joint[rows])]
         else:  # the skinning's motion at the rest point: sum_k w_k dA_k/dt
-            m = blend_at(rest[best_row], moving, self.weights, self.centre, self.radius)
+            m = blend_at(rest, moving, self.weights, self.centre, self.radius)
         return best, g, np.einsum("nab,nb->na", m, homogeneous)
 
     def _part_values(self, rest: np.ndarray, joint: np.ndarray, bias: np.ndarray, want_gradient: bool):
