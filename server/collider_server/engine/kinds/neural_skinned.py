@@ -786,17 +786,17 @@ def carried_rows(points: np.ndarray, point: np.ndarray, joint: np.ndarray, rigid
     m = len(point)
     if iterations == 0:
         return CarriedRows(np.ones(m, bool), rigid, to_rest[joint, :, :3], None, np.ones(m, bool))
-    x = np.ascontiguousarray(points[point], np.float64)
     velocity = None
     if solver == "fixed-point":
+        x = np.ascontiguousarray(points[point], np.float64)
         rest, inverse = skinned_rest(x, rigid, posed, field, centre, radius, iterations, fused)
         converged = np.ones(m, bool)
+        moved = rest - rigid
+        wild = np.flatnonzero(np.einsum("ma,ma->m", moved, moved) > (DIVERGED * radius) ** 2)
+        del moved
     else:
-        rest, inverse, converged, velocity = _newton_through_grid(x, rigid, posed, field, centre, radius,
-                                                                  iterations, fused, moving)
-    moved = rest - rigid
-    wild = np.flatnonzero(np.einsum("ma,ma->m", moved, moved) > (DIVERGED * radius) ** 2)
-    del moved
+        rest, inverse, converged, velocity, wild = _newton_through_grid(points, point, rigid, posed, field, centre,
+                                                                        radius, iterations, fused, moving)
     if len(wild):
         rest[wild], inverse[wild] = rigid[wild], to_rest[joint[wild], :, :3]
         if velocity is not None:  # the rigid image's own blend (rare)
@@ -959,33 +959,41 @@ if grid_kernels.available():
                 out[r, :] = b[s - m, :]
 
 
-def _newton_through_grid(points, rigid, posed, field, centre, radius: float, iterations: int,
+def _newton_through_grid(points, point, rigid, posed, field, centre, radius: float, iterations: int,
                          fused: bool = True, moving: np.ndarray | None = None):
-    """:func:`newton_rest` through the weight grid (:func:`weights_and_gradient`), its tolerance
+    """:func:`newton_rest` of rows ``point`` (m,) int64 of ``points`` (n, 3) from ``rigid`` (m, 3)
+    through the weight grid (:func:`weights_and_gradient`), its tolerance
     :data:`NEWTON_TOLERANCE` and longest step :data:`NEWTON_MAX_STEP` times ``radius``: one numba
-    pass (:func:`_newton_kernel`) when numba is there and ``fused``, else numpy. Returns
-    ``newton_rest``'s three and the velocity (m, 3) at the rest points (:func:`_velocity_at`) from
-    the kernel's last weights where ``moving`` (J, 3, 4) is given and the kernel ran, else None."""
+    pass (:func:`_newton_kernel`, which reads the points through ``point``: no gathered copy) when
+    numba is there and ``fused``, else numpy. Returns ``newton_rest``'s three, the velocity (m, 3)
+    at the rest points (:func:`_velocity_at`) from the kernel's last weights where ``moving`` (J,
+    3, 4) is given and the kernel ran (else None), and the rows (k,) int64 that moved further than
+    :data:`DIVERGED` times ``radius`` from ``rigid``."""
     centre = np.asarray(centre, np.float64)
     tolerance, max_step = NEWTON_TOLERANCE * radius, NEWTON_MAX_STEP * radius
+    limit = (DIVERGED * radius) ** 2
+    rigid = np.ascontiguousarray(rigid, np.float64)
     if fused and _newton_kernel is not None:
-        rest = np.array(rigid, np.float64, order="C")
+        rest = np.empty_like(rigid)
         inverse = np.empty((len(rest), 3, 3))
         converged = np.empty(len(rest), np.bool_)
+        wild = np.empty(len(rest), np.bool_)
         if moving is None:
             maps, velocity = np.zeros((0, 3, 4)), np.empty((0, 3))
         else:
             maps, velocity = np.ascontiguousarray(moving, np.float64), np.empty((len(rest), 3))
-        _newton_kernel(np.ascontiguousarray(points, np.float64), rest, np.ascontiguousarray(posed[:, :3, :]),
-                       *field, centre, float(radius), iterations, max_step, tolerance,
-                       NEWTON_HALVINGS, inverse, converged, maps, velocity)
-        return rest, inverse, converged, (None if moving is None else velocity)
+        _newton_kernel(np.ascontiguousarray(points, np.float64), np.ascontiguousarray(point, np.int64), rigid, rest,
+                       np.ascontiguousarray(posed[:, :3, :]), *field, centre, float(radius), iterations, max_step,
+                       tolerance, NEWTON_HALVINGS, limit, inverse, converged, wild, maps, velocity)
+        return rest, inverse, converged, (None if moving is None else velocity), np.flatnonzero(wild)
     joints = len(posed)
 
     def weights(y):
         return weights_and_gradient(y, field, centre, radius, joints)
 
-    return (*newton_rest(points, rigid, posed, weights, iterations, max_step, tolerance), None)
+    rest, inverse, converged = newton_rest(points[point], rigid, posed, weights, iterations, max_step, tolerance)
+    moved = rest - rigid
+    return rest, inverse, converged, None, np.flatnonzero(np.einsum("ma,ma->m", moved, moved) > limit)
 
 
 _blend_kernel = _skinned_rest_kernel = None
@@ -1193,16 +1201,18 @@ if grid_kernels.available():
         return math.sqrt(size), count
 
     @numba.njit(cache=True, nogil=True, parallel=True)
-    def _newton_kernel(points, rest, maps, grid_joints, grid_weights, block_index, block_joints, block_weights, centre,
-                       radius, iterations, max_step, tolerance, halvings, inverse, converged, moving,
-                       velocity):  # pragma: no cover
-        """:func:`newton_rest` through the weight grid in one pass over the points (numba):
-        ``rest`` (m, 3) moved in place, ``inverse`` (m, 3, 3) and ``converged`` (m,) overwritten.
+    def _newton_kernel(points, point, start, rest, maps, grid_joints, grid_weights, block_index, block_joints,
+                       block_weights, centre, radius, iterations, max_step, tolerance, halvings, limit, inverse,
+                       converged, wild, moving, velocity):  # pragma: no cover
+        """:func:`newton_rest` through the weight grid in one pass over the rows (numba): row r the
+        posed point ``points[point[r]]`` from ``start`` (m, 3); ``rest`` (m, 3), ``inverse`` (m, 3,
+        3) and ``converged`` (m,) overwritten, and ``wild`` (m,): whether the rest point lies further
+        than ``sqrt(limit)`` from its start (the three squares summed in order, as numpy sums them).
         Where ``moving`` (J, 3, 4) has rows (else (0, 3, 4)), ``velocity`` (m, 3) is overwritten
         with :func:`blend_at`'s ``sum_k w_k dA_k/dt`` at the final rest point applied to it: the
         weights of the last accepted evaluation there (no second lookup)."""
         field = (grid_joints, grid_weights, block_index, block_joints, block_weights)
-        n = points.shape[0]
+        n = point.shape[0]
         chunk = 1024
         for first in numba.prange((n + chunk - 1) // chunk):
             f = np.empty(3)
@@ -1217,8 +1227,8 @@ if grid_kernels.available():
             kept_joints = np.empty(8 * GRID_INFLUENCES, np.int64)  # the accepted point's weights
             kept_weights = np.empty(8 * GRID_INFLUENCES)
             for p in range(first * chunk, min(n, first * chunk + chunk)):
-                x = points[p]
-                y0, y1, y2 = rest[p, 0], rest[p, 1], rest[p, 2]
+                x = points[point[p]]
+                y0, y1, y2 = start[p, 0], start[p, 1], start[p, 2]
                 size, count = _newton_terms_one(y0, y1, y2, x, maps, field, centre, radius, f, jac, slot_of, touched,
                                                 wsum, dsum)
                 kept = count
@@ -1254,6 +1264,8 @@ if grid_kernels.available():
                 _inverse3(jac, inverse[p])
                 rest[p, 0], rest[p, 1], rest[p, 2] = y0, y1, y2
                 converged[p] = size <= tolerance
+                d0, d1, d2 = y0 - start[p, 0], y1 - start[p, 1], y2 - start[p, 2]
+                wild[p] = d0 * d0 + d1 * d1 + d2 * d2 > limit
                 if moving.shape[0]:
                     # As _blend_one then the velocity's product, in the same order: the same numbers.
                     total = 0.0
