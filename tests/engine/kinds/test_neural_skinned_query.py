@@ -19,6 +19,7 @@ from collider_server.engine.kinds.neural_skinned import (
     part_labels,
     pull_back,
     rest_maps,
+    spread_stride,
     union_of_parts,
     weight_field,
 )
@@ -158,3 +159,16 @@ def test_with_no_skinning_steps_each_row_keeps_its_part_s_rigid_image_and_map(ar
     row = np.arange(len(point))
     np.testing.assert_allclose(pull_back(gradient, carried.inverse, row),
                                pull_back(gradient, carried.inverse, row, fused=False), rtol=0, atol=1e-14)
+
+
+def test_the_newton_pass_s_tasks_take_every_chunk_once_spread_over_the_rows():
+    """Task i takes chunk (i * stride) % chunks: every chunk once, and each half of the tasks (one
+    thread's share under numba's static schedule) reaches over all the rows, not one half."""
+    for chunks in (0, 1, 2, 3, 7, 64, 525, 1024, 1025):
+        stride = spread_stride(chunks)
+        taken = (np.arange(chunks) * stride) % max(chunks, 1)
+        np.testing.assert_array_equal(np.sort(taken), np.arange(chunks))
+        if chunks >= 64:
+            first_half = taken[: chunks // 2]
+            assert first_half.min() < chunks // 8 and first_half.max() > chunks - chunks // 8
+            assert abs(np.mean(first_half) - chunks / 2) < 0.05 * chunks
