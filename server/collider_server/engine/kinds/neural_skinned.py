@@ -17,7 +17,7 @@ Per-part fields in each joint's rest frame, composed by a minimum (COAP-style), 
   vertices it dominates, padded) is nearest to its ``x_j``. With the architecture's
   ``candidate_rule`` ``retry-labels``, a point none of whose candidates reaches a root through the
   skinning (below) is tried again with the parts the label grid names at its rigid images
-  (:func:`labels_seen`); :func:`parts_through_skinning` is the rule's one home.
+  (:func:`labels_seen`); :func:`candidate_groups_through_skinning` is the rule's one home.
 - **Through the skinning** (:func:`carry_to_rest`): each candidate's rigid image is carried on to
   the rest point y that linear blend skinning takes to x, ``sum_k w_k(y) A_k [y, 1] = x``, by
   damped Newton steps (:func:`newton_rest`, the architecture's ``skinning_solver`` ``newton``) or
@@ -819,7 +819,7 @@ def parts_through_skinning(points: np.ndarray, to_rest: np.ndarray, posed: np.nd
                            centre, radius: float, allowed: np.ndarray, part_boxes: np.ndarray, field,
                            iterations: int, solver: str, rule: str = "own-label", fused: bool = True):
     """Each point's candidate parts and their rest points, the rows :func:`carry_to_rest` would
-    keep (:func:`candidate_rows_through_skinning`, the rule's one home, with the unusable rows
+    keep (:func:`candidate_rows_through_skinning`: the rule's two groups joined, the unusable rows
     dropped): ``(point (k,) int64, joint (k,) int64, rest (k, 3), inverse (k, 3, 3))`` float64,
     sorted by joint, every point with at least one row."""
     point, joint, carried = candidate_rows_through_skinning(points, to_rest, posed, labels, centre, radius, allowed,
