@@ -5,8 +5,9 @@ Each replica coalesces only the queries it receives. With round-robin, one model
 split over both replicas, so each replica's batches of that model are about half as large; routed
 by model (docker/nginx/collider.conf.template: consistent hash of the model name), every model's
 queries meet in one batcher. This script runs the same load both ways through a real nginx and the
-same template (round-robin = the template with its ``hash`` line removed), then reads each
-replica's ``/metrics``: mean batch points = sum / count of ``collider_batch_points``.
+same template (round-robin = the template with its ``hash`` line removed), in front of the same two
+replicas (started once), and reads each replica's ``/metrics`` before and after each policy's load:
+mean batch points = sum / count of ``collider_batch_points`` over that load.
 
 The load: ``--models`` copies of one collider under different names (same compute per point, so
 the routing is the only difference), ``--simulators`` cloth simulators per model (loadtest.py's:
@@ -71,16 +72,28 @@ async def load(port: int, models: list[str], per_model: int, side: int, duration
             "status": stats["status"], "transport_errors": stats["transport_errors"]}
 
 
-def run_policy(policy: str, repo: Path, models: list[str], args, lo, hi) -> dict:
-    flags = ("--device", "cpu", "--compute-threads", str(args.compute_threads))
-    with contextlib.ExitStack() as stack, tempfile.TemporaryDirectory() as tmp:
-        replicas = [stack.enter_context(serve(repo, *flags)) for _ in range(2)]
+def since(after: dict[str, dict[str, float]], before: dict[str, dict[str, float]]) -> dict[str, dict[str, float]]:
+    """Per model, what :func:`batch_metrics` counted between ``before`` and ``after`` (models with
+    no batch in between left out)."""
+    found = {}
+    for model, figures in after.items():
+        was = before.get(model, {})
+        delta = {key: value - was.get(key, 0.0) for key, value in figures.items()}
+        if delta.get("batches"):
+            found[model] = delta
+    return found
+
+
+def run_policy(policy: str, replicas: list[int], models: list[str], args, lo, hi) -> dict:
+    """The load through nginx routing by ``policy`` to the replicas on ports ``replicas``."""
+    with tempfile.TemporaryDirectory() as tmp:
         port = free_port()
-        stack.enter_context(nginx(nginx_config(policy, port, replicas, Path(tmp)), port))
-        print(f"{policy}: replicas on ports {replicas}, nginx on {port}; "
-              f"{args.duration:.0f} s of load", flush=True)
-        traffic = asyncio.run(load(port, models, args.simulators, args.cloth, args.duration, lo, hi))
-        per_replica = [batch_metrics(p) for p in replicas]
+        before = [batch_metrics(p) for p in replicas]
+        with nginx(nginx_config(policy, port, replicas, Path(tmp)), port):
+            print(f"{policy}: replicas on ports {replicas}, nginx on {port}; "
+                  f"{args.duration:.0f} s of load", flush=True)
+            traffic = asyncio.run(load(port, models, args.simulators, args.cloth, args.duration, lo, hi))
+        per_replica = [since(batch_metrics(p), b) for p, b in zip(replicas, before)]
     batches = sum(m.get("batches", 0) for r in per_replica for m in r.values())
     points = sum(m.get("points", 0) for r in per_replica for m in r.values())
     placement = {model: [i for i, r in enumerate(per_replica) if r.get(model, {}).get("batches")]
@@ -115,12 +128,14 @@ def main() -> int:
     lo, hi = np.asarray(info.domain_min), np.asarray(info.domain_max)
     names = [f"model-{chr(ord('a') + i)}" for i in range(args.models)]
     print(f"machine: {machine_note()}", flush=True)
-    with tempfile.TemporaryDirectory() as tmp:
+    flags = ("--device", "cpu", "--compute-threads", str(args.compute_threads))
+    with tempfile.TemporaryDirectory() as tmp, contextlib.ExitStack() as stack:
         repo = Path(tmp)
         for name in names:
             shutil.copy(args.collider, repo / f"{name}.safetensors")
+        replicas = [stack.enter_context(serve(repo, *flags)) for _ in range(2)]
         order = POLICIES[::-1] if args.by_model_first else POLICIES
-        results = sorted((run_policy(p, repo, names, args, lo, hi) for p in order),
+        results = sorted((run_policy(p, replicas, names, args, lo, hi) for p in order),
                          key=lambda r: POLICIES.index(r["policy"]))
 
     print(f"\n{args.models} models x {args.simulators} simulators x {args.cloth ** 2:,} points, "

@@ -1,12 +1,15 @@
 """Every hint a ``collider`` command prints works when pasted.
 
-The commands are run the way a user runs them (the installed ``collider`` through a shell, in a
-working folder of their own, the user's cache directory pointed at a scratch one), in the
-situations where they print hints: a bake, a training run (its ``next:`` line and, interrupted,
-how to resume), ``info`` of a model never evaluated, a bench and a budget bake that leave presets
-unmeasured, a budget bake given another mesh's figures, and eval told the wrong unit. Each hint
-(a ``next: collider ...`` line or a ``collider ...`` between backticks) is then pasted into the
-same shell: it must finish with status 0, or, when it is a long job (a training run, a full
+The commands are run in the situations where they print hints, in a user's working folder of
+their own with the user's cache directory pointed at a scratch one: a bake, a training run (its
+``next:`` line and, interrupted, how to resume), ``info`` of a model never evaluated, a bench and a
+budget bake that leave presets unmeasured, a budget bake given another mesh's figures, and eval
+told the wrong unit. What they print is what is read, so they run in this process from the words
+a shell would split their line into (``here``; a fresh ``collider`` spends seconds of CPU
+importing torch before its work), except the interrupted training run, whose SIGTERM is part of
+the situation. Each hint (a ``next: collider ...`` line or a ``collider ...`` between backticks) is
+then pasted into a shell as a user pastes it, the installed ``collider`` in that folder with that
+environment: it must finish with status 0, or, when it is a long job (a training run, a full
 bench, an eval), run without an error until its work is under way (``UNDER_WAY``: a progress bar
 that counted work done, or the line that starts it; at most ``LONG_AFTER_S``) and end on SIGTERM
 with status 143 (what an interrupted long command returns).
@@ -22,6 +25,7 @@ from __future__ import annotations
 import json
 import os
 import re
+import shlex
 import shutil
 import signal
 import subprocess
@@ -55,8 +59,22 @@ def user_env(home: Path) -> dict:
     return env
 
 
-def shell(command: str, cwd: Path, env: dict, timeout: float = 300) -> subprocess.CompletedProcess:
-    return subprocess.run(command, shell=True, cwd=cwd, env=env, capture_output=True, text=True, timeout=timeout)
+def here(command: str, cwd: Path, env: dict) -> subprocess.CompletedProcess:
+    """``command`` (a ``collider ...`` line) run in this process as a shell in ``cwd`` with ``env``
+    would run it: the words ``shlex`` splits it into, that folder the working directory and
+    ``env`` the environment while it runs (both restored after)."""
+    words = shlex.split(command)
+    assert words[0] == "collider", command
+    saved_env, saved_cwd = dict(os.environ), os.getcwd()
+    os.environ.clear()
+    os.environ.update(env)
+    os.chdir(cwd)
+    try:
+        return run_collider(*words[1:])
+    finally:
+        os.chdir(saved_cwd)
+        os.environ.clear()
+        os.environ.update(saved_env)
 
 
 def hints(*outputs: str) -> list[str]:
@@ -126,20 +144,19 @@ def add_meshes(home: Path) -> None:
 def baked(home: Path, env: dict) -> dict[str, str]:
     """A voxel bake, ``info`` of it never evaluated, a budget bake given a missing bench, and eval
     told the wrong unit."""
-    bake = shell(f"collider bake ball.obj --name ball-grid --resolution 16 --models '{MODELS}'", home, env)
+    bake = here(f"collider bake ball.obj --name ball-grid --resolution 16 --models '{MODELS}'", home, env)
     assert bake.returncode == 0, bake.stderr
     assert f"next: collider eval ball-grid --mesh ball.obj --models '{MODELS}'" in bake.stdout
 
-    info = shell(f"collider info ball-grid --models '{MODELS}'", home, env)
+    info = here(f"collider info ball-grid --models '{MODELS}'", home, env)
     assert info.returncode == 0 and "not evaluated" in info.stdout, info.stdout + info.stderr
 
-    # Its refusal prints no hint to paste: run in this process (a shell's Python would spend seconds
-    # importing torch to say it).
-    budget = run_collider("bake", home / "ball.obj", "--name", "ball-pick", "--models", home / MODELS,
-                          "--max-error", "50mm", "--kind", "voxel", "--quiet", "--bench", home / "box-bench.json")
+    # Its refusal prints no hint to paste.
+    budget = here(f"collider bake ball.obj --name ball-pick --models '{MODELS}' --max-error 50mm --kind voxel "
+                  "--quiet --bench box-bench.json", home, env)
     assert budget.returncode == 2  # no such file: refused in one line, no hint
 
-    units = shell(f"collider eval ball-grid --mesh ball.obj --models '{MODELS}' --units mm --no-save", home, env)
+    units = here(f"collider eval ball-grid --mesh ball.obj --models '{MODELS}' --units mm --no-save", home, env)
     assert units.returncode == 2 and "is not the unit ball-grid was made in" in units.stderr
     return {"bake": bake.stdout + bake.stderr, "info": info.stdout, "eval --units": units.stderr}
 
@@ -147,14 +164,14 @@ def baked(home: Path, env: dict) -> dict[str, str]:
 def trained(home: Path, env: dict) -> dict[str, str]:
     """A training run, then a bench of its network that leaves a preset unmeasured."""
     # A few steps: the hint, the checkpoint and the bench's unmeasured preset do not depend on how many.
-    train = shell(f"collider train ball.obj --name ball-net --models '{MODELS}' --steps 5 --samples 4000 "
+    train = here(f"collider train ball.obj --name ball-net --models '{MODELS}' --steps 5 --samples 4000 "
                   "--batch-size 512 --scale 2 --quiet", home, env)
     assert train.returncode == 0, train.stderr
     assert f"next: collider eval ball-net --mesh ball.obj --models '{MODELS}' --scale 2.0" in train.stdout
     # The checkpoint lives beside the model folder, not in the working folder's runs/.
     assert (home / "runs" / "ball-net.ckpt.safetensors").is_file()
 
-    bench = shell(f"collider bench ball.obj --kinds neural --scale 2 --models '{MODELS}' --no-served --sizes 1k "
+    bench = here(f"collider bench ball.obj --kinds neural --scale 2 --models '{MODELS}' --no-served --sizes 1k "
                   "--accuracy-points 2000 --repeats 3 --presets grid,fast --quiet --output bench-out", home, env)
     assert bench.returncode == 0, bench.stderr
     return {"train": train.stdout + train.stderr, "bench": bench.stdout}
@@ -162,10 +179,10 @@ def trained(home: Path, env: dict) -> dict[str, str]:
 
 def benched_another_mesh(home: Path, env: dict) -> dict[str, str]:
     """A budget bake given the bench of another mesh."""
-    other = shell("collider bench box.obj --kinds kdtree --no-served --sizes 1k --accuracy-points 1000 "
+    other = here("collider bench box.obj --kinds kdtree --no-served --sizes 1k --accuracy-points 1000 "
                   "--repeats 3 --quiet --output box-bench", home, env)
     assert other.returncode == 0, other.stderr
-    wrong = shell(f"collider bake ball.obj --name ball-pick --models '{MODELS}' --max-error 50mm "
+    wrong = here(f"collider bake ball.obj --name ball-pick --models '{MODELS}' --max-error 50mm "
                   "--bench box-bench/bench.json", home, env)
     assert wrong.returncode == 2 and "measured another mesh" in wrong.stderr
     return {"bake --bench of another mesh": wrong.stderr}

@@ -17,7 +17,9 @@ from pathlib import Path
 import pytest
 import yaml
 
-from .conftest import REPO, Replica, bake_sphere, free_port
+from collider_cli.launch import ServerThread
+
+from .conftest import REPO, bake_sphere, free_port
 
 DOCKER = REPO / "docker"
 DOCKERFILE = DOCKER / "Dockerfile"
@@ -126,12 +128,11 @@ def test_healthcheck_script_follows_collider_port(tmp_path):
     models = tmp_path / "models"
     models.mkdir()
     bake_sphere(models / "sphere.safetensors")
-    replica = Replica(models).wait_ready()
-    try:
-        ready = run_healthcheck({"COLLIDER_HOST": "0.0.0.0", "COLLIDER_PORT": str(replica.port)})
+    # The server under a real uvicorn in this process (what the script asks is its port's /readyz);
+    # the script itself runs as the image's HEALTHCHECK runs it, a process of its own.
+    with ServerThread(models=models, device="cpu") as server:
+        ready = run_healthcheck({"COLLIDER_HOST": "0.0.0.0", "COLLIDER_PORT": str(server.port)})
         assert ready.returncode == 0, ready.stdout
-    finally:
-        replica.kill()
     down = run_healthcheck({"COLLIDER_PORT": str(free_port())})
     assert down.returncode == 1 and "/readyz" in down.stdout
 

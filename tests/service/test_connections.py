@@ -11,12 +11,11 @@ import os
 import re
 import resource
 import socket
-import subprocess
-import sys
 import time
 
 import httpx
 import pytest
+from tests.conftest import run_collider
 
 from collider_cli.launch import ServerProcess
 
@@ -188,8 +187,7 @@ def test_the_limits_are_settings_with_their_defaults_in_the_help():
 
     defaults = ServiceSettings()
     assert (defaults.header_timeout_s, defaults.max_connections) == (10.0, 4096)
-    help_text = subprocess.run([sys.executable, "-m", "collider_cli", "serve", "--help"],
-                               capture_output=True, text=True, timeout=60).stdout
+    help_text = run_collider("serve", "--help").stdout
     flat = " ".join(help_text.split())
     assert "--header-timeout-s" in flat and "(default 10)" in flat
     assert "--max-connections" in flat and "(default 4096;" in flat

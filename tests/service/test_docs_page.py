@@ -89,11 +89,9 @@ TRY_OUT = {"POST /v1/models/{name}/query": "operations-models-query_v1_models__n
 @pytest.mark.parametrize("token", [None, "docs-token"], ids=["open", "token"])
 def test_try_it_out_answers_200_with_the_pages_own_defaults(repo, tmp_path, token):
     """Issue 35, item 1: the query and scene operations' "Try it out" then "Execute", untouched,
-    against `collider serve` answers 200 (the page sends JSON and the examples are valid)."""
-    from collider_cli.launch import serve_process
-
-    with serve_process(repo, "--device", "cpu",
-                       env={"COLLIDER_TOKEN": token} if token else None) as server, \
+    against the service under a real uvicorn answers 200 (the page sends JSON and the examples are
+    valid)."""
+    with ServerThread(models=repo, device="cpu", token=token) as server, \
             Browser(BROWSER, tmp_path / "profile") as browser:
         browser.prompt_answer = token
         headers = {"Authorization": f"Bearer {token}"} if token else None

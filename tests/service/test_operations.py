@@ -10,8 +10,6 @@ import re
 import shutil
 import signal
 import socket
-import subprocess
-import sys
 import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -19,6 +17,7 @@ from concurrent.futures import ThreadPoolExecutor
 import httpx
 import numpy as np
 import pytest
+from tests.conftest import run_collider
 
 from collider_contract import wire
 
@@ -365,14 +364,12 @@ def test_settings_from_config_file_env_and_flags(tmp_path, monkeypatch):
 
 
 def test_serve_cli_user_errors_are_one_line(tmp_path):
-    result = subprocess.run(
-        [sys.executable, "-m", "collider_cli", "serve", "--models", str(tmp_path / "none")],
-        capture_output=True, text=True, timeout=60)
+    # In this process (a traceback would be an exception here); the installed entry point's own
+    # process is tests/cli/test_cli_models.py's.
+    result = run_collider("serve", "--models", tmp_path / "none")
     assert result.returncode == 2 and "is not a folder" in result.stderr
     assert "Traceback" not in result.stderr and len(result.stderr.strip().splitlines()) == 1
-    result = subprocess.run(
-        [sys.executable, "-m", "collider_cli", "serve", "--max-wait-ms", "-1"],
-        capture_output=True, text=True, timeout=60)
+    result = run_collider("serve", "--max-wait-ms", "-1")
     assert result.returncode == 2 and "max_wait_ms" in result.stderr
 
 
@@ -387,10 +384,9 @@ def test_a_placeholder_token_is_refused(tmp_path, monkeypatch, variable, value):
     setting = variable.removeprefix("COLLIDER_").lower()
     with pytest.raises(ValueError, match=f"{setting}: .*placeholder"):
         load_settings()
-    result = subprocess.run([sys.executable, "-m", "collider_cli", "serve", "--models",
-                             str(tmp_path)], capture_output=True, text=True, timeout=60,
-                            env={**{k: v for k, v in os.environ.items()
-                                    if not k.startswith("COLLIDER_")}, variable: value})
+    for other in [k for k in os.environ if k.startswith("COLLIDER_") and k != variable]:
+        monkeypatch.delenv(other)
+    result = run_collider("serve", "--models", tmp_path)
     assert result.returncode == 2 and "placeholder" in result.stderr
     assert "Traceback" not in result.stderr and len(result.stderr.strip().splitlines()) == 1
     monkeypatch.setenv(variable, "a-real-secret-of-ours")
