@@ -330,3 +330,21 @@ def test_a_model_file_with_a_bad_animation_is_refused(tmp_path, arm):
     path = save_collider(kdtree, tmp_path / "k.safetensors")
     with pytest.raises(ModelFileError, match="a kdtree collider cannot be animated"):
         load_collider(path)
+
+
+@pytest.mark.parametrize("damage, message", [
+    (lambda t: t.pop("faces"), r"must hold 'frames' and 'faces', found \['frames'\]"),
+    (lambda t: t.update(extra=np.zeros(1)), r"found \['extra', 'faces', 'frames'\]"),
+    (lambda t: t.update(faces=np.zeros((4, 4), np.int32)), r"wrong shapes: frames \(25, \d+, 3\), faces \(4, 4\)"),
+    (lambda t: t.update(faces=np.zeros(12, np.int32)), r"wrong shapes: .*faces \(12,\)"),
+    (lambda t: t.update(frames=t["frames"][..., :2]), r"wrong shapes: frames \(25, \d+, 2\)"),
+], ids=["no faces", "an extra array", "quads", "flat faces", "2d frames"])
+def test_an_animated_mesh_model_whose_arrays_do_not_fit_says_which(arm, damage, message):
+    """(a ValueError: :func:`load_collider` says it as the file's problem, no traceback)"""
+    from collider_server.engine.kinds.animated_mesh import AnimatedMeshCollider
+
+    collider = arm[1]
+    tensors = collider.tensors()
+    damage(tensors)
+    with pytest.raises(ValueError, match=message):
+        AnimatedMeshCollider.from_tensors(collider.info, tensors)

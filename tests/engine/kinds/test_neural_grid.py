@@ -265,6 +265,17 @@ def test_int8_table_codes_the_hashed_levels_and_keeps_the_dense_ones_in_float16(
     # The float formats are one array, as before.
     plain = pack_table(table[0], GridArchitecture(**SMALL))
     assert list(plain) == ["table"] and plain["table"].dtype == np.float16
+    # Every level hashed (64 rows: not even 5^3 corners fit): no dense rows, float16 all the same.
+    hashed = GridArchitecture(**{**SMALL, "table_log2": 6}, table_dtype="int8")
+    assert not any(hashed.level_dense())
+    table = rng.normal(0.0, 0.5, (sum(hashed.level_rows()), 2)).astype(np.float32)
+    packed = pack_table(table, hashed)
+    assert packed["table_dense"].dtype == np.float16 and packed["table_dense"].shape == (0, 2)
+    assert packed["table_codes"].shape == table.shape and packed["table_scales"].shape == (4, 2)
+    back = unpack_table(packed, hashed)["table"]
+    step = np.repeat(packed["table_scales"], hashed.level_rows(), axis=0)
+    inside = np.abs(table) <= 127 * step  # (clipped beyond the 99.9th percentile)
+    assert inside.mean() > 0.95 and (np.abs(back - table)[inside] <= 0.5 * step[inside] + 1e-7).all()
 
 
 @pytest.mark.parametrize("damage, message", [

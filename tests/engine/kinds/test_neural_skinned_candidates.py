@@ -70,6 +70,18 @@ def test_a_point_none_of_whose_candidates_reaches_a_root_is_tried_with_the_label
     for a, b in zip(new_rows[:2], reference[:2]):
         np.testing.assert_array_equal(a, b)
     np.testing.assert_allclose(new_rows[2], reference[2], atol=1e-9)
+    # With the skinning's motion, the retried rows carry the Newton kernel's velocity as the first
+    # ones do: the blend of the maps' motion dA/dt at each row's rest point (any motion will do).
+    skin, _, _, centre, radius, labels, boxes, field, allowed = walker
+    to_rest, posed = ns.rest_maps(skin.skeleton, transforms)
+    moving = np.random.default_rng(6).normal(0.0, 0.1, (skin.skeleton.joint_count, 3, 4))
+    point, _, rows = ns.candidate_rows_through_skinning(points, to_rest, posed, labels, centre, radius, allowed, boxes,
+                                                        field, 8, "newton", "retry-labels", moving=moving)
+    assert rows.velocity is not None and rows.velocity.shape == (len(point), 3)
+    np.testing.assert_array_equal(point[rows.usable], new_rows[0])  # the rows above, the unusable ones too
+    homogeneous = np.concatenate([rows.rest, np.ones((len(point), 1))], axis=1)
+    expected = np.einsum("nab,nb->na", ns.blend_at(rows.rest, moving, field, centre, radius), homogeneous)
+    np.testing.assert_allclose(rows.velocity, expected, rtol=0, atol=1e-12)
 
 
 def test_the_fused_labels_seen_equals_the_numpy_rule(walker):

@@ -1,13 +1,16 @@
 """The query passes of kind ``neural-skinned`` beside their references, with no network and no
 training (the generated arm at a bent pose): the candidate rows written from the mask, the union
-over a point's parts, the gradient's pull-back and the velocity the Newton kernel leaves at each
-rest point."""
+over a point's parts, the gradient's pull-back, the velocity the Newton kernel leaves at each
+rest point, the first files' fixed-point map to the rest pose and the pose codes."""
+
+import dataclasses
 
 import numpy as np
 import pytest
 
 from collider_server.engine.kinds import grid_kernels
 from collider_server.engine.kinds.neural_skinned import (
+    DIVERGED,
     allowed_labels,
     blend_at,
     carried_rows,
@@ -17,14 +20,16 @@ from collider_server.engine.kinds.neural_skinned import (
     part_boxes,
     part_candidates,
     part_labels,
+    pose_codes,
     pull_back,
     rest_maps,
+    skinned_rest,
     spread_stride,
     union_of_parts,
     weight_field,
 )
 from collider_server.engine.meshes import Mesh
-from collider_server.engine.skinning import pose_at, skin_vertices
+from collider_server.engine.skinning import pose_at, skin_vertices, world_transforms
 from collider_server.making.sampling import surface_band_points
 from collider_server.making.skinned import skinned_arm
 from collider_server.making.training.data import normalisation
@@ -150,6 +155,7 @@ def test_with_no_skinning_steps_each_row_keeps_its_part_s_rigid_image_and_map(ar
     _, centre, radius, _, _, field, to_rest, posed, _, points = arm
     point, joint, rigid = _candidates(arm)
     carried = carried_rows(points, point, joint, rigid, to_rest, posed, field, centre, radius, 0)
+    assert carried.usable.dtype == carried.converged.dtype == bool
     assert carried.usable.all() and carried.converged.all() and carried.velocity is None
     np.testing.assert_array_equal(carried.rest, rigid)
     assert carried.inverse.shape == (len(point), 3, 3)
@@ -172,3 +178,68 @@ def test_the_newton_pass_s_tasks_take_every_chunk_once_spread_over_the_rows():
             first_half = taken[: chunks // 2]
             assert first_half.min() < chunks // 8 and first_half.max() > chunks - chunks // 8
             assert abs(np.mean(first_half) - chunks / 2) < 0.05 * chunks
+def _landing_miss(rest, x, arm):
+    """(m,) metres: how far the skinning at rest points ``rest`` (m, 3) puts them from the posed
+    points ``x`` (m, 3) (0 where ``rest`` is their rest-pose image)."""
+    _, centre, radius, _, _, field, _, posed, _, _ = arm
+    homogeneous = np.concatenate([rest, np.ones((len(rest), 1))], axis=1)
+    return np.linalg.norm(np.einsum("mab,mb->ma", blend_at(rest, posed[:, :3, :], field, centre, radius), homogeneous)
+                          - x, axis=1)
+
+
+def test_the_fixed_point_steps_carry_posed_points_to_their_rest_images(arm):
+    """The first model files' map (``skinning_solver`` ``fixed-point``): steps ``x_rest <- M^-1 x``
+    from each candidate's rigid image, through the numba pass and numpy alike; the rows
+    :func:`carried_rows` keeps are those steps' (the rigid image where they went wild)."""
+    _, centre, radius, _, _, field, to_rest, posed, _, points = arm
+    point, joint, rigid = _candidates(arm, neighbours=False)
+    x = points[point]
+    rest, inverse = skinned_rest(x, rigid, posed, field, centre, radius, 8)
+    assert rest.dtype == inverse.dtype == np.float64 and rest.shape == (len(x), 3) and inverse.shape == (len(x), 3, 3)
+    some = slice(None, None, 8)  # (the numpy rule takes 1 s over all the rows)
+    reference = skinned_rest(x[some], rigid[some], posed, field, centre, radius, 8, fused=False)
+    np.testing.assert_allclose(rest[some], reference[0], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(inverse[some], reference[1], rtol=0, atol=1e-9)
+    # Rigid images in float32: float64 answers all the same, the caller's array left alone.
+    rigid32 = rigid[some].astype(np.float32)
+    rest32, _ = skinned_rest(x[some], rigid32, posed, field, centre, radius, 8)
+    assert rest32.dtype == np.float64
+    np.testing.assert_allclose(rest32, skinned_rest(x[some], rigid32, posed, field, centre, radius, 8, fused=False)[0],
+                               rtol=0, atol=1e-12)
+    np.testing.assert_array_equal(rigid32, rigid[some].astype(np.float32))
+    # In the +-10 mm band the skinning puts the rest points back on the posed points: the rigid
+    # images miss by up to 26 mm (p99) where the elbow blends, 8 steps by 0.6 mm (measured).
+    band = point < 4000
+    before, after = _landing_miss(rigid, x, arm)[band], _landing_miss(rest, x, arm)[band]
+    assert np.percentile(before, 99) > 0.01 and np.percentile(after, 99) < 1e-3, np.percentile(after, 99)
+    # The map: the linear part of the last step's M^-1 (M at the rest point of the step before).
+    before_last, _ = skinned_rest(x, rigid, posed, field, centre, radius, 7)
+    expected = np.linalg.inv(blend_at(before_last, posed[:, :3, :], field, centre, radius)[:, :, :3])
+    np.testing.assert_allclose(inverse, expected, rtol=0, atol=1e-9)
+    # carried_rows: every row usable and converged, the steps' rows where they stayed within
+    # DIVERGED of the rigid image, the rigid image and its part's map where they did not.
+    carried = carried_rows(points, point, joint, rigid, to_rest, posed, field, centre, radius, 8, "fixed-point")
+    assert carried.usable.all() and carried.converged.all() and carried.velocity is None
+    wild = np.linalg.norm(rest - rigid, axis=1) > DIVERGED * radius
+    assert 0 < wild.sum() < 0.01 * len(x)
+    np.testing.assert_array_equal(carried.rest[~wild], rest[~wild])
+    np.testing.assert_array_equal(carried.inverse[~wild], inverse[~wild])
+    np.testing.assert_array_equal(carried.rest[wild], rigid[wild])
+    np.testing.assert_allclose(carried.inverse[wild], np.linalg.inv(posed[joint[wild]])[:, :3, :3], atol=1e-12)
+
+
+def test_pose_codes_are_zero_at_rest_and_leave_the_joints_scale_out(arm):
+    """The codes of a rig whose joints are scaled (a character in centimetres under a scaled
+    root, say) are those of the same rotations unscaled: zero at the rest pose."""
+    skin = arm[0]
+    skeleton = skin.skeleton
+    scaled = dataclasses.replace(skeleton, rest_scale=np.array([[1.0, 1.0, 1.0], [2.0, 2.0, 2.0], [0.5, 0.5, 0.5]]))
+    assert not pose_codes(scaled, scaled.rest_world(), 2).any()
+    transforms, _ = pose_at(skin, "wave", 0.5)
+    codes = pose_codes(skeleton, transforms, 2)
+    assert codes.dtype == np.float32 and codes.shape == (3, 18) and np.abs(codes).max() > 0.5  # the elbow bends
+    parents = skeleton.parents
+    above = np.where((parents >= 0)[:, None, None], transforms[np.maximum(parents, 0)], skeleton.root)
+    local = np.linalg.solve(above, transforms)
+    local[:, :3, :3] *= scaled.rest_scale[:, None, :]  # T R S: each joint's scale in its own frame
+    np.testing.assert_allclose(pose_codes(scaled, world_transforms(scaled, local), 2), codes, atol=1e-6)
