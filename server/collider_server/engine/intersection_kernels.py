@@ -190,7 +190,9 @@ def box_pairs(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
         return np.zeros((0, 2), np.int64)
     lo = np.ascontiguousarray(lo, dtype=np.float64)
     hi = np.ascontiguousarray(hi, dtype=np.float64)
-    axis = int(np.argmax(hi.max(axis=0) - lo.min(axis=0)))  # the longest: thinnest slabs
+    from .intersections import extent
+
+    axis = int(np.argmax(extent(lo, hi)))  # the longest: thinnest slabs
     n = len(lo)
     found = _sweep(lo, hi, axis, np.argsort(lo[:, axis], kind="stable")).reshape(-1, 2)
     key = np.sort(found[:, 0] * n + found[:, 1])
