@@ -70,14 +70,15 @@ def self_intersections(vertices: np.ndarray, faces: np.ndarray, fast: bool = Tru
     tri = vertices[faces]  # (f, 3, 3)
     normals = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
     length = np.linalg.norm(normals, axis=1)
-    scale = float(np.linalg.norm(tri.max(axis=(0, 1)) - tri.min(axis=(0, 1))))
+    lo, hi = face_boxes(tri)
+    scale = diagonal(lo, hi)
     tol = RELATIVE_TOLERANCE * max(scale, 1e-300)
     area_ok = length > tol * tol
     unit = normals / np.where(area_ok, length, 1.0)[:, None]
     if fast and len(faces) <= kernels.SWEEP_MAX_BOXES:
-        candidates = kernels.box_pairs(tri.min(axis=1), tri.max(axis=1))
+        candidates = kernels.box_pairs(lo, hi)
     else:
-        candidates = overlapping_boxes(tri.min(axis=1), tri.max(axis=1))
+        candidates = overlapping_boxes(lo, hi)
         candidates = candidates[np.lexsort((candidates[:, 1], candidates[:, 0]))]
     candidates = candidates[area_ok[candidates[:, 0]] & area_ok[candidates[:, 1]]]
     if fast:  # most candidates are neighbours touching at a corner: drop them before numpy
@@ -92,6 +93,29 @@ def self_intersections(vertices: np.ndarray, faces: np.ndarray, fast: bool = Tru
         return empty
     pairs, segments, coplanar = (np.concatenate(a) for a in zip(*found))
     return SelfIntersections(pairs, segments, coplanar)
+
+
+def face_boxes(tri: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Each triangle's bounding box: ``(lo, hi)``, (f, 3) float64 each, of triangles ``tri``
+    (f, 3, 3): ``tri.min(axis=1)`` and ``tri.max(axis=1)``, corner by corner (numpy reduces
+    an axis of three slowly: 2 ms against 0.3 for the arm's 5k faces, at every pose of a
+    skinned kind)."""
+    lo = np.minimum(np.minimum(tri[:, 0], tri[:, 1]), tri[:, 2])
+    hi = np.maximum(np.maximum(tri[:, 0], tri[:, 1]), tri[:, 2])
+    return lo, hi
+
+
+def extent(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """(3,) float64: the size along each axis of the box holding the boxes ``lo``, ``hi``
+    (n, 3): ``hi.max(axis=0) - lo.min(axis=0)``, the columns made contiguous first (numpy
+    reduces the rows of an (n, 3) array some 30 times slower)."""
+    return np.ascontiguousarray(hi.T).max(axis=1) - np.ascontiguousarray(lo.T).min(axis=1)
+
+
+def diagonal(lo: np.ndarray, hi: np.ndarray) -> float:
+    """The diagonal of the box holding the boxes ``lo``, ``hi`` (n, 3) (a mesh's faces',
+    :func:`face_boxes`): the size :data:`RELATIVE_TOLERANCE` is relative to."""
+    return float(np.linalg.norm(extent(lo, hi)))
 
 
 def overlapping_boxes(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:

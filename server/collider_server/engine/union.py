@@ -26,7 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .intersections import RELATIVE_TOLERANCE, SelfIntersections, self_intersections
+from .intersections import RELATIVE_TOLERANCE, SelfIntersections, diagonal, face_boxes, self_intersections
 
 #: Faces tested per region of faces that cross nothing (its largest); the majority decides.
 REGION_SAMPLES = 3
@@ -70,7 +70,7 @@ def union_surface(vertices: np.ndarray, faces: np.ndarray, winding, edges: np.nd
     normals = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
     double_area = np.linalg.norm(normals, axis=1)
     unit = normals / np.where(double_area > 0, double_area, 1.0)[:, None]
-    scale = float(np.linalg.norm(tri.max(axis=(0, 1)) - tri.min(axis=(0, 1))))
+    scale = diagonal(*face_boxes(tri))
     cut = np.zeros(len(faces), dtype=bool)
     cut[crossings.pairs.reshape(-1)] = True
 

@@ -119,11 +119,13 @@ if numba is not None:
 
     @numba.njit(cache=True, fastmath=True, nogil=True)
     def _query_block(u, order, start, m, table, dtable, resolution, offset, rows, dense, smooth, weights,
-                     biases, w_out, b_out, scale, want_gradient, distance, gradient, dtime, part, part_biases,
-                     ub, corner_rows, corner_weights, feature, dfeature, jac, act, g, g_next, out, part_row):
+                     biases, sizes, w_out, b_out, scale, want_gradient, distance, gradient, dtime, part,
+                     part_biases, ub, corner_rows, corner_weights, feature, dfeature, jac, act, g, g_next, out,
+                     part_row):
         """One block of ``network_query_timed``: its ``m`` points from ``start`` in ``order``,
-        with the scratch arrays of its run (``part_row`` (block,): the points' parts)."""
-        depth = len(weights)
+        with the scratch arrays of its run (``part_row`` (block,): the points' parts); the hidden
+        layers packed (:func:`_packed_layers`)."""
+        depth = weights.shape[0]
         n_in = feature.shape[0]
         block = out.shape[0]
         for q in range(m):
@@ -133,9 +135,9 @@ if numba is not None:
                       corner_rows, corner_weights, feature, jac, dfeature)
         # MLP forward, activations kept for the backward pass.
         for k in range(depth):
-            w = weights[k]
+            w = weights[k, :sizes[k, 0], :sizes[k, 1]]
             for o in range(w.shape[0]):
-                act[k, o, :] = biases[k][o]
+                act[k, o, :] = biases[k, o]
             if k == 0 and part.shape[0] > 0:  # each point's own first bias (its part's)
                 for q in range(m):
                     part_row[q] = part[order[start + q]]
@@ -150,7 +152,7 @@ if numba is not None:
                     s[q] = max(s[q], np.float32(0.0))
         last = act[depth - 1]
         out[:] = b_out
-        for i in range(weights[depth - 1].shape[0]):
+        for i in range(sizes[depth - 1, 0]):
             for q in range(block):
                 out[q] += w_out[i] * last[i, q]
         for q in range(m):
@@ -158,10 +160,10 @@ if numba is not None:
         if not want_gradient:
             return
         # Backward: d output / d activation, layer by layer (ReLU masks), then the encoding.
-        for i in range(weights[depth - 1].shape[0]):
+        for i in range(sizes[depth - 1, 0]):
             g[i, :] = w_out[i]
         for k in range(depth - 1, -1, -1):
-            w = weights[k]
+            w = weights[k, :sizes[k, 0], :sizes[k, 1]]
             for o in range(w.shape[0]):
                 go = g[o]
                 for q in range(block):
@@ -211,20 +213,38 @@ if numba is not None:
             part_biases = np.zeros((0, weights[0].shape[0]), np.float32)
         # Scratch arrays once per run of blocks (not per block); 8 runs per thread balance the load.
         blocks = (len(u) + QUERY_BLOCK - 1) // QUERY_BLOCK
-        _network_query(u, table, dtable, resolution, offset, rows, dense, smooth, weights, biases, w_out,
-                       b_out, scale, want_gradient, distance, gradient, dtime, part, part_biases,
+        packed, packed_biases, sizes = _packed_layers(weights, biases)
+        _network_query(u, table, dtable, resolution, offset, rows, dense, smooth, packed, packed_biases, sizes,
+                       w_out, b_out, scale, want_gradient, distance, gradient, dtime, part, part_biases,
                        min(blocks, 8 * numba.get_num_threads()))
 
+    def _packed_layers(weights, biases):
+        """The hidden layers ``weights[k]`` (out, in) and ``biases[k]`` (out,) in one array each:
+        ``(weights (depth, most out, most in), biases (depth, most out), sizes (depth, 2) int64:
+        each layer's (out, in))``, zero beyond each layer's own size, which the kernel never
+        reads. One type for every depth: numba compiles the kernel once (a tuple of arrays is a
+        type per length, each compiled anew: ~15-25 s of CPU each)."""
+        depth = len(weights)
+        sizes = np.array([w.shape for w in weights], dtype=np.int64).reshape(depth, 2)
+        dtype = np.result_type(*weights)
+        packed = np.zeros((depth, int(sizes[:, 0].max()), int(sizes[:, 1].max())), dtype)
+        packed_biases = np.zeros((depth, int(sizes[:, 0].max())), np.result_type(*biases))
+        for k, (w, b) in enumerate(zip(weights, biases)):
+            packed[k, :w.shape[0], :w.shape[1]] = w
+            packed_biases[k, :len(b)] = b
+        return packed, packed_biases, sizes
+
     @numba.njit(cache=True, fastmath=True, nogil=True, parallel=True)
-    def _network_query(u, table, dtable, resolution, offset, rows, dense, smooth, weights, biases, w_out,
-                       b_out, scale, want_gradient, distance, gradient, dtime, part, part_biases, runs):
-        """``network_query_timed`` in ``runs`` runs of blocks."""
+    def _network_query(u, table, dtable, resolution, offset, rows, dense, smooth, weights, biases, sizes,
+                       w_out, b_out, scale, want_gradient, distance, gradient, dtime, part, part_biases, runs):
+        """``network_query_timed`` in ``runs`` runs of blocks, the hidden layers packed
+        (:func:`_packed_layers`)."""
         n = u.shape[0]
         n_in = resolution.shape[0] * table.shape[1]
-        depth = len(weights)
+        depth = weights.shape[0]
         widest = max(n_in, 3)  # (g_next's first 3 rows hold the gradient at the end)
         for k in range(depth):
-            widest = max(widest, weights[k].shape[0])
+            widest = max(widest, sizes[k, 0])
         block = QUERY_BLOCK
         order = _bucket_order(u)
         blocks = (n + block - 1) // block
@@ -242,7 +262,7 @@ if numba is not None:
             part_row = np.empty(block, np.int64)
             for b in range(run * blocks // runs, (run + 1) * blocks // runs):
                 _query_block(u, order, b * block, min(n, b * block + block) - b * block, table, dtable,
-                             resolution, offset, rows, dense, smooth, weights, biases, w_out, b_out,
+                             resolution, offset, rows, dense, smooth, weights, biases, sizes, w_out, b_out,
                              scale, want_gradient, distance, gradient, dtime, part, part_biases, ub, corner_rows,
                              corner_weights,
                              feature, dfeature, jac, act, g, g_next, out, part_row)
