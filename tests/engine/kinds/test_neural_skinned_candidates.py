@@ -142,6 +142,9 @@ def test_the_query_answers_from_the_groups_as_from_the_joined_rows(walker):
     first, retried = ns.candidate_groups_through_skinning(points, to_rest, posed, *mine, 8, "newton", "retry-labels",
                                                           moving=moving)
     assert retried is not None and 0 < retried.rows.usable.sum() < 0.01 * len(points)  # some points retried
+    # A part a point's first rows tried is not tried again.
+    tried = first.point * skin.skeleton.joint_count + first.joint
+    assert not np.isin(retried.point * skin.skeleton.joint_count + retried.joint, tried).any()
     point, joint, rows = ns.candidate_rows_through_skinning(points, to_rest, posed, *mine, 8, "newton", "retry-labels",
                                                             moving=moving)
     # The network's values per group, as the query asks them (the fused kernel's float32 rounding
