@@ -211,7 +211,9 @@ if numba is not None:
         if part is None:
             part = np.zeros(0, np.int64)
             part_biases = np.zeros((0, weights[0].shape[0]), np.float32)
-        # Scratch arrays once per run of blocks (not per block); 8 runs per thread balance the load.
+        # Scratch arrays once per run of blocks (not per block). numba's static schedule hands each
+        # thread a contiguous share of the runs, so their number does not balance the threads: the
+        # points cost alike.
         blocks = (len(u) + QUERY_BLOCK - 1) // QUERY_BLOCK
         packed, packed_biases, sizes = _packed_layers(weights, biases)
         _network_query(u, table, dtable, resolution, offset, rows, dense, smooth, packed, packed_biases, sizes,
