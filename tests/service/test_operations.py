@@ -363,6 +363,9 @@ def test_settings_from_config_file_env_and_flags(tmp_path, monkeypatch):
         load_settings()
 
 
+# A refusal that broke would start the server in this process and block it: a minute's deadline,
+# not the run's ten. The thread method: the signal method's exception is lost in uvicorn's loop.
+@pytest.mark.timeout(60, method="thread")
 def test_serve_cli_user_errors_are_one_line(tmp_path):
     # In this process (a traceback would be an exception here); the installed entry point's own
     # process is tests/cli/test_cli_models.py's.
@@ -373,6 +376,7 @@ def test_serve_cli_user_errors_are_one_line(tmp_path):
     assert result.returncode == 2 and "max_wait_ms" in result.stderr
 
 
+@pytest.mark.timeout(60, method="thread")  # as above: a placeholder let through would serve in this process
 @pytest.mark.parametrize("variable, value", [("COLLIDER_TOKEN", "change-me"),
                                              ("COLLIDER_ADMIN_TOKEN", "change-me-too"),
                                              ("COLLIDER_TOKEN", " CHANGEME ")])
