@@ -167,3 +167,53 @@ def test_the_query_answers_from_the_groups_as_from_the_joined_rows(walker):
     # not usable there).
     assert not first.rows.usable[np.isin(first.point, found)].any()
     assert np.isfinite(distance_now[found]).all()
+
+
+def test_a_plateau_of_a_part_gets_the_normal_across_it(walker):
+    """The neural kinds' rule where a ReLU plateau's gradient vanishes (test_neural_grid: central
+    differences at half the finest cell) holds in each part of the articulated network: the rest
+    network radius * (relu(u_x - 0.2) + 0.05) (one dense level whose feature is u_x, one hidden
+    unit; no part condition), asked near its plateau's edge (twice), where it is active and deep
+    in it, in the rest frame and through the query at the rest pose. The 30-minute walker of
+    2026-12-05 answered 3.8 % of its band points with the fallback's guess before the rule."""
+    import dataclasses
+
+    import torch
+
+    from collider_contract.skeleton import SkeletonPose
+
+    skin, _, exact, centre, radius, labels, boxes, field, _ = walker
+    arch = ns.ArticulatedGridArchitecture(joints=skin.skeleton.joint_count, skinning_solver="newton",
+                                          skinning_iterations=8, fine_weight_resolution=128,
+                                          weight_blocks=len(field.block_joints), levels=1, features=1,
+                                          base_resolution=4, max_resolution=4, table_log2=10, hidden_layers=1,
+                                          hidden_width=2, smooth=False)
+    network = ns.build_articulated_network(arch, centre, radius)
+    with torch.no_grad():
+        network.grid.table.copy_((-1.0 + 0.5 * (torch.arange(125) % 5)).float()[:, None])  # u_x
+        network.grid.body[0].weight.copy_(torch.tensor([[1.0], [0.0]]))
+        network.grid.body[0].bias.copy_(torch.tensor([-0.2, -1.0]))
+        network.grid.body[2].weight.copy_(torch.tensor([[1.0, 0.0]]))
+        network.grid.body[2].bias.copy_(torch.tensor([0.05]))
+        network.embedding.zero_()
+        network.condition.zero_()
+    network.labels.copy_(torch.from_numpy(labels))
+    network.part_boxes.copy_(torch.from_numpy(boxes))
+    network.set_weight_field(field)
+    info = dataclasses.replace(exact.info, kind=ns.ArticulatedNeuralCollider.kind,
+                               settings={**exact.info.settings, "architecture": dataclasses.asdict(arch)})
+    collider = ns.ArticulatedNeuralCollider(info, skin, network.eval(), device="cpu")
+    rest_pose = skin.skeleton.rest_world()
+    _, _, _, bias = collider.pose(None, SkeletonPose(joint_transforms=rest_pose))
+    u_x = np.array([0.1, -0.04, 0.5, -0.6])  # in the plateau near its edge (twice), active, deep in
+    u = np.stack([u_x, np.full(4, 0.3), np.full(4, 0.1)], axis=1)
+    rest = centre + radius * u
+    distance, gradient = collider._part_values(rest, np.zeros(4, dtype=np.int64), bias, True)
+    np.testing.assert_allclose(distance, radius * (np.maximum(u_x - 0.2, 0.0) + 0.05), rtol=1e-5)
+    # Central differences of radius * relu(u_x - 0.2) over u_x +-0.25 (radius / 4), per metre:
+    np.testing.assert_allclose(gradient[:, 0], [(0.1 + 0.25 - 0.2) / 0.5, (-0.04 + 0.25 - 0.2) / 0.5, 1.0, 0.0],
+                               rtol=1e-4, atol=1e-6)
+    np.testing.assert_allclose(gradient[:, 1:], 0.0, atol=1e-6)
+    # Through the query at the rest pose (every part's map the identity): the normal points across.
+    normal = collider.query(rest[:3], ("normal",), joint_transforms=rest_pose).normal
+    np.testing.assert_allclose(normal, [[1.0, 0.0, 0.0]] * 3, atol=1e-5)

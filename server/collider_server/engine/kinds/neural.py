@@ -15,7 +15,6 @@ The normalisation makes one set of presets work for meshes of any size and unit;
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass
-from typing import ClassVar
 
 import numpy as np
 
@@ -136,6 +135,36 @@ def build_network(arch: Architecture | GridArchitecture, centre, radius: float):
     return FourierSDF()
 
 
+#: Below this length (distance per unit of the network's frame; a true SDF's is 1) a network's
+#: gradient counts as vanished.
+PLATEAU_GRADIENT = 1e-6
+
+
+def across_plateaus(points, gradient, distance_at, step: float, lo, hi):
+    """``gradient`` (m, 3) at ``points`` (m, 3) with the rows where the network's own gradient
+    vanishes replaced by central differences of ``distance_at(rows, probes)`` (the rows' indices
+    (k,), their probes (6k, 3): six per row, +x +y +z -x -y -z, ``step`` from the point, clamped
+    to the box ``lo``-``hi``; returns the 6k distances), in the points' frame and units.
+
+    A ReLU network can learn a plateau: a region where every unit of a layer is off and the
+    output is a constant, there the bias (the 30-minute bunny of 2026-11-27: a slab ~0.05 mm
+    thick at 0.27 mm outside the surface, 0.3 % of the +-1 mm band; the 30-minute walker of
+    2026-12-05: 3.8 % of its band points). Its gradient there is exactly zero and the normal would
+    be the fallback's guess; the differences across the slab give the surface's direction. Rows
+    whose differences vanish too (a true extremum) keep their zero gradient for the caller's
+    fallback. The one rule of every neural kind (static, animated, articulated)."""
+    flat = np.flatnonzero(np.einsum("ij,ij->i", gradient, gradient) < PLATEAU_GRADIENT ** 2)
+    if not len(flat):
+        return gradient
+    offsets = np.concatenate([np.eye(3) * step, -np.eye(3) * step])  # +x +y +z -x -y -z
+    probes = np.clip(points[flat][:, None, :] + offsets[None], lo, hi)
+    d = np.asarray(distance_at(flat, probes.reshape(-1, 3))).reshape(len(flat), 6)
+    span = probes[:, :3] - probes[:, 3:]  # (k, 3, 3): the clamped steps, per axis
+    gradient = gradient.copy()
+    gradient[flat] = (d[:, :3] - d[:, 3:]) / np.maximum(np.einsum("kii->ki", span), 1e-30)
+    return gradient
+
+
 class NeuralCollider(Collider):
     """A trained :func:`build_network`; ``info.settings["architecture"]`` holds its shape."""
 
@@ -166,33 +195,13 @@ class NeuralCollider(Collider):
             gradient = self.across_plateaus(local, gradient, lambda p: self._network_evaluate(p, False)[0])
         return distance, gradient
 
-    #: Below this length (distance per collider unit; a true SDF's is 1) a network's gradient
-    #: counts as vanished.
-    PLATEAU_GRADIENT: ClassVar[float] = 1e-6
-
     def across_plateaus(self, local, gradient, distance_at):
-        """``gradient`` (m, 3) with the rows where the network's own gradient vanishes replaced by
-        central differences of ``distance_at`` (collider-frame points -> distances) at half the
-        finest cell (the grid's; a Fourier network: 1/256 of the radius), collider units.
-
-        A ReLU network can learn a plateau: a region where every unit of a layer is off and the
-        output is a constant, there the bias (the 30-minute bunny of 2026-11-27: a slab ~0.05 mm
-        thick at 0.27 mm outside the surface, 0.3 % of the +-1 mm band). Its gradient there is
-        exactly zero and the normal would be the fallback's guess; the differences across the
-        slab give the surface's direction. Rows whose differences vanish too (a true extremum)
-        keep their zero gradient for the caller's fallback."""
-        flat = np.flatnonzero(np.einsum("ij,ij->i", gradient, gradient) < self.PLATEAU_GRADIENT ** 2)
-        if not len(flat):
-            return gradient
-        arch = self.architecture
-        h = float(self.network.radius) / getattr(arch, "max_resolution", 256)
-        offsets = np.concatenate([np.eye(3) * h, -np.eye(3) * h])  # +x +y +z -x -y -z
-        probes = np.clip(local[flat][:, None, :] + offsets[None], self.domain_min, self.domain_max)
-        d = distance_at(probes.reshape(-1, 3)).reshape(len(flat), 6)
-        span = probes[:, :3] - probes[:, 3:]  # (k, 3, 3): the clamped steps, per axis
-        gradient = gradient.copy()
-        gradient[flat] = (d[:, :3] - d[:, 3:]) / np.maximum(np.einsum("kii->ki", span), 1e-30)
-        return gradient
+        """``gradient`` (m, 3) at collider-frame points ``local`` with its plateaus crossed
+        (:func:`across_plateaus`: central differences of ``distance_at``, collider-frame points ->
+        distances, at half the finest cell: the grid's; a Fourier network: 1/256 of the radius)."""
+        step = float(self.network.radius) / getattr(self.architecture, "max_resolution", 256)
+        return across_plateaus(local, gradient, lambda rows, probes: distance_at(probes), step,
+                               self.domain_min, self.domain_max)
 
     def _network_evaluate(self, local, want_gradient):
         torch = self._torch

@@ -58,6 +58,7 @@ from ..devices import resolve_device
 from ..skinning import Skeleton, Skin
 from . import grid_kernels
 from .grid_architecture import require_integers
+from .neural import across_plateaus
 from .neural_grid import GridArchitecture, build_grid_network, pack_table, unpack_table
 from .skinned import pose_key, resolve_pose, skin_from_tensors, skin_tensors
 
@@ -1650,6 +1651,10 @@ class ArticulatedNeuralCollider(Collider):
             d[outside] = np.maximum(d[outside], 0.0) + gap
             if want_gradient:
                 g[outside] = away / gap[:, None]
+        if want_gradient:  # the neural kinds' rule where a plateau's gradient vanishes, each row in its part
+            step = float(grid.radius) / self.arch.max_resolution
+            g = across_plateaus(rest, g, lambda rows, probes: self._part_values(
+                probes, np.repeat(joint[rows], 6), bias, False)[0], step, lo, hi)
         return d, g
 
     def tensors(self):
