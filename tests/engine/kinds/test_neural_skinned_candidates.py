@@ -101,19 +101,33 @@ def test_the_candidate_rule_is_checked():
     assert ns.ArticulatedGridArchitecture().candidate_rule == "own-label"  # the first files' rule
 
 
+def _articulated_collider(walker, arch, network):
+    """The walker's articulated collider of ``arch`` with ``network`` (its labels, part boxes and
+    weight field set from the fixture), on the CPU."""
+    import dataclasses
+
+    import torch
+
+    skin, _, exact, _, _, labels, boxes, field, _ = walker
+    network.labels.copy_(torch.from_numpy(labels))
+    network.part_boxes.copy_(torch.from_numpy(boxes))
+    network.set_weight_field(field)
+    info = dataclasses.replace(exact.info, kind=ns.ArticulatedNeuralCollider.kind,
+                               settings={**exact.info.settings, "architecture": dataclasses.asdict(arch)})
+    return ns.ArticulatedNeuralCollider(info, skin, network.eval(), device="cpu")
+
+
 def test_the_query_answers_from_the_groups_as_from_the_joined_rows(walker):
     """The query takes the first and the retried rows as two groups (no join of a million rows):
     distance, normal and velocity are those of the joined rows (candidate_rows_through_skinning)
     through the network, the union and the pull-back, bit for bit, at a pose where points are
     retried (an untrained network with random weights: the parts answer apart)."""
-    import dataclasses
-
     import torch
 
     from collider_contract.skeleton import SkeletonPose
     from collider_server.engine.skinning import pose_at
 
-    skin, _, exact, centre, radius, labels, boxes, field, _ = walker
+    skin, _, _, centre, radius, _, _, field, _ = walker
     arch = ns.ArticulatedGridArchitecture(joints=skin.skeleton.joint_count, skinning_solver="newton",
                                           skinning_iterations=8, fine_weight_resolution=128,
                                           weight_blocks=len(field.block_joints), candidate_rule="retry-labels",
@@ -125,12 +139,7 @@ def test_the_query_answers_from_the_groups_as_from_the_joined_rows(walker):
             network.grid.table.normal_(0.0, 0.1)
             network.embedding.normal_(0.0, 0.1)
             network.condition.normal_(0.0, 0.1)
-    network.labels.copy_(torch.from_numpy(labels))
-    network.part_boxes.copy_(torch.from_numpy(boxes))
-    network.set_weight_field(field)
-    info = dataclasses.replace(exact.info, kind=ns.ArticulatedNeuralCollider.kind,
-                               settings={**exact.info.settings, "architecture": dataclasses.asdict(arch)})
-    collider = ns.ArticulatedNeuralCollider(info, skin, network.eval(), device="cpu")
+    collider = _articulated_collider(walker, arch, network)
     transforms = random_poses(skin, 1, 2031, perturbed_share=1.0).transforms[0]
     _, velocities = pose_at(skin, skin.clips[0].name, 0.3)
     points = surface_band_points(Mesh(skin_vertices(skin, transforms), skin.faces, "posed"), 4000, 1e-3, 3)
@@ -176,13 +185,11 @@ def test_a_plateau_of_a_part_gets_the_normal_across_it(walker):
     unit; no part condition), asked near its plateau's edge (twice), where it is active and deep
     in it, in the rest frame and through the query at the rest pose. The 30-minute walker of
     2026-12-05 answered 3.8 % of its band points with the fallback's guess before the rule."""
-    import dataclasses
-
     import torch
 
     from collider_contract.skeleton import SkeletonPose
 
-    skin, _, exact, centre, radius, labels, boxes, field, _ = walker
+    skin, _, _, centre, radius, _, _, field, _ = walker
     arch = ns.ArticulatedGridArchitecture(joints=skin.skeleton.joint_count, skinning_solver="newton",
                                           skinning_iterations=8, fine_weight_resolution=128,
                                           weight_blocks=len(field.block_joints), levels=1, features=1,
@@ -197,12 +204,7 @@ def test_a_plateau_of_a_part_gets_the_normal_across_it(walker):
         network.grid.body[2].bias.copy_(torch.tensor([0.05]))
         network.embedding.zero_()
         network.condition.zero_()
-    network.labels.copy_(torch.from_numpy(labels))
-    network.part_boxes.copy_(torch.from_numpy(boxes))
-    network.set_weight_field(field)
-    info = dataclasses.replace(exact.info, kind=ns.ArticulatedNeuralCollider.kind,
-                               settings={**exact.info.settings, "architecture": dataclasses.asdict(arch)})
-    collider = ns.ArticulatedNeuralCollider(info, skin, network.eval(), device="cpu")
+    collider = _articulated_collider(walker, arch, network)
     rest_pose = skin.skeleton.rest_world()
     _, _, _, bias = collider.pose(None, SkeletonPose(joint_transforms=rest_pose))
     u_x = np.array([0.1, -0.04, 0.5, -0.6])  # in the plateau near its edge (twice), active, deep in

@@ -1621,7 +1621,8 @@ class ArticulatedNeuralCollider(Collider):
         float64 of parts ``joint`` (m,) int64, the parts' first biases ``bias`` (J, H) float32
         (one network call for all parts: the fused kernel takes each point's bias by its part),
         with the conservative box rule beyond the grid's cube: the value at the cube's nearest
-        point plus the way there (the normal along it)."""
+        point plus the way there (the normal along it); and where a row's gradient vanishes (a
+        plateau), the neural kinds' central differences in its part (``across_plateaus``)."""
         torch = self._torch
         lo, hi = self.centre - self.radius, self.centre + self.radius
         clamped, outside = clamp_to_cube(rest, lo, hi)
