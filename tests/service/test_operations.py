@@ -363,8 +363,8 @@ def test_settings_from_config_file_env_and_flags(tmp_path, monkeypatch):
         load_settings()
 
 
-# A refusal that broke would start the server in this process and block it: a minute's deadline,
-# not the run's ten. The thread method: the signal method's exception is lost in uvicorn's loop.
+# A refusal that broke would start the server in this process and block it: a deadline of one
+# minute, not the suite's ten. The thread method: the signal method's exception is lost in uvicorn's loop.
 @pytest.mark.timeout(60, method="thread")
 def test_serve_cli_user_errors_are_one_line(tmp_path):
     # In this process (a traceback would be an exception here); the installed entry point's own
