@@ -1211,6 +1211,15 @@ _newton_kernel = None
 if grid_kernels.available():
     import numba
 
+    @numba.njit(cache=True, nogil=True, inline="always")
+    def _add_map_row(row, maps, j, a, w, g0, g1, g2, y0, y1, y2):  # pragma: no cover
+        """``row`` (7 floats: row a of sum_k w_k A_k, then of sum_k (A_k [y, 1])_a grad w_k) plus
+        joint j's share, weight ``w`` and weight derivative (g0, g1, g2) at the rest point y."""
+        m0, m1, m2, m3 = maps[j, a, 0], maps[j, a, 1], maps[j, a, 2], maps[j, a, 3]
+        moved = m0 * y0 + m1 * y1 + m2 * y2 + m3
+        return (row[0] + w * m0, row[1] + w * m1, row[2] + w * m2, row[3] + w * m3, row[4] + moved * g0,
+                row[5] + moved * g1, row[6] + moved * g2)
+
     @numba.njit(cache=True, nogil=True)
     def _newton_terms_one(y0, y1, y2, x, maps, field, centre, radius, f, jac, slot_of, touched, wsum,
                           dsum):  # pragma: no cover
@@ -1222,11 +1231,10 @@ if grid_kernels.available():
             y0, y1, y2, field[0], field[1], field[2], field[3], field[4], centre, radius)
         count = _gather_weights(table_joints, table_weights, cx, cy, cz, tx, ty, tz, sx, sy, sz, slot_of, touched,
                                 wsum, dsum)
-        # One pass over the joints into scalars, each map row read once (each sum over the joints in
-        # order, as with a pass per row: the same bits; the evaluation a tenth faster, measured).
+        # One pass over the joints, each map row read once, into tuples of scalars (each sum over the
+        # joints in order, as with a pass per row: the same bits; the evaluation a tenth faster).
         total = ds0 = ds1 = ds2 = 0.0
-        r00 = r01 = r02 = r03 = r10 = r11 = r12 = r13 = r20 = r21 = r22 = r23 = 0.0
-        e00 = e01 = e02 = e10 = e11 = e12 = e20 = e21 = e22 = 0.0
+        row0 = row1 = row2 = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
         for s in range(count):
             w = wsum[s]
             g0, g1, g2 = dsum[s, 0], dsum[s, 1], dsum[s, 2]
@@ -1235,50 +1243,18 @@ if grid_kernels.available():
             ds1 += g1
             ds2 += g2
             j = touched[s]
-            m0, m1, m2, m3 = maps[j, 0, 0], maps[j, 0, 1], maps[j, 0, 2], maps[j, 0, 3]
-            r00 += w * m0
-            r01 += w * m1
-            r02 += w * m2
-            r03 += w * m3
-            moved = m0 * y0 + m1 * y1 + m2 * y2 + m3
-            e00 += moved * g0
-            e01 += moved * g1
-            e02 += moved * g2
-            m0, m1, m2, m3 = maps[j, 1, 0], maps[j, 1, 1], maps[j, 1, 2], maps[j, 1, 3]
-            r10 += w * m0
-            r11 += w * m1
-            r12 += w * m2
-            r13 += w * m3
-            moved = m0 * y0 + m1 * y1 + m2 * y2 + m3
-            e10 += moved * g0
-            e11 += moved * g1
-            e12 += moved * g2
-            m0, m1, m2, m3 = maps[j, 2, 0], maps[j, 2, 1], maps[j, 2, 2], maps[j, 2, 3]
-            r20 += w * m0
-            r21 += w * m1
-            r22 += w * m2
-            r23 += w * m3
-            moved = m0 * y0 + m1 * y1 + m2 * y2 + m3
-            e20 += moved * g0
-            e21 += moved * g1
-            e22 += moved * g2
+            row0 = _add_map_row(row0, maps, j, 0, w, g0, g1, g2, y0, y1, y2)
+            row1 = _add_map_row(row1, maps, j, 1, w, g0, g1, g2, y0, y1, y2)
+            row2 = _add_map_row(row2, maps, j, 2, w, g0, g1, g2, y0, y1, y2)
         total = max(total, 1e-12)
-        image = (r00 * y0 + r01 * y1 + r02 * y2 + r03) / total
-        f[0] = image - x[0]
-        jac[0, 0] = (r00 + e00 - image * ds0) / total
-        jac[0, 1] = (r01 + e01 - image * ds1) / total
-        jac[0, 2] = (r02 + e02 - image * ds2) / total
-        image = (r10 * y0 + r11 * y1 + r12 * y2 + r13) / total
-        f[1] = image - x[1]
-        jac[1, 0] = (r10 + e10 - image * ds0) / total
-        jac[1, 1] = (r11 + e11 - image * ds1) / total
-        jac[1, 2] = (r12 + e12 - image * ds2) / total
-        image = (r20 * y0 + r21 * y1 + r22 * y2 + r23) / total
-        f[2] = image - x[2]
-        jac[2, 0] = (r20 + e20 - image * ds0) / total
-        jac[2, 1] = (r21 + e21 - image * ds1) / total
-        jac[2, 2] = (r22 + e22 - image * ds2) / total
-        size = f[0] * f[0] + f[1] * f[1] + f[2] * f[2]
+        size = 0.0
+        for a, row in enumerate((row0, row1, row2)):
+            image = (row[0] * y0 + row[1] * y1 + row[2] * y2 + row[3]) / total
+            f[a] = image - x[a]
+            size += f[a] * f[a]
+            jac[a, 0] = (row[0] + row[4] - image * ds0) / total
+            jac[a, 1] = (row[1] + row[5] - image * ds1) / total
+            jac[a, 2] = (row[2] + row[6] - image * ds2) / total
         return math.sqrt(size), count
 
     @numba.njit(cache=True, nogil=True)
