@@ -161,13 +161,15 @@ def test_a_short_last_newton_step_lands_where_the_steps_to_convergence_do(arm, m
     """NEWTON_LAST_STEP: a step under it is taken without evaluating the map after it, only where
     it stays in its cell of the weights (across a cell face the field's derivative jumps and
     Newton's error is no longer of the step's square); the rest points are the converged ones to
-    well within the tolerance, and the map's linear part is the one before the step."""
+    well within the tolerance, and the map's linear part is the one before the step. (The arm's
+    steps across cell faces miss by under 0.3 um: the cell condition is checked on the shipped
+    walker, test_neural_skinned_model.py.)"""
     _, centre, radius, _, _, field, to_rest, posed, _, points = arm
     point, joint, rigid = _candidates(arm, neighbours=False)
     args = (points, point, joint, rigid, to_rest, posed, field, centre, radius, 8, "newton", fused)
     monkeypatch.setattr(ns, "NEWTON_LAST_STEP", 0.0)
     full = carried_rows(*args)
-    monkeypatch.setattr(ns, "NEWTON_LAST_STEP", 1e-4)
+    monkeypatch.undo()
     short = carried_rows(*args)
     np.testing.assert_array_equal(short.converged, full.converged)
     both = short.converged

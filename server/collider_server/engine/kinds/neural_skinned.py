@@ -682,7 +682,8 @@ def newton_rest(points: np.ndarray, rest: np.ndarray, posed: np.ndarray, weights
     3))`` (:func:`weights_and_gradient`): each step ``-J_F^-1 F``, at most ``max_step`` long, halved
     up to :data:`NEWTON_HALVINGS` times until |F| falls (else the point stops); a step no longer
     than ``last_step`` that stays in its cell of the weights, ``cells(y) -> (m, k)`` int
-    (:func:`weight_cells`), is taken without evaluating the map after it (:data:`NEWTON_LAST_STEP`).
+    (:func:`weight_cells`; given with any ``last_step`` > 0), is taken without evaluating the map
+    after it (:data:`NEWTON_LAST_STEP`).
     Returns ``(rest (m, 3), inverse (m, 3, 3), converged (m,) bool)``: the images, ``J_F^-1`` at
     each row's last evaluation (the gradient's pull-back) and whether |F| <= ``tolerance`` there or
     the last step was that short. The numpy reference of :func:`_newton_kernel`."""
@@ -1278,10 +1279,10 @@ if grid_kernels.available():
         3) and ``converged`` (m,) overwritten, and ``wild`` (m,): whether the rest point lies further
         than ``sqrt(limit)`` from its start (the three squares summed in order, as numpy sums them).
         Where ``moving`` (J, 3, 4) has rows (else (0, 3, 4)), ``velocity`` (m, 3) is overwritten
-        with :func:`blend_at`'s ``sum_k w_k dA_k/dt`` applied to the final rest point, the weights
-        of the last evaluation (no second lookup: the rest point's own but after a short last step,
-        :data:`NEWTON_LAST_STEP`). Task i takes the rows of
-        chunk ``(i * stride) % chunks`` (:func:`spread_stride`)."""
+        with :func:`blend_at`'s ``sum_k w_k dA_k/dt`` applied to the final rest point, with the
+        weights of the last evaluation (no second lookup): the rest point's own, or after a short
+        last step (:data:`NEWTON_LAST_STEP`) the point's before it. Task i takes the rows of chunk
+        ``(i * stride) % chunks`` (:func:`spread_stride`)."""
         field = (grid_joints, grid_weights, block_index, block_joints, block_weights)
         n = point.shape[0]
         chunk = NEWTON_CHUNK
