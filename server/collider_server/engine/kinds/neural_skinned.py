@@ -564,6 +564,12 @@ def weight_field(skin: Skin, centre, radius: float, resolution: int, fine_resolu
                        block_joints.reshape(block_shape), block_weights.reshape(block_shape))
 
 
+def _cells_below(u: np.ndarray, cells: int) -> np.ndarray:
+    """(m, 3) int64: the cell of a grid of ``cells`` cells per side over [-1, 1] that holds each
+    point ``u`` (m, 3) (already clamped into the cube; the last cell holds its far face)."""
+    return np.minimum(np.floor((u + 1.0) * 0.5 * cells).astype(np.int64), cells - 1)
+
+
 def _corner_tables(rest: np.ndarray, field: WeightField, centre, radius: float):
     """Where rest points (m, 3) read the weight field: per point its 8 corners' joints and ``w *
     255`` ((m, 8, 4) uint8 each, corner c at offset ``((c >> a) & 1)`` along axis a), the fraction
@@ -575,9 +581,8 @@ def _corner_tables(rest: np.ndarray, field: WeightField, centre, radius: float):
     offsets = np.array([[(c >> a) & 1 for a in range(3)] for c in range(8)])
 
     def locate(cells):
-        position = (u + 1.0) * 0.5 * cells
-        cell = np.minimum(np.floor(position).astype(np.int64), cells - 1)
-        return cell, position - cell, np.where(clamped, 0.0, 0.5 * cells / radius)
+        cell = _cells_below(u, cells)
+        return cell, (u + 1.0) * 0.5 * cells - cell, np.where(clamped, 0.0, 0.5 * cells / radius)
 
     side = field.joints.shape[0]
     cell, t, scale = locate(side - 1)
@@ -604,8 +609,7 @@ def weight_cells(rest: np.ndarray, field: WeightField, centre, radius: float) ->
     cells read the same 8 corners, so the field is one trilinear polynomial between them."""
     u = np.clip((np.asarray(rest, np.float64) - centre) / radius, -1.0, 1.0)
     sides = [field.joints.shape[0] - 1, field.block_index.shape[0] * BLOCK_CELLS]
-    return np.concatenate([np.minimum(np.floor((u + 1.0) * 0.5 * cells).astype(np.int64), cells - 1)
-                           for cells in sides if cells], axis=1)
+    return np.concatenate([_cells_below(u, cells) for cells in sides if cells], axis=1)
 
 
 def weights_at(rest: np.ndarray, field: WeightField, centre, radius: float, joints: int) -> np.ndarray:
