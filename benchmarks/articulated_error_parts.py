@@ -40,7 +40,12 @@ def main() -> int:
     parser.add_argument("--points", type=int, default=5000, help="points per pose in the +-1 mm band")
     parser.add_argument("--seed", type=int, default=2026)
     args = parser.parse_args()
-    collider = load_collider(args.model)
+    try:
+        collider = load_collider(args.model)
+    except (OSError, ValueError) as exc:
+        parser.error(str(exc))
+    if collider.kind != "neural-skinned":
+        parser.error(f"{args.model} is a {collider.kind} model, not an articulated network (neural-skinned)")
     skin = collider.skin
     rest_mesh = Mesh(skin.vertices, skin.faces, "rest")
     rest_sdf = ExactSDF(rest_mesh)
