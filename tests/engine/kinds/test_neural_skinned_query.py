@@ -277,11 +277,11 @@ def test_pose_codes_are_zero_at_rest_and_leave_the_joints_scale_out(arm):
     np.testing.assert_allclose(pose_codes(scaled, world_transforms(scaled, local), 2), codes, atol=1e-6)
 
 
-def test_the_newton_pass_s_per_row_helpers_are_inlined():
-    """A numba call that passes arrays takes and releases a reference to each, and the pass's
+def test_the_weight_passes_per_row_helpers_are_inlined():
+    """A numba call that passes arrays takes and releases a reference to each, and a pass's
     threads contend for the shared tables' counts: inlined, the Newton pass took 0.76x the time
-    on the walker, with the same bits (docs/neural.md). The answers cannot tell, so the rule is
-    checked here."""
+    on the walker and the fixed-point steps 0.53x, with the same bits (docs/neural.md). The
+    answers cannot tell, so the rule is checked here."""
     for helper in (ns._weight_source, ns._gather_weights, ns._newton_terms_one, ns._same_weight_cell,
-                   ns._inverse3):
+                   ns._inverse3, ns._blend_one):
         assert helper.targetoptions.get("inline") == "always", helper.__name__

@@ -1072,9 +1072,10 @@ if grid_kernels.available():
         u = (value - centre) / radius
         return c, t, (0.0 if (u < -1.0 or u > 1.0) else 0.5 * cells / radius)
 
-    # The helpers that take arrays and run per row of the Newton pass are inlined: a call that passes
-    # arrays pays their reference counts, which the pass's threads contend for (inlined, the pass
-    # took 0.76x the time on the walker, the same bits; numba compiles it in ~9 s more, once).
+    # The helpers that take arrays and run per row of the weight passes are inlined: a call that
+    # passes arrays pays their reference counts, which the pass's threads contend for (inlined,
+    # on the walker the Newton pass took 0.76x the time, the fixed-point steps 0.53x, the same
+    # bits; numba compiles them in ~9 s more, once).
     @numba.njit(cache=True, nogil=True, inline="always")
     def _weight_source(x, y, z, grid_joints, grid_weights, block_index, block_joints, block_weights, centre,
                        radius):  # pragma: no cover
@@ -1139,7 +1140,7 @@ if grid_kernels.available():
             slot_of[touched[s]] = -1
         return count
 
-    @numba.njit(cache=True, nogil=True)
+    @numba.njit(cache=True, nogil=True, inline="always")
     def _blend_one(x, y, z, maps, grid_joints, grid_weights, block_index, block_joints, block_weights, centre,
                    radius, out, p, slot_of, touched, wsum, dsum):  # pragma: no cover
         """``out[p]`` (3, 4) = the weight-blended ``maps`` at the rest point (x, y, z); the last four:
