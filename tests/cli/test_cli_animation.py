@@ -69,6 +69,22 @@ def test_animate_spot_bend_bends_the_shipped_cow_once_and_bakes_it_clamped(capsy
     assert code == 0 and "clamps" in out, (out, err)
 
 
+def test_animate_spot_bend_finds_the_shipped_cow_from_another_folder(capsys, tmp_path, monkeypatch):
+    """Run from a folder that holds no ``examples/`` (an editable install used elsewhere), the
+    generated animation of a shipped mesh reads the checkout's: the same frames as from the root."""
+    from collider_server.making.animation_files import load_animation
+
+    assert run(capsys, "animate", "spot-bend", "--output", tmp_path / "root", "--quiet")[0] == 0
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    monkeypatch.chdir(elsewhere)
+    code, _, err = run(capsys, "animate", "spot-bend", "--output", "out", "--quiet")
+    assert code == 0, err
+    here = load_animation(elsewhere / "out/spot-bend.obj", elsewhere / "out/spot-bend.pc2", 12.0, False)
+    there = load_animation(tmp_path / "root/spot-bend.obj", tmp_path / "root/spot-bend.pc2", 12.0, False)
+    np.testing.assert_array_equal(here.frames, there.frames)
+
+
 def write_pc2(path, frames):
     with PC2Writer(path, frames.shape[1]) as writer:
         for frame in frames:

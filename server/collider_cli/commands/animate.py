@@ -26,7 +26,8 @@ def register(subparsers) -> None:
                    help="folder of NAME.obj and NAME.pc2 (default out/animations)")
     p.add_argument("--mesh", type=Path, default=None,
                    help="twisting-bunny: the bunny OBJ (default examples/meshes/stanford-bunny.obj); spot-bend: "
-                        "the spot OBJ (default examples/meshes/spot.obj)")
+                        "the spot OBJ (default examples/meshes/spot.obj); under the working folder, else the "
+                        "source checkout's")
     p.add_argument("--frames", type=int, default=None,
                    help="frames over the same motion and duration (default: as above; e.g. "
                         "twisting-bunny --frames 61 is 61 frames at 30 fps over its 2 s)")
@@ -41,8 +42,21 @@ def register(subparsers) -> None:
     p.set_defaults(func=run_animate)
 
 
-#: The mesh file each generated animation of a mesh reads when ``--mesh`` is not given.
+#: The mesh file each generated animation of a mesh reads when ``--mesh`` is not given: under the
+#: working directory, else under the source checkout (:func:`default_mesh`).
 MESHES = {"twisting-bunny": Path("examples/meshes/stanford-bunny.obj"), "spot-bend": Path("examples/meshes/spot.obj")}
+
+
+def default_mesh(name: str) -> Path:
+    """:data:`MESHES`' file of ``name`` under the working directory if it is there, else the
+    source checkout's (an editable install run from another folder), else the relative path (its
+    reader then says it is missing)."""
+    from collider_server.engine.repository import CHECKOUT
+
+    local = MESHES[name]
+    if local.is_file() or not (CHECKOUT / local).is_file():
+        return local
+    return CHECKOUT / local
 
 
 def make_animation(name: str, mesh: Path | None = None, frames: int | None = None):
@@ -65,7 +79,7 @@ def make_animation(name: str, mesh: Path | None = None, frames: int | None = Non
         duration_s = (defaults["frames"].default - 1) / defaults["fps"].default
         timing = {"frames": frames, "fps": (frames - 1) / duration_s}
     if name in MESHES:
-        return function(read_obj(mesh or MESHES[name]), **timing)
+        return function(read_obj(mesh or default_mesh(name)), **timing)
     made = function(**timing)
     return made[0] if name == "pulsing-sphere" else made
 

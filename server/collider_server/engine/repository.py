@@ -35,6 +35,8 @@ def check_name(name: str) -> str:
 
 
 SHIPPED_MODELS_DATA = "share/neural-collider/models"  # where pyproject's data-files put them
+#: The source checkout's root: where an editable install's files are when run from elsewhere.
+CHECKOUT = Path(__file__).resolve().parents[3]
 
 
 def installed_models_dir() -> Path | None:
@@ -61,7 +63,7 @@ def default_models_dir() -> Path:
     local = Path("models")
     if local.is_dir():
         return local
-    checkout = Path(__file__).resolve().parents[3] / "models"
+    checkout = CHECKOUT / "models"
     if checkout.is_dir():
         return checkout
     return installed_models_dir() or checkout
