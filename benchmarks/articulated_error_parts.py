@@ -22,6 +22,7 @@ import numpy as np
 
 sys.path[:0] = [str(Path(__file__).resolve().parents[1] / "server"), str(Path(__file__).resolve().parents[1] / "client")]
 
+from collider_contract.skeleton import SkeletonPose
 from collider_server.engine.kinds import neural_skinned as ns
 from collider_server.engine.meshes import ExactSDF, Mesh
 from collider_server.engine.modelfile import load_collider
@@ -61,15 +62,11 @@ def main() -> int:
     for name, share, seed in (("clip times", 0.0, args.seed), ("off the clips", 1.0, args.seed + 5)):
         network, floor, largest = [], [], []
         for p, transforms in enumerate(random_poses(skin, args.poses, seed, perturbed_share=share).transforms):
-            to_rest, posed = ns.rest_maps(skin.skeleton, transforms)
             posed_points = surface_band_points(Mesh(skin_vertices(skin, transforms), skin.faces, "posed"),
                                                args.points, 1e-3, seed + 10 + p)
             truth = exact.query(posed_points, "distance", joint_transforms=transforms).distance
             network.append(collider.query(posed_points, "distance", joint_transforms=transforms).distance - truth)
-            point, _, rest, _ = ns.parts_through_skinning(
-                posed_points, to_rest, posed, collider.labels, collider.centre, collider.radius, collider.allowed,
-                collider.part_boxes, collider.weights, collider.arch.skinning_iterations,
-                collider.arch.skinning_solver, collider.arch.candidate_rule)
+            point, _, rest, _ = collider.parts_at(posed_points, None, SkeletonPose(joint_transforms=transforms))
             d = rest_sdf.signed_distance(rest)
             least = np.full(len(posed_points), np.inf)
             np.minimum.at(least, point, d)

@@ -40,9 +40,10 @@ import numpy as np
 
 sys.path[:0] = [str(Path(__file__).resolve().parents[1] / "server"), str(Path(__file__).resolve().parents[1] / "client")]
 
+from collider_contract.skeleton import SkeletonPose
 from collider_server.engine.collider import ColliderInfo
 from collider_server.engine.kinds.neural import PRESETS, NeuralCollider, architecture_dict, build_network
-from collider_server.engine.kinds.neural_skinned import CANDIDATE_RULES, parts_through_skinning, rest_maps
+from collider_server.engine.kinds.neural_skinned import CANDIDATE_RULES
 from collider_server.engine.meshes import Mesh
 from collider_server.engine.modelfile import load_collider, save_collider
 from collider_server.engine.skinning import PERTURB_DEG, pose_at, random_poses, skin_vertices
@@ -62,11 +63,7 @@ def accuracy(collider, exact, skin, poses, points_per_pose: int, seed: int, band
         points = surface_band_points(mesh, points_per_pose, band, seed + p)
         truth = exact.query(points, ("distance", "normal"), joint_transforms=transforms)
         answer = collider.query(points, ("distance", "normal"), joint_transforms=transforms)
-        to_rest, posed = rest_maps(skin.skeleton, transforms)
-        rows = parts_through_skinning(points, to_rest, posed, collider.labels, collider.centre, collider.radius,
-                                      collider.allowed, collider.part_boxes, collider.weights,
-                                      collider.arch.skinning_iterations, collider.arch.skinning_solver,
-                                      collider.arch.candidate_rule)[0]
+        rows = collider.parts_at(points, None, SkeletonPose(joint_transforms=transforms))[0]
         candidates.append(len(rows) / len(points))
         errors.append(np.abs(answer.distance - truth.distance))
         truths.append(truth.distance)

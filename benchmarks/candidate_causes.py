@@ -53,11 +53,13 @@ def every_part(collider, rest_sdf, transforms, points):
     rigid = np.einsum("mab,mb->ma", to_rest[joint, :, :3], points[point]) + to_rest[joint, :, 3]
     arch = collider.arch
     # Every row carried (the dropped ones too) and whether it reached a root.
+    prepared = collider.pose(None, SkeletonPose(joint_transforms=transforms))
     carried = ns.carried_rows(points, point, joint, rigid, to_rest, posed, collider.weights, collider.centre,
-                              collider.radius, arch.skinning_iterations, arch.skinning_solver)
+                              collider.radius, arch.skinning_iterations, arch.skinning_solver,
+                              offsets=prepared.offsets)
     rest, converged = carried.rest, carried.converged
     floor = rest_sdf.query(rest)[0].reshape(joints, n)
-    bias = collider.pose(None, SkeletonPose(joint_transforms=transforms))[3]
+    bias = prepared.bias
     network = collider._part_values(rest, joint, bias, False)[0].reshape(joints, n)
     own = ns._candidate_mask_numpy(points, to_rest, collider.labels, collider.centre, collider.radius,
                                    collider.allowed, collider.part_boxes)

@@ -59,7 +59,7 @@ def causes(collider, poses: int, points: int, band: float, over: float, seed: in
         x = surface_band_points(mesh, points, band, seed + 1000 + p)
         truth = exact.query(x, ("distance",), joint_transforms=transforms).distance
         to_rest, posed = rest_maps(skin.skeleton, transforms)
-        _, _, _, bias = collider.pose(None, SkeletonPose(joint_transforms=transforms))
+        bias = collider.pose(None, SkeletonPose(joint_transforms=transforms)).bias
         point, joint, rows = candidate_rows_through_skinning(
             x, to_rest, posed, collider.labels, collider.centre, collider.radius, collider.allowed,
             collider.part_boxes, collider.weights, collider.arch.skinning_iterations, collider.arch.skinning_solver,

@@ -147,16 +147,16 @@ def test_the_query_answers_from_the_groups_as_from_the_joined_rows(walker):
     pose = SkeletonPose(joint_transforms=transforms, joint_velocities=velocities)
     distance_now, gradient_now, velocity_now = collider.evaluate_at(points, True, None, pose)
     # The reference: the joined rows, as the query took them before the groups.
-    to_rest, posed, moving, bias = collider.pose(None, pose)
+    to_rest, posed, moving, bias, offsets, moving_offsets = collider.pose(None, pose)
     mine = (collider.labels, collider.centre, collider.radius, collider.allowed, collider.part_boxes, collider.weights)
     first, retried = ns.candidate_groups_through_skinning(points, to_rest, posed, *mine, 8, "newton", "retry-labels",
-                                                          moving=moving)
+                                                          moving=moving, offsets=offsets, moving_offsets=moving_offsets)
     assert retried is not None and 0 < retried.rows.usable.sum() < 0.01 * len(points)  # some points retried
     # A part a point's first rows tried is not tried again.
     tried = first.point * skin.skeleton.joint_count + first.joint
     assert not np.isin(retried.point * skin.skeleton.joint_count + retried.joint, tried).any()
     point, joint, rows = ns.candidate_rows_through_skinning(points, to_rest, posed, *mine, 8, "newton", "retry-labels",
-                                                            moving=moving)
+                                                            moving=moving, offsets=offsets, moving_offsets=moving_offsets)
     # The network's values per group, as the query asks them (the fused kernel's float32 rounding
     # depends on a row's block), then moved to the joined rows by (point, joint): one row each.
     values = [collider._part_values(g.rows.rest, g.joint, bias, True) for g in (first, retried)]
@@ -207,7 +207,7 @@ def test_a_plateau_of_a_part_gets_the_normal_across_it(walker):
         network.condition.zero_()
     collider = _articulated_collider(walker, arch, network)
     rest_pose = skin.skeleton.rest_world()
-    _, _, _, bias = collider.pose(None, SkeletonPose(joint_transforms=rest_pose))
+    bias = collider.pose(None, SkeletonPose(joint_transforms=rest_pose)).bias
     u_x = np.array([0.1, -0.04, 0.5, -0.6])  # in the plateau near its edge (twice), active, deep in
     u = np.stack([u_x, np.full(4, 0.3), np.full(4, 0.1)], axis=1)
     rest = centre + radius * u

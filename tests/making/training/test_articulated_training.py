@@ -242,7 +242,7 @@ def test_a_model_file_from_before_the_candidate_retry_answers_as_before(trained)
                                           old.part_boxes)
     keep, rest, _ = carry_to_rest(points, point, joint, rigid, to_rest, posed, old.weights, old.centre, old.radius,
                                   old.arch.skinning_iterations, old.arch.skinning_solver)
-    distance, _ = old._part_values(rest, joint[keep], old.pose(None, _pose(transforms))[3], False)
+    distance, _ = old._part_values(rest, joint[keep], old.pose(None, _pose(transforms)).bias, False)
     expected = np.full(len(points), np.inf)
     np.minimum.at(expected, point[keep], distance)
     np.testing.assert_array_equal(old.query(points, "distance", joint_transforms=transforms).distance, expected)

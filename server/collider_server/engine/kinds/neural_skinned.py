@@ -101,6 +101,9 @@ class ArticulatedGridArchitecture(GridArchitecture):
     weight_blocks : how many blocks of it the model holds (set by the training)
     candidate_rule : :data:`CANDIDATE_RULES`: ``"own-label"`` (the first model files') or
         ``"retry-labels"`` (a second pass where none of a point's candidates reached a root)
+    surface_offsets : the Newton map adds, near the rest surface, the pose's
+        :func:`surface_offsets` (the posed mesh's flat triangles against the skinned weight field;
+        needs ``fine_weight_resolution`` and the ``newton`` solver); False: the files before it
     """
 
     joints: int = 1
@@ -113,6 +116,7 @@ class ArticulatedGridArchitecture(GridArchitecture):
     fine_weight_resolution: int = 0
     weight_blocks: int = 0
     candidate_rule: str = "own-label"
+    surface_offsets: bool = False
     table_log2: int = 17
     table_dtype: str = "int8"
     encoding: str = "articulated-grid"
@@ -131,6 +135,8 @@ class ArticulatedGridArchitecture(GridArchitecture):
         if self.candidate_rule not in CANDIDATE_RULES:
             raise ValueError(f"architecture candidate_rule must be one of {', '.join(CANDIDATE_RULES)}, "
                              f"got {self.candidate_rule!r}")
+        if self.surface_offsets and (not self.fine_weight_resolution or self.skinning_solver != "newton"):
+            raise ValueError("architecture surface_offsets needs a fine_weight_resolution and the newton skinning_solver")
         if self.joints >= NO_PART:
             raise ValueError(f"an articulated network has at most {NO_PART - 1} joints, got {self.joints}")
 
@@ -356,8 +362,10 @@ def label_boxes(labels: np.ndarray, centre, radius: float, allowed: np.ndarray) 
     return boxes
 
 
-#: The 8 corners of a box as shares of its sides (x in bit 0).
-_BOX_CORNERS = np.array([[(c >> a) & 1 for a in range(3)] for c in range(8)], np.float64)
+#: Corner c of a cell at offset ``(c >> a) & 1`` along axis a (x in bit 0).
+_CORNER_OFFSETS = np.array([[(c >> a) & 1 for a in range(3)] for c in range(8)])
+#: The 8 corners of a box as shares of its sides.
+_BOX_CORNERS = _CORNER_OFFSETS.astype(np.float64)
 
 
 def _posed_label_boxes(to_rest: np.ndarray, rest_boxes: np.ndarray, pad: float) -> np.ndarray:
@@ -570,6 +578,31 @@ def _cells_below(u: np.ndarray, cells: int) -> np.ndarray:
     return np.minimum(np.floor((u + 1.0) * 0.5 * cells).astype(np.int64), cells - 1)
 
 
+def _fine_cells(u: np.ndarray, field: WeightField):
+    """Where points ``u`` (m, 3) (the cube's coordinates, clamped into [-1, 1]) read the fine
+    blocks: ``(fine (f,) int64 the points in a stored block, row (f,) its block's row, corner (f, 8,
+    3) their 8 corners in the block, fraction (f, 3))``, the cell and fraction over all m points
+    being :func:`_cells_below`'s of the fine grid."""
+    cells = field.block_index.shape[0] * BLOCK_CELLS
+    cell = _cells_below(u, cells)
+    b = cell // BLOCK_CELLS
+    row = field.block_index[b[:, 0], b[:, 1], b[:, 2]]
+    fine = np.flatnonzero(row >= 0)
+    corner = (cell[fine] - b[fine] * BLOCK_CELLS)[:, None, :] + _CORNER_OFFSETS[None]
+    return fine, row[fine], corner, ((u + 1.0) * 0.5 * cells - cell)[fine]
+
+
+def _trilinear(t: np.ndarray, scale: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The 8 corners' trilinear weights (m, 8) at fractions ``t`` (m, 3) and their derivatives
+    (m, 8, 3) along the axes (``scale`` (m, 3): d(fraction)/d(position))."""
+    o = _CORNER_OFFSETS[None]
+    f = np.where(o == 1, t[:, None, :], 1.0 - t[:, None, :])
+    g = np.where(o == 1, 1.0, -1.0) * scale[:, None, :]
+    weight = f[..., 0] * f[..., 1] * f[..., 2]
+    return weight, np.stack([g[..., 0] * f[..., 1] * f[..., 2], f[..., 0] * g[..., 1] * f[..., 2],
+                             f[..., 0] * f[..., 1] * g[..., 2]], axis=-1)
+
+
 def _corner_tables(rest: np.ndarray, field: WeightField, centre, radius: float):
     """Where rest points (m, 3) read the weight field: per point its 8 corners' joints and ``w *
     255`` ((m, 8, 4) uint8 each, corner c at offset ``((c >> a) & 1)`` along axis a), the fraction
@@ -578,28 +611,19 @@ def _corner_tables(rest: np.ndarray, field: WeightField, centre, radius: float):
     u = (np.asarray(rest, np.float64) - centre) / radius
     clamped = (u < -1.0) | (u > 1.0)
     u = np.clip(u, -1.0, 1.0)
-    offsets = np.array([[(c >> a) & 1 for a in range(3)] for c in range(8)])
-
-    def locate(cells):
-        cell = _cells_below(u, cells)
-        return cell, (u + 1.0) * 0.5 * cells - cell, np.where(clamped, 0.0, 0.5 * cells / radius)
-
-    side = field.joints.shape[0]
-    cell, t, scale = locate(side - 1)
-    corner = cell[:, None, :] + offsets[None]
+    cells = field.joints.shape[0] - 1
+    cell = _cells_below(u, cells)
+    t, scale = (u + 1.0) * 0.5 * cells - cell, np.where(clamped, 0.0, 0.5 * cells / radius)
+    corner = cell[:, None, :] + _CORNER_OFFSETS[None]
     joints = field.joints[corner[..., 0], corner[..., 1], corner[..., 2]]
     weights = field.weights[corner[..., 0], corner[..., 1], corner[..., 2]]
-    blocks = field.block_index.shape[0]
-    if blocks:
-        fine_cell, fine_t, fine_scale = locate(blocks * BLOCK_CELLS)
-        b = fine_cell // BLOCK_CELLS
-        row = field.block_index[b[:, 0], b[:, 1], b[:, 2]]
-        fine = np.flatnonzero(row >= 0)
-        c = (fine_cell[fine] - b[fine] * BLOCK_CELLS)[:, None, :] + offsets[None]
-        r = row[fine][:, None]
+    if field.block_index.shape[0]:
+        fine, row, c, fine_t = _fine_cells(u, field)
+        r = row[:, None]
         joints[fine] = field.block_joints[r, c[..., 0], c[..., 1], c[..., 2]]
         weights[fine] = field.block_weights[r, c[..., 0], c[..., 1], c[..., 2]]
-        t[fine], scale[fine] = fine_t[fine], fine_scale[fine]
+        t[fine] = fine_t
+        scale[fine] = np.where(clamped[fine], 0.0, 0.5 * field.block_index.shape[0] * BLOCK_CELLS / radius)
     return joints, weights, t, scale
 
 
@@ -627,12 +651,9 @@ def weights_and_gradient(rest: np.ndarray, field: WeightField, centre, radius: f
     raw = np.zeros((m, joints))
     draw = np.zeros((m, joints, 3))
     rows = np.arange(m)
+    trilinear, derivative = _trilinear(t, scale)
     for corner in range(8):
-        o = [(corner >> a) & 1 for a in range(3)]
-        f = [t[:, a] if o[a] else 1.0 - t[:, a] for a in range(3)]
-        df = [scale[:, a] * (1.0 if o[a] else -1.0) for a in range(3)]
-        tw = f[0] * f[1] * f[2]
-        dtw = np.stack([df[0] * f[1] * f[2], f[0] * df[1] * f[2], f[0] * f[1] * df[2]], axis=1)
+        tw, dtw = trilinear[:, corner], derivative[:, corner]
         jj, ww = corner_joints[:, corner], corner_weights[:, corner] / 255.0
         for slot in range(GRID_INFLUENCES):
             np.add.at(raw, (rows, jj[:, slot]), tw * ww[:, slot])
@@ -652,6 +673,90 @@ def skinning_jacobian(rest: np.ndarray, posed: np.ndarray, w: np.ndarray, dw: np
     return np.einsum("mj,jab->mab", w, posed[:, :3, :3]) + np.einsum("mja,mjc->mac", moved, dw)
 
 
+class SurfaceAnchors(NamedTuple):
+    """Each fine block corner's closest rest surface point (:func:`surface_anchors`), the blocks'
+    corners flattened (k * 125 rows, a block's 5^3 corners in C order): ``triangle`` (n, 3) int32
+    its face's vertices, ``bary`` (n, 3) float64 its barycentric coordinates there."""
+
+    triangle: np.ndarray
+    bary: np.ndarray
+
+
+def block_corner_points(field: WeightField, centre, radius: float) -> np.ndarray:
+    """(k, 5, 5, 5, 3) float64: the positions of the fine blocks' corners (collider frame, rest
+    pose), in the blocks' order (their rows in ``field.block_index``)."""
+    blocks = field.block_index.shape[0]
+    cells = blocks * BLOCK_CELLS
+    stored = np.flatnonzero(field.block_index.reshape(-1) >= 0)
+    stored = stored[np.argsort(field.block_index.reshape(-1)[stored])]
+    b = np.stack(np.unravel_index(stored, (blocks,) * 3), axis=1)
+    local = np.stack(np.meshgrid(*(np.arange(BLOCK_CELLS + 1),) * 3, indexing="ij"), axis=-1)
+    fine = b[:, None, None, None, :] * BLOCK_CELLS + local[None]
+    return np.asarray(centre, np.float64) + radius * (-1.0 + 2.0 * fine / cells)
+
+
+def surface_anchors(skin: Skin, field: WeightField, centre, radius: float) -> SurfaceAnchors:
+    """:class:`SurfaceAnchors` of ``field``'s fine blocks on ``skin``'s rest surface: the closest
+    points :func:`weight_field` took their weights from (pose-independent; a model computes them
+    when it loads, 0.3-0.6 s for 113,000-160,000 corners)."""
+    from ..meshes import ExactSDF, Mesh, barycentric
+
+    corners = block_corner_points(field, centre, radius).reshape(-1, 3)
+    _, closest, face = ExactSDF(Mesh(skin.vertices, skin.faces, "rest")).query(corners)
+    triangle = skin.faces[face]
+    return SurfaceAnchors(triangle.astype(np.int32), barycentric(closest, skin.vertices[triangle]))
+
+
+def surface_offsets(anchors: SurfaceAnchors, field: WeightField, skin: Skin, maps: np.ndarray,
+                    fused: bool = True) -> np.ndarray:
+    """(..., k, 5, 5, 5, 3) float64: at each fine block corner, the posed mesh's point of its
+    anchor (the barycentric blend of its face's skinned vertices: the flat posed triangle) minus
+    the anchor skinned by the corner's own weights (the weight field's map there), for ``maps``
+    (..., J, 3, 4): ``A`` at a pose (an offset, collider units) or ``dA/dt`` (its velocity, per
+    second); linear in the maps (several sets, e.g. a pose's and its motion's, in one pass).
+    Blended trilinearly and added to the map near the surface (the architecture's
+    ``surface_offsets``), they carry the rest surface onto the posed triangles where skinning a
+    face's inside bends it off them, and absorb the weights' 8-bit rounding (docs/neural.md). One
+    numba pass over the corners (:func:`_offsets_kernel`, 2 ms for the walker's 113,000) when
+    numba is there, else numpy."""
+    maps = np.asarray(maps, np.float64)
+    batch = maps.shape[:-3]
+    maps = np.ascontiguousarray(maps.reshape((-1,) + maps.shape[-3:]))
+    joints = field.block_joints.reshape(-1, GRID_INFLUENCES)
+    weights = field.block_weights.reshape(-1, GRID_INFLUENCES)
+    shape = batch + field.block_joints.shape[:4] + (3,)
+    if fused and _offsets_kernel is not None:
+        out = np.empty((len(maps), len(joints), 3))
+        _offsets_kernel(skin.vertices, np.ascontiguousarray(skin.joints, np.int64), skin.weights, anchors.triangle,
+                        anchors.bary, joints, weights, maps, out)
+        return out.reshape(shape)
+    vertices = np.concatenate([skin.vertices, np.ones((len(skin.vertices), 1))], axis=1)
+    moved = np.einsum("vk,mvkab,vb->mva", skin.weights, maps[:, skin.joints], vertices)  # the skin under the maps
+    flat = np.einsum("ci,mcia->mca", anchors.bary, moved[:, anchors.triangle])
+    point = np.einsum("ci,cia->ca", anchors.bary, vertices[anchors.triangle])
+    q = weights / 255.0
+    skinned = np.einsum("cs,mcsab,cb->mca", q, maps[:, joints], point) / np.maximum(q.sum(axis=1), 1e-12)[:, None]
+    return (flat - skinned).reshape(shape)
+
+
+def offsets_at(rest: np.ndarray, offsets: np.ndarray, field: WeightField, centre,
+               radius: float) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`surface_offsets`' table ``offsets`` (k, 5, 5, 5, 3) blended trilinearly at rest
+    points (m, 3), and its derivative (m, 3, 3) (d offset_a / d rest_b): zero outside the fine
+    blocks (and along an axis where the point is clamped into the cube). numpy; the Newton
+    kernel blends the same corners."""
+    u = (np.asarray(rest, np.float64) - centre) / radius
+    clamped = (u < -1.0) | (u > 1.0)
+    fine, row, corner, t = _fine_cells(np.clip(u, -1.0, 1.0), field)
+    scale = np.where(clamped[fine], 0.0, 0.5 * field.block_index.shape[0] * BLOCK_CELLS / radius)
+    weight, derivative = _trilinear(t, scale)
+    table = offsets[row[:, None], corner[..., 0], corner[..., 1], corner[..., 2]]  # (f, 8, 3)
+    value, gradient = np.zeros((len(u), 3)), np.zeros((len(u), 3, 3))
+    value[fine] = np.einsum("fc,fca->fa", weight, table)
+    gradient[fine] = np.einsum("fcb,fca->fab", derivative, table)
+    return value, gradient
+
+
 #: Newton steps stop where the skinned rest point is this close to the query point, a share of the
 #: grid's half side (the walker's 0.95 m: about 1 micrometre).
 NEWTON_TOLERANCE = 1e-6
@@ -669,21 +774,26 @@ NEWTON_HALVINGS = 4
 NEWTON_LAST_STEP = 1e-4
 
 
-def _newton_terms(y: np.ndarray, x: np.ndarray, posed: np.ndarray, weights):
+def _newton_terms(y: np.ndarray, x: np.ndarray, posed: np.ndarray, weights, offset=None):
     """``(F (m, 3), J_F (m, 3, 3))`` of :func:`newton_rest`'s equation at rest points ``y``."""
     w, dw = weights(y)
     homogeneous = np.concatenate([y, np.ones((len(y), 1))], axis=1)
     f = np.einsum("mj,jab,mb->ma", w, posed[:, :3, :], homogeneous) - x
-    return f, skinning_jacobian(y, posed, w, dw)
+    jacobian = skinning_jacobian(y, posed, w, dw)
+    if offset is not None:
+        value, gradient = offset(y)
+        f, jacobian = f + value, jacobian + gradient
+    return f, jacobian
 
 
 def newton_rest(points: np.ndarray, rest: np.ndarray, posed: np.ndarray, weights, iterations: int,
                 max_step: float = NEWTON_MAX_STEP, tolerance: float = NEWTON_TOLERANCE,
-                last_step: float = 0.0, cells=None):
+                last_step: float = 0.0, cells=None, offset=None):
     """Rest-pose images of posed points ``points`` (m, 3) through the skinning by damped Newton
-    steps on ``F(y) = sum_k w_k(y) A_k [y, 1] - x = 0`` (SNARF's root search) from ``rest``
-    (m, 3) (a part's rigid image), ``A = posed`` (J, 4, 4), ``weights(y) -> (w (m, J), dw (m, J,
-    3))`` (:func:`weights_and_gradient`): each step ``-J_F^-1 F``, at most ``max_step`` long, halved
+    steps on ``F(y) = sum_k w_k(y) A_k [y, 1] (+ offset(y)) - x = 0`` (SNARF's root search) from
+    ``rest`` (m, 3) (a part's rigid image), ``A = posed`` (J, 4, 4), ``weights(y) -> (w (m, J),
+    dw (m, J, 3))`` (:func:`weights_and_gradient`), ``offset(y) -> (value (m, 3), derivative (m,
+    3, 3))`` or None (:func:`offsets_at`): each step ``-J_F^-1 F``, at most ``max_step`` long, halved
     up to :data:`NEWTON_HALVINGS` times until |F| falls (else the point stops); a step no longer
     than ``last_step`` that stays in its cell of the weights, ``cells(y) -> (m, k)`` int
     (:func:`weight_cells`; given with any ``last_step`` > 0), is taken without evaluating the map
@@ -693,7 +803,7 @@ def newton_rest(points: np.ndarray, rest: np.ndarray, posed: np.ndarray, weights
     the last step was that short. The numpy reference of :func:`_newton_kernel`."""
     x = np.asarray(points, np.float64)
     y = np.array(rest, np.float64)
-    f, jacobian = _newton_terms(y, x, posed, weights)
+    f, jacobian = _newton_terms(y, x, posed, weights, offset)
     size = np.linalg.norm(f, axis=1)  # |F| and J_F at each row's last evaluation
     converged = size <= tolerance
     active = np.flatnonzero(~converged)
@@ -713,7 +823,7 @@ def newton_rest(points: np.ndarray, rest: np.ndarray, posed: np.ndarray, weights
         for _ in range(NEWTON_HALVINGS + 1):
             rows = active[todo]
             trial = y[rows] + step[todo]
-            f_trial, jacobian_trial = _newton_terms(trial, x[rows], posed, weights)
+            f_trial, jacobian_trial = _newton_terms(trial, x[rows], posed, weights, offset)
             size_trial = np.linalg.norm(f_trial, axis=1)
             better = size_trial < size[rows]
             moved = rows[better]
@@ -777,7 +887,8 @@ DIVERGED = 0.25
 
 def carry_to_rest(points: np.ndarray, point: np.ndarray, joint: np.ndarray, rigid: np.ndarray,
                   to_rest: np.ndarray, posed: np.ndarray, field, centre, radius: float,
-                  iterations: int, solver: str = "fixed-point", fused: bool = True):
+                  iterations: int, solver: str = "fixed-point", fused: bool = True,
+                  offsets: np.ndarray | None = None):
     """Each candidate's rest-pose point and the linear part of its map there: candidates
     ``point`` (m,) (indices into ``points`` (n, 3), the posed points), ``joint`` (m,), their
     parts' rigid images ``rigid`` (m, 3) (``to_rest`` (J, 3, 4) of :func:`rest_maps`), carried on
@@ -792,7 +903,7 @@ def carry_to_rest(points: np.ndarray, point: np.ndarray, joint: np.ndarray, rigi
     into the m rows, in order), their rest points and the linear maps that pull a rest-frame
     gradient back to the posed frame (``grad_x = inverse^T grad_rest``)."""
     carried = carried_rows(points, point, joint, rigid, to_rest, posed, field, centre, radius, iterations, solver,
-                           fused)
+                           fused, offsets=offsets)
     keep = np.flatnonzero(carried.usable)
     if len(keep) == len(point):  # nothing dropped: no copies of the rows
         return keep, carried.rest, carried.inverse
@@ -817,10 +928,13 @@ class CarriedRows(NamedTuple):
 
 def carried_rows(points: np.ndarray, point: np.ndarray, joint: np.ndarray, rigid: np.ndarray,
                  to_rest: np.ndarray, posed: np.ndarray, field, centre, radius: float, iterations: int,
-                 solver: str = "fixed-point", fused: bool = True, moving: np.ndarray | None = None) -> CarriedRows:
+                 solver: str = "fixed-point", fused: bool = True, moving: np.ndarray | None = None,
+                 offsets: np.ndarray | None = None, moving_offsets: np.ndarray | None = None) -> CarriedRows:
     """:func:`carry_to_rest`'s rule without dropping rows (the query's: no copies of the rows) and,
     with ``moving`` (J, 3, 4) (``dA_j/dt``, :meth:`ArticulatedNeuralCollider.pose`), the velocity
-    at each row's rest point from the Newton kernel's last weights (:class:`CarriedRows`)."""
+    at each row's rest point from the Newton kernel's last weights (:class:`CarriedRows`). With
+    ``offsets`` (:func:`surface_offsets` of the pose's maps; the Newton solver only), the map
+    adds them, and the velocity ``moving_offsets`` (of ``moving``)."""
     m = len(point)
     if iterations == 0:
         return CarriedRows(np.ones(m, bool), rigid, to_rest[joint, :, :3], None, np.ones(m, bool))
@@ -834,11 +948,12 @@ def carried_rows(points: np.ndarray, point: np.ndarray, joint: np.ndarray, rigid
         del moved
     else:
         rest, inverse, converged, velocity, wild = _newton_through_grid(points, point, rigid, posed, field, centre,
-                                                                        radius, iterations, fused, moving)
+                                                                        radius, iterations, fused, moving, offsets,
+                                                                        moving_offsets)
     if len(wild):
         rest[wild], inverse[wild] = rigid[wild], to_rest[joint[wild], :, :3]
         if velocity is not None:  # the rigid image's own blend (rare)
-            velocity[wild] = _velocity_at(rigid[wild], moving, field, centre, radius)
+            velocity[wild] = _velocity_at(rigid[wild], moving, field, centre, radius, moving_offsets)
     if converged.all():
         return CarriedRows(converged, rest, inverse, velocity, converged)
     has_converged = np.zeros(len(points), bool)
@@ -846,22 +961,29 @@ def carried_rows(points: np.ndarray, point: np.ndarray, joint: np.ndarray, rigid
     return CarriedRows(converged | ~has_converged[point], rest, inverse, velocity, converged)
 
 
-def _velocity_at(rest: np.ndarray, moving: np.ndarray, field, centre, radius: float) -> np.ndarray:
+def _velocity_at(rest: np.ndarray, moving: np.ndarray, field, centre, radius: float,
+                 moving_offsets: np.ndarray | None = None) -> np.ndarray:
     """(m, 3) float64: the skinning's motion ``sum_k w_k(y) dA_k/dt @ [y, 1]`` at rest points
-    ``rest`` (m, 3) (:func:`blend_at` of ``moving`` (J, 3, 4))."""
+    ``rest`` (m, 3) (:func:`blend_at` of ``moving`` (J, 3, 4)), plus the blended
+    ``moving_offsets`` where given (:func:`surface_offsets` of ``moving``)."""
     homogeneous = np.concatenate([rest, np.ones((len(rest), 1))], axis=1)
-    return np.einsum("nab,nb->na", blend_at(rest, moving, field, centre, radius), homogeneous)
+    velocity = np.einsum("nab,nb->na", blend_at(rest, moving, field, centre, radius), homogeneous)
+    if moving_offsets is not None:
+        velocity += offsets_at(rest, moving_offsets, field, centre, radius)[0]
+    return velocity
 
 
 def parts_through_skinning(points: np.ndarray, to_rest: np.ndarray, posed: np.ndarray, labels: np.ndarray,
                            centre, radius: float, allowed: np.ndarray, part_boxes: np.ndarray, field,
-                           iterations: int, solver: str, rule: str = "own-label", fused: bool = True):
+                           iterations: int, solver: str, rule: str = "own-label", fused: bool = True,
+                           offsets: np.ndarray | None = None):
     """Each point's candidate parts and their rest points, the rows :func:`carry_to_rest` would
     keep (:func:`candidate_rows_through_skinning`: the rule's two groups joined, the unusable rows
     dropped): ``(point (k,) int64, joint (k,) int64, rest (k, 3), inverse (k, 3, 3))`` float64,
     sorted by joint, every point with at least one row."""
     point, joint, carried = candidate_rows_through_skinning(points, to_rest, posed, labels, centre, radius, allowed,
-                                                            part_boxes, field, iterations, solver, rule, fused)
+                                                            part_boxes, field, iterations, solver, rule, fused,
+                                                            offsets=offsets)
     if carried.usable.all():  # nothing dropped: no copies of the rows
         return point, joint, carried.rest, carried.inverse
     keep = np.flatnonzero(carried.usable)
@@ -881,7 +1003,8 @@ def candidate_groups_through_skinning(points: np.ndarray, to_rest: np.ndarray, p
                                       labels: np.ndarray, centre, radius: float, allowed: np.ndarray,
                                       part_boxes: np.ndarray, field, iterations: int, solver: str,
                                       rule: str = "own-label", fused: bool = True, moving: np.ndarray | None = None,
-                                      rest_boxes: np.ndarray | None = None
+                                      rest_boxes: np.ndarray | None = None, offsets: np.ndarray | None = None,
+                                      moving_offsets: np.ndarray | None = None
                                       ) -> tuple[CandidateRows, CandidateRows | None]:
     """The candidate rule (``rule``, :data:`CANDIDATE_RULES`) in its one home, for the query and
     the training alike: :func:`part_candidates` (the label at each part's rigid image), carried on
@@ -889,9 +1012,9 @@ def candidate_groups_through_skinning(points: np.ndarray, to_rest: np.ndarray, p
     candidates reached a root is tried again with the parts :func:`labels_seen` names at its
     rigid images (those not tried yet): where one of them reaches a root, those rows replace the
     first ones (else the first ones stay). ``points`` (n, 3) float64, collider frame at the pose;
-    ``to_rest`` (J, 3, 4) and ``posed`` (J, 4, 4) (:func:`rest_maps`); ``moving`` (J, 3, 4) as
-    :func:`carried_rows`'; the rest (``rest_boxes`` too) as :func:`part_candidates` and
-    :func:`carry_to_rest`.
+    ``to_rest`` (J, 3, 4) and ``posed`` (J, 4, 4) (:func:`rest_maps`); ``moving``, ``offsets``
+    and ``moving_offsets`` as :func:`carried_rows`'; the rest (``rest_boxes`` too) as
+    :func:`part_candidates` and :func:`carry_to_rest`.
 
     Returns ``(first, retried)`` (:class:`CandidateRows`), the rows as they were carried, not
     joined (the query's: no copies of a million rows for the few retried ones): the first rows
@@ -904,7 +1027,7 @@ def candidate_groups_through_skinning(points: np.ndarray, to_rest: np.ndarray, p
     point, joint, rigid = part_candidates(points, to_rest, labels, centre, radius, allowed, part_boxes, fused,
                                           rest_boxes)
     carried = carried_rows(points, point, joint, rigid, to_rest, posed, field, centre, radius, iterations, solver,
-                           fused, moving)
+                           fused, moving, offsets, moving_offsets)
     if rule != "retry-labels" or carried.converged.all():
         return CandidateRows(point, joint, carried), None
     reached = np.zeros(len(points), bool)
@@ -922,7 +1045,7 @@ def candidate_groups_through_skinning(points: np.ndarray, to_rest: np.ndarray, p
     retry_rigid = (np.einsum("mab,mb->ma", to_rest[retry_joint, :, :3], points[retry_point])
                    + to_rest[retry_joint, :, 3])
     again = carried_rows(points, retry_point, retry_joint, retry_rigid, to_rest, posed, field, centre, radius,
-                         iterations, solver, fused, moving)
+                         iterations, solver, fused, moving, offsets, moving_offsets)
     found = np.zeros(len(points), bool)
     found[retry_point[again.converged]] = True  # a root reached: these rows replace the first ones
     lost_rows = np.flatnonzero(found[point])
@@ -935,7 +1058,8 @@ def candidate_groups_through_skinning(points: np.ndarray, to_rest: np.ndarray, p
 def candidate_rows_through_skinning(points: np.ndarray, to_rest: np.ndarray, posed: np.ndarray, labels: np.ndarray,
                                     centre, radius: float, allowed: np.ndarray, part_boxes: np.ndarray, field,
                                     iterations: int, solver: str, rule: str = "own-label", fused: bool = True,
-                                    moving: np.ndarray | None = None, rest_boxes: np.ndarray | None = None
+                                    moving: np.ndarray | None = None, rest_boxes: np.ndarray | None = None,
+                                    offsets: np.ndarray | None = None, moving_offsets: np.ndarray | None = None
                                     ) -> tuple[np.ndarray, np.ndarray, CarriedRows]:
     """:func:`candidate_groups_through_skinning`'s two groups joined into one: the first rows of
     the points whose retried rows reached no root, then those retried rows, in one order.
@@ -945,7 +1069,7 @@ def candidate_rows_through_skinning(points: np.ndarray, to_rest: np.ndarray, pos
     rows after the first ones), one row per point and joint, every point with a usable row."""
     first, retried = candidate_groups_through_skinning(points, to_rest, posed, labels, centre, radius, allowed,
                                                        part_boxes, field, iterations, solver, rule, fused, moving,
-                                                       rest_boxes)
+                                                       rest_boxes, offsets, moving_offsets)
     if retried is None:
         return first
     found = np.zeros(len(points), bool)
@@ -1014,7 +1138,8 @@ def spread_stride(chunks: int) -> int:
 
 
 def _newton_through_grid(points, point, rigid, posed, field, centre, radius: float, iterations: int,
-                         fused: bool = True, moving: np.ndarray | None = None):
+                         fused: bool = True, moving: np.ndarray | None = None, offsets: np.ndarray | None = None,
+                         moving_offsets: np.ndarray | None = None):
     """:func:`newton_rest` of rows ``point`` (m,) int64 of ``points`` (n, 3) from ``rigid`` (m, 3)
     through the weight grid (:func:`weights_and_gradient`), its tolerance
     :data:`NEWTON_TOLERANCE` and longest step :data:`NEWTON_MAX_STEP` times ``radius``: one numba
@@ -1022,7 +1147,8 @@ def _newton_through_grid(points, point, rigid, posed, field, centre, radius: flo
     numba is there and ``fused``, else numpy. Returns ``newton_rest``'s three, the velocity (m, 3)
     at the rest points (:func:`_velocity_at`) from the kernel's last weights where ``moving`` (J,
     3, 4) is given and the kernel ran (else None), and the rows (k,) int64 that moved further than
-    :data:`DIVERGED` times ``radius`` from ``rigid``."""
+    :data:`DIVERGED` times ``radius`` from ``rigid``. ``offsets`` and ``moving_offsets`` as
+    :func:`carried_rows`'."""
     centre = np.asarray(centre, np.float64)
     tolerance, max_step, last_step = NEWTON_TOLERANCE * radius, NEWTON_MAX_STEP * radius, NEWTON_LAST_STEP * radius
     limit = (DIVERGED * radius) ** 2
@@ -1036,23 +1162,28 @@ def _newton_through_grid(points, point, rigid, posed, field, centre, radius: flo
             maps, velocity = np.zeros((0, 3, 4)), np.empty((0, 3))
         else:
             maps, velocity = np.ascontiguousarray(moving, np.float64), np.empty((len(rest), 3))
+        none = np.zeros((0,) + (BLOCK_CELLS + 1,) * 3 + (3,))
         _newton_kernel(np.ascontiguousarray(points, np.float64), np.ascontiguousarray(point, np.int64), rigid, rest,
                        np.ascontiguousarray(posed[:, :3, :]), *field, centre, float(radius), iterations, max_step,
                        tolerance, last_step, NEWTON_HALVINGS, limit, inverse, converged, wild, maps, velocity,
-                       spread_stride((len(rest) + NEWTON_CHUNK - 1) // NEWTON_CHUNK))
+                       spread_stride((len(rest) + NEWTON_CHUNK - 1) // NEWTON_CHUNK),
+                       none if offsets is None else np.ascontiguousarray(offsets, np.float64),
+                       none if moving is None or moving_offsets is None else
+                       np.ascontiguousarray(moving_offsets, np.float64))
         return rest, inverse, converged, (None if moving is None else velocity), np.flatnonzero(wild)
     joints = len(posed)
 
     def weights(y):
         return weights_and_gradient(y, field, centre, radius, joints)
 
+    offset = None if offsets is None else (lambda y: offsets_at(y, offsets, field, centre, radius))
     rest, inverse, converged = newton_rest(points[point], rigid, posed, weights, iterations, max_step, tolerance,
-                                           last_step, lambda y: weight_cells(y, field, centre, radius))
+                                           last_step, lambda y: weight_cells(y, field, centre, radius), offset)
     moved = rest - rigid
     return rest, inverse, converged, None, np.flatnonzero(np.einsum("ma,ma->m", moved, moved) > limit)
 
 
-_blend_kernel = _skinned_rest_kernel = None
+_blend_kernel = _skinned_rest_kernel = _offsets_kernel = None
 if grid_kernels.available():
     import numba
 
@@ -1080,8 +1211,9 @@ if grid_kernels.available():
     def _weight_source(x, y, z, grid_joints, grid_weights, block_index, block_joints, block_weights, centre,
                        radius):  # pragma: no cover
         """Where the rest point (x, y, z) reads the :class:`WeightField`: ``(joints, weights)`` (the
-        fine block's corners, or the coarse grid's) and per axis the corner index below in them,
-        the fraction and its derivative. :func:`_corner_tables` in numba."""
+        fine block's corners, or the coarse grid's), per axis the corner index below in them, the
+        fraction and its derivative, and the block's row (-1: the coarse grid). :func:`_corner_tables`
+        in numba."""
         blocks = block_index.shape[0]
         if blocks > 0:
             cells = blocks * BLOCK_CELLS
@@ -1092,12 +1224,12 @@ if grid_kernels.available():
             row = block_index[bx, by, bz]
             if row >= 0:
                 return (block_joints[row], block_weights[row], cx - bx * BLOCK_CELLS, cy - by * BLOCK_CELLS,
-                        cz - bz * BLOCK_CELLS, tx, ty, tz, sx, sy, sz)
+                        cz - bz * BLOCK_CELLS, tx, ty, tz, sx, sy, sz, row)
         cells = grid_joints.shape[0] - 1
         cx, tx, sx = _weight_axis(x, centre[0], radius, cells)
         cy, ty, sy = _weight_axis(y, centre[1], radius, cells)
         cz, tz, sz = _weight_axis(z, centre[2], radius, cells)
-        return grid_joints, grid_weights, cx, cy, cz, tx, ty, tz, sx, sy, sz
+        return grid_joints, grid_weights, cx, cy, cz, tx, ty, tz, sx, sy, sz, -1
 
     @numba.njit(cache=True, nogil=True, inline="always")
     def _gather_weights(table_joints, table_weights, cx, cy, cz, tx, ty, tz, sx, sy, sz, slot_of, touched, wsum,
@@ -1145,7 +1277,7 @@ if grid_kernels.available():
                    radius, out, p, slot_of, touched, wsum, dsum):  # pragma: no cover
         """``out[p]`` (3, 4) = the weight-blended ``maps`` at the rest point (x, y, z); the last four:
         :func:`_gather_weights`' scratch."""
-        table_joints, table_weights, cx, cy, cz, tx, ty, tz, sx, sy, sz = _weight_source(
+        table_joints, table_weights, cx, cy, cz, tx, ty, tz, sx, sy, sz, _ = _weight_source(
             x, y, z, grid_joints, grid_weights, block_index, block_joints, block_weights, centre, radius)
         count = _gather_weights(table_joints, table_weights, cx, cy, cz, tx, ty, tz, sx, sy, sz, slot_of, touched,
                                 wsum, dsum)
@@ -1199,6 +1331,49 @@ if grid_kernels.available():
                     for a in range(3):
                         rest[p, a] = inv[a, 0] * dx + inv[a, 1] * dy + inv[a, 2] * dz
 
+    @numba.njit(cache=True, nogil=True, parallel=True)
+    def _offsets_kernel(vertices, vertex_joints, vertex_weights, triangle, bary, joints, weights, maps,
+                        out):  # pragma: no cover
+        """:func:`surface_offsets` (numba), for each map set ``maps`` (M, J, 3, 4): the skin's rest
+        ``vertices`` (V, 3) with their joints and weights (V, I), per corner its anchor's
+        ``triangle`` (n, 3) and ``bary`` (n, 3) and its ``joints``, ``weights`` (n, 4) uint8;
+        ``out`` (M, n, 3) overwritten. The skin's vertices under the maps first, then the corners."""
+        sets = maps.shape[0]
+        moved = np.zeros((sets, vertices.shape[0], 3))
+        for v in numba.prange(vertices.shape[0]):
+            for k in range(vertex_joints.shape[1]):
+                w = vertex_weights[v, k]
+                if w == 0.0:
+                    continue
+                j = vertex_joints[v, k]
+                for m in range(sets):
+                    for a in range(3):
+                        moved[m, v, a] += w * (maps[m, j, a, 0] * vertices[v, 0] + maps[m, j, a, 1] * vertices[v, 1]
+                                               + maps[m, j, a, 2] * vertices[v, 2] + maps[m, j, a, 3])
+        for c in numba.prange(triangle.shape[0]):
+            p0 = p1 = p2 = 0.0
+            for i in range(3):
+                p0 += bary[c, i] * vertices[triangle[c, i], 0]
+                p1 += bary[c, i] * vertices[triangle[c, i], 1]
+                p2 += bary[c, i] * vertices[triangle[c, i], 2]
+            total = 0.0
+            for slot in range(joints.shape[1]):
+                total += weights[c, slot] / 255.0
+            scale = 1.0 / max(total, 1e-12)
+            for m in range(sets):
+                for a in range(3):
+                    flat = 0.0  # the face's skinned vertices, blended
+                    for i in range(3):
+                        flat += bary[c, i] * moved[m, triangle[c, i], a]
+                    skinned = 0.0  # the anchor skinned by the corner's weights
+                    for slot in range(joints.shape[1]):
+                        raw = weights[c, slot]
+                        if raw != 0:
+                            j = joints[c, slot]
+                            skinned += raw / 255.0 * (maps[m, j, a, 0] * p0 + maps[m, j, a, 1] * p1
+                                                      + maps[m, j, a, 2] * p2 + maps[m, j, a, 3])
+                    out[m, c, a] = flat - skinned * scale
+
     @numba.njit(cache=True, nogil=True, inline="always")
     def _inverse3(m, out):  # pragma: no cover
         """``out`` (3, 3) = the inverse of ``m`` (3, 3) (cofactors; a singular m as if det 1e-300)."""
@@ -1230,13 +1405,15 @@ if grid_kernels.available():
                 row[5] + moved * g1, row[6] + moved * g2)
 
     @numba.njit(cache=True, nogil=True, inline="always")
-    def _newton_terms_one(y0, y1, y2, x, maps, field, centre, radius, f, jac, slot_of, touched, wsum,
-                          dsum):  # pragma: no cover
+    def _newton_terms_one(y0, y1, y2, x, maps, field, centre, radius, f, jac, slot_of, touched, wsum, dsum,
+                          offsets):  # pragma: no cover
         """``f`` (3,) = F and ``jac`` (3, 3) = J_F of :func:`newton_rest` at the rest point (y0, y1,
-        y2) for the posed point ``x`` (3,); returns ``(|F|, count)``. The last four:
+        y2) for the posed point ``x`` (3,), the blended ``offsets`` added where it has rows
+        (:func:`surface_offsets`; in the fine blocks); returns ``(|F|, count, block row, cx, cy, cz,
+        tx, ty, tz)``: the cell, for the velocity's offsets. The four before ``offsets``:
         :func:`_gather_weights`' scratch (``touched[:count]``, ``wsum[:count]``: the point's joints
         and raw weights, as left there)."""
-        table_joints, table_weights, cx, cy, cz, tx, ty, tz, sx, sy, sz = _weight_source(
+        table_joints, table_weights, cx, cy, cz, tx, ty, tz, sx, sy, sz, block = _weight_source(
             y0, y1, y2, field[0], field[1], field[2], field[3], field[4], centre, radius)
         count = _gather_weights(table_joints, table_weights, cx, cy, cz, tx, ty, tz, sx, sy, sz, slot_of, touched,
                                 wsum, dsum)
@@ -1260,11 +1437,36 @@ if grid_kernels.available():
         for a, row in enumerate((row0, row1, row2)):
             image = (row[0] * y0 + row[1] * y1 + row[2] * y2 + row[3]) / total
             f[a] = image - x[a]
-            size += f[a] * f[a]
             jac[a, 0] = (row[0] + row[4] - image * ds0) / total
             jac[a, 1] = (row[1] + row[5] - image * ds1) / total
             jac[a, 2] = (row[2] + row[6] - image * ds2) / total
-        return math.sqrt(size), count
+        if block >= 0 and offsets.shape[0]:
+            _add_offsets(offsets, block, cx, cy, cz, tx, ty, tz, sx, sy, sz, f, jac)
+        for a in range(3):
+            size += f[a] * f[a]
+        return math.sqrt(size), count, block, cx, cy, cz, tx, ty, tz
+
+    @numba.njit(cache=True, nogil=True, inline="always")
+    def _add_offsets(offsets, block, cx, cy, cz, tx, ty, tz, sx, sy, sz, f, jac):  # pragma: no cover
+        """``f`` (3,) and ``jac`` (3, 3) plus the trilinear blend of block ``block``'s corner
+        ``offsets`` (:func:`surface_offsets`) in the cell (cx, cy, cz) at fractions (tx, ty, tz),
+        and its derivative (d fraction / d rest: sx, sy, sz). :func:`offsets_at` in numba."""
+        for corner in range(8):
+            ox, oy, oz = corner & 1, (corner >> 1) & 1, (corner >> 2) & 1
+            fx = tx if ox else 1.0 - tx
+            fy = ty if oy else 1.0 - ty
+            fz = tz if oz else 1.0 - tz
+            gx = sx if ox else -sx
+            gy = sy if oy else -sy
+            gz = sz if oz else -sz
+            tw = fx * fy * fz
+            e0, e1, e2 = gx * fy * fz, fx * gy * fz, fx * fy * gz
+            for a in range(3):
+                value = offsets[block, cx + ox, cy + oy, cz + oz, a]
+                f[a] += tw * value
+                jac[a, 0] += value * e0
+                jac[a, 1] += value * e1
+                jac[a, 2] += value * e2
 
     @numba.njit(cache=True, nogil=True, inline="always")
     def _same_weight_cell(a0, a1, a2, b0, b1, b2, field, centre, radius):  # pragma: no cover
@@ -1281,7 +1483,8 @@ if grid_kernels.available():
     @numba.njit(cache=True, nogil=True, parallel=True)
     def _newton_kernel(points, point, start, rest, maps, grid_joints, grid_weights, block_index, block_joints,
                        block_weights, centre, radius, iterations, max_step, tolerance, last_step, halvings, limit,
-                       inverse, converged, wild, moving, velocity, stride):  # pragma: no cover
+                       inverse, converged, wild, moving, velocity, stride, offsets,
+                       moving_offsets):  # pragma: no cover
         """:func:`newton_rest` through the weight grid in one pass over the rows (numba): row r the
         posed point ``points[point[r]]`` from ``start`` (m, 3); ``rest`` (m, 3), ``inverse`` (m, 3,
         3) and ``converged`` (m,) overwritten, and ``wild`` (m,): whether the rest point lies further
@@ -1289,8 +1492,10 @@ if grid_kernels.available():
         Where ``moving`` (J, 3, 4) has rows (else (0, 3, 4)), ``velocity`` (m, 3) is overwritten
         with :func:`blend_at`'s ``sum_k w_k dA_k/dt`` applied to the final rest point, with the
         weights of the last evaluation (no second lookup): the rest point's own, or after a short
-        last step (:data:`NEWTON_LAST_STEP`) the point's before it. Task i takes the rows of chunk
-        ``(i * stride) % chunks`` (:func:`spread_stride`)."""
+        last step (:data:`NEWTON_LAST_STEP`) the point's before it. ``offsets`` (k, 5, 5, 5, 3),
+        or with no rows none: :func:`surface_offsets` added to the map, and ``moving_offsets`` to
+        the velocity (blended with the last evaluation's cell, as the weights). Task i takes the
+        rows of chunk ``(i * stride) % chunks`` (:func:`spread_stride`)."""
         field = (grid_joints, grid_weights, block_index, block_joints, block_weights)
         n = point.shape[0]
         chunk = NEWTON_CHUNK
@@ -1311,8 +1516,8 @@ if grid_kernels.available():
             for p in range(first * chunk, min(n, first * chunk + chunk)):
                 x = points[point[p]]
                 y0, y1, y2 = start[p, 0], start[p, 1], start[p, 2]
-                size, count = _newton_terms_one(y0, y1, y2, x, maps, field, centre, radius, f, jac, slot_of, touched,
-                                                wsum, dsum)
+                size, count, block, cx, cy, cz, tx, ty, tz = _newton_terms_one(
+                    y0, y1, y2, x, maps, field, centre, radius, f, jac, slot_of, touched, wsum, dsum, offsets)
                 kept = count
                 kept_joints[:count] = touched[:count]
                 kept_weights[:count] = wsum[:count]
@@ -1334,13 +1539,15 @@ if grid_kernels.available():
                     s0, s1, s2 = s0 * shrink, s1 * shrink, s2 * shrink
                     moved = False
                     for _h in range(halvings + 1):
-                        trial, count = _newton_terms_one(y0 + s0, y1 + s1, y2 + s2, x, maps, field, centre, radius,
-                                                         f_trial, jac_trial, slot_of, touched, wsum, dsum)
+                        trial, count, block_t, cx_t, cy_t, cz_t, tx_t, ty_t, tz_t = _newton_terms_one(
+                            y0 + s0, y1 + s1, y2 + s2, x, maps, field, centre, radius, f_trial, jac_trial, slot_of,
+                            touched, wsum, dsum, offsets)
                         if trial < size:  # the terms at the new point are kept for the next step
                             y0, y1, y2 = y0 + s0, y1 + s1, y2 + s2
                             size = trial
                             f[:] = f_trial
                             jac[:] = jac_trial
+                            block, cx, cy, cz, tx, ty, tz = block_t, cx_t, cy_t, cz_t, tx_t, ty_t, tz_t
                             kept = count
                             kept_joints[:count] = touched[:count]
                             kept_weights[:count] = wsum[:count]
@@ -1369,6 +1576,12 @@ if grid_kernels.available():
                             value *= scale
                             v += value * (y0 if b == 0 else y1 if b == 1 else y2 if b == 2 else 1.0)
                         velocity[p, a] = v
+                    if block >= 0 and moving_offsets.shape[0]:
+                        for corner in range(8):
+                            ox, oy, oz = corner & 1, (corner >> 1) & 1, (corner >> 2) & 1
+                            tw = (tx if ox else 1.0 - tx) * (ty if oy else 1.0 - ty) * (tz if oz else 1.0 - tz)
+                            for a in range(3):
+                                velocity[p, a] += tw * moving_offsets[block, cx + ox, cy + oy, cz + oz, a]
 
 
 def clamp_to_cube(rest: np.ndarray, lo: np.ndarray, hi: np.ndarray, fused: bool = True):
@@ -1554,6 +1767,21 @@ def build_articulated_network(arch: ArticulatedGridArchitecture, centre, radius:
     return ArticulatedSDF()
 
 
+class PreparedPose(NamedTuple):
+    """A query's pose prepared once (:meth:`ArticulatedNeuralCollider.pose`): ``to_rest`` (J, 3,
+    4) and ``posed`` (J, 4, 4) (:func:`rest_maps`), ``moving`` (J, 3, 4) the maps' motion
+    ``dA/dt`` or None (still), ``bias`` (J, H) float32 the parts' first biases, ``offsets`` and
+    ``moving_offsets`` the :func:`surface_offsets` of ``posed`` and ``moving`` (or None: an
+    architecture without them, or still)."""
+
+    to_rest: np.ndarray
+    posed: np.ndarray
+    moving: np.ndarray | None
+    bias: np.ndarray
+    offsets: np.ndarray | None
+    moving_offsets: np.ndarray | None
+
+
 def architecture_of(info: ColliderInfo) -> ArticulatedGridArchitecture:
     """The architecture in ``info.settings["architecture"]``; ValueError if there is none."""
     try:
@@ -1596,6 +1824,9 @@ class ArticulatedNeuralCollider(Collider):
         self.radius = float(grid.radius)
         #: The label grid's part boxes at rest (pose-independent; each query poses them).
         self.rest_boxes = label_boxes(self.labels, self.centre, self.radius, self.allowed)
+        #: Where the fine blocks' corners meet the rest surface (the surface offsets' anchors).
+        self.anchors = (surface_anchors(skin, self.weights, self.centre, self.radius)
+                        if self.arch.surface_offsets else None)
         self.keep = keep
         self._cache: OrderedDict = OrderedDict()
         self._lock = threading.Lock()
@@ -1608,10 +1839,8 @@ class ArticulatedNeuralCollider(Collider):
     def skinned(self) -> bool:
         return True
 
-    def pose(self, time, skeleton):
-        """The query's pose prepared once (cached by pose): ``(to_rest (J, 3, 4), posed (J, 4,
-        4) (:func:`rest_maps`), velocity maps (J, 3, 4) or None (still), first biases (J, H)
-        float32)``."""
+    def pose(self, time, skeleton) -> PreparedPose:
+        """The query's pose prepared once (cached by pose: :class:`PreparedPose`)."""
         key = pose_key(time, skeleton)
         with self._lock:
             prepared = self._cache.get(key)
@@ -1629,7 +1858,14 @@ class ArticulatedNeuralCollider(Collider):
         with torch.inference_mode():
             joints = torch.arange(self.arch.joints, device=self._device)
             bias = self.network.first_bias(joints, torch.from_numpy(codes).to(self._device))
-        prepared = (to_rest, posed, moving, bias.float().cpu().numpy())
+        offsets = moving_offsets = None
+        if self.anchors is not None:
+            if moving is None:
+                offsets = surface_offsets(self.anchors, self.weights, self.skin, posed[:, :3, :])
+            else:  # the pose's and its motion's in one pass
+                offsets, moving_offsets = surface_offsets(self.anchors, self.weights, self.skin,
+                                                          np.stack([posed[:, :3, :], moving]))
+        prepared = PreparedPose(to_rest, posed, moving, bias.float().cpu().numpy(), offsets, moving_offsets)
         with self._lock:
             self._cache[key] = prepared
             while len(self._cache) > self.keep:
@@ -1640,12 +1876,23 @@ class ArticulatedNeuralCollider(Collider):
         distance, gradient, _ = self.evaluate_at(local, want_gradient, None, None)
         return distance, gradient
 
+    def parts_at(self, local: np.ndarray, time, skeleton=None):
+        """:func:`parts_through_skinning` of points ``local`` (n, 3) (collider frame) at a pose
+        (``time`` / ``skeleton`` as :meth:`evaluate_at`'s), by this model's rule, weights and
+        offsets: the rows the query's union takes, ``(point, joint, rest, inverse)``."""
+        prepared = self.pose(time, skeleton)
+        return parts_through_skinning(local, prepared.to_rest, prepared.posed, self.labels, self.centre, self.radius,
+                                      self.allowed, self.part_boxes, self.weights, self.arch.skinning_iterations,
+                                      self.arch.skinning_solver, self.arch.candidate_rule, offsets=prepared.offsets)
+
     def evaluate_at(self, local, want_gradient, time, skeleton=None):
-        to_rest, posed, moving, bias = self.pose(time, skeleton)
+        to_rest, posed, moving, bias, offsets, moving_offsets = self.pose(time, skeleton)
+        if not want_gradient:
+            moving = None  # no velocity asked
         groups = [group for group in candidate_groups_through_skinning(
             local, to_rest, posed, self.labels, self.centre, self.radius, self.allowed, self.part_boxes, self.weights,
-            self.arch.skinning_iterations, self.arch.skinning_solver, self.arch.candidate_rule,
-            moving=moving if want_gradient and moving is not None else None, rest_boxes=self.rest_boxes)
+            self.arch.skinning_iterations, self.arch.skinning_solver, self.arch.candidate_rule, moving=moving,
+            rest_boxes=self.rest_boxes, offsets=offsets, moving_offsets=moving_offsets)
             if group is not None]
         n = len(local)
         # Every row goes through the network (the few dropped ones too: cheaper than copies of the rows).
@@ -1676,12 +1923,10 @@ class ArticulatedNeuralCollider(Collider):
         if all(group.rows.velocity is not None for group in groups):  # the Newton kernel's, at the rest point
             return best, g, chosen(lambda i, rows: groups[i].rows.velocity[rows])
         rest = chosen(lambda i, rows: groups[i].rows.rest[rows])
-        homogeneous = np.concatenate([rest, np.ones((n, 1))], axis=1)
-        if self.arch.skinning_iterations == 0:  # the chosen part's rigid motion
-            m = moving[chosen(lambda i, rows: groups[i].joint[rows])]
-        else:  # the skinning's motion at the rest point: sum_k w_k dA_k/dt
-            m = blend_at(rest, moving, self.weights, self.centre, self.radius)
-        return best, g, np.einsum("nab,nb->na", m, homogeneous)
+        if self.arch.skinning_iterations:  # the skinning's motion at the rest point: sum_k w_k dA_k/dt
+            return best, g, _velocity_at(rest, moving, self.weights, self.centre, self.radius, moving_offsets)
+        homogeneous = np.concatenate([rest, np.ones((n, 1))], axis=1)  # the chosen part's rigid motion
+        return best, g, np.einsum("nab,nb->na", moving[chosen(lambda i, rows: groups[i].joint[rows])], homogeneous)
 
     def _part_values(self, rest: np.ndarray, joint: np.ndarray, bias: np.ndarray, want_gradient: bool):
         """Distance (m,) and rest-frame gradient (m, 3) (or None) at rest-frame points (m, 3)

@@ -36,6 +36,8 @@ from ...engine.kinds.neural_skinned import (
     parts_through_skinning,
     pose_codes,
     rest_maps,
+    surface_anchors,
+    surface_offsets,
     weight_field,
 )
 from ...engine.meshes import ExactSDF, Mesh
@@ -54,7 +56,8 @@ from .schedule import RunClock, cosine_learning_rate, make_optimizer, set_traini
 #: walker's floor without a network: docs/neural.md); a point none of whose candidates reaches a
 #: root tried again with the parts the label grid names at its rigid images (``retry-labels``).
 ARTICULATED_PRESET = ArticulatedGridArchitecture(skinning_solver="newton", skinning_iterations=8,
-                                                 fine_weight_resolution=128, candidate_rule="retry-labels")
+                                                 fine_weight_resolution=128, candidate_rule="retry-labels",
+                                                 surface_offsets=True)
 #: The fine weight field's blocks reach this many fine cells beyond the rest surface.
 FINE_WEIGHT_BAND_CELLS = 1.0
 #: Training poses and validation poses of a run (the rest pose is one of the training poses).
@@ -95,10 +98,11 @@ class ArticulatedSamples:
 
 def make_samples(skin: Skin, poses: np.ndarray, per_pose: int, point_sampler, arch, centre, radius: float,
                  labels: np.ndarray, boxes: np.ndarray, weights: tuple, show_progress: bool,
-                 what: str) -> ArticulatedSamples:
+                 what: str, anchors=None) -> ArticulatedSamples:
     """:class:`ArticulatedSamples` of ``per_pose`` points at each pose: ``point_sampler(mesh,
     seed)`` -> (points (k, 3), near (k,) bool) on the posed mesh; ``weights``: the weight grid
-    (:func:`weight_field`) the query carries points through."""
+    (:func:`weight_field`) the query carries points through, with each pose's
+    :func:`surface_offsets` where ``anchors`` (:func:`surface_anchors`) are given."""
     skeleton = skin.skeleton
     allowed = allowed_labels(skeleton.parents, arch.neighbours)
     parts = {k: [] for k in ("distance", "gradient", "near", "count", "rest", "joint", "pose", "to_rest")}
@@ -109,9 +113,10 @@ def make_samples(skin: Skin, poses: np.ndarray, per_pose: int, point_sampler, ar
             points, near = point_sampler(mesh, p)
             distance, gradient = exact_values(ExactSDF(mesh), points)
             to_rest, posed = rest_maps(skeleton, transforms)
+            offsets = None if anchors is None else surface_offsets(anchors, weights, skin, posed[:, :3, :])
             point, joint, rest, inverse = parts_through_skinning(
                 points, to_rest, posed, labels, centre, radius, allowed, boxes, weights, arch.skinning_iterations,
-                arch.skinning_solver, arch.candidate_rule)
+                arch.skinning_solver, arch.candidate_rule, offsets=offsets)
             order = np.argsort(point, kind="stable")
             parts["distance"].append(distance)
             parts["gradient"].append(gradient)
@@ -217,6 +222,7 @@ def train_articulated(skin: Skin, name: str, config: TrainConfig, *, arch: Artic
     weights = weight_field(skin, centre, radius, arch.weight_resolution, arch.fine_weight_resolution,
                            band=FINE_WEIGHT_BAND_CELLS * 2.0 * radius / max(arch.fine_weight_resolution, 1))
     arch = replace(arch, weight_blocks=len(weights.block_joints))
+    anchors = surface_anchors(skin, weights, centre, radius) if arch.surface_offsets else None
 
     margin = config.margin_m / meters_per_unit if config.margin_m else default_margin(rest, meters_per_unit)
     per_pose = max(config.samples // poses, 100)
@@ -235,10 +241,10 @@ def train_articulated(skin: Skin, name: str, config: TrainConfig, *, arch: Artic
         return points, np.ones(len(points), bool)
 
     data = _Batches(make_samples(skin, train_poses, per_pose, training_points, arch, centre, radius, labels,
-                                 boxes, weights, show_progress, "exact SDF at training poses"))
+                                 boxes, weights, show_progress, "exact SDF at training poses", anchors))
     held_out = sample_poses(skin, VALIDATION_POSES, config.seed + 77)
     val = _Batches(make_samples(skin, held_out, per_validation, validation_points, arch, centre, radius,
-                                labels, boxes, weights, show_progress, "exact SDF at validation poses"))
+                                labels, boxes, weights, show_progress, "exact SDF at validation poses", anchors))
     data_seconds = time.monotonic() - began
 
     network = build_articulated_network(arch, centre, radius)

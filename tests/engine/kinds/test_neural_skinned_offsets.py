@@ -1,0 +1,174 @@
+"""The surface offsets of kind ``neural-skinned`` (architecture ``surface_offsets``): per fine block
+corner, the posed mesh's flat triangle against the weight field's skinning of the corner's closest
+rest surface point, added to the Newton map. On the Khronos RiggedFigure, whose large faces span
+its joints, they take the map's floor from most of a millimetre to a few micrometres at a clip
+time; the numba passes answer as the numpy rule; the velocity is the map's time derivative."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from collider_contract.skeleton import SkeletonPose
+from collider_server.engine.kinds import grid_kernels
+from collider_server.engine.kinds import neural_skinned as ns
+from collider_server.engine.meshes import ExactSDF, Mesh
+from collider_server.engine.skinning import pose_at, random_poses, skin_vertices
+from collider_server.making.characters import skinned_from_file
+from collider_server.making.placement import MeshPlacement
+from collider_server.making.sampling import surface_band_points
+from collider_server.making.training.articulated import ARTICULATED_PRESET, FINE_WEIGHT_BAND_CELLS
+from collider_server.making.training.data import normalisation
+
+pytestmark = pytest.mark.skipif(not grid_kernels.available(), reason="the fast passes are numba's")
+
+FIGURE = Path(__file__).parents[2] / "data" / "gltf" / "RiggedFigure.gltf"
+
+
+@pytest.fixture(scope="module")
+def figure():
+    """The RiggedFigure placed as ``collider bake ... --z-up`` places it, its exact kind, and the
+    preset's label grid, part boxes, weight field and anchors."""
+    exact, _, _ = skinned_from_file(FIGURE, "figure", MeshPlacement(z_up=True), loop=False)
+    skin = exact.skin
+    rest = Mesh(skin.vertices, skin.faces, "rest")
+    centre, radius = normalisation(rest, 0.1)
+    arch = ARTICULATED_PRESET
+    cell = 2.0 * radius / arch.label_resolution
+    labels = ns.part_labels(skin, centre, radius, arch.label_resolution, band=3.0 * cell)
+    boxes = ns.part_boxes(skin, cell)
+    field = ns.weight_field(skin, centre, radius, arch.weight_resolution, arch.fine_weight_resolution,
+                            FINE_WEIGHT_BAND_CELLS * 2.0 * radius / arch.fine_weight_resolution)
+    anchors = ns.surface_anchors(skin, field, centre, radius)
+    mine = (labels, centre, radius, ns.allowed_labels(skin.skeleton.parents, False), boxes, field)
+    return exact, skin, ExactSDF(rest), anchors, mine
+
+
+def _maps(skin, transforms):
+    return ns.rest_maps(skin.skeleton, transforms)
+
+
+def test_the_offsets_carry_the_rest_surface_onto_the_posed_triangles(figure):
+    """The exact rest SDF read through the map, the minimum over each point's rows, against the
+    exact skinned kind at a clip time (the arms turned 40 degrees): without the offsets the
+    figure's faces, skinned inside, bend off the flat posed triangles (measured 0.75 mm mean);
+    with them the map lands on the triangles (7 um)."""
+    exact, skin, rest_sdf, anchors, mine = figure
+    transforms = pose_at(skin, "animation 0", 0.9)[0]
+    to_rest, posed = _maps(skin, transforms)
+    points = surface_band_points(Mesh(skin_vertices(skin, transforms), skin.faces, "posed"), 3000, 1e-3, 5)
+    truth = exact.query(points, "distance", joint_transforms=transforms).distance
+    offsets = ns.surface_offsets(anchors, mine[-1], skin, posed[:, :3, :])
+    errors = []
+    for with_offsets in (None, offsets):
+        point, _, rest, _ = ns.parts_through_skinning(points, to_rest, posed, *mine, 8, "newton", "retry-labels",
+                                                      offsets=with_offsets)
+        least = np.full(len(points), np.inf)
+        np.minimum.at(least, point, rest_sdf.query(rest)[0])
+        errors.append(np.abs(least - truth).mean())
+    plain, offset = errors
+    assert plain > 3e-4 and offset < 0.05 * plain and offset < 2e-5, (plain, offset)
+
+
+@pytest.mark.parametrize("kind", ["clip", "off the clip"])
+def test_the_fused_offsets_and_map_answer_as_the_numpy_rule(figure, kind):
+    _, skin, _, anchors, mine = figure
+    transforms = (pose_at(skin, "animation 0", 0.6)[0] if kind == "clip"
+                  else random_poses(skin, 1, 17, perturbed_share=1.0).transforms[0])
+    to_rest, posed = _maps(skin, transforms)
+    field = mine[-1]
+    offsets = ns.surface_offsets(anchors, field, skin, posed[:, :3, :])
+    np.testing.assert_allclose(offsets, ns.surface_offsets(anchors, field, skin, posed[:, :3, :], fused=False),
+                               rtol=0, atol=1e-14)
+    assert np.abs(offsets).max() > 1e-3  # the figure's faces bend by millimetres
+    points = surface_band_points(Mesh(skin_vertices(skin, transforms), skin.faces, "posed"), 2000, 1e-2, 6)
+    fused = ns.parts_through_skinning(points, to_rest, posed, *mine, 8, "newton", "retry-labels", offsets=offsets)
+    reference = ns.parts_through_skinning(points, to_rest, posed, *mine, 8, "newton", "retry-labels", fused=False,
+                                          offsets=offsets)
+    for a, b in zip(fused[:2], reference[:2]):
+        np.testing.assert_array_equal(a, b)
+    np.testing.assert_allclose(fused[2], reference[2], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(fused[3], reference[3], rtol=0, atol=1e-9)
+
+
+def test_the_velocity_is_the_offset_map_s_time_derivative(figure, monkeypatch):
+    """At each row's rest point, the Newton kernel's velocity equals the map (weights and offsets)
+    differenced between two nearby clip times; and, with no short last step, the numpy rule's."""
+    _, skin, _, anchors, mine = figure
+    field, centre, radius = mine[-1], mine[1], mine[2]
+    t, h = 0.6, 1e-4
+    transforms, velocities = pose_at(skin, "animation 0", t)
+    to_rest, posed = _maps(skin, transforms)
+    moving = (velocities @ skin.skeleton.inverse_bind)[:, :3, :]
+    offsets = ns.surface_offsets(anchors, field, skin, posed[:, :3, :])
+    moving_offsets = ns.surface_offsets(anchors, field, skin, moving)
+    points = surface_band_points(Mesh(skin_vertices(skin, transforms), skin.faces, "posed"), 2000, 1e-3, 7)
+    point, joint, rigid = ns.part_candidates(points, to_rest, *mine[:5])
+    monkeypatch.setattr(ns, "NEWTON_LAST_STEP", 0.0)
+    rows = ns.carried_rows(points, point, joint, rigid, to_rest, posed, field, centre, radius, 8, "newton",
+                           moving=moving, offsets=offsets, moving_offsets=moving_offsets)
+    np.testing.assert_allclose(rows.velocity, ns._velocity_at(rows.rest, moving, field, centre, radius,
+                                                                moving_offsets), rtol=0, atol=1e-12)
+
+    def mapped(time):
+        maps = _maps(skin, pose_at(skin, "animation 0", time)[0])[1][:, :3, :]
+        homogeneous = np.concatenate([rows.rest, np.ones((len(rows.rest), 1))], axis=1)
+        lbs = np.einsum("nab,nb->na", ns.blend_at(rows.rest, maps, field, centre, radius), homogeneous)
+        return lbs + ns.offsets_at(rows.rest, ns.surface_offsets(anchors, field, skin, maps), field, centre,
+                                   radius)[0]
+
+    differenced = (mapped(t + h) - mapped(t - h)) / (2 * h)
+    assert np.abs(differenced).max() > 0.1  # the arms move
+    np.testing.assert_allclose(rows.velocity, differenced, rtol=0, atol=1e-5)
+    # Without the offsets' velocity the surface's motion is off by the offsets' own (the check can tell).
+    plain = ns.carried_rows(points, point, joint, rigid, to_rest, posed, field, centre, radius, 8, "newton",
+                            moving=moving, offsets=offsets)
+    assert np.abs(plain.velocity - differenced).max() > 1e-3
+
+
+def test_a_model_with_offsets_answers_by_them_and_its_rows_are_the_query_s(figure):
+    """A collider whose architecture has ``surface_offsets`` computes its anchors once and each
+    pose's offsets (and their velocity) with the pose; ``parts_at`` gives the rows its query's
+    union takes, through the same offsets."""
+    import dataclasses
+
+    import torch
+
+    exact, skin, _, _, mine = figure
+    labels, centre, radius, _, boxes, field = mine
+    arch = dataclasses.replace(ARTICULATED_PRESET, joints=skin.skeleton.joint_count,
+                               weight_blocks=len(field.block_joints), table_log2=12, levels=4, max_resolution=64)
+    with torch.random.fork_rng(devices=[]):
+        network = ns.build_articulated_network(arch, centre, radius)
+    network.labels.copy_(torch.from_numpy(labels))
+    network.part_boxes.copy_(torch.from_numpy(boxes))
+    network.set_weight_field(field)
+    info = dataclasses.replace(exact.info, kind=ns.ArticulatedNeuralCollider.kind,
+                               settings={**exact.info.settings, "architecture": dataclasses.asdict(arch)})
+    collider = ns.ArticulatedNeuralCollider(info, skin, network.eval(), device="cpu")
+    assert collider.anchors is not None
+    transforms, velocities = pose_at(skin, "animation 0", 0.6)
+    pose = SkeletonPose(joint_transforms=transforms, joint_velocities=velocities)
+    prepared = collider.pose(None, pose)
+    assert prepared.offsets is not None and prepared.moving_offsets is not None
+    points = surface_band_points(Mesh(skin_vertices(skin, transforms), skin.faces, "posed"), 1000, 1e-3, 8)
+    point, joint, rest, _ = collider.parts_at(points, None, pose)
+    expected = ns.parts_through_skinning(points, prepared.to_rest, prepared.posed, *mine, 8, "newton",
+                                         "retry-labels", offsets=prepared.offsets)
+    np.testing.assert_array_equal(rest, expected[2])
+    plain = ns.parts_through_skinning(points, prepared.to_rest, prepared.posed, *mine, 8, "newton", "retry-labels")
+    joints = skin.skeleton.joint_count
+    keys, plain_keys = point * joints + joint, plain[0] * joints + plain[1]
+    both, mine_at, plain_at = np.intersect1d(keys, plain_keys, return_indices=True)
+    assert len(both) > 0.9 * len(points)
+    assert np.abs(plain[2][plain_at] - rest[mine_at]).max() > 1e-4  # the offsets move the rest points
+    distance, _, velocity = collider.evaluate_at(points, True, None, pose)
+    assert np.isfinite(distance).all() and velocity is not None
+
+
+def test_offsets_need_the_fine_field_and_the_newton_map():
+    with pytest.raises(ValueError, match="surface_offsets"):
+        ns.ArticulatedGridArchitecture(joints=3, surface_offsets=True)
+    with pytest.raises(ValueError, match="surface_offsets"):
+        ns.ArticulatedGridArchitecture(joints=3, surface_offsets=True, fine_weight_resolution=64)
+    assert not ns.ArticulatedGridArchitecture(joints=3).surface_offsets  # the files before them
