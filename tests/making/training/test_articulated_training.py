@@ -31,10 +31,10 @@ from collider_server.making.training.articulated import sample_poses, train_arti
 
 #: A small field (4 levels up to 64 cells, 2^12 rows) so that a few hundred steps train it; the
 #: map and the candidate rule of the preset (Newton steps through the weight grid and its fine
-#: blocks near the skin; points with no root tried again).
+#: blocks near the skin, with the surface offsets; points with no root tried again).
 SMALL = ArticulatedGridArchitecture(levels=4, max_resolution=64, table_log2=12, table_dtype="float16",
                                     label_resolution=32, skinning_solver="newton", skinning_iterations=8,
-                                    fine_weight_resolution=96, candidate_rule="retry-labels")
+                                    fine_weight_resolution=96, candidate_rule="retry-labels", surface_offsets=True)
 
 
 @pytest.fixture(scope="module")
@@ -89,6 +89,26 @@ def test_velocity_is_the_skinning_s_motion_at_the_rest_point(trained):
     # At joint transforms with no velocities the skeleton is still.
     still = result.collider.query(points, ("velocity",), joint_transforms=transforms)
     assert not still.velocity.any()
+
+
+def test_the_training_samples_are_carried_as_the_query_carries_points(trained):
+    """The samples' rows (each candidate's part and rest point) at a pose are those the trained
+    model's query takes there (``parts_at``: its rule, weights and surface offsets)."""
+    from collider_contract.skeleton import SkeletonPose
+    from collider_server.making.training.articulated import make_samples
+
+    skin, result, _ = trained
+    collider = result.collider
+    transforms = sample_poses(skin, 1, 41, perturbed_share=1.0)[0]
+    points = surface_band_points(Mesh(skin_vertices(skin, transforms), skin.faces, "posed"), 500, 1e-3, 42)
+    samples = make_samples(skin, transforms[None], len(points), lambda mesh, p: (points, np.ones(len(points), bool)),
+                           collider.arch, collider.centre, collider.radius, collider.labels, collider.part_boxes,
+                           collider.weights, False, "samples", collider.anchors)
+    point, joint, rest, _ = collider.parts_at(points, None, SkeletonPose(joint_transforms=transforms))
+    order = np.lexsort((joint, point))  # the samples' rows: by point, then by joint
+    np.testing.assert_array_equal(np.repeat(np.arange(len(points)), samples.count), point[order])
+    np.testing.assert_array_equal(samples.joint, joint[order])
+    np.testing.assert_allclose(samples.rest, rest[order], rtol=0, atol=1e-6)  # float32 samples
 
 
 def test_the_model_file_round_trips(trained, tmp_path):
@@ -230,11 +250,13 @@ def test_a_model_file_from_before_the_candidate_retry_answers_as_before(trained)
     skin, result, _ = trained
     collider = result.collider
     info = collider.info
-    old_arch = {k: v for k, v in info.settings["architecture"].items() if k != "candidate_rule"}
+    old_arch = {k: v for k, v in info.settings["architecture"].items()
+                if k not in ("candidate_rule", "surface_offsets")}
     old_info = dataclasses.replace(info, settings={**info.settings, "architecture": old_arch})
     old = ArticulatedNeuralCollider.from_tensors(old_info, collider.tensors())
-    assert old.arch.candidate_rule == "own-label"
-    # Its answers are the first rule's: part_candidates, then carry_to_rest (no second pass).
+    assert old.arch.candidate_rule == "own-label" and old.anchors is None
+    # Its answers are the first rule's: part_candidates, then carry_to_rest (no second pass, no
+    # surface offsets).
     transforms = sample_poses(skin, 1, seed=23)[0]
     to_rest, posed = rest_maps(skin.skeleton, transforms)
     points = surface_band_points(Mesh(skin_vertices(skin, transforms), skin.faces, "posed"), 3000, 1e-2, 9)
@@ -254,7 +276,8 @@ def test_a_model_file_from_before_the_newton_map_loads_with_its_own_map(trained)
     tensors = {k: v for k, v in collider.tensors().items() if not k.startswith(NETWORK_PREFIX + "weight_block")}
     info = collider.info
     old_arch = {k: v for k, v in info.settings["architecture"].items()
-                if k not in ("skinning_solver", "fine_weight_resolution", "weight_blocks", "candidate_rule")}
+                if k not in ("skinning_solver", "fine_weight_resolution", "weight_blocks", "candidate_rule",
+                             "surface_offsets")}
     old_info = dataclasses.replace(info, settings={**info.settings, "architecture": old_arch})
     old = ArticulatedNeuralCollider.from_tensors(old_info, tensors)
     assert old.arch.skinning_solver == "fixed-point" and not len(old.weights.block_joints)
