@@ -1232,6 +1232,20 @@ if grid_kernels.available():
         return grid_joints, grid_weights, cx, cy, cz, tx, ty, tz, sx, sy, sz, -1
 
     @numba.njit(cache=True, nogil=True, inline="always")
+    def _corner_weight(corner, tx, ty, tz, sx, sy, sz):  # pragma: no cover
+        """Corner ``corner``'s offsets (ox, oy, oz) in its cell (bit a along axis a), its trilinear
+        weight at fractions (tx, ty, tz) and that weight's derivative along x, y, z (``sx``, ``sy``,
+        ``sz``: d fraction / d position)."""
+        ox, oy, oz = corner & 1, (corner >> 1) & 1, (corner >> 2) & 1
+        fx = tx if ox else 1.0 - tx
+        fy = ty if oy else 1.0 - ty
+        fz = tz if oz else 1.0 - tz
+        gx = sx if ox else -sx
+        gy = sy if oy else -sy
+        gz = sz if oz else -sz
+        return ox, oy, oz, fx * fy * fz, gx * fy * fz, fx * gy * fz, fx * fy * gz
+
+    @numba.njit(cache=True, nogil=True, inline="always")
     def _gather_weights(table_joints, table_weights, cx, cy, cz, tx, ty, tz, sx, sy, sz, slot_of, touched, wsum,
                         dsum):  # pragma: no cover
         """The 8 corners' weights summed per joint: ``touched[:count]`` the joints, ``wsum[:count]``
@@ -1240,15 +1254,7 @@ if grid_kernels.available():
         Summing per joint first leaves each joint's map to be read once, not once per corner."""
         count = 0
         for corner in range(8):
-            ox, oy, oz = corner & 1, (corner >> 1) & 1, (corner >> 2) & 1
-            fx = tx if ox else 1.0 - tx
-            fy = ty if oy else 1.0 - ty
-            fz = tz if oz else 1.0 - tz
-            gx = sx if ox else -sx
-            gy = sy if oy else -sy
-            gz = sz if oz else -sz
-            tw = fx * fy * fz
-            d0, d1, d2 = gx * fy * fz, fx * gy * fz, fx * fy * gz
+            ox, oy, oz, tw, d0, d1, d2 = _corner_weight(corner, tx, ty, tz, sx, sy, sz)
             i, j, k = cx + ox, cy + oy, cz + oz
             for slot in range(table_joints.shape[3]):
                 raw = table_weights[i, j, k, slot]
@@ -1452,15 +1458,7 @@ if grid_kernels.available():
         ``offsets`` (:func:`surface_offsets`) in the cell (cx, cy, cz) at fractions (tx, ty, tz),
         and its derivative (d fraction / d rest: sx, sy, sz). :func:`offsets_at` in numba."""
         for corner in range(8):
-            ox, oy, oz = corner & 1, (corner >> 1) & 1, (corner >> 2) & 1
-            fx = tx if ox else 1.0 - tx
-            fy = ty if oy else 1.0 - ty
-            fz = tz if oz else 1.0 - tz
-            gx = sx if ox else -sx
-            gy = sy if oy else -sy
-            gz = sz if oz else -sz
-            tw = fx * fy * fz
-            e0, e1, e2 = gx * fy * fz, fx * gy * fz, fx * fy * gz
+            ox, oy, oz, tw, e0, e1, e2 = _corner_weight(corner, tx, ty, tz, sx, sy, sz)
             for a in range(3):
                 value = offsets[block, cx + ox, cy + oy, cz + oz, a]
                 f[a] += tw * value
@@ -1578,8 +1576,7 @@ if grid_kernels.available():
                         velocity[p, a] = v
                     if block >= 0 and moving_offsets.shape[0]:
                         for corner in range(8):
-                            ox, oy, oz = corner & 1, (corner >> 1) & 1, (corner >> 2) & 1
-                            tw = (tx if ox else 1.0 - tx) * (ty if oy else 1.0 - ty) * (tz if oz else 1.0 - tz)
+                            ox, oy, oz, tw, _, _, _ = _corner_weight(corner, tx, ty, tz, 0.0, 0.0, 0.0)
                             for a in range(3):
                                 velocity[p, a] += tw * moving_offsets[block, cx + ox, cy + oy, cz + oz, a]
 
