@@ -44,10 +44,6 @@ def figure():
     return exact, skin, ExactSDF(rest), anchors, mine
 
 
-def _maps(skin, transforms):
-    return ns.rest_maps(skin.skeleton, transforms)
-
-
 def test_the_offsets_carry_the_rest_surface_onto_the_posed_triangles(figure):
     """The exact rest SDF read through the map, the minimum over each point's rows, against the
     exact skinned kind at a clip time (the arms turned 40 degrees): without the offsets the
@@ -55,7 +51,7 @@ def test_the_offsets_carry_the_rest_surface_onto_the_posed_triangles(figure):
     with them the map lands on the triangles (7 um)."""
     exact, skin, rest_sdf, anchors, mine = figure
     transforms = pose_at(skin, "animation 0", 0.9)[0]
-    to_rest, posed = _maps(skin, transforms)
+    to_rest, posed = ns.rest_maps(skin.skeleton, transforms)
     points = surface_band_points(Mesh(skin_vertices(skin, transforms), skin.faces, "posed"), 3000, 1e-3, 5)
     truth = exact.query(points, "distance", joint_transforms=transforms).distance
     offsets = ns.surface_offsets(anchors, mine[-1], skin, posed[:, :3, :])
@@ -75,7 +71,7 @@ def test_the_fused_offsets_and_map_answer_as_the_numpy_rule(figure, kind):
     _, skin, _, anchors, mine = figure
     transforms = (pose_at(skin, "animation 0", 0.6)[0] if kind == "clip"
                   else random_poses(skin, 1, 17, perturbed_share=1.0).transforms[0])
-    to_rest, posed = _maps(skin, transforms)
+    to_rest, posed = ns.rest_maps(skin.skeleton, transforms)
     field = mine[-1]
     offsets = ns.surface_offsets(anchors, field, skin, posed[:, :3, :])
     np.testing.assert_allclose(offsets, ns.surface_offsets(anchors, field, skin, posed[:, :3, :], fused=False),
@@ -98,7 +94,7 @@ def test_the_velocity_is_the_offset_map_s_time_derivative(figure, monkeypatch):
     field, centre, radius = mine[-1], mine[1], mine[2]
     t, h = 0.6, 1e-4
     transforms, velocities = pose_at(skin, "animation 0", t)
-    to_rest, posed = _maps(skin, transforms)
+    to_rest, posed = ns.rest_maps(skin.skeleton, transforms)
     moving = (velocities @ skin.skeleton.inverse_bind)[:, :3, :]
     offsets = ns.surface_offsets(anchors, field, skin, posed[:, :3, :])
     moving_offsets = ns.surface_offsets(anchors, field, skin, moving)
@@ -111,7 +107,7 @@ def test_the_velocity_is_the_offset_map_s_time_derivative(figure, monkeypatch):
                                                                 moving_offsets), rtol=0, atol=1e-12)
 
     def mapped(time):
-        maps = _maps(skin, pose_at(skin, "animation 0", time)[0])[1][:, :3, :]
+        maps = ns.rest_maps(skin.skeleton, pose_at(skin, "animation 0", time)[0])[1][:, :3, :]
         homogeneous = np.concatenate([rows.rest, np.ones((len(rows.rest), 1))], axis=1)
         lbs = np.einsum("nab,nb->na", ns.blend_at(rows.rest, maps, field, centre, radius), homogeneous)
         return lbs + ns.offsets_at(rows.rest, ns.surface_offsets(anchors, field, skin, maps), field, centre,
