@@ -532,6 +532,19 @@ def _surface_weights(skin: Skin, rest_sdf, points: np.ndarray) -> tuple[np.ndarr
     return top.astype(np.uint8), np.clip(np.rint(values * 255), 0, 255).astype(np.uint8)
 
 
+def block_corner_points(block_index: np.ndarray, centre, radius: float) -> np.ndarray:
+    """(k, 5, 5, 5, 3) float64: the positions of the fine blocks' corners (collider frame, rest
+    pose) in the blocks' order: their rows in ``block_index`` (B, B, B) (:class:`WeightField`'s)."""
+    blocks = block_index.shape[0]
+    cells = blocks * BLOCK_CELLS
+    stored = np.flatnonzero(block_index.reshape(-1) >= 0)
+    stored = stored[np.argsort(block_index.reshape(-1)[stored])]
+    b = np.stack(np.unravel_index(stored, (blocks,) * 3), axis=1)
+    local = np.stack(np.meshgrid(*(np.arange(BLOCK_CELLS + 1),) * 3, indexing="ij"), axis=-1)
+    fine = b[:, None, None, None, :] * BLOCK_CELLS + local[None]
+    return np.asarray(centre, np.float64) + radius * (-1.0 + 2.0 * fine / cells)
+
+
 def weight_field(skin: Skin, centre, radius: float, resolution: int, fine_resolution: int = 0,
                  band: float = 0.0) -> WeightField:
     """The :class:`WeightField` of ``skin``'s rest pose over the cube ``centre +- radius``: at each
@@ -562,14 +575,12 @@ def weight_field(skin: Skin, centre, radius: float, resolution: int, fine_resolu
     near = np.flatnonzero(np.abs(distance) <= 0.5 * math.sqrt(3.0) * block_side + band)
     index = np.full(blocks ** 3, -1, np.int32)
     index[near] = np.arange(len(near), dtype=np.int32)
-    b = np.stack(np.unravel_index(near, (blocks,) * 3), axis=1)  # (k, 3) block coordinates
-    local = np.stack(np.meshgrid(*(np.arange(BLOCK_CELLS + 1),) * 3, indexing="ij"), axis=-1).reshape(-1, 3)
-    fine = (b[:, None, :] * BLOCK_CELLS + local[None]).reshape(-1, 3)
-    points = centre + radius * (-1.0 + 2.0 * fine / fine_resolution)
-    block_joints, block_weights = _surface_weights(skin, rest_sdf, points)
+    index = index.reshape((blocks,) * 3)
+    block_joints, block_weights = _surface_weights(skin, rest_sdf,
+                                                   block_corner_points(index, centre, radius).reshape(-1, 3))
     block_shape = (len(near), BLOCK_CELLS + 1, BLOCK_CELLS + 1, BLOCK_CELLS + 1, GRID_INFLUENCES)
-    return WeightField(joints.reshape(shape), weights.reshape(shape), index.reshape((blocks,) * 3),
-                       block_joints.reshape(block_shape), block_weights.reshape(block_shape))
+    return WeightField(joints.reshape(shape), weights.reshape(shape), index, block_joints.reshape(block_shape),
+                       block_weights.reshape(block_shape))
 
 
 def _cells_below(u: np.ndarray, cells: int) -> np.ndarray:
@@ -682,26 +693,13 @@ class SurfaceAnchors(NamedTuple):
     bary: np.ndarray
 
 
-def block_corner_points(field: WeightField, centre, radius: float) -> np.ndarray:
-    """(k, 5, 5, 5, 3) float64: the positions of the fine blocks' corners (collider frame, rest
-    pose), in the blocks' order (their rows in ``field.block_index``)."""
-    blocks = field.block_index.shape[0]
-    cells = blocks * BLOCK_CELLS
-    stored = np.flatnonzero(field.block_index.reshape(-1) >= 0)
-    stored = stored[np.argsort(field.block_index.reshape(-1)[stored])]
-    b = np.stack(np.unravel_index(stored, (blocks,) * 3), axis=1)
-    local = np.stack(np.meshgrid(*(np.arange(BLOCK_CELLS + 1),) * 3, indexing="ij"), axis=-1)
-    fine = b[:, None, None, None, :] * BLOCK_CELLS + local[None]
-    return np.asarray(centre, np.float64) + radius * (-1.0 + 2.0 * fine / cells)
-
-
 def surface_anchors(skin: Skin, field: WeightField, centre, radius: float) -> SurfaceAnchors:
     """:class:`SurfaceAnchors` of ``field``'s fine blocks on ``skin``'s rest surface: the closest
     points :func:`weight_field` took their weights from (pose-independent; a model computes them
     when it loads, 0.3-0.6 s for 113,000-160,000 corners)."""
     from ..meshes import ExactSDF, Mesh, barycentric
 
-    corners = block_corner_points(field, centre, radius).reshape(-1, 3)
+    corners = block_corner_points(field.block_index, centre, radius).reshape(-1, 3)
     _, closest, face = ExactSDF(Mesh(skin.vertices, skin.faces, "rest")).query(corners)
     triangle = skin.faces[face]
     return SurfaceAnchors(triangle.astype(np.int32), barycentric(closest, skin.vertices[triangle]))
