@@ -201,8 +201,8 @@ def test_shipped_articulated_walker_against_its_exact_skin():
     ``neural-skinned``: ``collider train`` of the generated walker, docs/characters.md) at two
     random poses off its clips (every joint turned by up to 15 degrees; seeds apart from
     training's) against the exact skinned kind of the skin the file holds (the union of the posed
-    skin), in the +-1 mm band. Measured at 100 such poses (docs/neural.md): mean 0.137 mm, p99
-    0.97 mm, 1.45 % sign errors beyond 0.2 mm, normals 3.4 deg mean. Metres."""
+    skin), in the +-1 mm band. Measured at 100 such poses (models/README.md): mean 0.119 mm, p99
+    0.80 mm, 1.01 % sign errors beyond 0.2 mm, normals 3.3 deg mean. Metres."""
     from collider_server.engine.modelfile import load_collider
     from collider_server.engine.repository import ModelRepository
     from collider_server.engine.skinning import random_poses, skin_vertices
