@@ -92,6 +92,7 @@ def test_train_character_makes_its_articulated_network(trained_character):
     code, out, err = trained_character["code"], trained_character["out"], trained_character["err"]
     assert code == 0, err
     assert "kind neural-skinned: 2 joints" in out and "20 steps" in out
+    assert "label dilation " in out and "rows a point" in out  # the grid's choice, in one line
     collider = load_collider(trained_character["models"] / "cylinder-neural.safetensors")
     assert collider.info.kind == "neural-skinned" and collider.skin.skeleton.joint_count == 2
     answer = collider.query(np.zeros((1, 3)), "distance", clip=None, time=0.5)

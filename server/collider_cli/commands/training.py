@@ -251,7 +251,7 @@ def run_train_character(args) -> int:
         print(f"{args.mesh}: {note}")
     result = train_articulated(exact.skin, args.name, config, units=placement.units,
                                meters_per_unit=placement.meters_per_unit, loop=args.loop,
-                               source=exact.info.source, show_progress=not args.quiet)
+                               source=exact.info.source, show_progress=not args.quiet, say=print)
     path = save_collider(result.collider, repository.path(args.name))
     print(f"wrote {path} ({path.stat().st_size:,} bytes, kind neural-skinned: "
           f"{len(exact.info.skeleton['joints'])} joints): {result.summary()}")

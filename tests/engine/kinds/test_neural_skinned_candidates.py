@@ -107,12 +107,8 @@ def _articulated_collider(walker, arch, network):
     weight field set from the fixture), on the CPU."""
     import dataclasses
 
-    import torch
-
     skin, _, exact, _, _, labels, boxes, field, _ = walker
-    network.labels.copy_(torch.from_numpy(labels))
-    network.part_boxes.copy_(torch.from_numpy(boxes))
-    network.set_weight_field(field)
+    network.set_rest_tables(labels, None, boxes, field)
     info = dataclasses.replace(exact.info, kind=ns.ArticulatedNeuralCollider.kind,
                                settings={**exact.info.settings, "architecture": dataclasses.asdict(arch)})
     return ns.ArticulatedNeuralCollider(info, skin, network.eval(), device="cpu")

@@ -4,7 +4,6 @@ rest surface point, added to the Newton map. On the Khronos RiggedFigure, whose 
 its joints, they take the map's floor from most of a millimetre to a few micrometres at a clip
 time; the numba passes answer as the numpy rule; the velocity is the map's time derivative."""
 
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -12,37 +11,11 @@ import pytest
 from collider_contract.skeleton import SkeletonPose
 from collider_server.engine.kinds import grid_kernels
 from collider_server.engine.kinds import neural_skinned as ns
-from collider_server.engine.meshes import ExactSDF, Mesh
+from collider_server.engine.meshes import Mesh
 from collider_server.engine.skinning import pose_at, random_poses, skin_vertices
-from collider_server.making.characters import skinned_from_file
-from collider_server.making.placement import MeshPlacement
 from collider_server.making.sampling import surface_band_points
-from collider_server.making.training.articulated import ARTICULATED_PRESET, FINE_WEIGHT_BAND_CELLS
-from collider_server.making.training.data import normalisation
 
 pytestmark = pytest.mark.skipif(not grid_kernels.available(), reason="the fast passes are numba's")
-
-FIGURE = Path(__file__).parents[2] / "data" / "gltf" / "RiggedFigure.gltf"
-
-
-@pytest.fixture(scope="module")
-def figure():
-    """The RiggedFigure placed as ``collider bake ... --z-up`` places it, its exact kind, and the
-    preset's label grid, part boxes, weight field and anchors."""
-    exact, _, _ = skinned_from_file(FIGURE, "figure", MeshPlacement(z_up=True), loop=False)
-    skin = exact.skin
-    rest = Mesh(skin.vertices, skin.faces, "rest")
-    centre, radius = normalisation(rest, 0.1)
-    arch = ARTICULATED_PRESET
-    cell = 2.0 * radius / arch.label_resolution
-    labels = ns.part_labels(skin, centre, radius, arch.label_resolution, band=3.0 * cell)
-    boxes = ns.part_boxes(skin, cell)
-    field = ns.weight_field(skin, centre, radius, arch.weight_resolution, arch.fine_weight_resolution,
-                            FINE_WEIGHT_BAND_CELLS * 2.0 * radius / arch.fine_weight_resolution)
-    anchors = ns.surface_anchors(skin, field, centre, radius)
-    mine = (labels, centre, radius, ns.allowed_labels(skin.skeleton.parents, False), boxes, field)
-    return exact, skin, ExactSDF(rest), anchors, mine
-
 
 def test_the_offsets_carry_the_rest_surface_onto_the_posed_triangles(figure):
     """The exact rest SDF read through the map, the minimum over each point's rows, against the
@@ -122,26 +95,12 @@ def test_the_velocity_is_the_offset_map_s_time_derivative(figure, monkeypatch):
     assert np.abs(plain.velocity - differenced).max() > 1e-3
 
 
-def test_a_model_with_offsets_answers_by_them_and_its_rows_are_the_query_s(figure):
+def test_a_model_with_offsets_answers_by_them_and_its_rows_are_the_query_s(figure, figure_model):
     """A collider whose architecture has ``surface_offsets`` computes its anchors once and each
     pose's offsets (and their velocity) with the pose; ``parts_at`` gives the rows its query's
     union takes, through the same offsets."""
-    import dataclasses
-
-    import torch
-
-    exact, skin, _, _, mine = figure
-    labels, centre, radius, _, boxes, field = mine
-    arch = dataclasses.replace(ARTICULATED_PRESET, joints=skin.skeleton.joint_count,
-                               weight_blocks=len(field.block_joints), table_log2=12, levels=4, max_resolution=64)
-    with torch.random.fork_rng(devices=[]):
-        network = ns.build_articulated_network(arch, centre, radius)
-    network.labels.copy_(torch.from_numpy(labels))
-    network.part_boxes.copy_(torch.from_numpy(boxes))
-    network.set_weight_field(field)
-    info = dataclasses.replace(exact.info, kind=ns.ArticulatedNeuralCollider.kind,
-                               settings={**exact.info.settings, "architecture": dataclasses.asdict(arch)})
-    collider = ns.ArticulatedNeuralCollider(info, skin, network.eval(), device="cpu")
+    _, skin, _, _, mine = figure
+    collider = figure_model()
     assert collider.anchors is not None
     transforms, velocities = pose_at(skin, "animation 0", 0.6)
     pose = SkeletonPose(joint_transforms=transforms, joint_velocities=velocities)

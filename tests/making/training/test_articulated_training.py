@@ -41,7 +41,9 @@ SMALL = ArticulatedGridArchitecture(levels=4, max_resolution=64, table_log2=12, 
 def trained():
     skin = skinned_arm()
     config = TrainConfig(samples=30_000, steps=300, batch_size=2048, validation_points=2_000, threads=1)
-    result = train_articulated(skin, "arm-neural", config, arch=SMALL, poses=24, show_progress=False)
+    # One cell of label dilation set (the arm's floor would not choose it), so that its path is trained.
+    result = train_articulated(skin, "arm-neural", config, arch=SMALL, poses=24, show_progress=False,
+                               label_dilation=1)
     return skin, result, skinned_collider(skin, "arm")
 
 
@@ -101,14 +103,27 @@ def test_the_training_samples_are_carried_as_the_query_carries_points(trained):
     collider = result.collider
     transforms = sample_poses(skin, 1, 41, perturbed_share=1.0)[0]
     points = surface_band_points(Mesh(skin_vertices(skin, transforms), skin.faces, "posed"), 500, 1e-3, 42)
+    assert collider.arch.label_dilation == 1 and collider.allowed[:, len(skin.skeleton.parents):].any()
     samples = make_samples(skin, transforms[None], len(points), lambda mesh, p: (points, np.ones(len(points), bool)),
                            collider.arch, collider.centre, collider.radius, collider.labels, collider.part_boxes,
-                           collider.weights, False, "samples", collider.anchors)
+                           collider.weights, False, "samples", collider.anchors, collider.network.label_sets.numpy())
     point, joint, rest, _ = collider.parts_at(points, None, SkeletonPose(joint_transforms=transforms))
     order = np.lexsort((joint, point))  # the samples' rows: by point, then by joint
     np.testing.assert_array_equal(np.repeat(np.arange(len(points)), samples.count), point[order])
     np.testing.assert_array_equal(samples.joint, joint[order])
     np.testing.assert_allclose(samples.rest, rest[order], rtol=0, atol=1e-6)  # float32 samples
+
+
+def test_the_training_says_which_label_dilation_it_chose_and_keeps_it(trained):
+    skin, set_one, _ = trained
+    assert set_one.collider.info.settings["training"]["label_dilation_choice"] is None  # set, not chosen
+    said = []
+    result = train_articulated(skin, "arm-neural", TrainConfig(samples=2_000, steps=1, validation_points=200,
+                                                               threads=1),
+                               arch=SMALL, poses=8, show_progress=False, say=said.append)
+    (line,) = said
+    assert line.startswith(f"label dilation {result.collider.arch.label_dilation} (the map's floor"), line
+    assert result.collider.info.settings["training"]["label_dilation_choice"] == line
 
 
 def test_the_model_file_round_trips(trained, tmp_path):

@@ -88,6 +88,9 @@ class ArticulatedGridArchitecture(GridArchitecture):
     label_resolution : cells per side of the rest pose's label grid
     neighbours : a joint is a candidate where the label is its parent's or a child's too (False:
         only where it is its own)
+    label_dilation : a joint is a candidate where its rigid image lies within this many label
+        cells of a cell it owns (:func:`dilated_labels`: the cells near a boundary between parts
+        name every part around); 0: only in its own cells (the files before it)
     skinning_iterations : steps that carry a part's rigid rest image on through the skinning
         (:func:`carry_to_rest`); 0: rigid parts only
     skinning_solver : ``"fixed-point"`` (:func:`skinned_rest`'s steps ``x_rest <- M(x_rest)^-1 x``,
@@ -110,6 +113,7 @@ class ArticulatedGridArchitecture(GridArchitecture):
     pose_slots: int = 4
     label_resolution: int = 64
     neighbours: bool = False
+    label_dilation: int = 0
     skinning_iterations: int = 2
     weight_resolution: int = 48
     skinning_solver: str = "fixed-point"
@@ -125,7 +129,8 @@ class ArticulatedGridArchitecture(GridArchitecture):
     def __post_init__(self):
         super().__post_init__()
         require_integers(self, ("joints", "pose_slots", "label_resolution", "weight_resolution"))
-        require_integers(self, ("skinning_iterations", "fine_weight_resolution", "weight_blocks"), least=0)
+        require_integers(self, ("skinning_iterations", "fine_weight_resolution", "weight_blocks", "label_dilation"),
+                         least=0)
         if self.fine_weight_resolution % BLOCK_CELLS:
             raise ValueError(f"architecture fine_weight_resolution must be a multiple of {BLOCK_CELLS}, "
                              f"got {self.fine_weight_resolution}")
@@ -183,9 +188,10 @@ def pose_codes(skeleton: Skeleton, joint_transforms: np.ndarray, slots: int) -> 
     return codes.reshape(len(parents), -1).astype(np.float32)
 
 
-def allowed_labels(parents: np.ndarray, neighbours: bool) -> np.ndarray:
+def allowed_labels(parents: np.ndarray, neighbours: bool, sets: np.ndarray | None = None) -> np.ndarray:
     """(J, 256) bool: whether joint j is a candidate where the label grid says ``label``: its
-    own, and with ``neighbours`` its parent's and its children's; never :data:`NO_PART`."""
+    own, with ``neighbours`` its parent's and its children's, and every code of a set holding
+    it (``sets`` (256, J) bool, :func:`dilated_labels`); never :data:`NO_PART`."""
     count = len(parents)
     allowed = np.zeros((count, 256), bool)
     allowed[np.arange(count), np.arange(count)] = True
@@ -193,7 +199,45 @@ def allowed_labels(parents: np.ndarray, neighbours: bool) -> np.ndarray:
         for child, parent in enumerate(parents):
             if parent >= 0:
                 allowed[child, parent] = allowed[parent, child] = True
+    if sets is not None:
+        allowed |= sets.T
     return allowed
+
+
+def dilated_labels(labels: np.ndarray, joints: int, cells: int) -> tuple[np.ndarray, np.ndarray, int]:
+    """The label grid ``labels`` (R, R, R) uint8 (:func:`part_labels`) with its boundaries widened
+    by ``cells``: a labelled cell within ``cells`` cells (the 3^3, 5^3, ... block about it) of
+    cells of other parts takes a code (J .. 254) that names the set of those parts and its own.
+    Returns ``(labels (R, R, R) uint8, sets (256, J) bool, dropped)``: ``sets[code, j]`` says
+    whether ``code`` names joint j (row j names j alone; :data:`NO_PART`'s none). The commonest
+    sets get codes first; a cell whose set finds none left keeps its own label (``dropped``:
+    how many cells). :data:`NO_PART` cells stay so (no part near them on the rest surface)."""
+    from scipy import ndimage
+
+    sets = np.zeros((256, joints), bool)
+    sets[np.arange(joints), np.arange(joints)] = True
+    if cells <= 0:
+        return labels, sets, 0
+    structure = np.ones((2 * cells + 1,) * 3, bool)
+    near = np.zeros(labels.shape + (joints,), bool)
+    for j in range(joints):
+        near[..., j] = ndimage.binary_dilation(labels == j, structure)
+    labelled = labels != NO_PART
+    shared = labelled & (near.sum(axis=-1) > 1)
+    keys, inverse, counts = np.unique(np.packbits(near[shared], axis=-1), axis=0, return_inverse=True,
+                                      return_counts=True)
+    order = np.argsort(-counts, kind="stable")
+    free = NO_PART - joints
+    code = np.full(len(keys), -1, np.int64)
+    code[order[:free]] = joints + np.arange(min(free, len(keys)))
+    members = np.unpackbits(keys, axis=-1, count=joints).astype(bool)
+    sets[code[order[:free]]] = members[order[:free]]
+    out = labels.copy()
+    mine = code[inverse.reshape(-1)]
+    index = np.flatnonzero(shared.reshape(-1))
+    kept = mine >= 0
+    out.reshape(-1)[index[kept]] = mine[kept]
+    return out, sets, int((~kept).sum())
 
 
 def part_candidates(points: np.ndarray, to_rest: np.ndarray, labels: np.ndarray, centre, radius: float,
@@ -406,7 +450,8 @@ if grid_kernels.available():
 def labels_seen(points: np.ndarray, to_rest: np.ndarray, labels: np.ndarray, centre, radius: float,
                 fused: bool = True) -> np.ndarray:
     """(J, n) bool: whether the label grid names joint j at the rigid image ``x_k = A_k^-1 x`` of
-    point p through any joint k (:data:`NO_PART` names none): the parts a point is tried with
+    point p through any joint k (:data:`NO_PART` and the set codes of :func:`dilated_labels`
+    name none: the retry keeps to the parts' own cells): the parts a point is tried with
     where none of its own-label candidates reached a root (``candidate_rule`` ``retry-labels``,
     :func:`parts_through_skinning`). ``points`` (n, 3) float64, collider frame at the pose; the
     rest as :func:`part_candidates`. One numba pass (:func:`_labels_seen`) when numba is there and
@@ -1724,6 +1769,8 @@ def build_articulated_network(arch: ArticulatedGridArchitecture, centre, radius:
             self.condition = nn.Parameter(torch.zeros(width, arch.code_width()))
             r = arch.label_resolution
             self.register_buffer("labels", torch.full((r, r, r), NO_PART, dtype=torch.uint8))
+            if arch.label_dilation:  # the parts each code of the label grid names (dilated_labels)
+                self.register_buffer("label_sets", torch.zeros(256, arch.joints, dtype=torch.bool))
             self.register_buffer("part_boxes", torch.zeros(arch.joints, 2, 3, dtype=torch.float64))
             side = (arch.weight_resolution + 1, ) * 3 + (GRID_INFLUENCES,)
             self.register_buffer("weight_joints", torch.zeros(side, dtype=torch.uint8))
@@ -1738,6 +1785,16 @@ def build_articulated_network(arch: ArticulatedGridArchitecture, centre, radius:
             """Take the weight field's arrays (:func:`weight_field`, shaped as the architecture)."""
             for name, value in zip(WEIGHT_FIELD_BUFFERS, field):
                 getattr(self, name).copy_(torch.from_numpy(np.ascontiguousarray(value)))
+
+        def set_rest_tables(self, labels: np.ndarray, sets: np.ndarray | None, boxes: np.ndarray,
+                            field: WeightField):
+            """Take the rest pose's tables: the label grid (:func:`dilated_labels`' with its ``sets``
+            where the architecture dilates it), the part boxes and the weight field."""
+            self.labels.copy_(torch.from_numpy(labels))
+            if arch.label_dilation:
+                self.label_sets.copy_(torch.from_numpy(sets))
+            self.part_boxes.copy_(torch.from_numpy(boxes))
+            self.set_weight_field(field)
 
         @property
         def radius(self):
@@ -1813,7 +1870,8 @@ class ArticulatedNeuralCollider(Collider):
         self.part_boxes = self.network.part_boxes.cpu().numpy()
         self.weights = WeightField(*(np.ascontiguousarray(getattr(self.network, name).cpu().numpy())
                                      for name in WEIGHT_FIELD_BUFFERS))
-        self.allowed = allowed_labels(skin.skeleton.parents, self.arch.neighbours)
+        sets = self.network.label_sets.cpu().numpy() if self.arch.label_dilation else None
+        self.allowed = allowed_labels(skin.skeleton.parents, self.arch.neighbours, sets)
         grid = self.network.grid
         self.centre = grid.centre.double().cpu().numpy()
         self.radius = float(grid.radius)

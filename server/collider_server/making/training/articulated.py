@@ -31,6 +31,7 @@ from ...engine.kinds.neural_skinned import (
     ArticulatedNeuralCollider,
     allowed_labels,
     build_articulated_network,
+    dilated_labels,
     part_boxes,
     part_labels,
     parts_through_skinning,
@@ -54,12 +55,22 @@ from .schedule import RunClock, cosine_learning_rate, make_optimizer, set_traini
 #: per hashed level in 8 bits) shared by the parts; the map to the rest pose by 8 damped Newton
 #: steps through the 48^3 weight grid and blocks of a 128^3 one near the rest surface (the
 #: walker's floor without a network: docs/neural.md); a point none of whose candidates reaches a
-#: root tried again with the parts the label grid names at its rigid images (``retry-labels``).
+#: root tried again with the parts the label grid names at its rigid images (``retry-labels``);
+#: the label grid dilated by a cell where that lowers the map's floor (:func:`choose_label_dilation`).
 ARTICULATED_PRESET = ArticulatedGridArchitecture(skinning_solver="newton", skinning_iterations=8,
                                                  fine_weight_resolution=128, candidate_rule="retry-labels",
                                                  surface_offsets=True)
 #: The fine weight field's blocks reach this many fine cells beyond the rest surface.
 FINE_WEIGHT_BAND_CELLS = 1.0
+#: The label dilations (cells, :func:`dilated_labels`) a training chooses between, and by how
+#: much the wider must lower the map's floor to be taken: it costs the query 1.35-1.6x (the rows
+#: a point 1.0-1.2 -> 1.6-1.8). Measured (docs/neural.md, "A dilated label grid"): CesiumMan's and
+#: the RiggedFigure's floors fall 44-56 %, the walker's 3 %.
+LABEL_DILATIONS = (0, 1)
+DILATION_GAIN = 0.2
+#: Poses off the clips (where a point's part goes missing) and points of each that measure it.
+DILATION_POSES = 8
+DILATION_POINTS = 2000
 #: Training poses and validation poses of a run (the rest pose is one of the training poses).
 TRAIN_POSES = 240
 VALIDATION_POSES = 12
@@ -98,13 +109,14 @@ class ArticulatedSamples:
 
 def make_samples(skin: Skin, poses: np.ndarray, per_pose: int, point_sampler, arch, centre, radius: float,
                  labels: np.ndarray, boxes: np.ndarray, weights: tuple, show_progress: bool,
-                 what: str, anchors=None) -> ArticulatedSamples:
+                 what: str, anchors=None, sets: np.ndarray | None = None) -> ArticulatedSamples:
     """:class:`ArticulatedSamples` of ``per_pose`` points at each pose: ``point_sampler(mesh,
     seed)`` -> (points (k, 3), near (k,) bool) on the posed mesh; ``weights``: the weight grid
     (:func:`weight_field`) the query carries points through, with each pose's
-    :func:`surface_offsets` where ``anchors`` (:func:`surface_anchors`) are given."""
+    :func:`surface_offsets` where ``anchors`` (:func:`surface_anchors`) are given; ``sets``: the
+    label grid's set codes (:func:`dilated_labels`) where it has them."""
     skeleton = skin.skeleton
-    allowed = allowed_labels(skeleton.parents, arch.neighbours)
+    allowed = allowed_labels(skeleton.parents, arch.neighbours, sets)
     parts = {k: [] for k in ("distance", "gradient", "near", "count", "rest", "joint", "pose", "to_rest")}
     codes = []
     with progress(len(poses), what, "pose", show_progress) as bar:
@@ -135,6 +147,48 @@ def make_samples(skin: Skin, poses: np.ndarray, per_pose: int, point_sampler, ar
         np.concatenate([[0], np.cumsum(count)[:-1]]).astype(np.int64), count,
         joined["rest"].astype(np.float32), joined["joint"], joined["pose"],
         joined["to_rest"].astype(np.float32), np.stack(codes))
+
+
+def choose_label_dilation(skin: Skin, arch, centre, radius: float, labels: np.ndarray, boxes: np.ndarray,
+                          weights, anchors, rest_sdf, band: float, seed: int) -> tuple[int, str]:
+    """Which of :data:`LABEL_DILATIONS` the label grid ``labels`` (:func:`part_labels`) gets, and
+    why in one line: the map's floor (the exact rest SDF ``rest_sdf`` read through ``arch``'s map
+    with ``weights`` and the surface ``anchors``, the least over each point's candidate rows)
+    against the exact posed skin at :data:`DILATION_POSES` poses off the clips,
+    :data:`DILATION_POINTS` points each in the +-``band`` band (collider units); the wider
+    dilation where it lowers the mean by :data:`DILATION_GAIN` or more."""
+    poses = sample_poses(skin, DILATION_POSES, seed + 31, perturbed_share=1.0)
+    truths = []
+    for p, transforms in enumerate(poses):
+        mesh = Mesh(skin_vertices(skin, transforms), skin.faces, "posed")
+        points = surface_band_points(mesh, DILATION_POINTS, band, seed + 40 + p)
+        to_rest, posed = rest_maps(skin.skeleton, transforms)
+        offsets = None if anchors is None else surface_offsets(anchors, weights, skin, posed[:, :3, :])
+        truths.append((points, ExactSDF(mesh).query(points)[0], to_rest, posed, offsets))
+    floors, rows = [], []
+    for cells in LABEL_DILATIONS:
+        dilated, sets, _ = dilated_labels(labels, arch.joints, cells)
+        allowed = allowed_labels(skin.skeleton.parents, arch.neighbours, sets)
+        errors, count = [], 0
+        for points, truth, to_rest, posed, offsets in truths:
+            point, _, rest, _ = parts_through_skinning(points, to_rest, posed, dilated, centre, radius, allowed, boxes,
+                                                       weights, arch.skinning_iterations, arch.skinning_solver,
+                                                       arch.candidate_rule, offsets=offsets)
+            least = np.full(len(points), np.inf)
+            np.minimum.at(least, point, rest_sdf.query(rest)[0])
+            errors.append(np.abs(least - truth))
+            count += len(point)
+        floors.append(float(np.concatenate(errors).mean()))
+        rows.append(count / sum(len(t[0]) for t in truths))
+    best = 0
+    for k in range(1, len(LABEL_DILATIONS)):
+        if floors[k] <= (1.0 - DILATION_GAIN) * floors[best]:
+            best = k
+    # band is 1 mm in collider units: floor / band is the floor in millimetres.
+    figures = "; ".join(f"{cells} {'cell' if cells == 1 else 'cells'} {floor / band:.3f} mm, {r:.2f} rows a point"
+                        for cells, floor, r in zip(LABEL_DILATIONS, floors, rows))
+    return LABEL_DILATIONS[best], (f"label dilation {LABEL_DILATIONS[best]} (the map's floor, mean in the +-1 mm "
+                                   f"band at {DILATION_POSES} poses off the clips: {figures})")
 
 
 class _Batches:
@@ -194,12 +248,15 @@ class ArticulatedResult:
 
 def train_articulated(skin: Skin, name: str, config: TrainConfig, *, arch: ArticulatedGridArchitecture | None = None,
                       poses: int | None = None, units: str = "m", meters_per_unit: float = 1.0, loop: bool = True,
-                      source: dict | None = None, show_progress: bool = True) -> ArticulatedResult:
+                      source: dict | None = None, show_progress: bool = True,
+                      label_dilation: int | None = None, say=None) -> ArticulatedResult:
     """Train the articulated network of ``skin`` (its units and frame) for ``config``'s budget
     (``max_minutes`` / ``steps``, ``samples`` over ``poses`` poses (default :data:`TRAIN_POSES`,
     fewer for fewer than 2,000 samples a pose), ``batch_size``, learning
     rates, ``normal_weight``, ``seed``, ``threads``; its ``preset`` is not used: ``arch``,
-    default :data:`ARTICULATED_PRESET` with the skeleton's joints)."""
+    default :data:`ARTICULATED_PRESET` with the skeleton's joints; ``label_dilation``: the label
+    grid's (cells), None: chosen by :func:`choose_label_dilation`, its reason kept in the model's
+    training settings and passed to ``say`` (a callable taking the line) as soon as it is known)."""
     import torch
 
     from ..skinned import skinned_collider
@@ -223,6 +280,16 @@ def train_articulated(skin: Skin, name: str, config: TrainConfig, *, arch: Artic
                            band=FINE_WEIGHT_BAND_CELLS * 2.0 * radius / max(arch.fine_weight_resolution, 1))
     arch = replace(arch, weight_blocks=len(weights.block_joints))
     anchors = surface_anchors(skin, weights, centre, radius) if arch.surface_offsets else None
+    band = 1e-3 / meters_per_unit
+    dilation_choice = None
+    if label_dilation is None:
+        label_dilation, dilation_choice = choose_label_dilation(skin, arch, centre, radius, labels, boxes, weights,
+                                                                anchors, ExactSDF(rest), band, config.seed)
+        if say is not None:
+            say(dilation_choice)
+    arch = replace(arch, label_dilation=label_dilation)
+    labels, sets, _ = dilated_labels(labels, arch.joints, arch.label_dilation)
+    sets = sets if arch.label_dilation else None
 
     margin = config.margin_m / meters_per_unit if config.margin_m else default_margin(rest, meters_per_unit)
     per_pose = max(config.samples // poses, 100)
@@ -233,7 +300,6 @@ def train_articulated(skin: Skin, name: str, config: TrainConfig, *, arch: Artic
         return sample_points(mesh, per_pose, config, margin, meters_per_unit, config.seed + 1000 + p,
                              padded_box(mesh, config.padding))
 
-    band = 1e-3 / meters_per_unit
     per_validation = max(config.validation_points // VALIDATION_POSES, 100)
 
     def validation_points(mesh, p):
@@ -241,16 +307,14 @@ def train_articulated(skin: Skin, name: str, config: TrainConfig, *, arch: Artic
         return points, np.ones(len(points), bool)
 
     data = _Batches(make_samples(skin, train_poses, per_pose, training_points, arch, centre, radius, labels,
-                                 boxes, weights, show_progress, "exact SDF at training poses", anchors))
+                                 boxes, weights, show_progress, "exact SDF at training poses", anchors, sets))
     held_out = sample_poses(skin, VALIDATION_POSES, config.seed + 77)
     val = _Batches(make_samples(skin, held_out, per_validation, validation_points, arch, centre, radius,
-                                labels, boxes, weights, show_progress, "exact SDF at validation poses", anchors))
+                                labels, boxes, weights, show_progress, "exact SDF at validation poses", anchors, sets))
     data_seconds = time.monotonic() - began
 
     network = build_articulated_network(arch, centre, radius)
-    network.labels.copy_(torch.from_numpy(labels))
-    network.part_boxes.copy_(torch.from_numpy(boxes))
-    network.set_weight_field(weights)
+    network.set_rest_tables(labels, sets, boxes, weights)
     first_lr, last_lr = config.resolved_learning_rates()
     normal_weight = config.resolved_normal_weight()
     optimizer = make_optimizer(network, first_lr)
@@ -305,6 +369,7 @@ def train_articulated(skin: Skin, name: str, config: TrainConfig, *, arch: Artic
     info.kind = ArticulatedNeuralCollider.kind
     info.settings = {**info.settings, "architecture": asdict(arch), "parameters": arch.parameter_count(),
                      "training": {**asdict(config), "poses": poses, "perturb_deg": PERTURB_DEG,
+                                  "label_dilation_choice": dilation_choice,
                                   "steps_done": step, "seconds": round(seconds, 1),
                                   "best_validation_1mm_mm": best_mm}}
     collider = ArticulatedNeuralCollider(info, skin, network.eval(), device="cpu")
