@@ -37,12 +37,15 @@ SMALL = ArticulatedGridArchitecture(levels=4, max_resolution=64, table_log2=12, 
                                     fine_weight_resolution=96, candidate_rule="retry-labels", surface_offsets=True)
 
 
+#: A few hundred steps of the arm.
+CONFIG = TrainConfig(samples=30_000, steps=300, batch_size=2048, validation_points=2_000, threads=1)
+
+
 @pytest.fixture(scope="module")
 def trained():
     skin = skinned_arm()
-    config = TrainConfig(samples=30_000, steps=300, batch_size=2048, validation_points=2_000, threads=1)
     # One cell of label dilation set (the arm's floor would not choose it), so that its path is trained.
-    result = train_articulated(skin, "arm-neural", config, arch=SMALL, poses=24, show_progress=False,
+    result = train_articulated(skin, "arm-neural", CONFIG, arch=SMALL, poses=24, show_progress=False,
                                label_dilation=1)
     return skin, result, skinned_collider(skin, "arm")
 
@@ -112,6 +115,24 @@ def test_the_training_samples_are_carried_as_the_query_carries_points(trained):
     np.testing.assert_array_equal(np.repeat(np.arange(len(points)), samples.count), point[order])
     np.testing.assert_array_equal(samples.joint, joint[order])
     np.testing.assert_allclose(samples.rest, rest[order], rtol=0, atol=1e-6)  # float32 samples
+
+
+def test_the_best_validation_is_the_query_s_error_at_the_held_out_poses(trained):
+    """The validation reads its samples as the query answers (the map, the dilated label grid,
+    the union): the trained model's query at the run's held-out poses and points errs by the
+    best validation figure it reports (float32 against the fused kernel: within 1 %)."""
+    from collider_server.engine.meshes import ExactSDF
+    from collider_server.making.training.articulated import VALIDATION_POSES
+
+    skin, result, _ = trained
+    errors = []
+    for p, transforms in enumerate(sample_poses(skin, VALIDATION_POSES, CONFIG.seed + 77)):
+        mesh = Mesh(skin_vertices(skin, transforms), skin.faces, "posed")
+        points = surface_band_points(mesh, max(CONFIG.validation_points // VALIDATION_POSES, 100), 1e-3,
+                                     CONFIG.seed + 500 + p)
+        answer = result.collider.query(points, "distance", joint_transforms=transforms).distance
+        errors.append(np.abs(answer - ExactSDF(mesh).query(points)[0]))
+    assert np.concatenate(errors).mean() * 1e3 == pytest.approx(result.best_validation_mm, rel=0.01)
 
 
 def test_the_training_says_which_label_dilation_it_chose_and_keeps_it(trained):
