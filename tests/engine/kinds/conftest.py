@@ -19,20 +19,14 @@ def figure():
     from collider_server.engine.meshes import ExactSDF, Mesh
     from collider_server.making.characters import skinned_from_file
     from collider_server.making.placement import MeshPlacement
-    from collider_server.making.training.articulated import ARTICULATED_PRESET, FINE_WEIGHT_BAND_CELLS
+    from collider_server.making.training.articulated import ARTICULATED_PRESET, rest_tables
     from collider_server.making.training.data import normalisation
 
     exact, _, _ = skinned_from_file(FIGURE, "figure", MeshPlacement(z_up=True), loop=False)
     skin = exact.skin
     rest = Mesh(skin.vertices, skin.faces, "rest")
     centre, radius = normalisation(rest, 0.1)
-    arch = ARTICULATED_PRESET
-    cell = 2.0 * radius / arch.label_resolution
-    labels = ns.part_labels(skin, centre, radius, arch.label_resolution, band=3.0 * cell)
-    boxes = ns.part_boxes(skin, cell)
-    field = ns.weight_field(skin, centre, radius, arch.weight_resolution, arch.fine_weight_resolution,
-                            FINE_WEIGHT_BAND_CELLS * 2.0 * radius / arch.fine_weight_resolution)
-    anchors = ns.surface_anchors(skin, field, centre, radius)
+    labels, boxes, field, anchors = rest_tables(skin, ARTICULATED_PRESET, centre, radius)
     mine = (labels, centre, radius, ns.allowed_labels(skin.skeleton.parents, False), boxes, field)
     return exact, skin, ExactSDF(rest), anchors, mine
 

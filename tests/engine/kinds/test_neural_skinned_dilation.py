@@ -117,8 +117,8 @@ def test_the_training_dilates_where_it_lowers_the_map_s_floor(figure):
     from collider_server.engine.meshes import ExactSDF
     from collider_server.making.training.articulated import (
         ARTICULATED_PRESET,
-        FINE_WEIGHT_BAND_CELLS,
         choose_label_dilation,
+        rest_tables,
     )
     from collider_server.making.training.data import normalisation
     from collider_server.making.walker import make_walker
@@ -133,11 +133,7 @@ def test_the_training_dilates_where_it_lowers_the_map_s_floor(figure):
     rest = Mesh(walker.vertices, walker.faces, "rest")
     centre, radius = normalisation(rest, 0.1)
     arch = dataclasses.replace(ARTICULATED_PRESET, joints=walker.skeleton.joint_count)
-    cell = 2.0 * radius / arch.label_resolution
-    field = ns.weight_field(walker, centre, radius, arch.weight_resolution, arch.fine_weight_resolution,
-                            FINE_WEIGHT_BAND_CELLS * 2.0 * radius / arch.fine_weight_resolution)
-    cells, why = choose_label_dilation(walker, arch, centre, radius,
-                                       ns.part_labels(walker, centre, radius, arch.label_resolution, 3.0 * cell),
-                                       ns.part_boxes(walker, cell), field, ns.surface_anchors(walker, field, centre, radius),
-                                       ExactSDF(rest), 1e-3, 0)
+    labels, boxes, field, anchors = rest_tables(walker, arch, centre, radius)
+    cells, why = choose_label_dilation(walker, arch, centre, radius, labels, boxes, field, anchors, ExactSDF(rest),
+                                       1e-3, 0)
     assert cells == 0, why

@@ -149,6 +149,19 @@ def make_samples(skin: Skin, poses: np.ndarray, per_pose: int, point_sampler, ar
         joined["to_rest"].astype(np.float32), np.stack(codes))
 
 
+def rest_tables(skin: Skin, arch, centre, radius: float):
+    """The rest pose's tables of ``arch`` over the cube ``centre +- radius`` (collider units):
+    ``(labels, boxes, weights, anchors)``: the label grid (:func:`part_labels`, undilated), the
+    part boxes, the weight field (:func:`weight_field`) and its surface anchors (None without
+    ``surface_offsets``)."""
+    cell = 2.0 * radius / arch.label_resolution
+    labels = part_labels(skin, centre, radius, arch.label_resolution, band=3.0 * cell)
+    weights = weight_field(skin, centre, radius, arch.weight_resolution, arch.fine_weight_resolution,
+                           band=FINE_WEIGHT_BAND_CELLS * 2.0 * radius / max(arch.fine_weight_resolution, 1))
+    anchors = surface_anchors(skin, weights, centre, radius) if arch.surface_offsets else None
+    return labels, part_boxes(skin, cell), weights, anchors
+
+
 def choose_label_dilation(skin: Skin, arch, centre, radius: float, labels: np.ndarray, boxes: np.ndarray,
                           weights, anchors, rest_sdf, band: float, seed: int) -> tuple[int, str]:
     """Which of :data:`LABEL_DILATIONS` the label grid ``labels`` (:func:`part_labels`) gets, and
@@ -272,14 +285,9 @@ def train_articulated(skin: Skin, name: str, config: TrainConfig, *, arch: Artic
                              meters_per_unit=meters_per_unit, source=source)
     rest = Mesh(skin.vertices, skin.faces, name)
     centre, radius = normalisation(rest, config.padding)
-    cell = 2.0 * radius / arch.label_resolution
     began = time.monotonic()
-    labels = part_labels(skin, centre, radius, arch.label_resolution, band=3.0 * cell)
-    boxes = part_boxes(skin, cell)
-    weights = weight_field(skin, centre, radius, arch.weight_resolution, arch.fine_weight_resolution,
-                           band=FINE_WEIGHT_BAND_CELLS * 2.0 * radius / max(arch.fine_weight_resolution, 1))
+    labels, boxes, weights, anchors = rest_tables(skin, arch, centre, radius)
     arch = replace(arch, weight_blocks=len(weights.block_joints))
-    anchors = surface_anchors(skin, weights, centre, radius) if arch.surface_offsets else None
     band = 1e-3 / meters_per_unit
     dilation_choice = None
     if label_dilation is None:
@@ -289,7 +297,6 @@ def train_articulated(skin: Skin, name: str, config: TrainConfig, *, arch: Artic
             say(dilation_choice)
     arch = replace(arch, label_dilation=label_dilation)
     labels, sets, _ = dilated_labels(labels, arch.joints, arch.label_dilation)
-    sets = sets if arch.label_dilation else None
 
     margin = config.margin_m / meters_per_unit if config.margin_m else default_margin(rest, meters_per_unit)
     per_pose = max(config.samples // poses, 100)
