@@ -95,6 +95,79 @@ def test_the_velocity_is_the_offset_map_s_time_derivative(figure, monkeypatch):
     assert np.abs(plain.velocity - differenced).max() > 1e-3
 
 
+def _pose_and_motion(figure, kind):
+    """``(transforms, to_rest, posed, moving, offsets, moving_offsets)`` of the figure at a clip
+    time or a pose off its clip (the clip time's joint velocities as the motion)."""
+    _, skin, _, anchors, mine = figure
+    transforms, velocities = pose_at(skin, "animation 0", 0.6)
+    if kind != "clip":
+        transforms = random_poses(skin, 1, 19, perturbed_share=1.0).transforms[0]
+    to_rest, posed = ns.rest_maps(skin.skeleton, transforms)
+    moving = (velocities @ skin.skeleton.inverse_bind)[:, :3, :]
+    offsets, moving_offsets = ns.surface_offsets(anchors, mine[-1], skin, np.stack([posed[:, :3, :], moving]))
+    return transforms, to_rest, posed, moving, offsets, moving_offsets
+
+
+def test_the_blended_table_holds_each_fine_corner_s_skinning_map_and_offsets(figure):
+    """blended_blocks: per fine corner and map set, the maps summed by the corner's stored weights
+    (divided by their sum: the skinning's map there, blend_at's), the sum, then the offsets; numba
+    and numpy alike."""
+    _, _, _, _, mine = figure
+    _, centre, radius, _, _, field = mine
+    _, _, posed, moving, offsets, moving_offsets = _pose_and_motion(figure, "clip")
+    sets, set_offsets = np.stack([posed[:, :3, :], moving]), np.stack([offsets, moving_offsets])
+    table = ns.blended_blocks(field, sets, set_offsets)
+    assert table.shape == field.block_joints.shape[:4] + (2 * ns.BLENDED_CHANNELS,)
+    np.testing.assert_allclose(table, ns.blended_blocks(field, sets, set_offsets, fused=False), rtol=0, atol=1e-14)
+    np.testing.assert_array_equal(ns.blended_blocks(field, sets)[..., 13:16], 0.0)  # no offsets: none added
+    # Stored blocks' inner corners (on a block's faces a neighbour's cells may answer) at their rest
+    # positions, the fine grid's nodes, where the field's weights are that corner's alone.
+    cells = field.block_index.shape[0] * ns.BLOCK_CELLS
+    block = np.argwhere(field.block_index >= 0)[:: max(1, len(field.block_joints) // 40)]
+    inner = np.stack(np.meshgrid(*[np.arange(1, ns.BLOCK_CELLS)] * 3, indexing="ij"), axis=-1).reshape(-1, 3)
+    node = block[:, None, :] * ns.BLOCK_CELLS + inner[None]
+    position = (centre + radius * (2.0 * node / cells - 1.0)).reshape(-1, 3)
+    row = np.repeat(field.block_index[tuple(block.T)], len(inner))
+    corner = np.tile(inner, (len(block), 1))
+    at = table[row, corner[:, 0], corner[:, 1], corner[:, 2]]
+    for i, (maps, offset) in enumerate(zip(sets, set_offsets)):
+        channels = at[:, i * ns.BLENDED_CHANNELS:(i + 1) * ns.BLENDED_CHANNELS]
+        np.testing.assert_allclose(channels[:, :12].reshape(-1, 3, 4) / channels[:, 12, None, None],
+                                   ns.blend_at(position, maps, field, centre, radius), rtol=0, atol=1e-9)
+        np.testing.assert_array_equal(channels[:, 13:], offset[row, corner[:, 0], corner[:, 1], corner[:, 2]])
+
+
+@pytest.mark.parametrize("kind", ["clip", "off the clip"])
+def test_a_long_newton_pass_reads_the_pose_s_table_and_answers_as_the_sums_per_joint(figure, monkeypatch, kind):
+    """NEWTON_TABLE_ROWS: a pass of that many rows reads the fine blocks through the pose's
+    blended_blocks table (the maps, offsets and motion in one read per corner); its roots, maps and
+    velocities are those of the weights summed per joint, the same sums regrouped by corner."""
+    _, skin, _, _, mine = figure
+    labels, centre, radius, allowed, boxes, field = mine
+    transforms, to_rest, posed, moving, offsets, moving_offsets = _pose_and_motion(figure, kind)
+    points = np.concatenate([  # the skin, and far points: the coarse grid's (no table there)
+        surface_band_points(Mesh(skin_vertices(skin, transforms), skin.faces, "posed"), 3000, 1e-2, 9),
+        np.random.default_rng(3).uniform(centre - radius, centre + radius, (300, 3))])
+    point, joint, rigid = ns.part_candidates(points, to_rest, labels, centre, radius, allowed, boxes)
+    args = (points, point, joint, rigid, to_rest, posed, field, centre, radius, 8, "newton")
+    motion = {"moving": moving, "offsets": offsets, "moving_offsets": moving_offsets}
+    monkeypatch.setattr(ns, "NEWTON_TABLE_ROWS", len(point) + 1)
+    by_joint = ns.carried_rows(*args, **motion)
+    monkeypatch.setattr(ns, "NEWTON_TABLE_ROWS", len(point))
+    by_table = ns.carried_rows(*args, **motion)
+    np.testing.assert_array_equal(by_table.converged, by_joint.converged)
+    np.testing.assert_array_equal(by_table.usable, by_joint.usable)
+    assert by_table.converged.mean() > 0.9
+    np.testing.assert_allclose(by_table.rest, by_joint.rest, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(by_table.inverse, by_joint.inverse, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(by_table.velocity, by_joint.velocity, rtol=0, atol=1e-12)
+    # The table is what such a pass reads: another pose's table moves its roots.
+    other = ns.rest_maps(skin.skeleton, pose_at(skin, "animation 0", 0.1)[0])[1][:, :3, :]
+    built = ns.blended_blocks
+    monkeypatch.setattr(ns, "blended_blocks", lambda f, maps, o: built(f, np.concatenate([other[None], maps[1:]]), o))
+    assert np.abs(ns.carried_rows(*args, **motion).rest - by_joint.rest).max() > 1e-3
+
+
 def test_a_model_with_offsets_answers_by_them_and_its_rows_are_the_query_s(figure, figure_model):
     """A collider whose architecture has ``surface_offsets`` computes its anchors once and each
     pose's offsets (and their velocity) with the pose; ``parts_at`` gives the rows its query's
