@@ -168,6 +168,46 @@ def test_a_long_newton_pass_reads_the_pose_s_table_and_answers_as_the_sums_per_j
     assert np.abs(ns.carried_rows(*args, **motion).rest - by_joint.rest).max() > 1e-3
 
 
+def test_a_collider_builds_a_pose_s_table_once_and_answers_through_it_as_without(figure, figure_model, monkeypatch):
+    """A query long enough for the table (NEWTON_TABLE_ROWS) builds the pose's table once and
+    keeps it for that pose: its chunks and retried rows, and the next query at the pose, read
+    the same one; a new pose, or a query without the motion, builds its own. The answers are the
+    sums per joint's."""
+    _, skin, _, _, _ = figure
+    collider = figure_model()
+    transforms, velocities = pose_at(skin, "animation 0", 0.6)
+    points = surface_band_points(Mesh(skin_vertices(skin, transforms), skin.faces, "posed"), 2000, 1e-2, 4)
+    pose = SkeletonPose(joint_transforms=transforms, joint_velocities=velocities)
+    monkeypatch.setattr(ns, "NEWTON_TABLE_ROWS", 10**9)
+    by_joint = collider.evaluate_at(points, True, None, pose)
+    built, build = [], ns.pose_table
+    monkeypatch.setattr(ns, "pose_table", lambda *a: built.append(a[2] is not None) or build(*a))
+    monkeypatch.setattr(ns, "NEWTON_TABLE_ROWS", 500)
+    by_table = collider.evaluate_at(points, True, None, pose)
+    for a, b in zip(by_table, by_joint):
+        np.testing.assert_allclose(a, b, rtol=0, atol=1e-9)
+    collider.evaluate_at(points[:1000], True, None, pose)
+    assert built == [True]  # one table for the pose, with its motion
+    collider.evaluate_at(points, False, None, pose)
+    other = SkeletonPose(joint_transforms=pose_at(skin, "animation 0", 0.2)[0], joint_velocities=velocities)
+    collider.evaluate_at(points, True, None, other)
+    assert built == [True, False, True]
+    collider.evaluate_at(points[:400], True, None, pose)  # under the threshold: no table
+    assert built == [True, False, True]
+
+
+def test_a_pose_table_must_match_the_pass_s_motion(figure):
+    _, skin, _, _, mine = figure
+    labels, centre, radius, allowed, boxes, field = mine
+    transforms, to_rest, posed, moving, offsets, moving_offsets = _pose_and_motion(figure, "clip")
+    points = surface_band_points(Mesh(skin_vertices(skin, transforms), skin.faces, "posed"), 200, 1e-2, 9)
+    point, joint, rigid = ns.part_candidates(points, to_rest, labels, centre, radius, allowed, boxes)
+    still = ns.pose_table(field, posed, None, offsets)
+    with pytest.raises(ValueError, match="16 channels for a pass with the motion"):
+        ns.carried_rows(points, point, joint, rigid, to_rest, posed, field, centre, radius, 8, "newton",
+                        moving=moving, offsets=offsets, moving_offsets=moving_offsets, table=still)
+
+
 def test_a_model_with_offsets_answers_by_them_and_its_rows_are_the_query_s(figure, figure_model):
     """A collider whose architecture has ``surface_offsets`` computes its anchors once and each
     pose's offsets (and their velocity) with the pose; ``parts_at`` gives the rows its query's

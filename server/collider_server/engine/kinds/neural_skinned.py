@@ -836,6 +836,27 @@ def blended_blocks(field: WeightField, maps: np.ndarray, offsets: np.ndarray | N
     return np.concatenate(sets, axis=-1)
 
 
+def pose_table(field: WeightField, posed: np.ndarray, moving: np.ndarray | None = None,
+               offsets: np.ndarray | None = None, moving_offsets: np.ndarray | None = None) -> np.ndarray:
+    """(k, 5, 5, 5, 16 or 32) float64: the Newton pass's :func:`blended_blocks` table of a pose,
+    ``posed`` (J, 4, 4) with its ``offsets``, then where ``moving`` (J, 3, 4) is given the motion
+    with ``moving_offsets`` beside it (:func:`carried_rows`' arguments)."""
+    sets, set_offsets = [posed[:, :3, :]], [offsets]
+    if moving is not None:
+        sets.append(moving)
+        set_offsets.append(moving_offsets)
+    if offsets is None:
+        return blended_blocks(field, np.stack(sets))
+    return blended_blocks(field, np.stack(sets), np.stack([np.zeros_like(offsets) if o is None else o
+                                                           for o in set_offsets]))
+
+
+def uses_table(rows: int, field: WeightField) -> bool:
+    """Whether a Newton pass of ``rows`` rows reads the fine blocks through the pose's table
+    (:func:`pose_table`): :data:`NEWTON_TABLE_ROWS` or more, a fine field, the numba pass."""
+    return rows >= NEWTON_TABLE_ROWS and field.block_joints.shape[0] > 0 and _newton_kernel is not None
+
+
 #: Newton steps stop where the skinned rest point is this close to the query point, a share of the
 #: grid's half side (the walker's 0.95 m: about 1 micrometre).
 NEWTON_TOLERANCE = 1e-6
@@ -1008,12 +1029,15 @@ class CarriedRows(NamedTuple):
 def carried_rows(points: np.ndarray, point: np.ndarray, joint: np.ndarray, rigid: np.ndarray,
                  to_rest: np.ndarray, posed: np.ndarray, field, centre, radius: float, iterations: int,
                  solver: str = "fixed-point", fused: bool = True, moving: np.ndarray | None = None,
-                 offsets: np.ndarray | None = None, moving_offsets: np.ndarray | None = None) -> CarriedRows:
+                 offsets: np.ndarray | None = None, moving_offsets: np.ndarray | None = None,
+                 table: np.ndarray | None = None) -> CarriedRows:
     """:func:`carry_to_rest`'s rule without dropping rows (the query's: no copies of the rows) and,
     with ``moving`` (J, 3, 4) (``dA_j/dt``, :meth:`ArticulatedNeuralCollider.pose`), the velocity
     at each row's rest point from the Newton kernel's last weights (:class:`CarriedRows`). With
     ``offsets`` (:func:`surface_offsets` of the pose's maps; the Newton solver only), the map
-    adds them, and the velocity ``moving_offsets`` (of ``moving``)."""
+    adds them, and the velocity ``moving_offsets`` (of ``moving``). ``table``: the pose's
+    :func:`pose_table` of these (with the motion where ``moving`` is given), read by the Newton
+    pass in the fine blocks; None: the pass builds one where :func:`uses_table` says."""
     m = len(point)
     if iterations == 0:
         return CarriedRows(np.ones(m, bool), rigid, to_rest[joint, :, :3], None, np.ones(m, bool))
@@ -1028,7 +1052,7 @@ def carried_rows(points: np.ndarray, point: np.ndarray, joint: np.ndarray, rigid
     else:
         rest, inverse, converged, velocity, wild = _newton_through_grid(points, point, rigid, posed, field, centre,
                                                                         radius, iterations, fused, moving, offsets,
-                                                                        moving_offsets)
+                                                                        moving_offsets, table)
     if len(wild):
         rest[wild], inverse[wild] = rigid[wild], to_rest[joint[wild], :, :3]
         if velocity is not None:  # the rigid image's own blend (rare)
@@ -1083,7 +1107,7 @@ def candidate_groups_through_skinning(points: np.ndarray, to_rest: np.ndarray, p
                                       part_boxes: np.ndarray, field, iterations: int, solver: str,
                                       rule: str = "own-label", fused: bool = True, moving: np.ndarray | None = None,
                                       rest_boxes: np.ndarray | None = None, offsets: np.ndarray | None = None,
-                                      moving_offsets: np.ndarray | None = None
+                                      moving_offsets: np.ndarray | None = None, table: np.ndarray | None = None
                                       ) -> tuple[CandidateRows, CandidateRows | None]:
     """The candidate rule (``rule``, :data:`CANDIDATE_RULES`) in its one home, for the query and
     the training alike: :func:`part_candidates` (the label at each part's rigid image), carried on
@@ -1091,8 +1115,8 @@ def candidate_groups_through_skinning(points: np.ndarray, to_rest: np.ndarray, p
     candidates reached a root is tried again with the parts :func:`labels_seen` names at its
     rigid images (those not tried yet): where one of them reaches a root, those rows replace the
     first ones (else the first ones stay). ``points`` (n, 3) float64, collider frame at the pose;
-    ``to_rest`` (J, 3, 4) and ``posed`` (J, 4, 4) (:func:`rest_maps`); ``moving``, ``offsets``
-    and ``moving_offsets`` as :func:`carried_rows`'; the rest (``rest_boxes`` too) as
+    ``to_rest`` (J, 3, 4) and ``posed`` (J, 4, 4) (:func:`rest_maps`); ``moving``, ``offsets``,
+    ``moving_offsets`` and ``table`` as :func:`carried_rows`'; the rest (``rest_boxes`` too) as
     :func:`part_candidates` and :func:`carry_to_rest`.
 
     Returns ``(first, retried)`` (:class:`CandidateRows`), the rows as they were carried, not
@@ -1106,7 +1130,7 @@ def candidate_groups_through_skinning(points: np.ndarray, to_rest: np.ndarray, p
     point, joint, rigid = part_candidates(points, to_rest, labels, centre, radius, allowed, part_boxes, fused,
                                           rest_boxes)
     carried = carried_rows(points, point, joint, rigid, to_rest, posed, field, centre, radius, iterations, solver,
-                           fused, moving, offsets, moving_offsets)
+                           fused, moving, offsets, moving_offsets, table)
     if rule != "retry-labels" or carried.converged.all():
         return CandidateRows(point, joint, carried), None
     reached = np.zeros(len(points), bool)
@@ -1124,7 +1148,7 @@ def candidate_groups_through_skinning(points: np.ndarray, to_rest: np.ndarray, p
     retry_rigid = (np.einsum("mab,mb->ma", to_rest[retry_joint, :, :3], points[retry_point])
                    + to_rest[retry_joint, :, 3])
     again = carried_rows(points, retry_point, retry_joint, retry_rigid, to_rest, posed, field, centre, radius,
-                         iterations, solver, fused, moving, offsets, moving_offsets)
+                         iterations, solver, fused, moving, offsets, moving_offsets, table)
     found = np.zeros(len(points), bool)
     found[retry_point[again.converged]] = True  # a root reached: these rows replace the first ones
     lost_rows = np.flatnonzero(found[point])
@@ -1222,7 +1246,7 @@ def spread_stride(chunks: int) -> int:
 
 def _newton_through_grid(points, point, rigid, posed, field, centre, radius: float, iterations: int,
                          fused: bool = True, moving: np.ndarray | None = None, offsets: np.ndarray | None = None,
-                         moving_offsets: np.ndarray | None = None):
+                         moving_offsets: np.ndarray | None = None, table: np.ndarray | None = None):
     """:func:`newton_rest` of rows ``point`` (m,) int64 of ``points`` (n, 3) from ``rigid`` (m, 3)
     through the weight grid (:func:`weights_and_gradient`), its tolerance
     :data:`NEWTON_TOLERANCE` and longest step :data:`NEWTON_MAX_STEP` times ``radius``: one numba
@@ -1230,8 +1254,8 @@ def _newton_through_grid(points, point, rigid, posed, field, centre, radius: flo
     numba is there and ``fused``, else numpy. Returns ``newton_rest``'s three, the velocity (m, 3)
     at the rest points (:func:`_velocity_at`) from the kernel's last weights where ``moving`` (J,
     3, 4) is given and the kernel ran (else None), and the rows (k,) int64 that moved further than
-    :data:`DIVERGED` times ``radius`` from ``rigid``. ``offsets`` and ``moving_offsets`` as
-    :func:`carried_rows`'."""
+    :data:`DIVERGED` times ``radius`` from ``rigid``. ``offsets``, ``moving_offsets`` and ``table``
+    as :func:`carried_rows`'."""
     centre = np.asarray(centre, np.float64)
     tolerance, max_step, last_step = NEWTON_TOLERANCE * radius, NEWTON_MAX_STEP * radius, NEWTON_LAST_STEP * radius
     limit = (DIVERGED * radius) ** 2
@@ -1246,14 +1270,13 @@ def _newton_through_grid(points, point, rigid, posed, field, centre, radius: flo
         else:
             maps, velocity = np.ascontiguousarray(moving, np.float64), np.empty((len(rest), 3))
         none = np.zeros((0,) + (BLOCK_CELLS + 1,) * 3 + (3,))
-        table = np.zeros((0,) + (BLOCK_CELLS + 1,) * 3 + (BLENDED_CHANNELS,))
-        if len(rest) >= NEWTON_TABLE_ROWS and field.block_joints.shape[0]:
-            sets, set_offsets = [posed[:, :3, :]], [offsets]
-            if moving is not None:
-                sets.append(moving)
-                set_offsets.append(moving_offsets)
-            table = blended_blocks(field, np.stack(sets), None if offsets is None else np.stack(
-                [np.zeros_like(offsets) if o is None else o for o in set_offsets]))
+        if table is None and uses_table(len(rest), field):
+            table = pose_table(field, posed, moving, offsets, moving_offsets)
+        if table is None:
+            table = np.zeros((0,) + (BLOCK_CELLS + 1,) * 3 + (BLENDED_CHANNELS,))
+        elif table.shape[-1] != BLENDED_CHANNELS * (1 if moving is None else 2):
+            raise ValueError(f"a pose table of {table.shape[-1]} channels for a pass "
+                             f"{'without' if moving is None else 'with'} the motion")
         _newton_kernel(np.ascontiguousarray(points, np.float64), np.ascontiguousarray(point, np.int64), rigid, rest,
                        np.ascontiguousarray(posed[:, :3, :]), *field, centre, float(radius), iterations, max_step,
                        tolerance, last_step, NEWTON_HALVINGS, limit, inverse, converged, wild, maps, velocity,
@@ -2022,6 +2045,7 @@ class ArticulatedNeuralCollider(Collider):
                         if self.arch.surface_offsets else None)
         self.keep = keep
         self._cache: OrderedDict = OrderedDict()
+        self._table: tuple | None = None  # (prepared pose, with the motion, its pose_table)
         self._lock = threading.Lock()
 
     @property
@@ -2078,14 +2102,34 @@ class ArticulatedNeuralCollider(Collider):
                                       self.allowed, self.part_boxes, self.weights, self.arch.skinning_iterations,
                                       self.arch.skinning_solver, self.arch.candidate_rule, offsets=prepared.offsets)
 
+    def kept_table(self, prepared: PreparedPose, moving: np.ndarray | None) -> np.ndarray:
+        """:func:`pose_table` of a prepared pose (with its motion where ``moving``), built once and
+        kept for the last pose asked: a query of many points answers each of its chunks, and its
+        retried rows, through one (the walker's: 29 MB with the motion; building one costs 2-30 ms,
+        the most where its memory is new)."""
+        with self._lock:
+            kept = self._table
+        if kept is not None and kept[0] is prepared and kept[1] == (moving is not None):
+            return kept[2]
+        table = pose_table(self.weights, prepared.posed, moving, prepared.offsets,
+                           None if moving is None else prepared.moving_offsets)
+        with self._lock:
+            self._table = (prepared, moving is not None, table)
+        return table
+
     def evaluate_at(self, local, want_gradient, time, skeleton=None):
-        to_rest, posed, moving, bias, offsets, moving_offsets = self.pose(time, skeleton)
+        prepared = self.pose(time, skeleton)
+        to_rest, posed, moving, bias, offsets, moving_offsets = prepared
         if not want_gradient:
             moving = None  # no velocity asked
+        table = None
+        if self.arch.skinning_solver == "newton" and self.arch.skinning_iterations and uses_table(len(local),
+                                                                                                 self.weights):
+            table = self.kept_table(prepared, moving)
         groups = [group for group in candidate_groups_through_skinning(
             local, to_rest, posed, self.labels, self.centre, self.radius, self.allowed, self.part_boxes, self.weights,
             self.arch.skinning_iterations, self.arch.skinning_solver, self.arch.candidate_rule, moving=moving,
-            rest_boxes=self.rest_boxes, offsets=offsets, moving_offsets=moving_offsets)
+            rest_boxes=self.rest_boxes, offsets=offsets, moving_offsets=moving_offsets, table=table)
             if group is not None]
         n = len(local)
         # Every row goes through the network (the few dropped ones too: cheaper than copies of the rows).
