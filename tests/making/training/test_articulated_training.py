@@ -147,6 +147,61 @@ def test_the_training_says_which_label_dilation_it_chose_and_keeps_it(trained):
     assert result.collider.info.settings["training"]["label_dilation_choice"] == line
 
 
+def test_the_training_says_how_many_label_cells_its_dilation_left_without_a_code(trained, monkeypatch):
+    """A skeleton of many joints leaves the label grid few set codes (255 - J), and a cell near a
+    boundary whose set finds none keeps its own label (dilated_labels counts them, tested with
+    the rule): the training says how many and keeps the count. (The arm's 3 joints leave codes
+    to spare, so its count is made up here.)"""
+    from collider_server.making.training import articulated
+
+    skin, _, _ = trained
+    real = articulated.dilated_labels
+    monkeypatch.setattr(articulated, "dilated_labels",
+                        lambda labels, joints, cells: real(labels, joints, cells)[:2] + (1234 if cells else 0,))
+    said = []
+    result = train_articulated(skin, "arm-neural", TrainConfig(samples=2_000, steps=1, validation_points=200,
+                                                               threads=1),
+                               arch=SMALL, poses=8, show_progress=False, label_dilation=1, say=said.append)
+    (line,) = said
+    assert line.startswith("label dilation 1: 1,234 cells near a part boundary keep their own label (the grid's "
+                           f"{255 - skin.skeleton.joint_count} set codes ran out)"), line
+    assert result.collider.info.settings["training"]["label_cells_uncoded"] == 1234
+
+
+def test_the_training_samples_rows_are_the_query_s_at_their_pose(trained, monkeypatch):
+    """The rows each training sample is learnt through (its candidate parts and their rest points:
+    the dilated grid's sets, the surface offsets, the retry) are the rows the trained model's
+    query takes at that pose (``parts_at``): the network learns what it will be asked."""
+    from collider_server.making.training import articulated
+
+    skin, _, _ = trained
+    made, real = [], articulated.make_samples
+
+    def recording(skin_, poses, per_pose, sampler, *args, **kwargs):
+        points = []
+
+        def sample(mesh, p):
+            out = sampler(mesh, p)
+            points.append(out[0])
+            return out
+
+        made.append((poses, points, real(skin_, poses, per_pose, sample, *args, **kwargs)))
+        return made[-1][2]
+
+    monkeypatch.setattr(articulated, "make_samples", recording)
+    result = train_articulated(skin, "arm-neural", TrainConfig(samples=16_000, steps=1, validation_points=200,
+                                                               threads=1),
+                               arch=SMALL, poses=8, show_progress=False, label_dilation=1)
+    poses, points, samples = made[0]  # the training's samples (the validation's come next)
+    assert result.collider.arch.label_dilation == 1
+    for p in range(len(poses)):
+        point, joint, rest, _ = result.collider.parts_at(points[p], None, _pose(poses[p]))
+        order = np.argsort(point, kind="stable")  # the samples' rows: by point, then joint
+        rows = samples.pose == p
+        np.testing.assert_array_equal(samples.joint[rows], joint[order])
+        np.testing.assert_allclose(samples.rest[rows], rest[order], rtol=0, atol=1e-6)
+
+
 def test_the_model_file_round_trips(trained, tmp_path):
     _, result, _ = trained
     path = save_collider(result.collider, tmp_path / "arm-neural.safetensors")

@@ -27,6 +27,7 @@ from dataclasses import asdict, dataclass, field, replace
 import numpy as np
 
 from ...engine.kinds.neural_skinned import (
+    NO_PART,
     ArticulatedGridArchitecture,
     ArticulatedNeuralCollider,
     allowed_labels,
@@ -269,7 +270,9 @@ def train_articulated(skin: Skin, name: str, config: TrainConfig, *, arch: Artic
     rates, ``normal_weight``, ``seed``, ``threads``; its ``preset`` is not used: ``arch``,
     default :data:`ARTICULATED_PRESET` with the skeleton's joints; ``label_dilation``: the label
     grid's (cells), None: chosen by :func:`choose_label_dilation`, its reason kept in the model's
-    training settings and passed to ``say`` (a callable taking the line) as soon as it is known)."""
+    training settings and passed to ``say`` (a callable taking the line) as soon as it is known; so
+    are the label cells the dilation could not code, ``label_cells_uncoded``, said where there are
+    any)."""
     import torch
 
     from ..skinned import skinned_collider
@@ -285,6 +288,9 @@ def train_articulated(skin: Skin, name: str, config: TrainConfig, *, arch: Artic
                              meters_per_unit=meters_per_unit, source=source)
     rest = Mesh(skin.vertices, skin.faces, name)
     centre, radius = normalisation(rest, config.padding)
+    # The network keeps its cube in float32: the tables the samples are carried through are built
+    # on that cube, as the trained model's query builds them (else rows near a cell face differ).
+    centre, radius = np.float32(centre).astype(np.float64), float(np.float32(radius))
     began = time.monotonic()
     labels, boxes, weights, anchors = rest_tables(skin, arch, centre, radius)
     arch = replace(arch, weight_blocks=len(weights.block_joints))
@@ -296,7 +302,10 @@ def train_articulated(skin: Skin, name: str, config: TrainConfig, *, arch: Artic
         if say is not None:
             say(dilation_choice)
     arch = replace(arch, label_dilation=label_dilation)
-    labels, sets, _ = dilated_labels(labels, arch.joints, arch.label_dilation)
+    labels, sets, uncoded = dilated_labels(labels, arch.joints, arch.label_dilation)
+    if uncoded and say is not None:  # a skeleton of many joints leaves few codes (255 - J)
+        say(f"label dilation {arch.label_dilation}: {uncoded:,} cells near a part boundary keep their own label "
+            f"(the grid's {NO_PART - arch.joints} set codes ran out): a point there lacks the parts around it")
 
     margin = config.margin_m / meters_per_unit if config.margin_m else default_margin(rest, meters_per_unit)
     per_pose = max(config.samples // poses, 100)
@@ -376,7 +385,7 @@ def train_articulated(skin: Skin, name: str, config: TrainConfig, *, arch: Artic
     info.kind = ArticulatedNeuralCollider.kind
     info.settings = {**info.settings, "architecture": asdict(arch), "parameters": arch.parameter_count(),
                      "training": {**asdict(config), "poses": poses, "perturb_deg": PERTURB_DEG,
-                                  "label_dilation_choice": dilation_choice,
+                                  "label_dilation_choice": dilation_choice, "label_cells_uncoded": uncoded,
                                   "steps_done": step, "seconds": round(seconds, 1),
                                   "best_validation_1mm_mm": best_mm}}
     collider = ArticulatedNeuralCollider(info, skin, network.eval(), device="cpu")
