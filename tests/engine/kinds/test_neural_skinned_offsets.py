@@ -208,6 +208,23 @@ def test_a_pose_table_must_match_the_pass_s_motion(figure):
                         moving=moving, offsets=offsets, moving_offsets=moving_offsets, table=still)
 
 
+def test_the_fused_velocity_at_rest_points_is_the_numpy_rule(figure):
+    """_velocity_at (the motion of the rows a Newton pass gave up on, at their rigid images; of a
+    fixed-point model's rows): the numba pass answers as blend_at and offsets_at, in the fine
+    blocks, on the coarse grid and beyond the cube, with and without the offsets' motion."""
+    _, skin, _, _, mine = figure
+    _, centre, radius, _, _, field = mine
+    _, _, _, moving, _, moving_offsets = _pose_and_motion(figure, "off the clip")
+    rng = np.random.default_rng(12)
+    rest = np.concatenate([skin.vertices + rng.normal(0, 0.01, skin.vertices.shape),
+                           rng.uniform(centre - 1.2 * radius, centre + 1.2 * radius, (2000, 3))])
+    for offsets in (moving_offsets, None):
+        fused = ns._velocity_at(rest, moving, field, centre, radius, offsets)
+        np.testing.assert_allclose(fused, ns._velocity_at(rest, moving, field, centre, radius, offsets, fused=False),
+                                   rtol=0, atol=1e-12)
+    assert np.abs(fused - ns._velocity_at(rest, moving, field, centre, radius, moving_offsets)).max() > 1e-4
+
+
 def test_a_model_with_offsets_answers_by_them_and_its_rows_are_the_query_s(figure, figure_model):
     """A collider whose architecture has ``surface_offsets`` computes its anchors once and each
     pose's offsets (and their velocity) with the pose; ``parts_at`` gives the rows its query's

@@ -1056,7 +1056,7 @@ def carried_rows(points: np.ndarray, point: np.ndarray, joint: np.ndarray, rigid
     if len(wild):
         rest[wild], inverse[wild] = rigid[wild], to_rest[joint[wild], :, :3]
         if velocity is not None:  # the rigid image's own blend (rare)
-            velocity[wild] = _velocity_at(rigid[wild], moving, field, centre, radius, moving_offsets)
+            velocity[wild] = _velocity_at(rigid[wild], moving, field, centre, radius, moving_offsets, fused)
     if converged.all():
         return CarriedRows(converged, rest, inverse, velocity, converged)
     has_converged = np.zeros(len(points), bool)
@@ -1065,10 +1065,19 @@ def carried_rows(points: np.ndarray, point: np.ndarray, joint: np.ndarray, rigid
 
 
 def _velocity_at(rest: np.ndarray, moving: np.ndarray, field, centre, radius: float,
-                 moving_offsets: np.ndarray | None = None) -> np.ndarray:
+                 moving_offsets: np.ndarray | None = None, fused: bool = True) -> np.ndarray:
     """(m, 3) float64: the skinning's motion ``sum_k w_k(y) dA_k/dt @ [y, 1]`` at rest points
     ``rest`` (m, 3) (:func:`blend_at` of ``moving`` (J, 3, 4)), plus the blended
-    ``moving_offsets`` where given (:func:`surface_offsets` of ``moving``)."""
+    ``moving_offsets`` where given (:func:`surface_offsets` of ``moving``). One numba pass
+    (:func:`_velocity_kernel`; the rows a Newton pass gave up on can be most of a retry's) when
+    numba is there and ``fused``, else numpy."""
+    if fused and _velocity_kernel is not None:
+        out = np.empty((len(rest), 3))
+        _velocity_kernel(np.ascontiguousarray(rest, np.float64), np.ascontiguousarray(moving, np.float64), *field,
+                         np.asarray(centre, np.float64), float(radius),
+                         np.zeros((0,) + (BLOCK_CELLS + 1,) * 3 + (3,)) if moving_offsets is None else
+                         np.ascontiguousarray(moving_offsets, np.float64), out)
+        return out
     homogeneous = np.concatenate([rest, np.ones((len(rest), 1))], axis=1)
     velocity = np.einsum("nab,nb->na", blend_at(rest, moving, field, centre, radius), homogeneous)
     if moving_offsets is not None:
@@ -1297,7 +1306,7 @@ def _newton_through_grid(points, point, rigid, posed, field, centre, radius: flo
     return rest, inverse, converged, None, np.flatnonzero(np.einsum("ma,ma->m", moved, moved) > limit)
 
 
-_blend_kernel = _skinned_rest_kernel = _offsets_kernel = _blend_table_kernel = None
+_blend_kernel = _skinned_rest_kernel = _offsets_kernel = _blend_table_kernel = _velocity_kernel = None
 if grid_kernels.available():
     import numba
 
@@ -1437,6 +1446,32 @@ if grid_kernels.available():
             for p in range(first * WEIGHT_CHUNK, min(n, first * WEIGHT_CHUNK + WEIGHT_CHUNK)):
                 _blend_one(rest[p, 0], rest[p, 1], rest[p, 2], maps, grid_joints, grid_weights, block_index,
                            block_joints, block_weights, centre, radius, out, p, slot_of, touched, wsum, dsum)
+
+    @numba.njit(cache=True, nogil=True, parallel=True)
+    def _velocity_kernel(rest, moving, grid_joints, grid_weights, block_index, block_joints, block_weights, centre,
+                         radius, moving_offsets, out):  # pragma: no cover
+        """:func:`_velocity_at` in one pass over the points (numba): ``out`` (m, 3) overwritten;
+        ``moving_offsets`` (k, 5, 5, 5, 3), or with no rows none."""
+        n = rest.shape[0]
+        for first in numba.prange((n + WEIGHT_CHUNK - 1) // WEIGHT_CHUNK):
+            slot_of = np.full(moving.shape[0], -1, np.int64)
+            touched = np.empty(8 * GRID_INFLUENCES, np.int64)
+            wsum = np.empty(8 * GRID_INFLUENCES)
+            dsum = np.empty((8 * GRID_INFLUENCES, 3))
+            blend = np.empty((1, 3, 4))
+            for p in range(first * WEIGHT_CHUNK, min(n, first * WEIGHT_CHUNK + WEIGHT_CHUNK)):
+                x, y, z = rest[p, 0], rest[p, 1], rest[p, 2]
+                _blend_one(x, y, z, moving, grid_joints, grid_weights, block_index, block_joints, block_weights,
+                           centre, radius, blend, 0, slot_of, touched, wsum, dsum)
+                for a in range(3):
+                    out[p, a] = blend[0, a, 0] * x + blend[0, a, 1] * y + blend[0, a, 2] * z + blend[0, a, 3]
+                if moving_offsets.shape[0]:
+                    row, cx, cy, cz, tx, ty, tz, _, _, _ = _fine_cell(x, y, z, block_index, centre, radius)
+                    if row >= 0:
+                        for corner in range(8):
+                            ox, oy, oz, tw, _, _, _ = _corner_weight(corner, tx, ty, tz, 0.0, 0.0, 0.0)
+                            for a in range(3):
+                                out[p, a] += tw * moving_offsets[row, cx + ox, cy + oy, cz + oz, a]
 
     @numba.njit(cache=True, nogil=True, parallel=True)
     def _blend_table_kernel(joints, weights, maps, offsets, out):  # pragma: no cover
