@@ -1411,6 +1411,13 @@ if grid_kernels.available():
         return count
 
     @numba.njit(cache=True, nogil=True, inline="always")
+    def _gather_scratch(joints):  # pragma: no cover
+        """:func:`_gather_weights`' scratch for one task of a pass: ``slot_of`` (J,) all -1,
+        ``touched``, ``wsum`` and ``dsum``."""
+        return (np.full(joints, -1, np.int64), np.empty(8 * GRID_INFLUENCES, np.int64), np.empty(8 * GRID_INFLUENCES),
+                np.empty((8 * GRID_INFLUENCES, 3)))
+
+    @numba.njit(cache=True, nogil=True, inline="always")
     def _blend_one(x, y, z, maps, grid_joints, grid_weights, block_index, block_joints, block_weights, centre,
                    radius, out, p, slot_of, touched, wsum, dsum):  # pragma: no cover
         """``out[p]`` (3, 4) = the weight-blended ``maps`` at the rest point (x, y, z); the last four:
@@ -1439,10 +1446,7 @@ if grid_kernels.available():
         """:func:`blend_at` in one pass over the points (numba): ``out`` (m, 3, 4) overwritten."""
         n = rest.shape[0]
         for first in numba.prange((n + WEIGHT_CHUNK - 1) // WEIGHT_CHUNK):
-            slot_of = np.full(maps.shape[0], -1, np.int64)
-            touched = np.empty(8 * GRID_INFLUENCES, np.int64)
-            wsum = np.empty(8 * GRID_INFLUENCES)
-            dsum = np.empty((8 * GRID_INFLUENCES, 3))
+            slot_of, touched, wsum, dsum = _gather_scratch(maps.shape[0])
             for p in range(first * WEIGHT_CHUNK, min(n, first * WEIGHT_CHUNK + WEIGHT_CHUNK)):
                 _blend_one(rest[p, 0], rest[p, 1], rest[p, 2], maps, grid_joints, grid_weights, block_index,
                            block_joints, block_weights, centre, radius, out, p, slot_of, touched, wsum, dsum)
@@ -1454,10 +1458,7 @@ if grid_kernels.available():
         ``moving_offsets`` (k, 5, 5, 5, 3), or with no rows none."""
         n = rest.shape[0]
         for first in numba.prange((n + WEIGHT_CHUNK - 1) // WEIGHT_CHUNK):
-            slot_of = np.full(moving.shape[0], -1, np.int64)
-            touched = np.empty(8 * GRID_INFLUENCES, np.int64)
-            wsum = np.empty(8 * GRID_INFLUENCES)
-            dsum = np.empty((8 * GRID_INFLUENCES, 3))
+            slot_of, touched, wsum, dsum = _gather_scratch(moving.shape[0])
             blend = np.empty((1, 3, 4))
             for p in range(first * WEIGHT_CHUNK, min(n, first * WEIGHT_CHUNK + WEIGHT_CHUNK)):
                 x, y, z = rest[p, 0], rest[p, 1], rest[p, 2]
@@ -1504,10 +1505,7 @@ if grid_kernels.available():
         place, ``inverse`` (m, 3, 3) overwritten; ``blend`` (m, 3, 4) scratch."""
         n = points.shape[0]
         for first in numba.prange((n + WEIGHT_CHUNK - 1) // WEIGHT_CHUNK):
-            slot_of = np.full(maps.shape[0], -1, np.int64)
-            touched = np.empty(8 * GRID_INFLUENCES, np.int64)
-            wsum = np.empty(8 * GRID_INFLUENCES)
-            dsum = np.empty((8 * GRID_INFLUENCES, 3))
+            slot_of, touched, wsum, dsum = _gather_scratch(maps.shape[0])
             for p in range(first * WEIGHT_CHUNK, min(n, first * WEIGHT_CHUNK + WEIGHT_CHUNK)):
                 for _ in range(iterations):
                     _blend_one(rest[p, 0], rest[p, 1], rest[p, 2], maps, grid_joints, grid_weights, block_index,
@@ -1738,10 +1736,7 @@ if grid_kernels.available():
             f_trial = np.empty(3)
             jac_trial = np.empty((3, 3))
             inv = np.empty((3, 3))
-            slot_of = np.full(maps.shape[0], -1, np.int64)
-            touched = np.empty(8 * GRID_INFLUENCES, np.int64)
-            wsum = np.empty(8 * GRID_INFLUENCES)
-            dsum = np.empty((8 * GRID_INFLUENCES, 3))
+            slot_of, touched, wsum, dsum = _gather_scratch(maps.shape[0])
             kept_joints = np.empty(8 * GRID_INFLUENCES, np.int64)  # the accepted point's weights
             kept_weights = np.empty(8 * GRID_INFLUENCES)
             blend = np.empty((4, BLENDED_CHANNELS))
