@@ -1235,9 +1235,10 @@ if grid_kernels.available():
 
 #: Rows per task of the Newton pass (each task allocates its scratch once).
 NEWTON_CHUNK = 1024
-#: From this many rows on, the Newton pass reads the fine blocks through :func:`blended_blocks`'
-#: tables of the pose (built per pass: 1.5-3 ms on the walker's 904 blocks, 2 threads; saving about
-#: 0.1 us a row, so about even at 20,000 rows).
+#: From this many rows on, the Newton pass reads the fine blocks through the pose's table
+#: (:func:`pose_table`; a collider keeps the last pose's, else each pass builds one: 1.4-3 ms on the
+#: walker's 904 blocks, 2 threads, up to 30 ms in fresh memory; it saves about 0.1 us a row, so it
+#: pays back at about 20,000 rows).
 NEWTON_TABLE_ROWS = 32768
 
 
@@ -1334,8 +1335,7 @@ if grid_kernels.available():
     def _fine_cell(x, y, z, block_index, centre, radius):  # pragma: no cover
         """Where the rest point (x, y, z) lies in the fine blocks: ``(row, cx, cy, cz, tx, ty, tz, sx,
         sy, sz)``, the block's row (-1: no stored block there, or no fine field) and per axis the
-        corner index below in the block, the fraction and its derivative. (No array views: a view
-        takes a reference to its table, which a pass's threads contend for.)"""
+        corner index below in the block, the fraction and its derivative."""
         blocks = block_index.shape[0]
         if blocks == 0:
             return -1, 0, 0, 0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
@@ -1598,7 +1598,7 @@ if grid_kernels.available():
         (cx, cy, cz) at fractions (tx, ty, tz), and with ``derivatives`` ``blend[1:4]`` their
         derivatives along x, y, z (``sx``, ``sy``, ``sz``: d fraction / d rest). The channels
         innermost and contiguous: the compiler takes them four at a time (an evaluation of the
-        Newton terms 1.6-1.8x as fast as the sums per joint on the walker)."""
+        Newton terms 1.4x as fast as the sums per joint on the walker, docs/neural.md)."""
         blend[:, :] = 0.0
         for corner in range(8):
             ox, oy, oz, tw, e0, e1, e2 = _corner_weight(corner, tx, ty, tz, sx, sy, sz)
