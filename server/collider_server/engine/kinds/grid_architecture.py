@@ -8,7 +8,7 @@ from dataclasses import dataclass, fields
 from typing import ClassVar
 
 #: How a model file may store the feature table (``GridArchitecture.table_dtype``).
-TABLE_DTYPES = ("float16", "float32", "int8")
+TABLE_DTYPES = ("float16", "float32", "int8", "int8-mu")
 
 
 def require_integers(arch, names, least: int = 1) -> None:
@@ -32,9 +32,10 @@ class GridArchitecture:
     hidden_layers, hidden_width : the MLP after the encoding
     smooth : smoothstep interpolation weights (continuous normals) instead of trilinear
     surface_rows : hashed levels' rows grow like r^2 up to ``2^table_log2`` (see level_rows)
-    table_dtype : how the feature table is stored in the model file: "float16", "float32", or
+    table_dtype : how the feature table is stored in the model file: "float16", "float32",
         "int8": the hashed levels as 8-bit codes with one scale per level and feature, the dense
-        (coarse) levels as float16 (see :func:`pack_table`); computation is float32 either way
+        (coarse) levels as float16 (see :func:`pack_table`), or "int8-mu": the same with the
+        codes on a mu-law curve (finer steps near zero); computation is float32 either way
     """
 
     levels: int = 8

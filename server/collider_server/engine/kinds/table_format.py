@@ -1,6 +1,7 @@
 """How a model file stores a grid network's feature table (``GridArchitecture.table_dtype``):
 float16, float32, or 8 bits (the hashed levels as int8 codes with one scale per level and
-feature, the dense levels as float16). :func:`pack_table` writes, :func:`unpack_table` reads."""
+feature, on a straight line (``int8``) or a mu-law curve (``int8-mu``), the dense levels as
+float16). :func:`pack_table` writes, :func:`unpack_table` reads."""
 
 from __future__ import annotations
 
@@ -12,6 +13,13 @@ from .grid_architecture import GridArchitecture
 #: rarer larger values are clipped to it. Scaling by the maximum instead left most values a
 #: coarser step (docs/neural.md: "8-bit tables").
 INT8_QUANTILE = 0.999
+#: The mu of ``int8-mu``'s curve: a code's step grows with its value, from 0.18 of the straight
+#: line's at zero to 3 times it at the largest. A table's values crowd near zero (a fifth of a
+#: trained walker's codes are within 2 steps of it), where the finer steps take two thirds off the
+#: error the 8 bits add (docs/neural.md, "8-bit codes on a curve"; mu 5-40 alike).
+INT8_MU = 15.0
+#: The 8-bit table formats: each's mu (0: the straight line).
+_CURVES = {"int8": 0.0, "int8-mu": INT8_MU}
 
 
 def pack_table(table: np.ndarray, arch: GridArchitecture) -> dict[str, np.ndarray]:
@@ -19,10 +27,12 @@ def pack_table(table: np.ndarray, arch: GridArchitecture) -> dict[str, np.ndarra
     ``{"table": ...}`` in float16 or float32, or for ``int8`` the dense levels' rows as float16
     (``table_dense``: the coarse levels, few rows, to which the distance is most sensitive) and
     the hashed levels' rows as int8 codes (``table_codes``) times one float32 scale per level and
-    feature (``table_scales`` (hashed levels, F)): the value is ``code * scale``, the scale the
-    level's :data:`INT8_QUANTILE` of |value| / 127. :func:`unpack_table` inverts it."""
-    if arch.table_dtype != "int8":
+    feature (``table_scales`` (hashed levels, F)): the value is ``code * scale`` (``int8``; for
+    ``int8-mu`` :func:`_decode`'s curve through the same ends), the scale the level's
+    :data:`INT8_QUANTILE` of |value| / 127. :func:`unpack_table` inverts it."""
+    if arch.table_dtype not in _CURVES:
         return {"table": table.astype(arch.table_dtype)}
+    mu = _CURVES[arch.table_dtype]
     dense_rows, codes, scales = [], [], []
     for rows, dense in _level_slices(arch):
         block = table[..., rows, :]
@@ -34,11 +44,11 @@ def pack_table(table: np.ndarray, arch: GridArchitecture) -> dict[str, np.ndarra
         # A table that was loaded from 8 bits is kept on its own steps (its largest value is code
         # 127), so that loading and saving again changes nothing.
         peak = flat.max(axis=0) / np.float32(127)
-        steps = flat / np.where(peak > 0, peak, 1.0)
+        steps = _encode(flat / np.where(peak > 0, peak, 1.0), mu)
         coded = (np.abs(steps - np.rint(steps)) < 1e-3).all(axis=0)
         scale = np.where(coded, peak, scale)
         scale = np.where(scale > 0, scale, np.float32(1.0))  # an all-zero level: any scale
-        codes.append(np.clip(np.rint(block / scale), -127, 127).astype(np.int8))
+        codes.append(np.rint(_encode(block / scale, mu)).astype(np.int8))
         scales.append(scale)
     features = table.shape[-1]
     return {"table_dense": np.concatenate(dense_rows, axis=-2) if dense_rows
@@ -52,8 +62,9 @@ def unpack_table(tensors: dict[str, np.ndarray], arch: GridArchitecture) -> dict
     """A copy of ``tensors`` with the table as :func:`pack_table` stored it turned back into
     ``"table"`` (..., rows, F) float32. Raises ValueError when the stored parts do not fit ``arch``."""
     tensors = dict(tensors)
-    if arch.table_dtype != "int8":
+    if arch.table_dtype not in _CURVES:
         return tensors
+    mu = _CURVES[arch.table_dtype]
     try:
         dense = np.asarray(tensors.pop("table_dense"))
         codes = np.asarray(tensors.pop("table_codes"))
@@ -82,7 +93,7 @@ def unpack_table(tensors: dict[str, np.ndarray], arch: GridArchitecture) -> dict
             table[..., rows, :] = dense[..., dense_at:dense_at + n, :]
             dense_at += n
         else:
-            table[..., rows, :] = codes[..., code_at:code_at + n, :] * scales[level]
+            table[..., rows, :] = _decode(codes[..., code_at:code_at + n, :], mu) * scales[level]
             code_at += n
             level += 1
     tensors["table"] = table
@@ -94,3 +105,20 @@ def _level_slices(arch: GridArchitecture) -> list[tuple[slice, bool]]:
     stops = np.cumsum(arch.level_rows())
     return [(slice(int(stop - n), int(stop)), dense)
             for stop, n, dense in zip(stops, arch.level_rows(), arch.level_dense())]
+
+
+def _encode(steps: np.ndarray, mu: float) -> np.ndarray:
+    """Values in straight-line steps (value / scale) to codes before rounding, in [-127, 127]:
+    the same for ``mu`` 0, else on the mu-law curve through (0, 0) and (127, 127)."""
+    steps = np.clip(steps, -127.0, 127.0)
+    if not mu:
+        return steps
+    return np.sign(steps) * (127.0 * np.log1p(mu * np.abs(steps) / 127.0) / np.log1p(mu))
+
+
+def _decode(codes: np.ndarray, mu: float) -> np.ndarray:
+    """:func:`_encode`'s inverse, float32: int8 codes to straight-line steps."""
+    if not mu:
+        return codes.astype(np.float32)
+    codes = codes.astype(np.float64)  # float64, so that code 127 is 127.0 exactly (saving again keeps the scale)
+    return (np.sign(codes) * (127.0 / mu) * np.expm1(np.abs(codes) * (np.log1p(mu) / 127.0))).astype(np.float32)
