@@ -141,7 +141,7 @@ def test_presets_are_the_documented_ones():
     assert PRESETS["fast"] == Architecture(64, 3, 128, 3.0)
     assert PRESETS["grid"] == GridArchitecture(levels=8, features=2, base_resolution=16, max_resolution=256,
                                                table_log2=17, hidden_layers=2, hidden_width=32, smooth=True,
-                                               table_dtype="int8", surface_rows=False)
+                                               table_dtype="int8-mu", surface_rows=False)
     # The animated preset: the grid's levels and MLP, 2^16 float16 rows, 9 keyframe tables.
     assert ANIMATED_PRESETS["keyframes"] == KeyframeGridArchitecture(
         levels=8, features=2, base_resolution=16, max_resolution=256, table_log2=16, hidden_layers=2,

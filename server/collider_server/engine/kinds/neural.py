@@ -62,8 +62,9 @@ PRESETS: dict[str, Architecture | GridArchitecture] = {
     # Ours: narrower, trains several times faster on a CPU.
     "fast": Architecture(64, 3, 128, 3.0),
     # Twice the default rows per hashed level, stored in 8 bits: the file of 2^16 float16 rows,
-    # fewer hash collisions (docs/neural.md, "8-bit tables").
-    "grid": GridArchitecture(table_log2=17, table_dtype="int8"),
+    # fewer hash collisions (docs/neural.md, "8-bit tables"); the codes on a mu-law curve, which
+    # a large mesh's network needs ("8-bit codes on a curve").
+    "grid": GridArchitecture(table_log2=17, table_dtype="int8-mu"),
 }
 
 #: The presets of an animation (``collider train --animation``), apart: a static mesh cannot use
