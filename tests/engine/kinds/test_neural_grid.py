@@ -278,7 +278,7 @@ def test_int8_table_codes_the_hashed_levels_and_keeps_the_dense_ones_in_float16(
     assert inside.mean() > 0.95 and (np.abs(back - table)[inside] <= 0.5 * step[inside] + 1e-7).all()
 
 
-def test_int8_mu_codes_lie_on_the_curve_and_halve_the_error_where_values_crowd_near_zero():
+def test_int8_mu_codes_lie_on_the_curve_and_err_less_where_values_crowd_near_zero():
     """``table_dtype="int8-mu"``: the same arrays as ``int8`` (dense levels float16, codes and one
     scale per hashed level and feature), the codes on the mu-law curve through 0 and the scale's
     127 steps: a code's value is ``127 * scale * expm1(|code| / 127 * log1p(mu)) / mu``. On values
