@@ -284,5 +284,5 @@ def test_the_weight_passes_per_row_helpers_are_inlined():
     answers cannot tell, so the rule is checked here."""
     for helper in (ns._weight_source, ns._corner_weight, ns._gather_weights, ns._newton_terms_one, ns._add_offsets,
                    ns._same_weight_cell, ns._inverse3, ns._blend_one, ns._fine_cell, ns._table_blend, ns._table_terms,
-                   ns._gather_scratch):
+                   ns._gather_scratch, ns._add_blended_offset):
         assert helper.targetoptions.get("inline") == "always", helper.__name__

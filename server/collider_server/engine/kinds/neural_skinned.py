@@ -1469,10 +1469,7 @@ if grid_kernels.available():
                 if moving_offsets.shape[0]:
                     row, cx, cy, cz, tx, ty, tz, _, _, _ = _fine_cell(x, y, z, block_index, centre, radius)
                     if row >= 0:
-                        for corner in range(8):
-                            ox, oy, oz, tw, _, _, _ = _corner_weight(corner, tx, ty, tz, 0.0, 0.0, 0.0)
-                            for a in range(3):
-                                out[p, a] += tw * moving_offsets[row, cx + ox, cy + oy, cz + oz, a]
+                        _add_blended_offset(out[p], moving_offsets, row, cx, cy, cz, tx, ty, tz)
 
     @numba.njit(cache=True, nogil=True, parallel=True)
     def _blend_table_kernel(joints, weights, maps, offsets, out):  # pragma: no cover
@@ -1589,6 +1586,15 @@ if grid_kernels.available():
         moved = m0 * y0 + m1 * y1 + m2 * y2 + m3
         return (row[0] + w * m0, row[1] + w * m1, row[2] + w * m2, row[3] + w * m3, row[4] + moved * g0,
                 row[5] + moved * g1, row[6] + moved * g2)
+
+    @numba.njit(cache=True, nogil=True, inline="always")
+    def _add_blended_offset(out, offsets, block, cx, cy, cz, tx, ty, tz):  # pragma: no cover
+        """``out`` (3,) += ``offsets`` (k, 5, 5, 5, 3) of block ``block``'s corners blended
+        trilinearly in the cell (cx, cy, cz) at fractions (tx, ty, tz) (a velocity's offsets)."""
+        for corner in range(8):
+            ox, oy, oz, tw, _, _, _ = _corner_weight(corner, tx, ty, tz, 0.0, 0.0, 0.0)
+            for a in range(3):
+                out[a] += tw * offsets[block, cx + ox, cy + oy, cz + oz, a]
 
     @numba.njit(cache=True, nogil=True, inline="always")
     def _table_blend(table, block, cx, cy, cz, tx, ty, tz, sx, sy, sz, blend, first,
@@ -1811,10 +1817,7 @@ if grid_kernels.available():
                             v += value * (y0 if b == 0 else y1 if b == 1 else y2 if b == 2 else 1.0)
                         velocity[p, a] = v
                     if block >= 0 and moving_offsets.shape[0]:
-                        for corner in range(8):
-                            ox, oy, oz, tw, _, _, _ = _corner_weight(corner, tx, ty, tz, 0.0, 0.0, 0.0)
-                            for a in range(3):
-                                velocity[p, a] += tw * moving_offsets[block, cx + ox, cy + oy, cz + oz, a]
+                        _add_blended_offset(velocity[p], moving_offsets, block, cx, cy, cz, tx, ty, tz)
 
 
 def clamp_to_cube(rest: np.ndarray, lo: np.ndarray, hi: np.ndarray, fused: bool = True):

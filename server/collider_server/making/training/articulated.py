@@ -26,6 +26,7 @@ from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 
+from ...engine.kinds.neural import PRESETS
 from ...engine.kinds.neural_skinned import (
     NO_PART,
     ArticulatedGridArchitecture,
@@ -53,15 +54,15 @@ from .loop import sdf_loss
 from .schedule import RunClock, cosine_learning_rate, make_optimizer, set_training_threads
 
 #: The preset ``collider train CHARACTER`` uses: the static ``grid`` preset's field (2^17 rows
-#: per hashed level in 8 bits, on the mu-law curve: the straight line's steps cost a character's
-#: network a tenth of its error, docs/neural.md) shared by the parts; the map to the rest pose by
-#: 8 damped Newton steps through the 48^3 weight grid and blocks of a 128^3 one near the rest surface (the
-#: walker's floor without a network: docs/neural.md); a point none of whose candidates reaches a
-#: root tried again with the parts the label grid names at its rigid images (``retry-labels``);
-#: the label grid dilated by a cell where that lowers the map's floor (:func:`choose_label_dilation`).
+#: per hashed level in 8 bits, stored as that preset stores them: codes on the mu-law curve)
+#: shared by the parts; the map to the rest pose by 8 damped Newton steps through the 48^3 weight
+#: grid and blocks of a 128^3 one near the rest surface (the walker's floor without a network:
+#: docs/neural.md); a point none of whose candidates reaches a root tried again with the parts the
+#: label grid names at its rigid images (``retry-labels``); the label grid dilated by a cell where
+#: that lowers the map's floor (:func:`choose_label_dilation`).
 ARTICULATED_PRESET = ArticulatedGridArchitecture(skinning_solver="newton", skinning_iterations=8,
                                                  fine_weight_resolution=128, candidate_rule="retry-labels",
-                                                 surface_offsets=True, table_dtype="int8-mu")
+                                                 surface_offsets=True, table_dtype=PRESETS["grid"].table_dtype)
 #: The fine weight field's blocks reach this many fine cells beyond the rest surface.
 FINE_WEIGHT_BAND_CELLS = 1.0
 #: The label dilations (cells, :func:`dilated_labels`) a training chooses between, and by how
