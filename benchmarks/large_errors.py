@@ -29,22 +29,44 @@ import argparse
 import sys
 from collections import Counter
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
 sys.path[:0] = [str(Path(__file__).resolve().parents[1] / "server"), str(Path(__file__).resolve().parents[1] / "client")]
 
 from collider_contract.skeleton import SkeletonPose
-from collider_server.engine.kinds.neural_skinned import (
-    candidate_rows_through_skinning,
-    rest_maps,
-    union_of_parts,
-)
+from collider_server.engine.kinds.neural_skinned import union_of_parts
 from collider_server.engine.meshes import ExactSDF, Mesh
 from collider_server.engine.modelfile import load_collider
 from collider_server.engine.skinning import random_poses, skin_vertices
 from collider_server.making.sampling import surface_band_points
 from collider_server.making.skinned import skinned_collider
+
+
+class Answer(NamedTuple):
+    """Points answered row by row as the query answers them: the rows (``point``, ``joint``,
+    ``rest``, ``inverse``: :meth:`~collider_server.engine.kinds.neural_skinned.ArticulatedNeuralCollider.
+    parts_at`), each row's distance ``row_distance``, and per point the union ``distance`` and its
+    row ``chosen``."""
+
+    point: np.ndarray
+    joint: np.ndarray
+    rest: np.ndarray
+    inverse: np.ndarray
+    row_distance: np.ndarray
+    distance: np.ndarray
+    chosen: np.ndarray
+
+
+def answer_by_rows(collider, x: np.ndarray, transforms: np.ndarray) -> Answer:
+    """:class:`Answer` of ``collider`` at points ``x`` (n, 3) at joint transforms (J, 4, 4): the
+    query's own rows (its candidate rule, map and surface offsets), so ``distance`` is the query's."""
+    pose = SkeletonPose(joint_transforms=transforms)
+    point, joint, rest, inverse = collider.parts_at(x, None, pose)
+    d, _ = collider._part_values(rest, joint, collider.pose(None, pose).bias, False)
+    best, chosen = union_of_parts(d, point, np.ones(len(point), bool), len(x))
+    return Answer(point, joint, rest, inverse, d, best, chosen)
 
 
 def causes(collider, poses: int, points: int, band: float, over: float, seed: int) -> tuple[Counter, Counter, int]:
@@ -58,18 +80,11 @@ def causes(collider, poses: int, points: int, band: float, over: float, seed: in
         mesh = Mesh(skin_vertices(skin, transforms), skin.faces, "posed")
         x = surface_band_points(mesh, points, band, seed + 1000 + p)
         truth = exact.query(x, ("distance",), joint_transforms=transforms).distance
-        to_rest, posed = rest_maps(skin.skeleton, transforms)
-        bias = collider.pose(None, SkeletonPose(joint_transforms=transforms)).bias
-        point, joint, rows = candidate_rows_through_skinning(
-            x, to_rest, posed, collider.labels, collider.centre, collider.radius, collider.allowed,
-            collider.part_boxes, collider.weights, collider.arch.skinning_iterations, collider.arch.skinning_solver,
-            collider.arch.candidate_rule)
-        d, _ = collider._part_values(rows.rest, joint, bias, False)
-        best, best_row = union_of_parts(d, point, rows.usable, len(x))
+        point, joint, rest, inverse, d, best, best_row = answer_by_rows(collider, x, transforms)
         bad = np.flatnonzero(np.abs(best - truth) > over)
-        floor, closest, face = rest_sdf.query(rows.rest[best_row[bad]])
-        stretch = np.einsum("mba,mb->ma", rows.inverse[best_row[bad]], rest_sdf.gradient(
-            rows.rest[best_row[bad]], floor, closest, face))
+        floor, closest, face = rest_sdf.query(rest[best_row[bad]])
+        stretch = np.einsum("mba,mb->ma", inverse[best_row[bad]], rest_sdf.gradient(
+            rest[best_row[bad]], floor, closest, face))
         corrected = floor / np.maximum(np.linalg.norm(stretch, axis=1), 1e-9)
         for k, i in enumerate(bad):
             tally["points"] += 1
@@ -83,7 +98,7 @@ def causes(collider, poses: int, points: int, band: float, over: float, seed: in
                 tally["map: metric"] += int(abs(corrected[k] - truth[i]) < 2e-3)
             else:
                 tally["network"] += 1
-                others = np.flatnonzero((point == i) & rows.usable)
+                others = np.flatnonzero(point == i)
                 tally["network: another row"] += int(any(abs(d[r] - truth[i]) < 2e-3 for r in others
                                                          if r != best_row[i]))
     return tally, parts, poses * points
