@@ -46,9 +46,8 @@ from collider_server.making.skinned import skinned_collider
 
 class Answer(NamedTuple):
     """Points answered row by row as the query answers them: the rows (``point``, ``joint``,
-    ``rest``, ``inverse``: :meth:`~collider_server.engine.kinds.neural_skinned.ArticulatedNeuralCollider.
-    parts_at`), each row's distance ``row_distance``, and per point the union ``distance`` and its
-    row ``chosen``."""
+    ``rest``, ``inverse``: the collider's ``parts_at``), each row's distance ``row_distance``, and
+    per point the union ``distance`` and its row ``chosen``."""
 
     point: np.ndarray
     joint: np.ndarray
