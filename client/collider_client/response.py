@@ -219,10 +219,11 @@ class CollisionHook:
         Returns ``(positions, velocities, mask)`` with new arrays for the first two and ``mask``
         (n,) bool of the points that were in contact.
 
-        A point's push out is at most its reach, ``eps`` + ``|velocity| dt`` + the colliders'
-        largest surface move over the step (:meth:`collider_moves`), when the call continues the
-        last one (the same point count: every point ended it outside, or on its way out by its
-        reach); the first call pushes every point fully out.
+        A point's pushes out over the step, all its checks together, are at most its reach,
+        ``eps`` + ``|velocity| dt`` + the colliders' largest surface move over the step
+        (:meth:`collider_moves`), when the call continues the last one (the same point count:
+        every point ended it outside, or on its way out by its reach); the first call pushes every
+        point fully out.
 
         A step in which a point moves ``eps`` or more relative to a collider's surface is
         checked at :meth:`substeps` times along the paths (``check_step``), each at its own
@@ -319,7 +320,8 @@ class CollisionHook:
                  travelled_s: float, remaining_s: float, reach: np.ndarray | None):
         """Query ``points`` (the rows ``index`` at time ``t``, ``travelled_s`` into the step and
         ``remaining_s`` before its end), and for those within eps write the contact (at most
-        ``reach`` (n,) metres from the point; None: no bound), moved on with the responded
+        ``reach`` (n,) metres from the point, the step's budget left: what this push uses is
+        taken from it, in place; None: no bound), moved on with the responded
         velocity for ``remaining_s``, and that velocity into ``positions`` / ``velocities`` (in
         place; ``since`` records when).
         Returns ``(hit (len(index),) bool, seconds spent in the query)``."""
@@ -344,6 +346,9 @@ class CollisionHook:
             if over.any():
                 contact[over] = points[local_index][over] + push[over] * (limit[over] / length[over])[:, None]
                 self.stats.bounded_pushes += int(over.sum())
+            # The step's later checks (a moving collider's) push from what is left: a false contact
+            # held through them would otherwise push its point by the reach at every check.
+            reach[index[local_index]] = limit - np.minimum(length, limit)
         # The surface's velocity at the contacts (world frame, m/s): the service's answer.
         if result.velocity is not None:
             v_col = np.asarray(result.velocity, dtype=np.float64)[local_index]

@@ -692,3 +692,20 @@ def test_cloth_points_on_a_waving_arm_never_go_deeper_than_a_tenth_of_a_millimet
             deepest = min(deepest, float(_arm_distance(points, "wave", t).min()))
     assert deepest > -1e-4, f"a point {-1e3 * deepest:.3f} mm inside"
     assert np.linalg.norm(points - start, axis=1).max() > 0.02  # the arm carried them along
+
+
+def test_a_false_contact_held_through_a_step_s_checks_is_pushed_by_its_reach_in_all(exact_client):
+    """The reach bounds a point's pushes over the whole step, not each check: a floor rising 10 mm
+    in the step (1 m/s, dt = 10 ms) is checked several times (eps = 1 mm), and a point the caller
+    put 20 mm into it while saying it did not move is answered deep at each of them. Its reach is
+    eps + 0 + 10 mm = 11 mm in all; after its pushes it rises with the floor (it takes the floor's
+    velocity), so it ends at most 21 mm above where it was, below the floor's top. Pushed by the
+    reach at every check, it ended eps above the top (z = 11 mm)."""
+    rising = ColliderPlacement("floor", lambda t: _translation(0.0, 0.0, t))
+    hook = CollisionHook(exact_client, [rising], eps=1e-3)
+    hook.apply(np.array([[0.1, 0.0, 0.05]]), np.zeros((1, 3)), 0.0, 1e-2)  # the first call: no bound
+    pos, vel, mask = hook.apply(np.array([[0.1, 0.0, -0.02]]), np.zeros((1, 3)), 1e-2, 1e-2)
+    assert mask.all() and hook.stats.queries > 3
+    assert pos[0, 2] <= -0.02 + 11e-3 + 10e-3 + 1e-9, pos[0, 2]
+    assert pos[0, 2] < 1e-2  # still below the floor's top at the step's end (z = t)
+    np.testing.assert_allclose(vel, [[0.0, 0.0, 1.0]], atol=1e-9)
