@@ -86,6 +86,16 @@ def built_once(tmp_path_factory) -> Callable:
     return get
 
 
+def load_benchmark(name: str):
+    """The script ``benchmarks/<name>.py`` as a module (the scripts are not a package)."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location(name, REPO_ROOT / "benchmarks" / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
 def run_collider(*args):
     """``collider ARGS`` run in this process, as ``python -m collider_cli`` runs it: a
     ``subprocess.CompletedProcess`` with its exit status, stdout and stderr. For a test of a

@@ -5,25 +5,18 @@ see a wrong velocity."""
 
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
-
 import numpy as np
+from tests.conftest import REPO_ROOT, load_benchmark
 
 from collider_server.making.animation_files import load_animation
 
-REPO = Path(__file__).resolve().parents[2]
-
 
 def benchmark():
-    spec = importlib.util.spec_from_file_location("animated_neural", REPO / "benchmarks" / "animated_neural.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_benchmark("animated_neural")
 
 
 def arm():
-    folder = REPO / "examples" / "animations"
+    folder = REPO_ROOT / "examples" / "animations"
     return load_animation(folder / "arm.obj", folder / "arm.pc2", 24.0, loop=True)
 
 

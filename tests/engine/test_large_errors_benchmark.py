@@ -4,28 +4,21 @@ surface offsets), or it describes a collider that is not the one served."""
 
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
-
 import numpy as np
+from tests.conftest import REPO_ROOT, load_benchmark
 
 from collider_server.engine.meshes import Mesh
 from collider_server.engine.modelfile import load_collider
 from collider_server.engine.skinning import random_poses, skin_vertices
 from collider_server.making.sampling import surface_band_points
 
-REPO = Path(__file__).resolve().parents[2]
-
 
 def benchmark():
-    spec = importlib.util.spec_from_file_location("large_errors", REPO / "benchmarks" / "large_errors.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_benchmark("large_errors")
 
 
 def test_the_benchmark_answers_each_point_as_the_query_does():
-    collider = load_collider(REPO / "models" / "walker-neural.safetensors")
+    collider = load_collider(REPO_ROOT / "models" / "walker-neural.safetensors")
     assert collider.arch.surface_offsets  # the shipped walker's map has them: what a stale copy of the rows would miss
     transforms = random_poses(collider.skin, 1, 11).transforms[0]
     x = surface_band_points(Mesh(skin_vertices(collider.skin, transforms), collider.skin.faces, "posed"),
