@@ -41,18 +41,29 @@ def commands(page: Path) -> list[str]:
     return out
 
 
-def collider_commands(page: Path) -> list[list[str]]:
-    """The argv (after ``collider``) of every ``collider ...`` command on the page."""
-    out = []
+def page_commands(page: Path) -> list[tuple[list[str] | None, str]]:
+    """Every command on the page, in order (lines split at ``&&``, ``;`` and ``|``): its argv
+    (None where the split cut it, as in ``python -c "a; b"``) and its text."""
+    out: list[tuple[list[str] | None, str]] = []
     for line in commands(page):
         for part in re.split(r"&&|;|\|", line):
             try:
                 argv = shlex.split(part, comments=True)
             except ValueError:
-                continue
-            if argv and argv[0] == "collider":
-                out.append(argv[1:])
+                argv = None
+            if argv != []:
+                out.append((argv, part))
     return out
+
+
+def collider_commands(page: Path) -> list[list[str]]:
+    """The argv (after ``collider``) of every ``collider ...`` command on the page."""
+    return [argv[1:] for argv, _ in page_commands(page) if argv and argv[0] == "collider"]
+
+
+#: A file name in another command's text (a script's argument, a path in ``python -c``'s code):
+#: what that command may write.
+NAMED_FILE = re.compile(r"[\w./-]+\.\w+")
 
 
 def all_pages_commands():
@@ -79,7 +90,11 @@ def test_every_collider_command_parses_and_names_files_that_exist(page):
     parser = build_parser()
     made: set[str] = set()  # files and model names written by earlier commands on the page
     problems = []
-    for argv in collider_commands(page):
+    for command, text in page_commands(page):
+        if not command or command[0] != "collider":  # a script: the files it names may be what it writes
+            made |= set(NAMED_FILE.findall(text))
+            continue
+        argv = command[1:]
         if "--help" in argv or "-h" in argv:
             continue
         try:
@@ -88,7 +103,8 @@ def test_every_collider_command_parses_and_names_files_that_exist(page):
             problems.append(f"does not parse: collider {shlex.join(argv)}")
             continue
         for path in _inputs(args):
-            if not (ROOT / path).exists() and path not in made and str(Path(path).with_suffix("")) not in made:
+            # An absolute path is not the repository's, whatever this machine holds there.
+            if (Path(path).is_absolute() or not (ROOT / path).exists()) and path not in made and str(Path(path).with_suffix("")) not in made:
                 problems.append(f"collider {shlex.join(argv)}: {path} is not in the repository")
         model = getattr(args, "model", None)
         if model and args.command in ("query", "info", "eval", "view") and model not in made \
