@@ -55,9 +55,9 @@ class HookStats:
     colliding_last: int = 0
     colliding_max: int = 0
     deepest_penetration_m: float = 0.0  # most negative signed distance seen (<= 0): the worst penetration
-    # contacts answered deeper than their point could have gone since the last call, each pushed
-    # out by at most its reach (CollisionHook.apply): the collider's answer jumped
-    bounded_pushes: int = 0
+    # contacts answered deeper than their point could have gone since the last call (the
+    # collider's error): each point kept where it was, carried by the surface (CollisionHook.apply)
+    false_contacts: int = 0
     query_s: float = 0.0
     response_s: float = 0.0
     fields: list[str] = field(default_factory=list)
@@ -82,11 +82,13 @@ class CollisionHook:
         more relative to it in one step (the limit below which nothing tunnels; see
         :meth:`substeps`)
 
-    A contact never pushes a point further than the point could have gone into the surface since
-    the last call (``eps`` plus its own travel plus the surface's, :meth:`apply`): a signed
-    distance changes no faster than that, so a deeper answer is the collider's error (a learned
-    field wrong off the skin), and a full push would throw the point. Counted in
-    ``stats.bounded_pushes``.
+    A contact answered deeper than the point could have gone into the surface since the last call
+    (``eps`` plus its approach to the surface along the answer's normal, within its own travel
+    plus the surface's, :meth:`apply`) is a **false contact**: a signed distance changes no
+    faster than that, so the answer is the collider's error (a learned field wrong off the skin),
+    and its normal is not to be believed either. The point is not pushed along it (a push along
+    false normals, bounded or not, stretched the springs and threw the cloth) but kept where it
+    was, carried by the surface. Counted in ``stats.false_contacts``.
 
     Call :meth:`apply` after each integration step (or substep). Only points inside a collider's
     inflated world box are sent, and only the fields the response needs are asked for: the
@@ -157,8 +159,8 @@ class CollisionHook:
                        + (["normal"] if friction is not None else []))
         self.stats = HookStats(fields=list(self.fields))
         #: The point count of the last call: the same count continues those points, which all
-        #: ended it outside (at eps or beyond by the collider's answers; a bounded one on its way
-        #: out), and so bounds their pushes.
+        #: ended it outside (at eps or beyond by the collider's answers; a false contact's point
+        #: where it was outside before), and so bounds their pushes.
         self._last_count: int | None = None
 
     #: Most collision substeps of one step (see :meth:`substeps`); beyond, TunnellingError.
@@ -219,11 +221,16 @@ class CollisionHook:
         Returns ``(positions, velocities, mask)`` with new arrays for the first two and ``mask``
         (n,) bool of the points that were in contact.
 
-        A point's pushes out over the step, all its checks together, are at most its reach,
-        ``eps`` + ``|velocity| dt`` + the colliders' largest surface move over the step
-        (:meth:`collider_moves`), when the call continues the last one (the same point count:
-        every point ended it outside, or on its way out by its reach); the first call pushes every
-        point fully out.
+        When the call continues the last one (the same point count: every point ended it outside),
+        a contact is pushed out no further than the point could have gone in: ``eps`` plus how
+        far it came towards the surface along the answer's normal, relative to the surface's
+        velocity there, since its velocity was set; and, all the step's checks together, no
+        further than its reach, ``eps`` + ``|velocity| dt`` + the colliders' largest surface move
+        over the step (:meth:`collider_moves`). A contact deeper than that is a false contact:
+        the point goes back to where it was when its velocity was last set (at the step's start,
+        or at an earlier check of it), moved since with the surface's velocity at the contact,
+        which it takes (that move too within the reach); ``stats.false_contacts`` counts the
+        points, once a call. The first call pushes every point fully out.
 
         A step in which a point moves ``eps`` or more relative to a collider's surface is
         checked at :meth:`substeps` times along the paths (``check_step``), each at its own
@@ -257,6 +264,7 @@ class CollisionHook:
         positions = np.array(positions, copy=True)
         velocities = np.array(velocities, dtype=np.float64, copy=True)
         since = np.zeros(n)  # seconds into the step at which each point's velocity was last set
+        false = np.zeros(n, dtype=bool)  # points answered a false contact at some check of the step
         query_s = 0.0
         for j in range(1, count + 1):
             back = 1.0 - j / count  # fraction of the step after this check
@@ -264,7 +272,7 @@ class CollisionHook:
             poses_j = poses if j == count else [c.pose(t_j) for c in self.colliders]
             # Where each point is at t_j on its path (positions hold where it ends the step).
             points = positions[index] - back * velocities[index] * dt
-            hit, q = self._respond(points, index, positions, velocities, since, poses_j, t_j, dt,
+            hit, q = self._respond(points, index, positions, velocities, since, false, poses_j, t_j, dt,
                                    (1.0 - back) * dt, back * dt, reach)
             query_s += q
             mask[index[hit]] = True  # _respond wrote their positions and velocities
@@ -273,6 +281,7 @@ class CollisionHook:
                 if not len(index):
                     break
         self.stats.colliding_last = int(mask.sum())
+        self.stats.false_contacts += int(false.sum())
         self.stats.colliding_max = max(self.stats.colliding_max, self.stats.colliding_last)
         self.stats.response_s += (time.perf_counter() - started) - query_s
         return positions, velocities, mask
@@ -316,14 +325,15 @@ class CollisionHook:
             points, fields=self.fields, eps=self.eps, only_colliding=self.only_colliding)
         return result, np.asarray(result.collider), [held for _, held in times]
 
-    def _respond(self, points, index, positions, velocities, since, poses, t: float, dt: float,
+    def _respond(self, points, index, positions, velocities, since, false, poses, t: float, dt: float,
                  travelled_s: float, remaining_s: float, reach: np.ndarray | None):
         """Query ``points`` (the rows ``index`` at time ``t``, ``travelled_s`` into the step and
-        ``remaining_s`` before its end), and for those within eps write the contact (at most
-        ``reach`` (n,) metres from the point, the step's budget left: what this push uses is
-        taken from it, in place; None: no bound), moved on with the responded
-        velocity for ``remaining_s``, and that velocity into ``positions`` / ``velocities`` (in
-        place; ``since`` records when).
+        ``remaining_s`` before its end), and for those within eps write the contact, moved on
+        with the responded velocity for ``remaining_s``, and that velocity into ``positions`` /
+        ``velocities`` (in place; ``since`` records when). A false contact (further than eps plus
+        the point's approach along the answer's normal, or than ``reach`` (n,) metres, the
+        step's budget left; None: the first call, no bound) keeps its point where it was and
+        marks it in ``false`` (n,) bool; what a push uses is taken from ``reach``, in place.
         Returns ``(hit (len(index),) bool, seconds spent in the query)``."""
         q0 = time.perf_counter()
         result, which, held = self._query(points, poses, t, dt)
@@ -338,17 +348,7 @@ class CollisionHook:
         deepest = float(np.min(result.distance[local_index]))
         self.stats.deepest_penetration_m = min(self.stats.deepest_penetration_m, deepest)
         contact = np.asarray(result.contact, dtype=np.float64)[local_index]
-        if reach is not None:
-            push = contact - points[local_index]
-            length = np.linalg.norm(push, axis=1)
-            limit = reach[index[local_index]]
-            over = length > limit
-            if over.any():
-                contact[over] = points[local_index][over] + push[over] * (limit[over] / length[over])[:, None]
-                self.stats.bounded_pushes += int(over.sum())
-            # The step's later checks (a moving collider's) push from what is left: a false contact
-            # held through them would otherwise push its point by the reach at every check.
-            reach[index[local_index]] = limit - np.minimum(length, limit)
+        rows = index[local_index]
         # The surface's velocity at the contacts (world frame, m/s): the service's answer.
         if result.velocity is not None:
             v_col = np.asarray(result.velocity, dtype=np.float64)[local_index]
@@ -356,25 +356,54 @@ class CollisionHook:
             v_col = np.zeros((len(local_index), 3))
         for k, placement in enumerate(self.colliders):
             if held[k]:  # an end frame held here (a scene's clamp on a looping model): frame only
-                rows = slice(None) if which is None else (which[local_index] == k)
-                v_col[rows] = 0.0 if placement.static else collider_velocity(
-                    placement.pose(t - dt), poses[k], contact[rows], dt)
-        rows = index[local_index]
+                sel = slice(None) if which is None else (which[local_index] == k)
+                v_col[sel] = 0.0 if placement.static else collider_velocity(
+                    placement.pose(t - dt), poses[k], contact[sel], dt)
         v_before = velocities[rows]
+        elapsed = travelled_s - since[rows]  # seconds on its path since its velocity was set
+        wrong = np.zeros(len(local_index), dtype=bool)
+        if reach is not None:
+            push = contact - points[local_index]
+            length = np.linalg.norm(push, axis=1)
+            limit = reach[rows]
+            # How far the point came towards the surface along the answer's normal since its
+            # velocity was set (outside then), relative to the surface there: with eps, the
+            # deepest a true contact can be (to first order in the step, which the checks keep
+            # below eps).
+            inward = -np.einsum("ij,ij->i", v_before - v_col, push) / np.maximum(length, 1e-300)
+            wrong = length > np.minimum(limit, self.eps + np.maximum(inward, 0.0) * elapsed)
+            if wrong.any():
+                # Deeper than the point could have gone: the collider is wrong here, so neither
+                # its contact nor its normal is to be believed. The point is kept where it was
+                # when its velocity was last set (outside then), carried since by the surface:
+                # no push along a false normal, whose spring recoil raised the neighbours'
+                # speeds and with them their reach, until the cloth was thrown.
+                back = elapsed[wrong, None] * (v_before[wrong] - v_col[wrong])
+                undo = np.linalg.norm(back, axis=1)
+                scale = np.minimum(1.0, limit[wrong] / np.maximum(undo, 1e-300))
+                contact[wrong] = points[local_index][wrong] - back * scale[:, None]
+                length[wrong] = undo * scale
+                false[rows[wrong]] = True
+            # The step's later checks (a moving collider's) push from what is left: a contact held
+            # through them would otherwise be pushed by the reach at every check.
+            reach[rows] = limit - np.minimum(length, limit)
         if self.friction is None:
             v_after = v_col
         else:
             normal = np.asarray(result.normal)[local_index]
             v_after = respond_velocities(v_before, normal, np.ones(len(local_index), bool),
                                          self.friction, self.restitution, v_col)
+        v_after[wrong] = v_col[wrong]  # carried by the surface, whatever the false normal says
         velocities[rows] = v_after
         # The step already moved the point along the surface with its old velocity since that
         # was set; the response changed the velocity, so take the tangential part of the
         # change back from that stretch too: a contact that sticks does not creep (it slid
         # g sin(theta) dt^2 per step on a slope). The normal part is the projection's job.
+        # (A false contact's point took all of it back.)
         normal = unit_rows(contact - points[local_index])
-        change = (v_after - v_before) * (travelled_s - since[rows])[:, None]
+        change = (v_after - v_before) * elapsed[:, None]
         change -= np.einsum("ij,ij->i", change, normal)[:, None] * normal
+        change[wrong] = 0.0
         positions[rows] = contact + change + v_after * remaining_s
         since[rows] = travelled_s
         return hit, spent

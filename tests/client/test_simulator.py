@@ -837,10 +837,10 @@ def test_run_report_text_states_each_figure():
     assert text.split("\n")[-2].endswith(" 0.000 mm")
     assert text.split("\n")[-1] == "exact check      deepest vertex 0.000 mm inside the exact mesh"  # words, not a dict
     assert "(100.0 %)" in run_report(points_total=1, points_sent=1).text()
-    # Pushes the hook bounded (the collider answered deeper than a vertex could have gone): said.
-    assert run_report(bounded_pushes=7).text().split("\n")[-1] == (
-        "bounded pushes   7 contacts answered deeper than their vertex could have gone in its step (the "
-        "collider's error): each pushed out by at most that")
+    # False contacts (the collider answered deeper than a vertex could have gone): said.
+    assert run_report(false_contacts=7).text().split("\n")[-1] == (
+        "false contacts   7 answered deeper than their vertex could have gone in its step (the "
+        "collider's error): each vertex kept where it was, carried by the surface")
 
 
 def test_run_report_dict_carries_the_timings_and_the_per_step_times():

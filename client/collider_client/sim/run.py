@@ -242,7 +242,7 @@ def run_scene(scene: Scene, client, out_dir: Path, *, show_progress: bool = True
         colliding_max=stats.colliding_max if stats else 0,
         colliding_last=stats.colliding_last if stats else 0,
         deepest_penetration_m=stats.deepest_penetration_m if stats else 0.0,
-        bounded_pushes=stats.bounded_pushes if stats else 0,
+        false_contacts=stats.false_contacts if stats else 0,
         per_frame_colliding=per_frame_colliding,
     )
     if preview:

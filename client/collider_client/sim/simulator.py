@@ -53,7 +53,7 @@ class RunReport:
     colliding_max: int = 0
     colliding_last: int = 0
     deepest_penetration_m: float = 0.0
-    bounded_pushes: int = 0  # HookStats.bounded_pushes: answers deeper than a vertex could have gone
+    false_contacts: int = 0  # HookStats.false_contacts: answers deeper than a vertex could have gone
     per_frame_colliding: list[int] = field(default_factory=list)
     exact_check: dict | None = None
     steps_planned: int | None = None  # the run's step count; ``steps`` is what ran
@@ -82,9 +82,10 @@ class RunReport:
             (f"deepest penetration (reported by the collider, before projection) "
             f"{1e3 * max(0.0, -self.deepest_penetration_m):.3f} mm"),
         ]
-        if self.bounded_pushes:
-            lines.append(f"bounded pushes   {self.bounded_pushes} contacts answered deeper than their vertex could "
-                         "have gone in its step (the collider's error): each pushed out by at most that")
+        if self.false_contacts:
+            lines.append(f"false contacts   {self.false_contacts} answered deeper than their vertex could have "
+                         "gone in its step (the collider's error): each vertex kept where it was, carried by "
+                         "the surface")
         if self.exact_check:
             lines.append(f"exact check      {exact_check_text(self.exact_check)}")
         if self.interrupted:
