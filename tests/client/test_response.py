@@ -463,13 +463,13 @@ def test_a_contact_deeper_than_the_point_could_have_gone_since_the_last_call_kee
 
 
 class FalseContacts:
-    """The real client, but a point whose x lies in ``[x0, x1)`` is answered ``depth`` metres
-    deep with the outward normal ``normal`` (a learned field wrong off its skin): its contact
-    ``p + (eps + depth) normal``; the surface there still (velocity 0)."""
+    """The real client, but the points that ``where(points, t)`` picks (``(n,) bool`` and the
+    picked ones' unit outward normals, (k, 3)) are answered ``depth`` metres deep along those
+    normals (a learned field wrong off its skin): the contact ``p + (eps + depth) normal``, the
+    surface there still (velocity 0). ``t`` is what the caller sets, seconds."""
 
-    def __init__(self, client, x0, x1, depth, normal):
-        self.client, self.x0, self.x1, self.depth = client, x0, x1, depth
-        self.normal = np.asarray(normal, dtype=np.float64) / np.linalg.norm(normal)
+    def __init__(self, client, depth, where):
+        self.client, self.depth, self.where, self.t = client, depth, where, 0.0
 
     def list_models(self):
         return self.client.list_models()
@@ -477,17 +477,33 @@ class FalseContacts:
     def query(self, model, points, **options):
         result = self.client.query(model, points, **options)
         points = np.asarray(points, dtype=np.float64)
-        wrong = (points[:, 0] >= self.x0) & (points[:, 0] < self.x1)
+        wrong, normal = self.where(points, self.t)
         if not wrong.any():
             return result
         answer = {name: np.array(value, copy=True) for name, value in result.fields().items()}
         answer["distance"][wrong] = -self.depth
         answer["collides"][wrong] = True
-        answer["contact"][wrong] = points[wrong] + (options["eps"] + self.depth) * self.normal
-        for name, value in (("normal", self.normal), ("velocity", 0.0)):
+        answer["contact"][wrong] = points[wrong] + (options["eps"] + self.depth) * normal
+        for name, value in (("normal", normal), ("velocity", 0.0)):
             if name in answer:
                 answer[name][wrong] = value
         return type(result)(model=result.model, **answer)
+
+
+def _band_along_x(points, t):
+    """Points with 0.1 <= x < 0.2 m, their false normal +x."""
+    wrong = (points[:, 0] >= 0.1) & (points[:, 0] < 0.2)
+    return wrong, np.tile([1.0, 0.0, 0.0], (int(wrong.sum()), 1))
+
+
+def _patches(points, t):
+    """A fiftieth of 3 mm cells, drawn anew every 20 ms, each with a normal of its own; none at
+    t = 0 (the first step, whose pushes are not bounded)."""
+    cell = np.floor(points / 3e-3).astype(np.int64)
+    key = (cell @ np.array([73856093, 19349663, 83492791]) + int(t / 0.02) * 2654435761) % 1000003
+    wrong = (key % 50 == 0) & (t > 0.0)
+    normal = np.stack([np.sin(key * 1.1), np.cos(key * 2.3), np.sin(key * 3.7)], axis=1)[wrong]
+    return wrong, normal / np.linalg.norm(normal, axis=1, keepdims=True)
 
 
 @pytest.mark.parametrize("depth", [20e-3, 0.5e-3])
@@ -498,7 +514,7 @@ def test_a_false_contact_keeps_its_point_where_it_was_not_pushed_along_the_false
     (still). 20 mm is beyond its reach (eps + its step, 1.54 mm); 0.5 mm is within it, but the
     point moved away from that normal's surface, so it cannot be 0.5 mm deep in it. Pushed along
     the normal, it ended 2 mm from there."""
-    client = FalseContacts(exact_client, 0.1, 0.2, depth=depth, normal=[1.0, 0.0, 0.0])
+    client = FalseContacts(exact_client, depth, _band_along_x)
     hook = CollisionHook(client, [ColliderPlacement("floor")], eps=1e-3, friction=0.3)
     hook.apply(np.array([[0.05, 0.0, 5e-3]]), np.zeros((1, 3)), 0.0, 1e-3)
     velocity = np.array([[0.5, 0.0, -0.2]])
@@ -521,29 +537,6 @@ def test_a_cloth_answered_false_contacts_in_patches_is_not_thrown(exact_client, 
     beyond the approach along the normal, the 0.5 mm cloth at 0.32 s."""
     from collider_client.sim.scene import load_scene
     from collider_client.sim.simulator import Simulator
-
-    class Patches(FalseContacts):
-        def __init__(self, client):
-            self.client, self.depth, self.t = client, depth, 0.0
-
-        def query(self, model, points, **options):
-            result = self.client.query(model, points, **options)
-            if self.t == 0.0:  # the first step is answered right (its pushes are not bounded)
-                return result
-            points = np.asarray(points, dtype=np.float64)
-            cell = np.floor(points / 3e-3).astype(np.int64)
-            key = (cell @ np.array([73856093, 19349663, 83492791]) + int(self.t / 0.02) * 2654435761) % 1000003
-            wrong = key % 50 == 0
-            if not wrong.any():
-                return result
-            normal = np.stack([np.sin(key * 1.1), np.cos(key * 2.3), np.sin(key * 3.7)], axis=1)[wrong]
-            normal /= np.linalg.norm(normal, axis=1, keepdims=True)
-            answer = {name: np.array(value, copy=True) for name, value in result.fields().items()}
-            answer["distance"][wrong] = -self.depth
-            answer["collides"][wrong] = True
-            answer["contact"][wrong] = points[wrong] + (options["eps"] + self.depth) * normal
-            answer["normal"][wrong] = normal
-            return type(result)(model=result.model, **answer)
 
     scene_file = tmp_path / "patches.toml"
     scene_file.write_text("""
@@ -574,7 +567,7 @@ eps_m = 1e-3
 [effects.friction]
 coefficient = 0.3
 """)
-    client = Patches(exact_client)
+    client = FalseContacts(exact_client, depth, _patches)
     sim = Simulator(load_scene(scene_file), client)
     start = sim.energy()["total"]
     for _ in range(900):
