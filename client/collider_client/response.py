@@ -55,8 +55,8 @@ class HookStats:
     colliding_last: int = 0
     colliding_max: int = 0
     deepest_penetration_m: float = 0.0  # most negative signed distance seen (<= 0): the worst penetration
-    # contacts answered deeper than their point could have gone since the last call (the
-    # collider's error): each point kept where it was, carried by the surface (CollisionHook.apply)
+    # points answered deeper than they could have gone since the last call (the collider's
+    # error), once a call: not responded, they went on as if unanswered (CollisionHook.apply)
     false_contacts: int = 0
     query_s: float = 0.0
     response_s: float = 0.0
@@ -86,9 +86,9 @@ class CollisionHook:
     (``eps`` plus its approach to the surface along the answer's normal, within its own travel
     plus the surface's, :meth:`apply`) is a **false contact**: a signed distance changes no
     faster than that, so the answer is the collider's error (a learned field wrong off the skin),
-    and its normal is not to be believed either. The point is not pushed along it (a push along
-    false normals, bounded or not, stretched the springs and threw the cloth) but kept where it
-    was, carried by the surface. Counted in ``stats.false_contacts``.
+    and its normal is not to be believed either. It is not a contact: the point goes on as if
+    unanswered (pushed along false normals, bounded or not, or kept where it was, the cloth's
+    springs stretched and threw it). Counted in ``stats.false_contacts``.
 
     Call :meth:`apply` after each integration step (or substep). Only points inside a collider's
     inflated world box are sent, and only the fields the response needs are asked for: the
@@ -159,8 +159,8 @@ class CollisionHook:
                        + (["normal"] if friction is not None else []))
         self.stats = HookStats(fields=list(self.fields))
         #: The point count of the last call: the same count continues those points, which all
-        #: ended it outside (at eps or beyond by the collider's answers; a false contact's point
-        #: where it was outside before), and so bounds their pushes.
+        #: ended it outside (at eps or beyond by the collider's answers), and so bounds their
+        #: pushes.
         self._last_count: int | None = None
 
     #: Most collision substeps of one step (see :meth:`substeps`); beyond, TunnellingError.
@@ -226,11 +226,11 @@ class CollisionHook:
         far it came towards the surface along the answer's normal, relative to the surface's
         velocity there, since its velocity was set; and, all the step's checks together, no
         further than its reach, ``eps`` + ``|velocity| dt`` + the colliders' largest surface move
-        over the step (:meth:`collider_moves`). A contact deeper than that is a false contact:
-        the point goes back to where it was when its velocity was last set (at the step's start,
-        or at an earlier check of it), moved since with the surface's velocity at the contact,
-        which it takes (that move too within the reach); ``stats.false_contacts`` counts the
-        points, once a call. The first call pushes every point fully out.
+        over the step (:meth:`collider_moves`). A contact deeper than that is a false contact, not
+        a contact: the point goes on as if unanswered, and ``stats.false_contacts`` counts it,
+        once a call. (A true contact is never that deep; a point answered falsely where it truly
+        touches goes in by at most its approach, under eps a check, until a check answers it
+        right.) The first call pushes every point fully out.
 
         A step in which a point moves ``eps`` or more relative to a collider's surface is
         checked at :meth:`substeps` times along the paths (``check_step``), each at its own
@@ -332,8 +332,8 @@ class CollisionHook:
         with the responded velocity for ``remaining_s``, and that velocity into ``positions`` /
         ``velocities`` (in place; ``since`` records when). A false contact (further than eps plus
         the point's approach along the answer's normal, or than ``reach`` (n,) metres, the
-        step's budget left; None: the first call, no bound) keeps its point where it was and
-        marks it in ``false`` (n,) bool; what a push uses is taken from ``reach``, in place.
+        step's budget left; None: the first call, no bound) is left out of ``hit`` and marked in
+        ``false`` (n,) bool; what a push uses is taken from ``reach``, in place.
         Returns ``(hit (len(index),) bool, seconds spent in the query)``."""
         q0 = time.perf_counter()
         result, which, held = self._query(points, poses, t, dt)
@@ -341,7 +341,7 @@ class CollisionHook:
         self.stats.query_s += spent
         self.stats.queries += 1
         self.stats.points_sent += len(index)
-        hit = np.asarray(result.collides, dtype=bool)
+        hit = np.array(result.collides, dtype=bool)  # a copy: false contacts are taken out
         local_index = np.flatnonzero(hit)
         if not len(local_index):
             return hit, spent
@@ -361,7 +361,6 @@ class CollisionHook:
                     placement.pose(t - dt), poses[k], contact[sel], dt)
         v_before = velocities[rows]
         elapsed = travelled_s - since[rows]  # seconds on its path since its velocity was set
-        wrong = np.zeros(len(local_index), dtype=bool)
         if reach is not None:
             push = contact - points[local_index]
             length = np.linalg.norm(push, axis=1)
@@ -372,38 +371,36 @@ class CollisionHook:
             # below eps).
             inward = -np.einsum("ij,ij->i", v_before - v_col, push) / np.maximum(length, 1e-300)
             wrong = length > np.minimum(limit, self.eps + np.maximum(inward, 0.0) * elapsed)
-            if wrong.any():
-                # Deeper than the point could have gone: the collider is wrong here, so neither
-                # its contact nor its normal is to be believed. The point is kept where it was
-                # when its velocity was last set (outside then), carried since by the surface:
-                # no push along a false normal, whose spring recoil raised the neighbours'
-                # speeds and with them their reach, until the cloth was thrown.
-                back = elapsed[wrong, None] * (v_before[wrong] - v_col[wrong])
-                undo = np.linalg.norm(back, axis=1)
-                scale = np.minimum(1.0, limit[wrong] / np.maximum(undo, 1e-300))
-                contact[wrong] = points[local_index][wrong] - back * scale[:, None]
-                length[wrong] = undo * scale
-                false[rows[wrong]] = True
             # The step's later checks (a moving collider's) push from what is left: a contact held
             # through them would otherwise be pushed by the reach at every check.
-            reach[rows] = limit - np.minimum(length, limit)
+            reach[rows] = limit - np.where(wrong, 0.0, length)
+            if wrong.any():
+                # Deeper than the point could have gone: a false contact, the collider's error, its
+                # normal and velocity as wrong as its distance. Not a contact: the point goes on
+                # as if unanswered. Pushed along the false normal, bounded, it stretched the
+                # springs and threw the cloth; kept where it was, it was glued there while the
+                # springs stretched, and thrown when let go.
+                false[rows[wrong]] = True
+                hit[local_index[wrong]] = False
+                keep = ~wrong
+                local_index, rows, contact, v_col, v_before, elapsed = (
+                    local_index[keep], rows[keep], contact[keep], v_col[keep], v_before[keep], elapsed[keep])
+                if not len(local_index):
+                    return hit, spent
         if self.friction is None:
             v_after = v_col
         else:
             normal = np.asarray(result.normal)[local_index]
             v_after = respond_velocities(v_before, normal, np.ones(len(local_index), bool),
                                          self.friction, self.restitution, v_col)
-        v_after[wrong] = v_col[wrong]  # carried by the surface, whatever the false normal says
         velocities[rows] = v_after
         # The step already moved the point along the surface with its old velocity since that
         # was set; the response changed the velocity, so take the tangential part of the
         # change back from that stretch too: a contact that sticks does not creep (it slid
         # g sin(theta) dt^2 per step on a slope). The normal part is the projection's job.
-        # (A false contact's point took all of it back.)
         normal = unit_rows(contact - points[local_index])
         change = (v_after - v_before) * elapsed[:, None]
         change -= np.einsum("ij,ij->i", change, normal)[:, None] * normal
-        change[wrong] = 0.0
         positions[rows] = contact + change + v_after * remaining_s
         since[rows] = travelled_s
         return hit, spent

@@ -840,7 +840,7 @@ def test_run_report_text_states_each_figure():
     # False contacts (the collider answered deeper than a vertex could have gone): said.
     assert run_report(false_contacts=7).text().split("\n")[-1] == (
         "false contacts   7 answered deeper than their vertex could have gone in its step (the "
-        "collider's error): each vertex kept where it was, carried by the surface")
+        "collider's error): not responded, each vertex went on as if unanswered")
 
 
 def test_run_report_dict_carries_the_timings_and_the_per_step_times():

@@ -84,8 +84,8 @@ class RunReport:
         ]
         if self.false_contacts:
             lines.append(f"false contacts   {self.false_contacts} answered deeper than their vertex could have "
-                         "gone in its step (the collider's error): each vertex kept where it was, carried by "
-                         "the surface")
+                         "gone in its step (the collider's error): not responded, each vertex went on as if "
+                         "unanswered")
         if self.exact_check:
             lines.append(f"exact check      {exact_check_text(self.exact_check)}")
         if self.interrupted:
