@@ -466,25 +466,28 @@ class FalseContacts:
     """The real client, but the points that ``where(points, t)`` picks (``(n,) bool`` and the
     picked ones' unit outward normals, (k, 3)) are answered ``depth`` metres deep along those
     normals (a learned field wrong off its skin): the contact ``p + (eps + depth) normal``, the
-    surface there still (velocity 0). ``t`` is what the caller sets, seconds."""
+    surface's velocity there ``velocity`` (m/s). ``depth`` may be a list, one per query (the
+    last kept). ``t`` is what the caller sets, seconds."""
 
-    def __init__(self, client, depth, where):
-        self.client, self.depth, self.where, self.t = client, depth, where, 0.0
+    def __init__(self, client, depth, where, velocity=0.0):
+        self.client, self.where, self.velocity, self.t = client, where, velocity, 0.0
+        self.depths = list(np.atleast_1d(depth))
 
     def list_models(self):
         return self.client.list_models()
 
     def query(self, model, points, **options):
         result = self.client.query(model, points, **options)
+        depth = self.depths.pop(0) if len(self.depths) > 1 else self.depths[0]
         points = np.asarray(points, dtype=np.float64)
         wrong, normal = self.where(points, self.t)
         if not wrong.any():
             return result
         answer = {name: np.array(value, copy=True) for name, value in result.fields().items()}
-        answer["distance"][wrong] = -self.depth
+        answer["distance"][wrong] = -depth
         answer["collides"][wrong] = True
-        answer["contact"][wrong] = points[wrong] + (options["eps"] + self.depth) * normal
-        for name, value in (("normal", normal), ("velocity", 0.0)):
+        answer["contact"][wrong] = points[wrong] + (options["eps"] + depth) * normal
+        for name, value in (("normal", normal), ("velocity", self.velocity)):
             if name in answer:
                 answer[name][wrong] = value
         return type(result)(model=result.model, **answer)
@@ -823,3 +826,21 @@ def test_a_false_contact_held_through_a_step_s_checks_is_no_contact_at_any(exact
     assert not mask.any() and hook.stats.queries > 3 and hook.stats.false_contacts == 1
     np.testing.assert_allclose(pos, [[0.1, 0.0, -0.02]], atol=1e-12)
     np.testing.assert_allclose(vel, 0.0, atol=1e-12)
+
+
+def test_the_reach_bounds_a_step_s_pushes_where_the_collider_s_velocity_is_false(exact_client):
+    """The approach along the normal is measured against the surface velocity the collider
+    answers; where that is false (20 m/s up, on a floor rising at 1 mm/s), the approach allows
+    a push as deep as the reach at each check. The reach (eps + its step, 5 mm for a point
+    falling at 4 m/s) still bounds the step's pushes all together: 3.5 mm at the first check,
+    0.9 mm at the next, and the third's 0.9 mm, over what is left, is a false contact. Without
+    the step's budget the third was pushed too."""
+    up = lambda points, t: (np.ones(len(points), bool), np.tile([0.0, 0.0, 1.0], (len(points), 1)))
+    client = FalseContacts(exact_client, [2.5e-3, -0.1e-3], up, velocity=[0.0, 0.0, 20.0])
+    rising = ColliderPlacement("floor", lambda t: _translation(0.0, 0.0, 1e-3 * t))
+    hook = CollisionHook(client, [rising], eps=1e-3)
+    hook.apply(np.array([[0.1, 0.0, 0.05]]), np.zeros((1, 3)), 0.0, 1e-3)  # the first call: no bound
+    client.depths = [2.5e-3, -0.1e-3]
+    hook.apply(np.array([[0.1, 0.0, 0.05]]), np.array([[0.0, 0.0, -4.0]]), 1e-3, 1e-3)
+    assert hook.stats.queries == 1 + 5  # the first call, then 4 mm / eps + 1 checks
+    assert hook.stats.false_contacts == 1
