@@ -499,6 +499,11 @@ def _band_along_x(points, t):
     return wrong, np.tile([1.0, 0.0, 0.0], (int(wrong.sum()), 1))
 
 
+def _everywhere_up(points, t):
+    """Every point, its false normal +z."""
+    return np.ones(len(points), dtype=bool), np.tile([0.0, 0.0, 1.0], (len(points), 1))
+
+
 def _patches(points, t):
     """A fiftieth of 3 mm cells, drawn anew every 20 ms, each with a normal of its own; none at
     t = 0 (the first step, whose pushes are not bounded)."""
@@ -835,12 +840,11 @@ def test_the_reach_bounds_a_step_s_pushes_where_the_collider_s_velocity_is_false
     falling at 4 m/s) still bounds the step's pushes all together: 3.5 mm at the first check,
     0.9 mm at the next, and the third's 0.9 mm, over what is left, is a false contact. Without
     the step's budget the third was pushed too."""
-    up = lambda points, t: (np.ones(len(points), bool), np.tile([0.0, 0.0, 1.0], (len(points), 1)))
-    client = FalseContacts(exact_client, [2.5e-3, -0.1e-3], up, velocity=[0.0, 0.0, 20.0])
+    client = FalseContacts(exact_client, 0.0, _everywhere_up, velocity=[0.0, 0.0, 20.0])
     rising = ColliderPlacement("floor", lambda t: _translation(0.0, 0.0, 1e-3 * t))
     hook = CollisionHook(client, [rising], eps=1e-3)
     hook.apply(np.array([[0.1, 0.0, 0.05]]), np.zeros((1, 3)), 0.0, 1e-3)  # the first call: no bound
-    client.depths = [2.5e-3, -0.1e-3]
+    client.depths = [2.5e-3, -0.1e-3]  # the next call's checks: the first, then every later one
     hook.apply(np.array([[0.1, 0.0, 0.05]]), np.array([[0.0, 0.0, -4.0]]), 1e-3, 1e-3)
     assert hook.stats.queries == 1 + 5  # the first call, then 4 mm / eps + 1 checks
     assert hook.stats.false_contacts == 1
