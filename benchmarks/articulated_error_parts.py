@@ -47,6 +47,7 @@ def main() -> int:
         parser.error(str(exc))
     if collider.kind != "neural-skinned":
         parser.error(f"{args.model} is a {collider.kind} model, not an articulated network (neural-skinned)")
+    collider.patches = None  # the network's errors (the exact patches answer most points near the skin exactly)
     skin = collider.skin
     rest_mesh = Mesh(skin.vertices, skin.faces, "rest")
     rest_sdf = ExactSDF(rest_mesh)

@@ -21,6 +21,10 @@ time does not depend on the values) for distance + normal + contact; the median 
     python benchmarks/articulated_neural.py --train-minutes 10   # trains one first (not saved)
     python benchmarks/articulated_neural.py --model models/walker-neural.safetensors --no-accuracy  # time only
 
+``--patches with|without|both`` (default both): the collider as it answers (the exact patches
+near the skin, ``engine/kinds/patches.py``), the network alone (``collider.patches = None``), or
+both, interleaved.
+
 ``--candidate-rules own-label retry-labels`` measures the model through each candidate rule (the
 architecture's ``candidate_rule``; the network is the same, only the parts a point is answered
 by differ), interleaved, the mean candidates per point beside, each read from the model file;
@@ -130,6 +134,9 @@ def main() -> int:
     parser.add_argument("--candidate-rules", nargs="+", choices=CANDIDATE_RULES, default=None,
                         help="measure the model through each of these candidate rules (default: its own)")
     parser.add_argument("--no-accuracy", action="store_true", help="time the query only (no accuracy part)")
+    parser.add_argument("--patches", choices=("with", "without", "both"), default="both",
+                        help="answer with the exact patches near the skin (the collider's way), by the network "
+                             "alone, or both, interleaved (default)")
     args = parser.parse_args()
     if (args.model is None) == (args.train_minutes is None):
         parser.error("give --model or --train-minutes")
@@ -155,11 +162,16 @@ def main() -> int:
 
     torch.set_num_threads(args.threads)
     colliders = {}
-    for rule in args.candidate_rules or [collider.arch.candidate_rule]:
-        # One collider per rule, each from the file (a trained one's table rounds to 8 bits there).
-        copy = load_collider(path) if args.candidate_rules else collider
-        copy.arch = dataclasses.replace(copy.arch, candidate_rule=rule)  # the same network, other candidates
-        colliders[rule] = copy
+    rules = args.candidate_rules or [collider.arch.candidate_rule]
+    patched = {"with": [True], "without": [False], "both": [True, False]}[args.patches]
+    for rule in rules:
+        for patches in patched:
+            # One collider each, from the file (a trained one's table rounds to 8 bits there).
+            copy = load_collider(path) if len(rules) * len(patched) > 1 else collider
+            copy.arch = dataclasses.replace(copy.arch, candidate_rule=rule)  # the same network, other candidates
+            if not patches:
+                copy.patches = None
+            colliders[rule if patches else f"{rule}, network alone"] = copy
     clip_poses = random_poses(skin, args.clip_times, args.seed, perturbed_share=0.0).transforms
     off_poses = random_poses(skin, args.poses, args.seed + 5).transforms
     for rule, each in ({} if args.no_accuracy else colliders).items():

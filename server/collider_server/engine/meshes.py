@@ -170,7 +170,7 @@ class ExactSDF:
         vertex normal at a vertex. A face normal alone at a concave crease points into the
         neighbouring face's solid: pushing a point there along it would move it inside."""
         if self._pseudo is None:
-            self._pseudo = _pseudo_normals(self._vertices, self._faces, self._face_normals, self.edges)
+            self._pseudo = pseudo_normals(self._vertices, self._faces, self._face_normals, self.edges)
         edge_normals, vertex_normals = self._pseudo
         tri = self._vertices[self._faces[face]]
         bary = barycentric(closest, tri)
@@ -241,7 +241,7 @@ def edge_index(faces: np.ndarray) -> np.ndarray:
     return inverse.reshape(len(faces), 3)
 
 
-def _pseudo_normals(vertices: np.ndarray, faces: np.ndarray, face_normals: np.ndarray,
+def pseudo_normals(vertices: np.ndarray, faces: np.ndarray, face_normals: np.ndarray,
                     edges: np.ndarray):
     """Unit edge normals (f, 3, 3), per face and per corner the normal of the edge opposite that
     corner (the normalised sum of the normals of the faces sharing it, ``edges`` its

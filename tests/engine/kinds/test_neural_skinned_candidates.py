@@ -104,14 +104,15 @@ def test_the_candidate_rule_is_checked():
 
 def _articulated_collider(walker, arch, network):
     """The walker's articulated collider of ``arch`` with ``network`` (its labels, part boxes and
-    weight field set from the fixture), on the CPU."""
+    weight field set from the fixture), on the CPU, answered by the network alone (no exact
+    patches: these tests hold the network's rows and their union)."""
     import dataclasses
 
     skin, _, exact, _, _, labels, boxes, field, _ = walker
     network.set_rest_tables(labels, None, boxes, field)
     info = dataclasses.replace(exact.info, kind=ns.ArticulatedNeuralCollider.kind,
                                settings={**exact.info.settings, "architecture": dataclasses.asdict(arch)})
-    return ns.ArticulatedNeuralCollider(info, skin, network.eval(), device="cpu")
+    return ns.ArticulatedNeuralCollider(info, skin, network.eval(), device="cpu", patches=False)
 
 
 def test_the_query_answers_from_the_groups_as_from_the_joined_rows(walker):
@@ -143,7 +144,7 @@ def test_the_query_answers_from_the_groups_as_from_the_joined_rows(walker):
     pose = SkeletonPose(joint_transforms=transforms, joint_velocities=velocities)
     distance_now, gradient_now, velocity_now = collider.evaluate_at(points, True, None, pose)
     # The reference: the joined rows, as the query took them before the groups.
-    to_rest, posed, moving, bias, offsets, moving_offsets = collider.pose(None, pose)
+    to_rest, posed, moving, bias, offsets, moving_offsets, _ = collider.pose(None, pose)
     mine = (collider.labels, collider.centre, collider.radius, collider.allowed, collider.part_boxes, collider.weights)
     first, retried = ns.candidate_groups_through_skinning(points, to_rest, posed, *mine, 8, "newton", "retry-labels",
                                                           moving=moving, offsets=offsets, moving_offsets=moving_offsets)

@@ -125,12 +125,14 @@ def test_the_best_validation_is_the_query_s_error_at_the_held_out_poses(trained)
     from collider_server.making.training.articulated import VALIDATION_POSES
 
     skin, result, _ = trained
+    collider = ArticulatedNeuralCollider.from_tensors(result.collider.info, result.collider.tensors())
+    collider.patches = None  # the validation measures the network (the exact patches answer near the skin)
     errors = []
     for p, transforms in enumerate(sample_poses(skin, VALIDATION_POSES, CONFIG.seed + 77)):
         mesh = Mesh(skin_vertices(skin, transforms), skin.faces, "posed")
         points = surface_band_points(mesh, max(CONFIG.validation_points // VALIDATION_POSES, 100), 1e-3,
                                      CONFIG.seed + 500 + p)
-        answer = result.collider.query(points, "distance", joint_transforms=transforms).distance
+        answer = collider.query(points, "distance", joint_transforms=transforms).distance
         errors.append(np.abs(answer - ExactSDF(mesh).query(points)[0]))
     assert np.concatenate(errors).mean() * 1e3 == pytest.approx(result.best_validation_mm, rel=0.01)
 
@@ -370,6 +372,7 @@ def test_a_model_file_from_before_the_candidate_retry_answers_as_before(trained)
                 if k not in ("candidate_rule", "surface_offsets")}
     old_info = dataclasses.replace(info, settings={**info.settings, "architecture": old_arch})
     old = ArticulatedNeuralCollider.from_tensors(old_info, collider.tensors())
+    old.patches = None  # its network's rows (the exact patches answer any file's points near the skin)
     assert old.arch.candidate_rule == "own-label" and old.anchors is None
     # Its answers are the first rule's: part_candidates, then carry_to_rest (no second pass, no
     # surface offsets).

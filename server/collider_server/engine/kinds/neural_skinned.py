@@ -55,11 +55,13 @@ import numpy as np
 
 from ..collider import Collider, ColliderInfo
 from ..devices import resolve_device
-from ..skinning import Skeleton, Skin
+from ..meshes import edge_index
+from ..skinning import Skeleton, Skin, skin_velocities, skin_vertices
 from . import grid_kernels
 from .grid_architecture import require_integers
 from .neural import across_plateaus
 from .neural_grid import GridArchitecture, build_grid_network, pack_table, unpack_table
+from .patches import PatchCells, PosedSurface, answer_on_patches, patch_cells, posed_surface
 from .skinned import pose_key, resolve_pose, skin_from_tensors, skin_tensors
 
 #: The label of a rest-pose cell no part owns (beyond the band outside the rest surface).
@@ -75,6 +77,12 @@ SKINNING_SOLVERS = ("fixed-point", "newton")
 CANDIDATE_RULES = ("own-label", "retry-labels")
 #: Cells per side of a block of the fine weight field (:func:`weight_field`).
 BLOCK_CELLS = 4
+#: Exact patches (:mod:`.patches`), in the network's finest cells (the walker's: 8.1 mm): rows
+#: the network answers within ``PATCH_BAND`` of the skin are answered by the posed faces within
+#: ``PATCH_REACH`` of their rest closest point, listed in cells of ``PATCH_CELL``.
+PATCH_BAND = 2.0
+PATCH_REACH = 1.0
+PATCH_CELL = 2.0
 
 
 @dataclass(frozen=True)
@@ -2020,7 +2028,8 @@ class PreparedPose(NamedTuple):
     4) and ``posed`` (J, 4, 4) (:func:`rest_maps`), ``moving`` (J, 3, 4) the maps' motion
     ``dA/dt`` or None (still), ``bias`` (J, H) float32 the parts' first biases, ``offsets`` and
     ``moving_offsets`` the :func:`surface_offsets` of ``posed`` and ``moving`` (or None: an
-    architecture without them, or still)."""
+    architecture without them, or still), ``surface`` the posed skin the exact patches answer on
+    (:func:`~.patches.posed_surface`; None without patches)."""
 
     to_rest: np.ndarray
     posed: np.ndarray
@@ -2028,6 +2037,25 @@ class PreparedPose(NamedTuple):
     bias: np.ndarray
     offsets: np.ndarray | None
     moving_offsets: np.ndarray | None
+    surface: PosedSurface | None
+
+
+class PatchedRows(NamedTuple):
+    """A group's rows after the exact patches (:func:`~.patches.answer_on_patches`): ``distance``
+    (m,) (the patch's where it answered, else the network's), ``normal`` (m, 3) and ``velocity``
+    (m, 3) or None, collider frame, and ``face`` (m,) (-1: the network's answer stands)."""
+
+    distance: np.ndarray
+    normal: np.ndarray
+    velocity: np.ndarray | None
+    face: np.ndarray
+
+    def take(self, rows: np.ndarray, network: np.ndarray, name: str) -> np.ndarray:
+        """``network`` (r, 3), the ``name`` (normal or velocity) of ``rows`` (r,), with the
+        patches' where they answered."""
+        answered = self.face[rows] >= 0
+        network[answered] = getattr(self, name)[rows[answered]]
+        return network
 
 
 def architecture_of(info: ColliderInfo) -> ArticulatedGridArchitecture:
@@ -2047,7 +2075,10 @@ class ArticulatedNeuralCollider(Collider):
     chunk_points = 524_288
     clamps_to_domain = False  # every answer goes through a part's rest frame (its own box rule)
 
-    def __init__(self, info: ColliderInfo, skin: Skin, network, device: str | None = None, keep: int = 4):
+    def __init__(self, info: ColliderInfo, skin: Skin, network, device: str | None = None, keep: int = 4,
+                 patches: bool = True):
+        """``patches``: answer near the skin by the exact patches (:mod:`.patches`; False: the
+        network alone, as the model files before them were answered)."""
         super().__init__(info)
         import torch
 
@@ -2076,6 +2107,15 @@ class ArticulatedNeuralCollider(Collider):
         #: Where the fine blocks' corners meet the rest surface (the surface offsets' anchors).
         self.anchors = (surface_anchors(skin, self.weights, self.centre, self.radius)
                         if self.arch.surface_offsets else None)
+        #: The exact patches' cells of the rest mesh and the band they answer in (collider
+        #: units), or None: the network answers everywhere.
+        self.patches: PatchCells | None = None
+        self.patch_band = 0.0
+        if patches:
+            finest = 2.0 * self.radius / self.arch.max_resolution
+            self.patches = patch_cells(skin.vertices, skin.faces, PATCH_REACH * finest, PATCH_CELL * finest)
+            self.patch_band = PATCH_BAND * finest
+        self._edges = edge_index(np.asarray(skin.faces, np.int64))
         self.keep = keep
         self._cache: OrderedDict = OrderedDict()
         self._table: tuple | None = None  # (prepared pose, with the motion, its pose_table)
@@ -2115,7 +2155,11 @@ class ArticulatedNeuralCollider(Collider):
             else:  # the pose's and its motion's in one pass
                 offsets, moving_offsets = surface_offsets(self.anchors, self.weights, self.skin,
                                                           np.stack([posed[:, :3, :], moving]))
-        prepared = PreparedPose(to_rest, posed, moving, bias.float().cpu().numpy(), offsets, moving_offsets)
+        surface = None
+        if self.patches is not None:
+            surface = posed_surface(skin_vertices(self.skin, transforms), self.skin.faces, self._edges,
+                                    None if velocities is None else skin_velocities(self.skin, transforms, velocities))
+        prepared = PreparedPose(to_rest, posed, moving, bias.float().cpu().numpy(), offsets, moving_offsets, surface)
         with self._lock:
             self._cache[key] = prepared
             while len(self._cache) > self.keep:
@@ -2152,7 +2196,9 @@ class ArticulatedNeuralCollider(Collider):
 
     def evaluate_at(self, local, want_gradient, time, skeleton=None):
         prepared = self.pose(time, skeleton)
-        to_rest, posed, moving, bias, offsets, moving_offsets = prepared
+        to_rest, posed, moving, bias, offsets, moving_offsets, surface = prepared
+        if self.patches is None:
+            surface = None  # the network alone (patches turned off after the pose was prepared)
         if not want_gradient:
             moving = None  # no velocity asked
         table = None
@@ -2165,11 +2211,16 @@ class ArticulatedNeuralCollider(Collider):
             rest_boxes=self.rest_boxes, offsets=offsets, moving_offsets=moving_offsets, table=table)
             if group is not None]
         n = len(local)
-        # Every row goes through the network (the few dropped ones too: cheaper than copies of the rows).
-        values = [self._part_values(g.rows.rest, g.joint, bias, want_gradient) for g in groups]
+        # Every row goes through the network (the few dropped ones too: cheaper than copies of the rows);
+        # the exact patches need each row's gradient (its closest point) even where none is asked.
+        values = [self._part_values(g.rows.rest, g.joint, bias, want_gradient or surface is not None)
+                  for g in groups]
+        patched = [None if surface is None else self._on_patches(local, g, d, gradient, surface)
+                   for g, (d, gradient) in zip(groups, values)]
+        distances = [d if p is None else p.distance for (d, _), p in zip(values, patched)]
         # The union over each group; a point's usable rows are all in one group (the retried rows of
         # the points whose retry reached a root, else the first), so the groups' unions never compete.
-        unions = [union_of_parts(d, g.point, g.rows.usable, n) for g, (d, _) in zip(groups, values)]
+        unions = [union_of_parts(d, g.point, g.rows.usable, n) for g, d in zip(groups, distances)]
         best, best_row = unions[0]
         retried = None
         if len(unions) > 1:
@@ -2185,18 +2236,42 @@ class ArticulatedNeuralCollider(Collider):
                 out[retried] = take(1, unions[1][1][retried])
             return out
 
-        # Through the map to the rest pose: grad_x f(B x) = B^T grad f (B: the part's rigid map,
-        # or the skinning's inverse at the point).
-        g = chosen(lambda i, rows: pull_back(values[i][1], groups[i].rows.inverse, rows))
+        def normals(i, rows):
+            """Group i's rows' normals: the patch's where it answered, else the network's gradient
+            through the map to the rest pose: grad_x f(B x) = B^T grad f (B: the part's rigid map,
+            or the skinning's inverse at the point)."""
+            out = pull_back(values[i][1], groups[i].rows.inverse, rows)
+            return out if patched[i] is None else patched[i].take(rows, out, "normal")
+
+        g = chosen(normals)
         if moving is None:
             return best, g, None
+
+        def velocity_of(i, rows, network):
+            """Group i's rows' velocities: the patch's closest point's where it answered, else
+            ``network``'s (r, 3)."""
+            return network if patched[i] is None else patched[i].take(rows, network, "velocity")
+
         if all(group.rows.velocity is not None for group in groups):  # the Newton kernel's, at the rest point
-            return best, g, chosen(lambda i, rows: groups[i].rows.velocity[rows])
+            return best, g, chosen(lambda i, rows: velocity_of(i, rows, groups[i].rows.velocity[rows]))
         rest = chosen(lambda i, rows: groups[i].rows.rest[rows])
         if self.arch.skinning_iterations:  # the skinning's motion at the rest point: sum_k w_k dA_k/dt
-            return best, g, _velocity_at(rest, moving, self.weights, self.centre, self.radius, moving_offsets)
-        homogeneous = np.concatenate([rest, np.ones((n, 1))], axis=1)  # the chosen part's rigid motion
-        return best, g, np.einsum("nab,nb->na", moving[chosen(lambda i, rows: groups[i].joint[rows])], homogeneous)
+            velocity = _velocity_at(rest, moving, self.weights, self.centre, self.radius, moving_offsets)
+        else:  # the chosen part's rigid motion
+            homogeneous = np.concatenate([rest, np.ones((n, 1))], axis=1)
+            velocity = np.einsum("nab,nb->na", moving[chosen(lambda i, rows: groups[i].joint[rows])], homogeneous)
+        if surface is None:
+            return best, g, velocity
+        on_patches = chosen(lambda i, rows: velocity_of(i, rows, np.full((len(rows), 3), np.nan)))
+        return best, g, np.where(np.isnan(on_patches), velocity, on_patches)
+
+    def _on_patches(self, local: np.ndarray, group: CandidateRows, distance: np.ndarray, gradient: np.ndarray,
+                    surface: PosedSurface) -> PatchedRows:
+        """``group``'s rows answered on the exact patches (:func:`~.patches.answer_on_patches`)
+        where the network (``distance`` (m,), rest-frame ``gradient`` (m, 3)) puts them within
+        :attr:`patch_band` of the skin."""
+        return PatchedRows(*answer_on_patches(local, group.point, group.rows.rest, distance, gradient,
+                                              self.patch_band, self.patches, surface, self.skin.faces))
 
     def _part_values(self, rest: np.ndarray, joint: np.ndarray, bias: np.ndarray, want_gradient: bool):
         """Distance (m,) and rest-frame gradient (m, 3) (or None) at rest-frame points (m, 3)

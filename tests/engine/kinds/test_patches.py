@@ -1,0 +1,155 @@
+"""The exact patches (:mod:`collider_server.engine.kinds.patches`): the posed faces near a row's
+rest closest point answer it as the exact kind does, on the Khronos RiggedFigure (metres, collider
+frame) and on the shipped walker's trained network."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from collider_contract.skeleton import SkeletonPose
+from collider_server.engine.kinds import patches
+from collider_server.engine.meshes import ExactSDF, Mesh, barycentric
+from collider_server.engine.skinning import pose_at, random_poses, skin_velocities, skin_vertices
+from collider_server.making.sampling import surface_band_points
+
+WALKER = Path(__file__).parents[3] / "models" / "walker-neural.safetensors"
+REACH, CELL = 0.008, 0.016
+
+
+@pytest.fixture(scope="module")
+def posed(figure):
+    """The figure off its clip with its motion: ``(skin, cells, surface, exact SDF, points,
+    their rest correspondents, the exact distances, closest points and faces)``; the points lie in the
+    +-2 mm band, their rest correspondents are their exact closest points' barycentric images on
+    the rest mesh."""
+    _, skin, _, _, _ = figure
+    transforms = random_poses(skin, 1, 41, perturbed_share=1.0).transforms[0]
+    _, velocities = pose_at(skin, "animation 0", 0.4)
+    vertices = skin_vertices(skin, transforms)
+    surface = patches.posed_surface(vertices, skin.faces, velocities=skin_velocities(skin, transforms, velocities))
+    exact = ExactSDF(Mesh(vertices, skin.faces, "posed"))
+    points = surface_band_points(exact.mesh, 3000, 2e-3, 7)
+    distance, closest, face = exact.query(points)
+    corners = np.asarray(skin.faces)[face]
+    rest = np.einsum("mj,mjc->mc", barycentric(closest, vertices[corners]), skin.vertices[corners])
+    cells = patches.patch_cells(skin.vertices, skin.faces, REACH, CELL)
+    return skin, cells, surface, exact, points, rest, distance, (closest, face)
+
+
+def test_a_cell_lists_every_face_within_reach_of_its_points(figure):
+    """Any point within the surface margin of the rest surface finds, in its cell, every face
+    within the reach of it (by brute force over all faces)."""
+    _, skin, rest_sdf, _, _ = figure
+    cells = patches.patch_cells(skin.vertices, skin.faces, REACH, CELL)
+    rng = np.random.default_rng(3)
+    on = surface_band_points(rest_sdf.mesh, 400, 1e-9, 11)
+    points = on + rng.normal(size=on.shape) * (0.5 * patches.SURFACE_MARGIN * CELL / 3)
+    slot = patches.cells_of(points, cells)
+    assert (slot >= 0).mean() > 0.99
+    tri = np.asarray(skin.vertices)[np.asarray(skin.faces)]
+    for p, s in zip(points[slot >= 0], slot[slot >= 0]):
+        near = np.linalg.norm(patches.closest_on_triangles(np.tile(p, (len(tri), 1)), tri[:, 0], tri[:, 1],
+                                                           tri[:, 2])[0] - p, axis=1) <= REACH
+        listed = cells.faces[cells.start[s]:cells.start[s + 1]]
+        assert set(np.flatnonzero(near)) <= set(listed)
+
+
+def test_rows_at_their_exact_rest_points_get_the_exact_kind_s_answers(posed):
+    """A row whose network puts it at its exact closest point's rest image gets the exact SDF's
+    distance, normal and closest point's velocity (a posed face's barycentric blend), where the
+    figure's surface is the mesh itself (no self-overlap near the point)."""
+    skin, cells, surface, exact, points, rest, distance, (closest, face) = posed
+    n = len(points)
+    gradient = np.tile([0.0, 0.0, 1.0], (n, 1))  # any direction: the network's distance is 0 here
+    d, normal, velocity, answered = patches.answer_on_patches(points, np.arange(n), rest, np.zeros(n), gradient,
+                                                              0.01, cells, surface, skin.faces)
+    assert (answered >= 0).all()
+    same = np.abs(d - distance) < 1e-12
+    assert same.mean() > 0.99
+    np.testing.assert_allclose(normal[same], exact.gradient(points, distance, closest, face)[same], atol=1e-9)
+    corners = np.asarray(skin.faces)[face]
+    expected_velocity = np.einsum("mj,mjc->mc", barycentric(closest, surface.vertices[corners]),
+                                  surface.velocities[corners])
+    np.testing.assert_allclose(velocity[same], expected_velocity[same], atol=1e-9)
+
+
+def test_the_kernel_answers_as_the_numpy_rule(posed):
+    """The numba pass and the numpy rule give the same distances, normals, velocities and faces,
+    rows answered and rows left to the network alike (closest points spread by 3 mm, network
+    distances off by up to 12 mm: some beyond the reach, some beyond the band)."""
+    skin, cells, surface, _, points, rest, distance, _ = posed
+    rng = np.random.default_rng(5)
+    n = len(points)
+    network = distance + rng.uniform(-0.012, 0.012, n)
+    gradient = rng.normal(size=(n, 3))
+    spread = rest + rng.normal(size=(n, 3)) * 0.003 + network[:, None] * gradient / np.linalg.norm(
+        gradient, axis=1, keepdims=True)
+    point = rng.permutation(n)  # the rows in another order than the points
+    rows = (points, point, spread[point], network[point], gradient[point], 0.01, cells, surface, skin.faces)
+    fused = patches.answer_on_patches(*rows)
+    plain = patches.answer_on_patches(*rows, fused=False)
+    answered = fused[3] >= 0
+    assert 0.2 < answered.mean() < 0.95
+    np.testing.assert_array_equal(fused[3], plain[3])
+    for a, b in zip(fused[:3], plain[:3]):
+        np.testing.assert_allclose(a, b, rtol=0, atol=1e-12)
+    np.testing.assert_array_equal(fused[0][~answered], network[point][~answered])
+
+
+def test_a_patch_that_disagrees_with_the_network_by_more_than_the_reach_is_not_the_row_s(posed):
+    """A network that puts a point 3 cm away from where its patch says keeps its own answer (the
+    closest point it gave lies on another limb); within the reach the patch answers."""
+    skin, cells, surface, _, points, rest, distance, _ = posed
+    n = len(points)
+    gradient = np.tile([0.0, 0.0, 1.0], (n, 1))
+    for off, answered in ((0.03, False), (0.005, True)):
+        network = distance + off
+        d, _, _, face = patches.answer_on_patches(points, np.arange(n), rest + network[:, None] * gradient, network,
+                                                  gradient, 0.05, cells, surface, skin.faces)
+        assert ((face >= 0).mean() > 0.99) == answered
+        np.testing.assert_array_equal(d[face < 0], network[face < 0])
+
+
+def test_rows_beyond_the_band_keep_the_network_s_answer(posed):
+    skin, cells, surface, _, points, rest, _, _ = posed
+    n = len(points)
+    network = np.full(n, 0.011)
+    d, _, _, face = patches.answer_on_patches(points, np.arange(n), rest, network, np.tile([0.0, 0.0, 1.0], (n, 1)),
+                                              0.01, cells, surface, skin.faces)
+    assert (face < 0).all() and (d == network).all()
+
+
+def test_cells_need_a_positive_reach_and_size(figure):
+    _, skin, _, _, _ = figure
+    with pytest.raises(ValueError, match="reach and cell must be > 0"):
+        patches.patch_cells(skin.vertices, skin.faces, 0.0, CELL)
+
+
+@pytest.mark.skipif(not WALKER.exists(), reason="the shipped walker model is not in this checkout")
+def test_the_shipped_walker_answers_near_its_skin_as_the_exact_kind():
+    """The shipped walker's network at a pose off its clips, 3,000 points in the +-1 mm band of the
+    exact union: with its exact patches nearly every point gets the exact kind's distance (to
+    1e-9 m), normal and velocity; the network alone misses by about 0.1 mm on average."""
+    from collider_server.engine.modelfile import load_collider
+    from collider_server.making.skinned import skinned_collider
+
+    collider = load_collider(WALKER)
+    skin = collider.skin
+    exact = skinned_collider(skin, "walker", loop=True)
+    transforms = random_poses(skin, 1, 909, perturbed_share=1.0).transforms[0]
+    _, velocities = pose_at(skin, skin.clips[0].name, 0.3)
+    points = surface_band_points(Mesh(skin_vertices(skin, transforms), skin.faces, "posed"), 3000, 1e-3, 17)
+    fields = ("distance", "normal", "velocity")
+    pose = {"joint_transforms": transforms, "joint_velocities": velocities}
+    truth = exact.query(points, fields, **pose)
+    answer = collider.query(points, fields, **pose)
+    same = np.abs(answer.distance - truth.distance) < 1e-9
+    assert same.mean() > 0.99
+    np.testing.assert_allclose(answer.normal[same], truth.normal[same], atol=1e-6)
+    np.testing.assert_allclose(answer.velocity[same], truth.velocity[same], atol=1e-6)
+    assert (np.sign(answer.distance) != np.sign(truth.distance)).mean() < 0.002
+    alone = collider.evaluate_at(points, False, None, SkeletonPose(joint_transforms=transforms))[0]
+    collider.patches = None
+    network = collider.evaluate_at(points, False, None, SkeletonPose(joint_transforms=transforms))[0]
+    assert np.abs(alone - truth.distance).mean() < 0.2 * np.abs(network - truth.distance).mean()
