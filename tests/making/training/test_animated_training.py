@@ -221,14 +221,28 @@ def test_the_deformed_presets_fields_are_the_coarsest_that_follow_the_frames_wit
     assert loose.resolution == 4 and len(loose.fields) == 5
 
 
-def test_a_deformed_rest_pose_learns_the_pulsing_sphere_and_its_velocity(sphere, device):
+@pytest.fixture(scope="module")
+def deformed_runs(sphere):
+    """``device -> TrainResult``: a short run of preset ``deformed`` on the pulsing sphere, once per
+    device."""
+    runs = {}
+
+    def run(device):
+        if device not in runs:
+            small = {k: v for k, v in SMALL.items() if k != "keyframes"}
+            runs[device] = train_animated_neural(sphere[0], "pulse", config(
+                preset="deformed", steps=400, architecture={**small, "deformation_resolution": 4}),
+                device=device, show_progress=False)
+        return runs[device]
+
+    return run
+
+
+def test_a_deformed_rest_pose_learns_the_pulsing_sphere_and_its_velocity(sphere, deformed_runs, device):
     """A short run of preset ``deformed``: distances at random times and the surface's velocity
     (the full vector: the sphere's points move with its centre and radius)."""
     animation, reference = sphere
-    small = {k: v for k, v in SMALL.items() if k != "keyframes"}
-    result = train_animated_neural(animation, "pulse", config(preset="deformed", steps=400,
-                                                              architecture={**small, "deformation_resolution": 4}),
-                                   device=device, show_progress=False)
+    result = deformed_runs(device)
     collider = result.collider
     assert collider.architecture.keyframes == 13 and collider.info.animation["frames"] == 13
     rng = np.random.default_rng(4)
@@ -247,6 +261,43 @@ def test_a_deformed_rest_pose_learns_the_pulsing_sphere_and_its_velocity(sphere,
     # scaling is not linear in time (5 % of the mean speed here, measured; on the twisting bunny the
     # normal speed errs 0.33 mm/s where the surface moves up to 0.19 m/s).
     assert np.concatenate(velocity_errors).mean() < 0.1 * np.concatenate(speeds).mean()
+
+
+def test_a_deformed_run_keeps_its_frames_and_answers_near_the_surface_on_their_patches(sphere, deformed_runs,
+                                                                                      tmp_path):
+    """A deformed network keeps its source's frames in its file (float32) and answers points near
+    the surface at random times as the exact animated mesh kind does (distance, normal, velocity):
+    on the patches of the interpolated frames around its rest field's closest point. Without them
+    (``patches = None``) the network alone answers, as far off as 400 steps leave it."""
+    from collider_server.engine.modelfile import save_collider
+    from collider_server.making.bake import bake_animated_collider
+
+    animation, _ = sphere
+    collider = load_collider(save_collider(deformed_runs("cpu").collider, tmp_path / "pulse.safetensors"))
+    assert collider.surface_frames.dtype == np.float32
+    np.testing.assert_allclose(collider.surface_frames, animation.frames, atol=1e-7)
+    exact = bake_animated_collider(animation, "mesh", "pulse")
+    rng = np.random.default_rng(8)
+    fields = ["distance", "normal", "velocity"]
+    for t in rng.uniform(0.0, 1.0, 4):
+        mesh = animation.mesh_at(float(t))
+        points = mesh.vertices[rng.integers(0, len(mesh.vertices), 400)] + rng.normal(size=(400, 3)) * 1e-3
+        truth = exact.query(points, fields, time=float(t))
+        got = collider.query(points, fields, time=float(t))
+        np.testing.assert_allclose(got.distance, truth.distance, atol=1e-6)  # float32 frames: 0.1 um here
+        np.testing.assert_allclose(got.normal, truth.normal, atol=1e-3)
+        np.testing.assert_allclose(got.velocity, truth.velocity, atol=1e-4)
+        collider.patches = None
+        alone = collider.query(points, ["distance"], time=float(t)).distance
+        assert np.abs(alone - truth.distance).mean() > 20 * np.abs(got.distance - truth.distance).mean()
+        collider.keep_surface(collider.surface_frames, collider.surface_faces)
+
+
+def test_keyframe_tables_keep_no_frames(sphere):
+    result = train_animated_neural(sphere[0], "pulse", config(steps=5), show_progress=False)
+    assert result.collider.surface_frames is None and result.collider.patches is None
+    with pytest.raises(ValueError, match="only a deformed network answers on exact patches"):
+        result.collider.keep_surface(sphere[0].frames, sphere[0].faces)
 
 
 def test_train_an_animation_through_the_cli(tmp_path):

@@ -12,17 +12,32 @@ its normal speed ``-df/dt`` along the unit normal (:func:`.animated_voxel.normal
 voxel keyframes' rule: an implicit surface does not say how its points slide along it, so no
 tangential part); for a deformed rest pose the velocity of the material point, sliding included
 (the deformation says where each point goes).
+
+A deformed rest pose trained from a mesh's frames keeps them (``surface.frames``, float32, and
+``surface.faces``): near the surface its points are answered on the exact patches
+(:mod:`.patches`), the frames' faces, interpolated at the time, around the rest field's closest
+point, as the articulated network answers a skin.
 """
 
 from __future__ import annotations
 
+import threading
+
+import numpy as np
+
 from collider_contract import Timeline
 
+from ..animated_meshes import interpolate
 from ..collider import ColliderInfo
+from ..meshes import edge_index
 from .animated_voxel import normal_velocity
 from .neural import NeuralCollider
 from .neural_deformed import DeformedGridArchitecture
 from .neural_keyframes import KeyframeGridArchitecture
+from .patches import PATCH_BAND, PATCH_CELL, PATCH_REACH, answer_on_patches, patch_cells, posed_surface
+
+#: The model file's names of the frames a deformed network keeps for its exact patches.
+SURFACE_FRAMES, SURFACE_FACES = "surface.frames", "surface.faces"
 
 
 class AnimatedNeuralCollider(NeuralCollider):
@@ -42,6 +57,46 @@ class AnimatedNeuralCollider(NeuralCollider):
         if arch.keyframes != self.timeline.frames:
             raise ValueError(f"the network has {arch.keyframes} keyframes, but the animation "
                              f"has {self.timeline.frames} frames")
+        #: The frames (F, v, 3) float32 and faces the exact patches answer on, or None (keyframe
+        #: tables, files before them, or turned off): :meth:`keep_surface`.
+        self.surface_frames: np.ndarray | None = None
+        self.surface_faces: np.ndarray | None = None
+        self.patches = None
+        self.patch_band = 0.0
+        self._posed: tuple | None = None  # (segment, fraction, rate, posed surface) of the last time
+        self._lock = threading.Lock()
+
+    def keep_surface(self, frames: np.ndarray, faces: np.ndarray) -> None:
+        """Answer near the surface on the exact patches of this animation's ``frames`` (F, v, 3)
+        (collider frame and units, one per keyframe: a deformed network's frames are its
+        source's) and ``faces`` (f, 3); kept in the model file (float32)."""
+        if not self._material_velocity:
+            raise ValueError("only a deformed network answers on exact patches (its rest pose is its first frame)")
+        frames = np.asarray(frames, np.float32)
+        if frames.ndim != 3 or len(frames) != self.timeline.frames:
+            raise ValueError(f"the surface needs one frame per keyframe ({self.timeline.frames}), got "
+                             f"{list(frames.shape)}")
+        self.surface_frames, self.surface_faces = frames, np.asarray(faces, np.int64)
+        finest = 2.0 * float(self.network.radius) / self.architecture.max_resolution
+        self.patches = patch_cells(frames[0].astype(np.float64), self.surface_faces, PATCH_REACH * finest,
+                                   PATCH_CELL * finest)
+        self.patch_band = PATCH_BAND * finest
+        self._edges = edge_index(self.surface_faces)
+        self._posed = None
+
+    def _surface_at(self, k: int, s: float, rate: float):
+        """The frames' surface at segment ``k``, fraction ``s``, ``rate`` frames per second (kept
+        for the last time asked): vertices interpolated as the exact animated kind's, their
+        velocities its segment's."""
+        with self._lock:
+            kept = self._posed
+        if kept is not None and kept[:3] == (k, s, rate):
+            return kept[3]
+        low, high = (self.surface_frames[k].astype(np.float64), self.surface_frames[k + 1].astype(np.float64))
+        surface = posed_surface(interpolate(low, high, s), self.surface_faces, self._edges, (high - low) * rate)
+        with self._lock:
+            self._posed = (k, s, rate, surface)
+        return surface
 
     @property
     def keyframes(self) -> int:
@@ -55,12 +110,18 @@ class AnimatedNeuralCollider(NeuralCollider):
         torch = self._torch
         k, s, rate = self.timeline.locate(0.0 if time is None else time)
         x = torch.as_tensor(local, dtype=torch.float32, device=self._device)
+        patched = self.patches is not None
+        # A deformed network answers its rest points too (the patches' closest points).
+        arguments = (x, k, s, rate, want_gradient) + ((True,) if patched else ())
         with torch.inference_mode():
             if self.network.can_fuse(x):
-                d, g, moving = self.fused(lambda: self.network.query_at(x, k, s, rate, want_gradient))
+                answer = self.fused(lambda: self.network.query_at(*arguments))
             else:
-                d, g, moving = self.network.query_at(x, k, s, rate, want_gradient)
+                answer = self.network.query_at(*arguments)
+        d, g, moving = answer[:3]
         distance = d.double().cpu().numpy()
+        if patched:
+            return self._on_patches(local, answer[3], distance, g, moving, want_gradient, time, (k, s, rate))
         if not want_gradient:
             return distance, None, None
         gradient = self.across_plateaus(local, g.double().cpu().numpy(),
@@ -69,3 +130,40 @@ class AnimatedNeuralCollider(NeuralCollider):
         if self._material_velocity:
             return distance, gradient, moving
         return distance, gradient, normal_velocity(gradient, moving)
+
+    def _on_patches(self, local, rest, distance, g, moving, want_gradient, time, segment):
+        """:meth:`evaluate_at`'s answers with the rows near the surface answered on the exact
+        patches (:func:`~.patches.answer_on_patches`; ``rest``: the rest points and the rest
+        field's distance and gradient there)."""
+        rest_x, d0, g0 = (a.double().cpu().numpy() for a in rest)
+        surface = self._surface_at(*segment)
+        exact, normal, velocity, face = answer_on_patches(local, np.arange(len(local)), rest_x, d0, g0,
+                                                          self.patch_band, self.patches, surface, self.surface_faces)
+        answered = face >= 0
+        distance = np.where(answered, exact, distance)
+        if not want_gradient:
+            return distance, None, None
+        gradient = self.across_plateaus(local, g.double().cpu().numpy(),
+                                        lambda p: self.evaluate_at(p, False, time)[0])
+        gradient[answered] = normal[answered]
+        moving = moving.double().cpu().numpy()
+        moving[answered] = velocity[answered]
+        return distance, gradient, moving
+
+    def tensors(self):
+        tensors = super().tensors()
+        if self.surface_frames is not None:
+            tensors[SURFACE_FRAMES] = self.surface_frames
+            tensors[SURFACE_FACES] = self.surface_faces.astype(np.int32)
+        return tensors
+
+    @classmethod
+    def from_tensors(cls, info, tensors, device=None):
+        tensors = dict(tensors)
+        frames, faces = tensors.pop(SURFACE_FRAMES, None), tensors.pop(SURFACE_FACES, None)
+        if (frames is None) != (faces is None):
+            raise ValueError(f"a model keeping its surface needs both {SURFACE_FRAMES!r} and {SURFACE_FACES!r}")
+        collider = super().from_tensors(info, tensors, device)
+        if frames is not None:
+            collider.keep_surface(frames, faces)
+        return collider

@@ -134,9 +134,11 @@ def build_deformed_network(arch: DeformedGridArchitecture, centre, radius: float
             values = (1.0 - s) * self.deformation[key[:, None], nodes] + s * self.deformation[key[:, None] + 1, nodes]
             return self.warp(u, values, weight, dweight)
 
-        def deformed(self, x, rest_u, jacobian, fused: bool):
+        def deformed(self, x, rest_u, jacobian, fused: bool, rest_answers: bool = False):
             """Distance (n,) and the gradient of ``f0(X(x))`` (n, 3) at collider-frame points ``x``
-            whose rest-pose points are ``rest_u`` (normalised) and ``J = jacobian``."""
+            whose rest-pose points are ``rest_u`` (normalised) and ``J = jacobian``; with
+            ``rest_answers`` also ``(rest point (n, 3), the rest field's distance (n,) and gradient
+            (n, 3) there)``, collider frame, else None."""
             rest_x = self.centre + self.radius * rest_u
             if fused:
                 d0, g0 = self.fused_query(rest_x, True)
@@ -145,7 +147,7 @@ def build_deformed_network(arch: DeformedGridArchitecture, centre, radius: float
             g = torch.einsum("nca,nc->na", jacobian, g0)
             rest_norm = g0.norm(dim=1)
             stretch = torch.where(rest_norm > 1e-12, g.norm(dim=1) / rest_norm.clamp_min(1e-12), 1.0)  # |J^T n0|
-            return d0 / stretch.clamp(*STRETCH_BOUNDS), g
+            return d0 / stretch.clamp(*STRETCH_BOUNDS), g, ((rest_x, d0, g0) if rest_answers else None)
 
         # -- many times (validation) ------------------------------------------------------------
 
@@ -160,11 +162,13 @@ def build_deformed_network(arch: DeformedGridArchitecture, centre, radius: float
 
         # -- one time (queries) -----------------------------------------------------------------
 
-        def query_at(self, x, k: int, s: float, rate: float, want_gradient: bool):
+        def query_at(self, x, k: int, s: float, rate: float, want_gradient: bool, rest_answers: bool = False):
             """Distance (n,), and when ``want_gradient`` the unit normal (n, 3) and the velocity of
             the material point at each point (n, 3, collider units per second), at collider-frame
             points ``x`` (n, 3) at one time (frame segment ``k``, fraction ``s``, ``rate`` frames
-            per second, 0 where an end frame is held). Fused on a CPU (numba), else torch ops."""
+            per second, 0 where an end frame is held); with ``rest_answers`` a fourth item, the
+            rest points and the rest field's distance and gradient there (:meth:`deformed`). Fused
+            on a CPU (numba), else torch ops."""
             low, high = self.deformation[k], self.deformation[k + 1]
             field, dfield = low + s * (high - low), (high - low) * rate
             u = (x - self.centre) / self.radius
@@ -177,10 +181,10 @@ def build_deformed_network(arch: DeformedGridArchitecture, centre, radius: float
                 if want_gradient:  # d X / dt at fixed x; the material point (X fixed) moves at -J^-1 dX/dt
                     rest_rate = (weight[..., None] * dfield[nodes]).sum(dim=1)
                     velocity = -torch.linalg.solve_ex(jacobian, rest_rate)[0]  # no raise where J is singular
-            distance, g = self.deformed(x, rest_u, jacobian, fused)
+            distance, g, rest = self.deformed(x, rest_u, jacobian, fused, rest_answers)
             if not want_gradient:
-                return distance, None, None
-            return distance, g / g.norm(dim=1, keepdim=True).clamp_min(1e-12), velocity * self.radius
+                return distance, None, None, rest
+            return distance, g / g.norm(dim=1, keepdim=True).clamp_min(1e-12), velocity * self.radius, rest
 
         def _fused_warp(self, u, field, dfield, want_velocity: bool):
             n = len(u)

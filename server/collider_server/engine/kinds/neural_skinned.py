@@ -61,7 +61,16 @@ from . import grid_kernels
 from .grid_architecture import require_integers
 from .neural import across_plateaus
 from .neural_grid import GridArchitecture, build_grid_network, pack_table, unpack_table
-from .patches import PatchCells, PosedSurface, answer_on_patches, patch_cells, posed_surface
+from .patches import (
+    PATCH_BAND,
+    PATCH_CELL,
+    PATCH_REACH,
+    PatchCells,
+    PosedSurface,
+    answer_on_patches,
+    patch_cells,
+    posed_surface,
+)
 from .skinned import pose_key, resolve_pose, skin_from_tensors, skin_tensors
 
 #: The label of a rest-pose cell no part owns (beyond the band outside the rest surface).
@@ -77,12 +86,6 @@ SKINNING_SOLVERS = ("fixed-point", "newton")
 CANDIDATE_RULES = ("own-label", "retry-labels")
 #: Cells per side of a block of the fine weight field (:func:`weight_field`).
 BLOCK_CELLS = 4
-#: Exact patches (:mod:`.patches`), in the network's finest cells (the walker's: 8.1 mm): rows
-#: the network answers within ``PATCH_BAND`` of the skin are answered by the posed faces within
-#: ``PATCH_REACH`` of their rest closest point, listed in cells of ``PATCH_CELL``.
-PATCH_BAND = 2.0
-PATCH_REACH = 1.0
-PATCH_CELL = 2.0
 
 
 @dataclass(frozen=True)

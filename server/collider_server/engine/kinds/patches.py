@@ -29,6 +29,12 @@ import numpy as np
 
 from ..meshes import edge_index, pseudo_normals
 
+#: A network's exact patches, in its finest cells (the walker's: 8.1 mm): rows the network answers
+#: within ``PATCH_BAND`` of the surface are answered by the posed faces within ``PATCH_REACH`` of
+#: their rest closest point, listed in cells of ``PATCH_CELL``.
+PATCH_BAND = 2.0
+PATCH_REACH = 1.0
+PATCH_CELL = 2.0
 #: A cell is kept where the rest surface passes within this fraction of a cell of it: the
 #: network's closest points lie on the rest surface to its error (a tenth of a millimetre), far
 #: inside this margin.
