@@ -153,3 +153,25 @@ def test_the_shipped_walker_answers_near_its_skin_as_the_exact_kind():
     collider.patches = None
     network = collider.evaluate_at(points, False, None, SkeletonPose(joint_transforms=transforms))[0]
     assert np.abs(alone - truth.distance).mean() < 0.2 * np.abs(network - truth.distance).mean()
+
+
+def test_faces_of_no_area_answer_without_error():
+    """A sliver (three corners on a line) and a face collapsed to a point beside a sound face (their
+    points all fall in a corner's or an edge's region): both rules answer, the same, and the sound
+    face's distance where it is the nearest."""
+    vertices = np.array([[0.0, 0.0, 0.0], [0.01, 0.0, 0.0], [0.0, 0.01, 0.0],  # a sound face
+                         [0.0, 0.0, 0.001], [0.005, 0.0, 0.001], [0.01, 0.0, 0.001],  # a sliver
+                         [0.002, 0.002, 0.0]])
+    faces = np.array([[0, 1, 2], [3, 4, 5], [6, 6, 6]])
+    cells = patches.patch_cells(vertices, faces, 0.01, 0.01)
+    surface = patches.posed_surface(vertices, faces)
+    rng = np.random.default_rng(2)
+    points = rng.uniform([-0.002, -0.002, -0.003], [0.012, 0.012, 0.003], (500, 3))
+    rows = (points, np.arange(500), points * [1, 1, 0], points[:, 2].copy(), np.tile([0.0, 0.0, 1.0], (500, 1)),
+            0.01, cells, surface, faces)
+    fused, plain = patches.answer_on_patches(*rows), patches.answer_on_patches(*rows, fused=False)
+    assert np.isfinite(fused[0]).all() and (fused[3] >= 0).mean() > 0.9
+    np.testing.assert_array_equal(fused[3], plain[3])
+    np.testing.assert_allclose(fused[0], plain[0], atol=1e-15)
+    below = (points[:, 0] > 0) & (points[:, 1] > 0) & (points[:, 0] + points[:, 1] < 0.0095) & (points[:, 2] < 0)
+    np.testing.assert_allclose(fused[0][below], points[below, 2], atol=1e-12)

@@ -1,6 +1,7 @@
-"""Exact patches: a skinned mesh's posed triangles near a point of its rest pose, and the exact
-distance, normal and closest point to them (the articulated network's answer near the skin,
-kind ``neural-skinned``; units and frames: the collider's).
+"""Exact patches: a mesh's posed triangles near a point of its rest pose, and the exact distance,
+normal and closest point to them: the answer near the surface of the articulated network (kind
+``neural-skinned``: the skin at a pose) and of a deformed network that keeps its frames (the
+frames at a time); units and frames: the collider's.
 
 The articulated network carries a posed point x to a rest point y of each candidate part and
 answers ``f(y)`` there; its error is the rest field's plus the map's (the walker, 1.73 m: 0.08-0.11
@@ -17,8 +18,8 @@ its distance is never less than the distance to the whole skin.
 :func:`patch_cells` lists, once per model, each cell of a sparse grid near the rest surface with
 the faces a rest point in it may need (every face within ``reach`` of any point of the cell);
 :func:`posed_surface` prepares a pose (vertices, pseudo-normals, vertex velocities);
-:func:`answer_on_patches` answers the network's rows, in one numba pass (a numpy reference beside it, tested
-equal).
+:func:`answer_on_patches` answers the network's rows, in one numba pass (a numpy reference beside
+it, tested equal).
 """
 
 from __future__ import annotations
@@ -103,6 +104,9 @@ def closest_on_triangles(p: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndar
         put((vb <= 0) & (d2 >= 0) & (d6 <= 0), np.stack([1 - w, zero, w], 1), 6)
         w = (d4 - d3) / ((d4 - d3) + (d5 - d6))
         put((va <= 0) & (d4 - d3 >= 0) & (d5 - d6 >= 0), np.stack([zero, 1 - w, w], 1), 5)
+        # A face of no area has every point in a corner's or an edge's region; should rounding
+        # leave one to the inside, its first corner, not a division by zero.
+        put(va + vb + vc == 0, np.stack([one, zero, zero], 1), 1)
         denominator = 1.0 / (va + vb + vc)
         v, w = vb * denominator, vc * denominator
         put(np.ones(m, bool), np.stack([1 - v - w, v, w], 1), 0)
@@ -173,6 +177,8 @@ def posed_surface(vertices: np.ndarray, faces: np.ndarray, edges: np.ndarray | N
 
 def cells_of(points: np.ndarray, cells: PatchCells) -> np.ndarray:
     """(m,) int64: each point's listed cell (an index into ``cells.keys``), -1 where none."""
+    if not len(cells.keys):
+        return np.full(len(points), -1, np.int64)
     ijk = np.floor((points - cells.origin) / cells.cell).astype(np.int64)
     inside = ((ijk >= 0) & (ijk < cells.dims)).all(1)
     key = (ijk[:, 0] * cells.dims[1] + ijk[:, 1]) * cells.dims[2] + ijk[:, 2]
@@ -296,6 +302,8 @@ else:
         if va <= 0.0 and d4 - d3 >= 0.0 and d5 - d6 >= 0.0:
             w = (d4 - d3) / ((d4 - d3) + (d5 - d6))
             return 0.0, 1.0 - w, w, 5
+        if va + vb + vc == 0.0:  # no area, left by rounding: its first corner (as closest_on_triangles)
+            return 1.0, 0.0, 0.0, 1
         denominator = 1.0 / (va + vb + vc)
         v, w = vb * denominator, vc * denominator
         return 1.0 - v - w, v, w, 0
