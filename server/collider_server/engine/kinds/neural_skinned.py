@@ -39,9 +39,9 @@ Per-part fields in each joint's rest frame, composed by a minimum (COAP-style), 
   inverse_bind_j``).
 - **Exact patches near the skin** (:mod:`.patches`): a row the network puts within
   ``PATCH_BAND`` finest cells of the skin is answered on the posed faces around its rest closest
-  point ``y - f grad f / |grad f|`` (distance, normal and velocity as the exact kind's), where
-  that answer lies within the patches' reach of the network's; the union then takes the rows as
-  before.
+  point ``y - f grad f / |grad f|`` (distance, normal and velocity as the exact kind's), unless
+  the patch lies farther than the network's distance plus the patches' reach; the union then
+  takes the rows as before.
 
 The model file holds the skin as the exact kind stores it (so the pose of a clip is computed by
 the same code, and ``collider eval`` has its truth) plus the network's arrays under

@@ -230,8 +230,9 @@ def answer_on_patches(points: np.ndarray, point: np.ndarray, rest: np.ndarray, d
     ``distance[r]`` (m,) and the rest-frame ``gradient[r]`` (m, 3). A row within ``band`` of the
     skin (|distance| <= band) takes its rest closest point ``rest - distance * gradient /
     |gradient|`` and the nearest posed face among that point's cell's (:func:`patch_cells`) and
-    is answered there where that face's distance differs from the network's by no more than the
-    cells' reach (else the patch is not the row's: a closest point put on another limb). Returns
+    is answered there unless that face lies farther than the network's distance plus the cells'
+    reach (then the patch is not the row's: a closest point put on another limb; a face nearer
+    than the network says is a real piece of the surface that near, and answers). Returns
     ``(distance (m,), normal (m, 3), velocity (m, 3) or None, face (m,) int64)``, collider frame
     and units: the signed distance to that face (the network's where the row is not answered),
     the unit direction from its closest point (its pseudo-normal on the surface, within 1e-9 of
@@ -260,7 +261,7 @@ def answer_on_patches(points: np.ndarray, point: np.ndarray, rest: np.ndarray, d
     length = np.linalg.norm(gradient[rows], axis=1)
     closest = rest[rows] - (out[rows] / np.where(length > 0, length, 1.0))[:, None] * gradient[rows]
     d, n, f, b = _nearest_numpy(points[point[rows]], closest, cells, surface, faces, tiny)
-    take = (f >= 0) & (np.abs(d - out[rows]) <= cells.reach)
+    take = (f >= 0) & (np.abs(d) <= np.abs(out[rows]) + cells.reach)
     rows, d, n, f, b = rows[take], d[take], n[take], f[take], b[take]
     out[rows], normal[rows], face[rows] = d, n, f
     if moving:
@@ -366,7 +367,7 @@ else:
             ox, oy, oz = px - qx, py - qy, pz - qz
             length = np.sqrt(best)
             sign = -1.0 if ox * nx + oy * ny + oz * nz < 0.0 else 1.0
-            if abs(sign * length - d) > reach:
+            if length > abs(d) + reach:
                 continue
             distance[r] = sign * length
             if length > tiny:
