@@ -242,7 +242,7 @@ def edge_index(faces: np.ndarray) -> np.ndarray:
 
 
 def pseudo_normals(vertices: np.ndarray, faces: np.ndarray, face_normals: np.ndarray,
-                    edges: np.ndarray):
+                   edges: np.ndarray):
     """Unit edge normals (f, 3, 3), per face and per corner the normal of the edge opposite that
     corner (the normalised sum of the normals of the faces sharing it, ``edges`` its
     :func:`edge_index`), and unit angle-weighted vertex normals (v, 3) (Baerentzen and Aanaes

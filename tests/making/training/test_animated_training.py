@@ -293,6 +293,25 @@ def test_a_deformed_run_keeps_its_frames_and_answers_near_the_surface_on_their_p
         collider.keep_surface(collider.surface_frames, collider.surface_faces)
 
 
+@pytest.mark.parametrize("spare", [-1, 0])
+def test_frames_over_the_cap_are_not_kept(sphere, monkeypatch, capsys, spare):
+    """A deformed run whose frames would take more than ``SURFACE_MAX_BYTES`` answers by its network
+    alone, and says so; frames of exactly the cap are kept."""
+    from collider_server.making.training import loop
+
+    monkeypatch.setattr(loop, "SURFACE_MAX_BYTES", sphere[0].frames.size * 4 + spare)
+    small = {k: v for k, v in SMALL.items() if k != "keyframes"}
+    result = train_animated_neural(sphere[0], "pulse", config(preset="deformed", steps=5, architecture={
+        **small, "deformation_resolution": 4}), show_progress=True)
+    said = capsys.readouterr().err
+    if spare < 0:
+        assert result.collider.surface_frames is None and result.collider.patches is None
+        assert "its 13 frames (0.1 MB in float32) not kept (over 0 MB): the network answers everywhere" in said
+    else:
+        assert result.collider.surface_frames is not None and result.collider.patches is not None
+        assert "its 13 frames (0.1 MB in float32) kept in the file" in said
+
+
 def test_keyframe_tables_keep_no_frames(sphere):
     result = train_animated_neural(sphere[0], "pulse", config(steps=5), show_progress=False)
     assert result.collider.surface_frames is None and result.collider.patches is None

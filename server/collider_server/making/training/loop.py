@@ -40,6 +40,11 @@ from .data import (
 from .deformation import DeformationFit, fit_deformation, fit_deformation_fields
 from .schedule import RunClock, cosine_learning_rate, make_optimizer, set_training_threads, training_threads
 
+#: A deformed network keeps its source's frames (float32) for its exact patches where they take
+#: no more than this (bytes): the spot bend's 25 frames take 0.9 MB, the shipped twisting bunny's
+#: 61 frames of 36,000 vertices 26 MB.
+SURFACE_MAX_BYTES = 16_000_000
+
 
 @dataclass
 class TrainResult:
@@ -201,20 +206,15 @@ def train_animated_neural(animation: AnimatedMesh, name: str, config: TrainConfi
                     first_frame)
     if deformed:  # its frames: near the surface it answers on their exact patches
         size = animation.frames.size * 4
-        if size <= SURFACE_MAX_BYTES:
+        kept = size <= SURFACE_MAX_BYTES
+        if kept:
             result.collider.keep_surface(animation.frames, animation.faces)
         if show_progress:
-            print(f"its {len(animation.frames)} frames ({size / 1e6:.1f} MB in float32) "
-                  + ("kept in the file: near the surface it answers on their faces (exact patches)" if size <=
-                     SURFACE_MAX_BYTES else f"not kept (over {SURFACE_MAX_BYTES / 1e6:.0f} MB): the network "
-                                            f"answers everywhere"), file=sys.stderr)
+            told = ("kept in the file: near the surface it answers on their faces (exact patches)" if kept
+                    else f"not kept (over {SURFACE_MAX_BYTES / 1e6:.0f} MB): the network answers everywhere")
+            print(f"its {len(animation.frames)} frames ({size / 1e6:.1f} MB in float32) {told}", file=sys.stderr)
     return result
 
-
-#: A deformed network keeps its source's frames (float32) for its exact patches where they take
-#: no more than this (bytes): the spot bend's 25 frames take 0.9 MB, the shipped twisting bunny's
-#: 61 frames of 36,000 vertices 26 MB.
-SURFACE_MAX_BYTES = 16_000_000
 
 #: The phases of a keyframes run with a warm start (``TrainConfig.warm_start``), as a checkpoint
 #: and the progress bar name them: the static grid on the first frame, then the keyframe tables.
