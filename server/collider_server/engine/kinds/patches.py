@@ -187,6 +187,9 @@ def cells_of(points: np.ndarray, cells: PatchCells) -> np.ndarray:
 
 
 def _nearest_numpy(points, closest, cells, surface, faces, tiny):
+    """The numpy rule of the kernel's search: for each of ``points`` (m, 3) the nearest posed face
+    among its rest ``closest`` point's cell's, ``(signed distance, normal, face, barycentric)``
+    (NaN, 0, -1, 0 where the point lies in no listed cell)."""
     m = len(points)
     distance, normal = np.full(m, np.nan), np.zeros((m, 3))
     face, bary = np.full(m, -1, np.int64), np.zeros((m, 3))
