@@ -40,6 +40,8 @@ PATCH_CELL = 2.0
 #: network's closest points lie on the rest surface to its error (a tenth of a millimetre), far
 #: inside this margin.
 SURFACE_MARGIN = 0.25
+#: Faces per piece of :func:`patch_cells`' build (its cell pairs in bounded memory).
+BUILD_FACES = 4096
 
 
 class PatchCells(NamedTuple):
@@ -125,23 +127,26 @@ def patch_cells(vertices: np.ndarray, faces: np.ndarray, reach: float, cell: flo
         raise ValueError(f"reach and cell must be > 0, got {reach} and {cell}")
     vertices = np.asarray(vertices, np.float64)
     faces = np.asarray(faces, np.int64)
-    tri = vertices[faces]
     origin = vertices.min(0) - reach - cell
     dims = np.floor((vertices.max(0) + reach + cell - origin) / cell).astype(np.int64) + 1
-    lo = np.floor((tri.min(1) - reach - origin) / cell).astype(np.int64)
-    span = np.floor((tri.max(1) + reach - origin) / cell).astype(np.int64) - lo + 1
-    count = span.prod(1)
-    face = np.repeat(np.arange(len(faces)), count)
-    local = np.arange(count.sum()) - np.repeat(np.cumsum(count) - count, count)
-    s = span[face]
-    ijk = lo[face] + np.stack([local // (s[:, 1] * s[:, 2]), (local // s[:, 2]) % s[:, 1], local % s[:, 2]], 1)
-    centre = origin + (ijk + 0.5) * cell
-    t = tri[face]
-    gap = np.linalg.norm(centre - closest_on_triangles(centre, t[:, 0], t[:, 1], t[:, 2])[0], axis=1)
     half_diagonal = 0.5 * np.sqrt(3.0) * cell
-    listed = gap <= reach + half_diagonal
-    key = (ijk[:, 0] * dims[1] + ijk[:, 1]) * dims[2] + ijk[:, 2]
-    key, face, gap = key[listed], face[listed], gap[listed]
+    pieces = []
+    for first_face in range(0, len(faces), BUILD_FACES):  # a dense mesh's pairs in bounded memory
+        tri = vertices[faces[first_face:first_face + BUILD_FACES]]
+        lo = np.floor((tri.min(1) - reach - origin) / cell).astype(np.int64)
+        span = np.floor((tri.max(1) + reach - origin) / cell).astype(np.int64) - lo + 1
+        count = span.prod(1)
+        face = np.repeat(np.arange(len(tri)), count)
+        local = np.arange(count.sum()) - np.repeat(np.cumsum(count) - count, count)
+        s = span[face]
+        ijk = lo[face] + np.stack([local // (s[:, 1] * s[:, 2]), (local // s[:, 2]) % s[:, 1], local % s[:, 2]], 1)
+        centre = origin + (ijk + 0.5) * cell
+        t = tri[face]
+        gap = np.linalg.norm(centre - closest_on_triangles(centre, t[:, 0], t[:, 1], t[:, 2])[0], axis=1)
+        listed = gap <= reach + half_diagonal
+        key = (ijk[listed, 0] * dims[1] + ijk[listed, 1]) * dims[2] + ijk[listed, 2]
+        pieces.append((key, face[listed] + first_face, gap[listed]))
+    key, face, gap = (np.concatenate([piece[k] for piece in pieces]) for k in range(3))
     order = np.lexsort((face, gap, key))  # within a cell, the faces nearest its centre first
     key, face, gap = key[order], face[order], gap[order]
     first = np.r_[True, key[1:] != key[:-1]]
