@@ -22,6 +22,7 @@ point, as the articulated network answers a skin.
 from __future__ import annotations
 
 import threading
+from types import SimpleNamespace
 
 import numpy as np
 
@@ -120,35 +121,30 @@ class AnimatedNeuralCollider(NeuralCollider):
                 answer = self.network.query_at(*arguments)
         d, g, moving = answer[:3]
         distance = d.double().cpu().numpy()
-        if patched:
-            return self._on_patches(local, answer[3], distance, g, moving, want_gradient, time, (k, s, rate))
+        exact = self._on_patches(local, answer[3], (k, s, rate)) if patched else None
+        if exact is not None:
+            distance = np.where(exact.answered, exact.distance, distance)
         if not want_gradient:
             return distance, None, None
         gradient = self.across_plateaus(local, g.double().cpu().numpy(),
                                         lambda p: self.evaluate_at(p, False, time)[0])
         moving = moving.double().cpu().numpy()  # the velocity (deformed) or df/dt (keyframes)
-        if self._material_velocity:
-            return distance, gradient, moving
-        return distance, gradient, normal_velocity(gradient, moving)
+        velocity = moving if self._material_velocity else normal_velocity(gradient, moving)
+        if exact is not None:
+            gradient[exact.answered] = exact.normal[exact.answered]
+            velocity[exact.answered] = exact.velocity[exact.answered]
+        return distance, gradient, velocity
 
-    def _on_patches(self, local, rest, distance, g, moving, want_gradient, time, segment):
-        """:meth:`evaluate_at`'s answers with the rows near the surface answered on the exact
-        patches (:func:`~.patches.answer_on_patches`; ``rest``: the rest points and the rest
-        field's distance and gradient there)."""
+    def _on_patches(self, local, rest, segment) -> SimpleNamespace:
+        """The exact patches' answers (:func:`~.patches.answer_on_patches`) of points ``local`` at
+        keyframe ``segment`` (segment, fraction, rate), ``rest`` the network's rest points and its
+        rest field's distance and gradient there: ``distance``, ``normal``, ``velocity`` and
+        ``answered`` (where the patch, not the network, answers)."""
         rest_x, d0, g0 = (a.double().cpu().numpy() for a in rest)
-        surface = self._surface_at(*segment)
-        exact, normal, velocity, face = answer_on_patches(local, np.arange(len(local)), rest_x, d0, g0,
-                                                          self.patch_band, self.patches, surface, self.surface_faces)
-        answered = face >= 0
-        distance = np.where(answered, exact, distance)
-        if not want_gradient:
-            return distance, None, None
-        gradient = self.across_plateaus(local, g.double().cpu().numpy(),
-                                        lambda p: self.evaluate_at(p, False, time)[0])
-        gradient[answered] = normal[answered]
-        moving = moving.double().cpu().numpy()
-        moving[answered] = velocity[answered]
-        return distance, gradient, moving
+        distance, normal, velocity, face = answer_on_patches(local, np.arange(len(local)), rest_x, d0, g0,
+                                                             self.patch_band, self.patches, self._surface_at(*segment),
+                                                             self.surface_faces)
+        return SimpleNamespace(distance=distance, normal=normal, velocity=velocity, answered=face >= 0)
 
     def tensors(self):
         tensors = super().tensors()
