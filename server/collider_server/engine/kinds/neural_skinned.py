@@ -2123,7 +2123,7 @@ class ArticulatedNeuralCollider(Collider):
             finest = 2.0 * self.radius / self.arch.max_resolution
             self.patches = patch_cells(skin.vertices, skin.faces, PATCH_REACH * finest, PATCH_CELL * finest)
             self.patch_band = PATCH_BAND * finest
-        self._edges = edge_index(np.asarray(skin.faces, np.int64))
+            self._edges = edge_index(np.asarray(skin.faces, np.int64))  # the posed surfaces' pseudo-normals
         self.keep = keep
         self._cache: OrderedDict = OrderedDict()
         self._table: tuple | None = None  # (prepared pose, with the motion, its pose_table)
