@@ -366,3 +366,27 @@ def test_the_numba_finder_gives_the_numpy_references_pairs_and_segments(load_sha
         assert np.array_equal(fast.coplanar, slow.coplanar)
         crossing += len(slow) > 0
     assert crossing == 6
+
+
+def test_the_faces_kept_whole_are_those_neither_crossing_nor_buried():
+    """The cube and the bar through its top (their end buried), and a box buried in another: the
+    faces kept whole are exactly those that cross no other face and do not lie inside the other
+    box (judged by the boxes themselves); a mesh that crosses nothing keeps every face."""
+    from collider_server.engine.union import faces_kept_whole
+
+    for boxes in ((CUBE, BAR), (((-0.1,) * 3, (0.1,) * 3), ((-0.02,) * 3, (0.02,) * 3))):
+        mesh = boxes_mesh(*boxes)
+        sdf = ExactSDF(mesh)
+        kept = faces_kept_whole(mesh.vertices, mesh.faces, sdf.winding_number, sdf.edges)
+        crossing = np.zeros(len(mesh.faces), bool)
+        crossing[self_intersections(mesh.vertices, mesh.faces).pairs.reshape(-1)] = True
+        corners = mesh.vertices[mesh.faces]  # (f, 3, 3); each box's 12 faces in turn
+        box = np.repeat(np.arange(len(boxes)), 12)
+        inside_other = np.array([any(((corners[f] >= lo).all(1) & (corners[f] <= hi).all(1)).all()
+                                     for j, (lo, hi) in enumerate(boxes) if j != box[f])
+                                 for f in range(len(mesh.faces))])
+        np.testing.assert_array_equal(kept, ~crossing & ~inside_other)
+        assert 0 < kept.sum() < len(kept)
+    box = boxes_mesh(CUBE)
+    sdf = ExactSDF(box)
+    assert faces_kept_whole(box.vertices, box.faces, sdf.winding_number, sdf.edges).all()

@@ -42,6 +42,7 @@ class UnionSurface:
         that barycentric coordinates in the source face map a point of the union to the mesh)
     crossing_pairs : pairs of the mesh's faces that cross
     cut_faces : faces cut into cells; dropped_faces : faces left out whole (buried)
+    whole : the first ``whole`` triangles are the mesh's faces kept whole (``source`` names them)
     """
 
     vertices: np.ndarray
@@ -50,6 +51,7 @@ class UnionSurface:
     crossing_pairs: int
     cut_faces: int
     dropped_faces: int
+    whole: int
 
 
 def union_surface(vertices: np.ndarray, faces: np.ndarray, winding, edges: np.ndarray,
@@ -125,7 +127,19 @@ def union_surface(vertices: np.ndarray, faces: np.ndarray, winding, edges: np.nd
     dropped = len(whole) - len(kept_whole) + int(cut.sum()) - len(np.unique(cell_face[kept_cells]))
     return UnionSurface(np.concatenate([vertices, corners]), np.concatenate([faces[kept_whole], triangles]),
                         np.concatenate([kept_whole, np.repeat(cell_face[kept_cells], fans)]), len(crossings),
-                        int(cut.sum()), dropped)
+                        int(cut.sum()), dropped, len(kept_whole))
+
+
+def faces_kept_whole(vertices: np.ndarray, faces: np.ndarray, winding, edges: np.ndarray) -> np.ndarray:
+    """(f,) bool: the faces that lie wholly on the surface the exact SDF measures to (the
+    boundary of ``{winding > 1/2}``, :func:`union_surface`): every face where that is the mesh
+    itself, else the faces it keeps whole (not those that cross another, nor those buried)."""
+    union = union_surface(vertices, faces, winding, edges)
+    if union is None:
+        return np.ones(len(faces), bool)
+    kept = np.zeros(len(faces), bool)
+    kept[union.source[:union.whole]] = True
+    return kept
 
 
 def _cells(tri, unit, crossings: SelfIntersections, cut_faces: np.ndarray, scale: float):
