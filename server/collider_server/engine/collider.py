@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import abc
 import dataclasses
+import itertools
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 from typing import ClassVar
@@ -228,8 +229,9 @@ class Collider(abc.ABC):
         velocity = None
         if want_gradient and gradient_below is not None:
             gradient_below = np.broadcast_to(gradient_below, (n,))
-        for start in range(0, n, self.chunk_points):
-            stop = min(start + self.chunk_points, n)
+        pieces = -(-n // self.chunk_points)
+        bounds = [n * k // max(pieces, 1) for k in range(pieces + 1)]  # chunks alike in size (none left small)
+        for start, stop in itertools.pairwise(bounds):
             chunk = local[start:stop]
             if not want_gradient or gradient_below is None:
                 rows = slice(None)
