@@ -13,7 +13,8 @@ model file's size and its training (steps, seconds).
 
 Speed: 1M points in the +-10 mm band, per round each candidate once in turn (interleaved, the
 load falls on both alike): the articulated network's distance + normal + contact + velocity at a
-new pose each round (joint transforms and velocities: no pose cache), and the static ``grid``
+new pose each round (joint transforms and velocities: no pose cache; also a cloth's 3,321 points
+at another new pose), and the static ``grid``
 preset's network of the rest mesh (same preset and size, untrained weights: the fused kernel's
 time does not depend on the values) for distance + normal + contact; the median and range.
 
@@ -21,9 +22,12 @@ time does not depend on the values) for distance + normal + contact; the median 
     python benchmarks/articulated_neural.py --train-minutes 10   # trains one first (not saved)
     python benchmarks/articulated_neural.py --model models/walker-neural.safetensors --no-accuracy  # time only
 
-``--patches with|without|both`` (default both): the collider as it answers (the exact patches
-near the skin, ``engine/kinds/patches.py``), the network alone (``collider.patches = None``), or
-both, interleaved.
+``--ways`` (default all three, interleaved): ``cells``, every query as the collider answers one of
+``NEAR_POINTS`` (65,536) or more points, the 1M queries' way (the points in the clean cells of the
+posed skin by the skin itself, the others through the network, ``engine/kinds/patches.py``);
+``patches``, every query as the collider answers a smaller one (through the network, its rows
+near the skin by the exact patches about its closest points; ``collider.near_points = None``);
+``network``, the network alone (``collider.patches = None``).
 
 ``--candidate-rules own-label retry-labels`` measures the model through each candidate rule (the
 architecture's ``candidate_rule``; the network is the same, only the parts a point is answered
@@ -58,6 +62,13 @@ from collider_server.making.training.articulated import train_articulated
 from collider_server.making.training.data import normalisation
 from collider_server.making.walker import make_walker
 
+#: The ways ``--ways`` measures the model: as the collider answers a large query, a small one, or
+#: by its network alone.
+WAYS = {"cells": "pose's cells", "patches": "network and patches", "network": "network alone"}
+#: A cloth's query beside the 1M one (the shipped cape's 3,321 vertices), in the +-2 cm band: what
+#: a pose's cost is against a small query.
+SMALL_POINTS = 3_321
+
 
 def accuracy(collider, exact, skin, poses, points_per_pose: int, seed: int, band: float = 1e-3) -> dict:
     """Errors of ``collider`` against ``exact`` in the +-``band`` (m) band at each of ``poses``."""
@@ -87,8 +98,8 @@ def accuracy(collider, exact, skin, poses, points_per_pose: int, seed: int, band
 
 def timing(colliders: dict, skin, rounds: int, seed: int, threads: int) -> dict:
     """Median (min - max) seconds per 1M points: each of ``colliders`` (name -> articulated
-    collider) d+n+c+v at a new pose each round, the static grid network of the rest mesh d+n+c,
-    interleaved."""
+    collider) d+n+c+v at a new pose each round, and on :data:`SMALL_POINTS` points at another new
+    pose, the static grid network of the rest mesh d+n+c, interleaved."""
     import torch
 
     torch.set_num_threads(threads)
@@ -101,17 +112,25 @@ def timing(colliders: dict, skin, rounds: int, seed: int, threads: int) -> dict:
     static = NeuralCollider(info, build_network(arch, centre, radius), device="cpu")
     static_points = surface_band_points(rest, 1_000_000, 1e-2, seed)
     poses = random_poses(skin, rounds, seed + 1, perturbed_share=0.5).transforms
+    small_poses = random_poses(skin, rounds, seed + 2, perturbed_share=0.5).transforms
     _, velocities = pose_at(skin, skin.clips[0].name, 0.3)
+    fields = ("distance", "normal", "contact", "velocity")
     times: dict = {f"articulated {name} d+n+c+v (new pose)": [] for name in colliders}
+    times.update({f"articulated {name} d+n+c+v, {SMALL_POINTS:,} points (new pose)": [] for name in colliders})
     times["static grid d+n+c"] = []
     for r in range(rounds):
         mesh = Mesh(skin_vertices(skin, poses[r]), skin.faces, "posed")
         points = surface_band_points(mesh, 1_000_000, 1e-2, seed + 10 + r)
+        small = surface_band_points(Mesh(skin_vertices(skin, small_poses[r]), skin.faces, "posed"), SMALL_POINTS,
+                                    2e-2, seed + 20 + r)
         for name, collider in colliders.items():
             started = time.perf_counter()
-            collider.query(points, ("distance", "normal", "contact", "velocity"), joint_transforms=poses[r],
-                           joint_velocities=velocities)
+            collider.query(points, fields, joint_transforms=poses[r], joint_velocities=velocities)
             times[f"articulated {name} d+n+c+v (new pose)"].append(time.perf_counter() - started)
+            started = time.perf_counter()
+            collider.query(small, fields, joint_transforms=small_poses[r], joint_velocities=velocities)
+            times[f"articulated {name} d+n+c+v, {SMALL_POINTS:,} points (new pose)"].append(
+                time.perf_counter() - started)
         started = time.perf_counter()
         static.query(static_points, ("distance", "normal", "contact"))
         times["static grid d+n+c"].append(time.perf_counter() - started)
@@ -134,9 +153,9 @@ def main() -> int:
     parser.add_argument("--candidate-rules", nargs="+", choices=CANDIDATE_RULES, default=None,
                         help="measure the model through each of these candidate rules (default: its own)")
     parser.add_argument("--no-accuracy", action="store_true", help="time the query only (no accuracy part)")
-    parser.add_argument("--patches", choices=("with", "without", "both"), default="both",
-                        help="answer with the exact patches near the skin (the collider's way), by the network "
-                             "alone, or both, interleaved (default)")
+    parser.add_argument("--ways", nargs="+", choices=WAYS, default=list(WAYS),
+                        help="as the collider answers a large query (the pose's cells first), a small one (the "
+                             "network and its patches), or by the network alone (default: all three, interleaved)")
     args = parser.parse_args()
     if (args.model is None) == (args.train_minutes is None):
         parser.error("give --model or --train-minutes")
@@ -163,15 +182,15 @@ def main() -> int:
     torch.set_num_threads(args.threads)
     colliders = {}
     rules = args.candidate_rules or [collider.arch.candidate_rule]
-    patched = {"with": [True], "without": [False], "both": [True, False]}[args.patches]
     for rule in rules:
-        for patches in patched:
+        for way in args.ways:
             # One collider each, from the file (a trained one's table rounds to 8 bits there).
-            copy = load_collider(path) if len(rules) * len(patched) > 1 else collider
+            copy = load_collider(path) if len(rules) * len(args.ways) > 1 else collider
             copy.arch = dataclasses.replace(copy.arch, candidate_rule=rule)  # the same network, other candidates
-            if not patches:
+            copy.near_points = 0 if way == "cells" else None
+            if way == "network":
                 copy.patches = None
-            colliders[rule if patches else f"{rule}, network alone"] = copy
+            colliders[f"{rule}, {WAYS[way]}"] = copy
     clip_poses = random_poses(skin, args.clip_times, args.seed, perturbed_share=0.0).transforms
     off_poses = random_poses(skin, args.poses, args.seed + 5).transforms
     for rule, each in ({} if args.no_accuracy else colliders).items():
@@ -189,7 +208,9 @@ def main() -> int:
                   f"per point")
     speed = timing(colliders, skin, args.rounds, args.seed + 7, args.threads) if args.rounds else {}
     for name, (median, low, high) in speed.items():
-        print(f"{name}: {median:.3f} s per 1M points ({low:.3f}-{high:.3f}, {args.rounds} rounds)")
+        unit = ("ms", 1e3) if "points (new pose)" in name else ("s per 1M points", 1.0)
+        print(f"{name}: {median * unit[1]:.3f} {unit[0]} ({low * unit[1]:.3f}-{high * unit[1]:.3f}, "
+              f"{args.rounds} rounds)")
     for rule in colliders if speed else ():
         ratio = speed[f"articulated {rule} d+n+c+v (new pose)"][0] / speed["static grid d+n+c"][0]
         print(f"articulated {rule} / static: {ratio:.2f}x")

@@ -39,13 +39,16 @@ def posed(figure):
 
 def test_a_cell_lists_every_face_within_reach_of_its_points(figure, monkeypatch):
     """Any point within the surface margin of the rest surface finds, in its cell, every face
-    within the reach of it (by brute force over all faces); the cells are the same built in
-    pieces of 97 faces."""
+    within the reach of it (by brute force over all faces); the numba build gives the numpy
+    build's cells, and so does numpy in pieces of 97 faces or grouping by a sort."""
     _, skin, rest_sdf, _, _ = figure
     cells = patches.patch_cells(skin.vertices, skin.faces, REACH, CELL)
+    plain = patches.patch_cells(skin.vertices, skin.faces, REACH, CELL, fused=False)
     monkeypatch.setattr(patches, "BUILD_FACES", 97)
-    for a, b in zip(cells, patches.patch_cells(skin.vertices, skin.faces, REACH, CELL)):
+    monkeypatch.setattr(patches, "DENSE_CELLS", 0)
+    for a, b, c in zip(cells, plain, patches.patch_cells(skin.vertices, skin.faces, REACH, CELL, fused=False)):
         np.testing.assert_array_equal(a, b)
+        np.testing.assert_array_equal(a, c)
     rng = np.random.default_rng(3)
     on = surface_band_points(rest_sdf.mesh, 400, 1e-9, 11)
     points = on + rng.normal(size=on.shape) * (0.5 * patches.SURFACE_MARGIN * CELL / 3)
@@ -134,14 +137,18 @@ def test_cells_need_a_positive_reach_and_size(figure):
 
 
 @pytest.mark.skipif(not WALKER.exists(), reason="the shipped walker model is not in this checkout")
-def test_the_shipped_walker_answers_near_its_skin_as_the_exact_kind():
+@pytest.mark.parametrize("near_points", [None, 0], ids=["through the network", "by the pose's cells"])
+def test_the_shipped_walker_answers_near_its_skin_as_the_exact_kind(near_points):
     """The shipped walker's network at a pose off its clips, 3,000 points in the +-1 mm band of the
-    exact union: with its exact patches nearly every point gets the exact kind's distance (to
-    1e-9 m), normal and velocity; the network alone misses by about 0.1 mm on average."""
+    exact union: nearly every point gets the exact kind's distance (to 1e-9 m), normal and
+    velocity, through the network and its exact patches (a query this small) or by the pose's
+    cells (a query of NEAR_POINTS or more; here every query), the points they leave through the
+    network; the network alone misses by about 0.1 mm on average."""
     from collider_server.engine.modelfile import load_collider
     from collider_server.making.skinned import skinned_collider
 
     collider = load_collider(WALKER)
+    collider.near_points = near_points
     skin = collider.skin
     exact = skinned_collider(skin, "walker", loop=True)
     transforms = random_poses(skin, 1, 909, perturbed_share=1.0).transforms[0]
@@ -151,6 +158,7 @@ def test_the_shipped_walker_answers_near_its_skin_as_the_exact_kind():
     pose = {"joint_transforms": transforms, "joint_velocities": velocities}
     truth = exact.query(points, fields, **pose)
     answer = collider.query(points, fields, **pose)
+    assert np.isfinite(answer.distance).all() and np.isfinite(answer.normal).all()
     same = np.abs(answer.distance - truth.distance) < 1e-9
     assert same.mean() > 0.99
     np.testing.assert_allclose(answer.normal[same], truth.normal[same], atol=1e-6)
@@ -182,3 +190,99 @@ def test_faces_of_no_area_answer_without_error():
     np.testing.assert_allclose(fused[0], plain[0], atol=1e-15)
     below = (points[:, 0] > 0) & (points[:, 1] > 0) & (points[:, 0] + points[:, 1] < 0.0095) & (points[:, 2] < 0)
     np.testing.assert_allclose(fused[0][below], points[below, 2], atol=1e-12)
+
+
+BAND = 0.004
+
+
+@pytest.fixture(scope="module")
+def near(posed):
+    """The posed figure's :class:`~patches.NearCells` (band 4 mm, cells 16 mm) with the faces its
+    exact SDF keeps whole."""
+    from collider_server.engine.union import faces_kept_whole
+
+    skin, _, surface, exact, _, _, _, _ = posed
+    kept = faces_kept_whole(surface.vertices, exact.mesh.faces, exact.winding_number, exact.edges)
+    return patches.near_cells(surface, skin.faces, BAND, CELL, kept)
+
+
+def test_a_pose_s_cell_lists_every_face_within_the_band_of_its_points(posed, near):
+    """Any point within the band of the posed surface lies in a listed cell, which lists every face
+    within the band of it (brute force); the numba build equals the numpy one (every cell that
+    lists a face kept)."""
+    skin, _, surface, exact, _, _, _, _ = posed
+    cells = near.cells
+    for a, b in zip(cells, patches.patch_cells(surface.vertices, skin.faces, BAND, CELL, margin=None, fused=False)):
+        np.testing.assert_array_equal(a, b)
+    points = surface_band_points(exact.mesh, 300, BAND, 13)
+    slot = patches.cells_of(points, cells)
+    assert (slot >= 0).all()
+    tri = surface.vertices[np.asarray(skin.faces)]
+    for p, s in zip(points, slot):
+        within = np.linalg.norm(patches.closest_on_triangles(np.tile(p, (len(tri), 1)), tri[:, 0], tri[:, 1],
+                                                             tri[:, 2])[0] - p, axis=1) <= BAND
+        assert set(np.flatnonzero(within)) <= set(cells.faces[cells.start[s]:cells.start[s + 1]])
+
+
+def test_points_near_the_posed_skin_get_the_exact_kind_s_answers(posed, near):
+    """Points within the band in clean cells get the exact SDF's distance, normal and closest
+    point's velocity (1e-12 m): every one of the +-2 mm band's here (the pose crosses nothing near
+    them); the numpy rule answers the same."""
+    skin, _, surface, exact, points, _, distance, (closest, face) = posed
+    d, normal, velocity, answered = patches.answer_near_skin(points, near, surface, skin.faces)
+    assert near.clean.mean() > 0.9 and (answered >= 0).mean() > 0.99
+    on = answered >= 0
+    np.testing.assert_allclose(d[on], distance[on], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(normal[on], exact.gradient(points, distance, closest, face)[on], atol=1e-9)
+    corners = np.asarray(skin.faces)[face]
+    expected = np.einsum("mj,mjc->mc", barycentric(closest, surface.vertices[corners]), surface.velocities[corners])
+    np.testing.assert_allclose(velocity[on], expected[on], atol=1e-9)
+    plain = patches.answer_near_skin(points, near, surface, skin.faces, fused=False)
+    np.testing.assert_array_equal(plain[3], answered)
+    for a, b in zip((d, normal, velocity), plain[:3]):
+        np.testing.assert_allclose(a[on], b[on], rtol=0, atol=1e-12)
+
+
+def test_points_beyond_the_band_or_by_a_face_not_kept_whole_are_left(posed):
+    """A point farther than the band from the skin is not answered, nor one whose cell lists a face
+    the exact kind does not keep whole (crossing another, or buried): the network answers them."""
+    skin, _, surface, _, points, _, distance, (_, face) = posed
+    narrow = patches.near_cells(surface, skin.faces, 0.001, CELL)
+    answered = patches.answer_near_skin(points, narrow, surface, skin.faces)[3] >= 0
+    np.testing.assert_array_equal(answered, np.abs(distance) <= 0.001)
+    kept = np.ones(len(skin.faces), bool)
+    kept[face[:50]] = False
+    for fused in (True, False):
+        answered = patches.answer_near_skin(points, patches.near_cells(surface, skin.faces, BAND, CELL, kept), surface,
+                                            skin.faces, fused=fused)[3] >= 0
+        assert not answered[:50].any() and answered.mean() > 0.5
+
+
+@pytest.mark.skipif(not WALKER.exists(), reason="the shipped walker model is not in this checkout")
+def test_where_the_walker_passes_through_itself_the_clean_cells_answer_as_the_union():
+    """At poses off the clips where the walker's skin crosses itself, the points its pose's clean
+    cells answer get the exact kind's answer (its union's boundary, 1e-9 m), in the +-3 mm band;
+    with every face taken as kept (the self-overlap ignored) hundreds would not."""
+    from collider_server.engine.modelfile import load_collider
+    from collider_server.making.skinned import skinned_collider
+
+    collider = load_collider(WALKER)
+    skin = collider.skin
+    exact = skinned_collider(skin, "walker", loop=True)
+    crossing = wrong = 0
+    for transforms in random_poses(skin, 8, 11, perturbed_share=0.5).transforms:
+        pose = SkeletonPose(joint_transforms=transforms)
+        near = collider.near_cells(None, pose)
+        if near.clean.all():
+            continue
+        crossing += 1
+        surface = collider.pose(None, pose).surface
+        points = surface_band_points(Mesh(surface.vertices, skin.faces, "posed"), 20000, 3e-3, 5)
+        truth = exact.query(points, ("distance",), joint_transforms=transforms).distance
+        d, _, _, face = patches.answer_near_skin(points, near, surface, skin.faces)
+        on = face >= 0
+        assert 0.8 < on.mean() < 1.0
+        np.testing.assert_allclose(d[on], truth[on], rtol=0, atol=1e-9)
+        everything = patches.near_cells(surface, skin.faces, near.cells.reach, near.cells.cell)
+        wrong += (np.abs(patches.answer_near_skin(points, everything, surface, skin.faces)[0] - truth) > 1e-4).sum()
+    assert crossing >= 2 and wrong > 100

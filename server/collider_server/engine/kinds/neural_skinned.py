@@ -60,19 +60,25 @@ import numpy as np
 
 from ..collider import Collider, ColliderInfo
 from ..devices import resolve_device
-from ..meshes import edge_index
+from ..meshes import ExactSDF, Mesh, edge_index
 from ..skinning import Skeleton, Skin, skin_velocities, skin_vertices
+from ..union import faces_kept_whole
 from . import grid_kernels
 from .grid_architecture import require_integers
 from .neural import across_plateaus
 from .neural_grid import GridArchitecture, build_grid_network, pack_table, unpack_table
 from .patches import (
+    NEAR_CELL,
+    NEAR_POINTS,
     PATCH_BAND,
     PATCH_CELL,
     PATCH_REACH,
+    NearCells,
     PatchCells,
     PosedSurface,
+    answer_near_skin,
     answer_on_patches,
+    near_cells,
     patch_cells,
     posed_surface,
 )
@@ -2085,8 +2091,9 @@ class ArticulatedNeuralCollider(Collider):
 
     def __init__(self, info: ColliderInfo, skin: Skin, network, device: str | None = None, keep: int = 4,
                  patches: bool = True):
-        """``patches``: answer near the skin by the exact patches (:mod:`.patches`; False: the
-        network alone, as the model files before them were answered)."""
+        """``patches``: answer near the skin exactly (:mod:`.patches`: the points in its clean
+        cells by the posed skin itself, the others' rows by the patches about the network's closest
+        points; False: the network alone, as the model files before them were answered)."""
         super().__init__(info)
         import torch
 
@@ -2119,13 +2126,20 @@ class ArticulatedNeuralCollider(Collider):
         #: units), or None: the network answers everywhere.
         self.patches: PatchCells | None = None
         self.patch_band = 0.0
+        #: The fewest points of a query answered within the band of the posed skin by its pose's
+        #: cells (:meth:`near_cells`; :data:`~.patches.NEAR_POINTS`), or None: every query through
+        #: the network and its patches.
+        self.near_points: int | None = NEAR_POINTS if patches else None
+        self._near_cell = 0.0
         if patches:
             finest = 2.0 * self.radius / self.arch.max_resolution
             self.patches = patch_cells(skin.vertices, skin.faces, PATCH_REACH * finest, PATCH_CELL * finest)
             self.patch_band = PATCH_BAND * finest
+            self._near_cell = NEAR_CELL * finest
             self._edges = edge_index(np.asarray(skin.faces, np.int64))  # the posed surfaces' pseudo-normals
         self.keep = keep
         self._cache: OrderedDict = OrderedDict()
+        self._near: OrderedDict = OrderedDict()  # the last poses' near cells (by pose key)
         self._table: tuple | None = None  # (prepared pose, with the motion, its pose_table)
         self._lock = threading.Lock()
 
@@ -2174,6 +2188,35 @@ class ArticulatedNeuralCollider(Collider):
                 self._cache.popitem(last=False)
         return prepared
 
+    def near_cells(self, time, skeleton) -> NearCells:
+        """The :class:`~.patches.NearCells` of a pose (``time`` / ``skeleton`` as
+        :meth:`evaluate_at`'s): the posed skin's cells within :attr:`patch_band` of it, clean where
+        every face listed lies wholly on the exact kind's surface (its union's boundary, by the exact
+        kind's own rule: the skin may pass through itself). Built on first use and kept for the
+        last ``keep`` poses (the walker's: 30-45 ms, most of it the self-intersection test and the
+        cells)."""
+        key = pose_key(time, skeleton)
+        with self._lock:
+            near = self._near.get(key)
+            if near is not None:
+                self._near.move_to_end(key)
+                return near
+        surface = self.pose(time, skeleton).surface
+        exact = ExactSDF(Mesh(surface.vertices, self.skin.faces, "posed"), self._edges)
+        kept = faces_kept_whole(surface.vertices, exact.mesh.faces, exact.winding_number, self._edges)
+        near = near_cells(surface, self.skin.faces, self.patch_band, self._near_cell, kept)
+        with self._lock:
+            self._near[key] = near
+            while len(self._near) > self.keep:
+                self._near.popitem(last=False)
+        return near
+
+    @property
+    def gradient_in_one_pass(self) -> bool:  # type: ignore[override]
+        """With the exact patches the gradient costs little beside the distance (the patches take
+        every row's anyway), and one pass answers a point's distance and normal by one rule."""
+        return self.patches is not None
+
     def evaluate(self, local, want_gradient):
         distance, gradient, _ = self.evaluate_at(local, want_gradient, None, None)
         return distance, gradient
@@ -2203,7 +2246,32 @@ class ArticulatedNeuralCollider(Collider):
         return table
 
     def evaluate_at(self, local, want_gradient, time, skeleton=None):
+        """A query of :attr:`near_points` or more points: those within the band of the skin in its
+        pose's clean cells by the posed skin itself (:meth:`near_cells`), the others through the
+        network; a smaller query (a pose's cells cost more than they save there) all through the
+        network (:meth:`_through_network`), whose exact patches answer nearly every point near the
+        skin alike."""
         prepared = self.pose(time, skeleton)
+        if self.patches is None or self.near_points is None or len(local) < self.near_points:
+            return self._through_network(local, want_gradient, prepared)
+        distance, normal, velocity, face = answer_near_skin(local, self.near_cells(time, skeleton), prepared.surface,
+                                                            self.skin.faces)
+        left = np.flatnonzero(face < 0)  # in no clean cell, or beyond the band
+        if len(left):
+            d, g, v = self._through_network(local[left], want_gradient, prepared)
+            distance[left] = d
+            if want_gradient:
+                normal[left] = g
+            if v is not None:
+                velocity[left] = v
+        if not want_gradient:
+            return distance, None, None
+        return distance, normal, None if prepared.moving is None else velocity
+
+    def _through_network(self, local: np.ndarray, want_gradient: bool, prepared: PreparedPose):
+        """:meth:`evaluate_at` of points ``local`` through the network at a prepared pose: each
+        point's candidate parts, their rows' rest points, the network there (and the exact patches
+        about its closest points), the union over the parts."""
         to_rest, posed, moving, bias, offsets, moving_offsets, surface = prepared
         if self.patches is None:
             surface = None  # the network alone (patches turned off after the pose was prepared)

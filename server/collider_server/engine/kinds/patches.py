@@ -36,12 +36,22 @@ from ..meshes import edge_index, pseudo_normals
 PATCH_BAND = 2.0
 PATCH_REACH = 1.0
 PATCH_CELL = 2.0
+#: The side of a pose's cells (:func:`near_cells`), in the same finest cells: each lists the faces
+#: within ``PATCH_BAND`` of its points (the walker's: 16 mm cells, 18 faces a cell).
+NEAR_CELL = 2.0
+#: A query of at least this many points is answered near the skin by its pose's cells
+#: (:func:`answer_near_skin`); a pose's cells cost 30-45 ms (the walker's), the points they answer
+#: save about 1 us each against the network's path, so smaller queries take that path.
+NEAR_POINTS = 65_536
 #: A cell is kept where the rest surface passes within this fraction of a cell of it: the
 #: network's closest points lie on the rest surface to its error (a tenth of a millimetre), far
 #: inside this margin.
 SURFACE_MARGIN = 0.25
-#: Faces per piece of :func:`patch_cells`' build (its cell pairs in bounded memory).
+#: Faces per piece of :func:`patch_cells`' numpy build (its cell pairs in bounded memory).
 BUILD_FACES = 4096
+#: Grids of at most this many cells are grouped by a counting sort over all of them (8 bytes a
+#: cell while it runs); larger ones by a sort of the listed pairs.
+DENSE_CELLS = 1 << 25
 
 
 class PatchCells(NamedTuple):
@@ -116,20 +126,56 @@ def closest_on_triangles(p: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndar
     return closest, bary, feature
 
 
-def patch_cells(vertices: np.ndarray, faces: np.ndarray, reach: float, cell: float) -> PatchCells:
-    """:class:`PatchCells` of the rest mesh ``vertices`` (V, 3) and ``faces`` (F, 3): cells of side
-    ``cell`` that the rest surface passes within :data:`SURFACE_MARGIN` cells of, each listing the
-    faces within ``reach`` of any of its points (collider units). A face's box grown by ``reach``
-    names its cells; a cell keeps the face where the face lies within ``reach`` plus half the
-    cell's diagonal of its centre (so that no face within ``reach`` of a point of the cell is
-    missed)."""
+def patch_cells(vertices: np.ndarray, faces: np.ndarray, reach: float, cell: float,
+                margin: float | None = SURFACE_MARGIN, fused: bool = True) -> PatchCells:
+    """:class:`PatchCells` of the mesh ``vertices`` (V, 3) and ``faces`` (F, 3): cells of side
+    ``cell``, each listing the faces within ``reach`` of any of its points (collider units); kept
+    where the surface passes within ``margin`` cells of the cell (:data:`SURFACE_MARGIN`: a rest
+    mesh's cells, which the network's closest points fall in), or every cell that lists a face
+    (``margin`` None: a posed mesh's cells, which any point within ``reach`` of the surface falls
+    in). A face's box grown by ``reach`` names its cells; a cell lists the face where it lies
+    within ``reach`` plus half the cell's diagonal of the cell's centre (so that no face within
+    ``reach`` of a point of the cell is missed), nearest that centre first. One numba pass
+    (:func:`_cell_kernel`, a few milliseconds for the walker's 7,920 faces) when numba is there
+    and ``fused``, else numpy in pieces of :data:`BUILD_FACES` faces (the same cells)."""
     if not (reach > 0 and cell > 0):
         raise ValueError(f"reach and cell must be > 0, got {reach} and {cell}")
-    vertices = np.asarray(vertices, np.float64)
-    faces = np.asarray(faces, np.int64)
+    vertices = np.ascontiguousarray(vertices, np.float64)
+    faces = np.ascontiguousarray(faces, np.int64)
     origin = vertices.min(0) - reach - cell
     dims = np.floor((vertices.max(0) + reach + cell - origin) / cell).astype(np.int64) + 1
     half_diagonal = 0.5 * np.sqrt(3.0) * cell
+    size = int(dims.prod())
+    if fused and _cell_kernel is not None:
+        counts = np.zeros(len(faces), np.int64)
+        none = np.zeros(0, np.int64)
+        _cell_kernel(vertices, faces, origin, cell, dims, reach, half_diagonal, counts, none, none, none.astype(
+            np.float64), counts)  # the count of each face's cells, then the cells themselves
+        total = int(counts.sum())
+        key, face, gap = np.empty(total, np.int64), np.empty(total, np.int64), np.empty(total)
+        _cell_kernel(vertices, faces, origin, cell, dims, reach, half_diagonal, np.cumsum(counts) - counts, key, face,
+                     gap, counts)
+    else:
+        key, face, gap = _cell_pairs_numpy(vertices, faces, origin, cell, dims, reach, half_diagonal)
+    if fused and _cell_kernel is not None and size <= DENSE_CELLS:
+        key, face, gap = _grouped(key, face, gap, size)  # a counting sort by cell (the same order)
+    else:
+        order = np.lexsort((face, gap, key))  # within a cell, the faces nearest its centre first
+        key, face, gap = key[order], face[order], gap[order]
+    first = np.r_[True, key[1:] != key[:-1]]
+    if margin is not None:
+        cell_start = np.flatnonzero(first)
+        near = gap[cell_start] <= half_diagonal + margin * cell  # (sorted: a cell's nearest face first)
+        keep = np.repeat(near, np.diff(np.r_[cell_start, len(key)]))
+        key, face = key[keep], face[keep]
+        first = np.r_[True, key[1:] != key[:-1]]
+    start = np.r_[np.flatnonzero(first), len(key)].astype(np.int64)
+    return PatchCells(origin, float(cell), dims, key[first].astype(np.int64), start, face.astype(np.int32),
+                      float(reach))
+
+
+def _cell_pairs_numpy(vertices, faces, origin, cell, dims, reach, half_diagonal):
+    """:func:`patch_cells`' (cell key, face, gap to the cell's centre) pairs in numpy."""
     pieces = []
     for first_face in range(0, len(faces), BUILD_FACES):  # a dense mesh's pairs in bounded memory
         tri = vertices[faces[first_face:first_face + BUILD_FACES]]
@@ -146,18 +192,7 @@ def patch_cells(vertices: np.ndarray, faces: np.ndarray, reach: float, cell: flo
         listed = gap <= reach + half_diagonal
         key = (ijk[listed, 0] * dims[1] + ijk[listed, 1]) * dims[2] + ijk[listed, 2]
         pieces.append((key, face[listed] + first_face, gap[listed]))
-    key, face, gap = (np.concatenate([piece[k] for piece in pieces]) for k in range(3))
-    order = np.lexsort((face, gap, key))  # within a cell, the faces nearest its centre first
-    key, face, gap = key[order], face[order], gap[order]
-    first = np.r_[True, key[1:] != key[:-1]]
-    cell_start = np.flatnonzero(first)
-    near = np.minimum.reduceat(gap, cell_start) <= half_diagonal + SURFACE_MARGIN * cell
-    keep = np.repeat(near, np.diff(np.r_[cell_start, len(key)]))
-    key, face = key[keep], face[keep]
-    first = np.r_[True, key[1:] != key[:-1]]
-    start = np.r_[np.flatnonzero(first), len(key)].astype(np.int64)
-    return PatchCells(origin, float(cell), dims, key[first].astype(np.int64), start, face.astype(np.int32),
-                      float(reach))
+    return tuple(np.concatenate([piece[k] for piece in pieces]) for k in range(3))
 
 
 def posed_surface(vertices: np.ndarray, faces: np.ndarray, edges: np.ndarray | None = None,
@@ -277,10 +312,67 @@ def answer_on_patches(points: np.ndarray, point: np.ndarray, rest: np.ndarray, d
     return out, normal, velocity if moving else None, face
 
 
+class NearCells(NamedTuple):
+    """A posed skin's cells (:func:`near_cells`): ``cells``, the :class:`PatchCells` of the posed
+    mesh (each lists every face within ``cells.reach``, the band, of any of its points), and
+    ``clean`` (k,) bool, the cells whose every listed face lies wholly on the surface the exact
+    kind measures to (:func:`~collider_server.engine.union.faces_kept_whole`: no face there
+    crosses another or lies buried in the body)."""
+
+    cells: PatchCells
+    clean: np.ndarray
+
+
+def near_cells(surface: PosedSurface, faces: np.ndarray, band: float, cell: float,
+               kept_whole: np.ndarray | None = None) -> NearCells:
+    """:class:`NearCells` of a posed ``surface`` (``faces`` (F, 3)): cells of side ``cell`` listing
+    the faces within ``band`` of any of their points; ``kept_whole`` (F,) bool the faces wholly on
+    the exact kind's surface (None: every face). Collider units."""
+    cells = patch_cells(surface.vertices, faces, band, cell, margin=None)
+    if kept_whole is None or not len(cells.faces):
+        return NearCells(cells, np.ones(len(cells.keys), bool))
+    return NearCells(cells, np.logical_and.reduceat(kept_whole[cells.faces], cells.start[:-1]))
+
+
+def answer_near_skin(points: np.ndarray, near: NearCells, surface: PosedSurface, faces: np.ndarray,
+                     fused: bool = True):
+    """Points ``points`` (n, 3) answered by the posed skin itself where they lie in a clean cell of
+    ``near`` and within its band of the skin: the nearest face of the cell's (every face that near
+    is listed there, so it is the skin's nearest), whose distance signed by its pseudo-normal, unit
+    direction and closest point's velocity are the exact kind's answer (no face there crosses
+    another or lies buried, so the surface about the closest point is the body's boundary).
+    Returns ``(distance (n,), normal (n, 3), velocity (n, 3) or None, face (n,) int64)``, collider
+    frame and units, as :func:`answer_on_patches`' (face -1: not answered; distance NaN, normal and
+    velocity zero there). One numba pass (:func:`_near_kernel`) when numba is there and ``fused``,
+    else numpy (the same answers)."""
+    points = np.ascontiguousarray(points, np.float64)
+    faces = np.ascontiguousarray(faces, np.int64)
+    cells = near.cells
+    tiny = 1e-9 * max(float(np.ptp(surface.vertices, axis=0).max()), 1e-30)
+    n = len(points)
+    moving = surface.velocities is not None
+    velocity = np.zeros((n if moving else 0, 3))
+    if fused and _near_kernel is not None:
+        distance, normal, face = np.full(n, np.nan), np.zeros((n, 3)), np.full(n, -1, np.int64)
+        _near_kernel(points, cells.reach, cells.origin, cells.cell, cells.dims, cells.keys, cells.start, cells.faces,
+                     near.clean, surface.vertices, faces, surface.spheres, surface.face_normals, surface.edge_normals,
+                     surface.vertex_normals, surface.velocities if moving else np.zeros((0, 3)), tiny, distance,
+                     normal, velocity, face)
+        return distance, normal, velocity if moving else None, face
+    distance, normal, face, bary = _nearest_numpy(points, points, cells, surface, faces, tiny)
+    slot = cells_of(points, cells)
+    left = (face < 0) | ~(np.abs(distance) <= cells.reach) | ~near.clean[np.maximum(slot, 0)]
+    distance[left], normal[left], face[left] = np.nan, 0.0, -1
+    if moving:
+        answered = ~left
+        velocity[answered] = np.einsum("mj,mjc->mc", bary[answered], surface.velocities[faces[face[answered]]])
+    return distance, normal, velocity if moving else None, face
+
+
 try:
     import numba
 except ImportError:  # pragma: no cover - numba is a dependency; numpy answers without it
-    _answer_kernel = None
+    _answer_kernel = _near_kernel = _cell_kernel = _grouped = None
 else:
     @numba.njit(cache=True, nogil=True, inline="always")
     def _closest_one(px, py, pz, ax, ay, az, bx, by, bz, cx, cy, cz):  # pragma: no cover
@@ -317,6 +409,78 @@ else:
         v, w = vb * denominator, vc * denominator
         return 1.0 - v - w, v, w, 0
 
+    @numba.njit(cache=True, nogil=True, inline="always")
+    def _nearest_listed(px, py, pz, first, last, cell_faces, spheres, vertices, faces, limit):  # pragma: no cover
+        """The nearest of the listed faces ``cell_faces[first:last]`` to a point within ``limit``
+        (inf: any): ``(squared distance, face (-1: none), feature, u, v, w, closest x, y, z)``,
+        the first nearest in list order; a face whose bounding sphere lies farther than the nearest
+        so far is skipped."""
+        best, best_face, best_feature = limit * limit, -1, -1
+        best_length = limit
+        bu = bv = bw = qx = qy = qz = 0.0
+        for e in range(first, last):
+            f = cell_faces[e]
+            reach_f = spheres[f, 3] + best_length
+            if (px - spheres[f, 0]) ** 2 + (py - spheres[f, 1]) ** 2 + (pz - spheres[f, 2]) ** 2 > reach_f * reach_f:
+                continue  # the face's every point is farther than the nearest so far
+            a, b, c = faces[f, 0], faces[f, 1], faces[f, 2]
+            ax, ay, az = vertices[a, 0], vertices[a, 1], vertices[a, 2]
+            bx, by, bz = vertices[b, 0], vertices[b, 1], vertices[b, 2]
+            cx, cy, cz = vertices[c, 0], vertices[c, 1], vertices[c, 2]
+            u, v, w, feature = _closest_one(px, py, pz, ax, ay, az, bx, by, bz, cx, cy, cz)
+            x = u * ax + v * bx + w * cx
+            y = u * ay + v * by + w * cy
+            z = u * az + v * bz + w * cz
+            d2 = (px - x) ** 2 + (py - y) ** 2 + (pz - z) ** 2
+            if d2 < best or (best_face < 0 and d2 <= best):
+                best, best_face, best_feature = d2, f, feature
+                bu, bv, bw, qx, qy, qz = u, v, w, x, y, z
+                best_length = np.sqrt(d2)
+        return best, best_face, best_feature, bu, bv, bw, qx, qy, qz
+
+    @numba.njit(cache=True, nogil=True, inline="always")
+    def _put_answer(r, px, py, pz, best, f, feature, u, v, w, qx, qy, qz, faces, face_normals, edge_normals,
+                    vertex_normals, velocities, tiny, distance, normal, velocity, face):  # pragma: no cover
+        """Row ``r``'s answer on face ``f`` (its closest point ``q`` at squared distance ``best``,
+        on ``feature`` with barycentric ``u, v, w``): the distance signed by the pseudo-normal of
+        the face, edge or vertex ``q`` lies on, the unit direction from ``q`` (that pseudo-normal on
+        the surface), and ``q``'s velocity."""
+        if feature == 0:
+            nx, ny, nz = face_normals[f, 0], face_normals[f, 1], face_normals[f, 2]
+        elif feature <= 3:
+            corner = faces[f, feature - 1]
+            nx, ny, nz = vertex_normals[corner, 0], vertex_normals[corner, 1], vertex_normals[corner, 2]
+        else:
+            opposite = (2, 0, 1)[feature - 4]
+            nx, ny, nz = edge_normals[f, opposite, 0], edge_normals[f, opposite, 1], edge_normals[f, opposite, 2]
+        ox, oy, oz = px - qx, py - qy, pz - qz
+        length = np.sqrt(best)
+        sign = -1.0 if ox * nx + oy * ny + oz * nz < 0.0 else 1.0
+        distance[r] = sign * length
+        if length > tiny:
+            normal[r, 0], normal[r, 1], normal[r, 2] = sign * ox / length, sign * oy / length, sign * oz / length
+        else:
+            normal[r, 0], normal[r, 1], normal[r, 2] = nx, ny, nz
+        face[r] = f
+        if len(velocities):
+            a, b, c = faces[f, 0], faces[f, 1], faces[f, 2]
+            for axis in range(3):
+                velocity[r, axis] = u * velocities[a, axis] + v * velocities[b, axis] + w * velocities[c, axis]
+
+    @numba.njit(cache=True, nogil=True, inline="always")
+    def _cell_at(x, y, z, origin, cell, dims, keys):  # pragma: no cover
+        """The listed cell (an index into ``keys``) holding a point, -1 where none."""
+        i = int(np.floor((x - origin[0]) / cell))
+        j = int(np.floor((y - origin[1]) / cell))
+        k = int(np.floor((z - origin[2]) / cell))
+        if i < 0 or j < 0 or k < 0 or i >= dims[0] or j >= dims[1] or k >= dims[2]:
+            return -1
+        key = (i * dims[1] + j) * dims[2] + k
+        s = np.searchsorted(keys, key)
+        if s >= len(keys) or keys[s] != key:
+            return -1
+        return s
+
     @numba.njit(cache=True, nogil=True, parallel=True)
     def _answer_kernel(points, point, rest, distance, gradient, band, origin, cell, dims, keys, start, cell_faces,
                        reach, vertices, faces, spheres, face_normals, edge_normals, vertex_normals, velocities,
@@ -329,61 +493,105 @@ else:
             gx, gy, gz = gradient[r, 0], gradient[r, 1], gradient[r, 2]
             g = np.sqrt(gx * gx + gy * gy + gz * gz)
             scale = d / g if g > 0.0 else 0.0
-            i = int(np.floor((rest[r, 0] - scale * gx - origin[0]) / cell))
-            j = int(np.floor((rest[r, 1] - scale * gy - origin[1]) / cell))
-            k = int(np.floor((rest[r, 2] - scale * gz - origin[2]) / cell))
-            if i < 0 or j < 0 or k < 0 or i >= dims[0] or j >= dims[1] or k >= dims[2]:
-                continue
-            key = (i * dims[1] + j) * dims[2] + k
-            s = np.searchsorted(keys, key)
-            if s >= len(keys) or keys[s] != key:
+            s = _cell_at(rest[r, 0] - scale * gx, rest[r, 1] - scale * gy, rest[r, 2] - scale * gz, origin, cell, dims,
+                         keys)
+            if s < 0:
                 continue
             p = point[r]
             px, py, pz = points[p, 0], points[p, 1], points[p, 2]
-            best, best_face, best_feature = np.inf, -1, -1
-            best_length = np.inf
-            bu = bv = bw = qx = qy = qz = 0.0
-            for e in range(start[s], start[s + 1]):
-                f = cell_faces[e]
-                reach_f = spheres[f, 3] + best_length
-                if (px - spheres[f, 0]) ** 2 + (py - spheres[f, 1]) ** 2 + (pz - spheres[f, 2]) ** 2 > reach_f * reach_f:
-                    continue  # the face's every point is farther than the nearest so far
-                a, b, c = faces[f, 0], faces[f, 1], faces[f, 2]
-                ax, ay, az = vertices[a, 0], vertices[a, 1], vertices[a, 2]
-                bx, by, bz = vertices[b, 0], vertices[b, 1], vertices[b, 2]
-                cx, cy, cz = vertices[c, 0], vertices[c, 1], vertices[c, 2]
-                u, v, w, feature = _closest_one(px, py, pz, ax, ay, az, bx, by, bz, cx, cy, cz)
-                x = u * ax + v * bx + w * cx
-                y = u * ay + v * by + w * cy
-                z = u * az + v * bz + w * cz
-                d2 = (px - x) ** 2 + (py - y) ** 2 + (pz - z) ** 2
-                if d2 < best:
-                    best, best_face, best_feature = d2, f, feature
-                    bu, bv, bw, qx, qy, qz = u, v, w, x, y, z
-                    best_length = np.sqrt(d2)
-            if best_face < 0:
+            best, f, feature, u, v, w, qx, qy, qz = _nearest_listed(px, py, pz, start[s], start[s + 1], cell_faces,
+                                                                    spheres, vertices, faces, np.inf)
+            if f < 0 or np.sqrt(best) > abs(d) + reach:
+                continue  # no face, or the patch is not the row's
+            _put_answer(r, px, py, pz, best, f, feature, u, v, w, qx, qy, qz, faces, face_normals, edge_normals,
+                        vertex_normals, velocities, tiny, distance, normal, velocity, face)
+
+    @numba.njit(cache=True, nogil=True, parallel=True)
+    def _near_kernel(points, band, origin, cell, dims, keys, start, cell_faces, clean, vertices, faces, spheres,
+                     face_normals, edge_normals, vertex_normals, velocities, tiny, distance, normal, velocity,
+                     face):  # pragma: no cover
+        """:func:`answer_near_skin` in one pass over the points (numba, parallel)."""
+        for p in numba.prange(len(points)):
+            px, py, pz = points[p, 0], points[p, 1], points[p, 2]
+            s = _cell_at(px, py, pz, origin, cell, dims, keys)
+            if s < 0 or not clean[s]:
                 continue
-            f = best_face
-            if best_feature == 0:
-                nx, ny, nz = face_normals[f, 0], face_normals[f, 1], face_normals[f, 2]
-            elif best_feature <= 3:
-                corner = faces[f, best_feature - 1]
-                nx, ny, nz = vertex_normals[corner, 0], vertex_normals[corner, 1], vertex_normals[corner, 2]
-            else:
-                opposite = (2, 0, 1)[best_feature - 4]
-                nx, ny, nz = edge_normals[f, opposite, 0], edge_normals[f, opposite, 1], edge_normals[f, opposite, 2]
-            ox, oy, oz = px - qx, py - qy, pz - qz
-            length = np.sqrt(best)
-            sign = -1.0 if ox * nx + oy * ny + oz * nz < 0.0 else 1.0
-            if length > abs(d) + reach:
-                continue
-            distance[r] = sign * length
-            if length > tiny:
-                normal[r, 0], normal[r, 1], normal[r, 2] = sign * ox / length, sign * oy / length, sign * oz / length
-            else:
-                normal[r, 0], normal[r, 1], normal[r, 2] = nx, ny, nz
-            face[r] = f
-            if len(velocities):
-                a, b, c = faces[f, 0], faces[f, 1], faces[f, 2]
-                for axis in range(3):
-                    velocity[r, axis] = bu * velocities[a, axis] + bv * velocities[b, axis] + bw * velocities[c, axis]
+            best, f, feature, u, v, w, qx, qy, qz = _nearest_listed(px, py, pz, start[s], start[s + 1], cell_faces,
+                                                                    spheres, vertices, faces, band)
+            if f >= 0:
+                _put_answer(p, px, py, pz, best, f, feature, u, v, w, qx, qy, qz, faces, face_normals, edge_normals,
+                            vertex_normals, velocities, tiny, distance, normal, velocity, face)
+
+    @numba.njit(cache=True, nogil=True, parallel=True)
+    def _cell_kernel(vertices, faces, origin, cell, dims, reach, half_diagonal, offsets, key, face, gap,
+                     counts):  # pragma: no cover
+        """:func:`patch_cells`' pairs: per face the cells its box grown by ``reach`` names whose
+        centre lies within ``reach`` plus ``half_diagonal`` of it, counted into ``counts`` (and
+        written from ``offsets`` into ``key``, ``face``, ``gap`` when they have room)."""
+        limit = reach + half_diagonal
+        loose = limit * (1.0 + 1e-9)  # the cheap tests only skip what is surely beyond the limit
+        for f in numba.prange(len(faces)):
+            a, b, c = faces[f, 0], faces[f, 1], faces[f, 2]
+            ax, ay, az = vertices[a, 0], vertices[a, 1], vertices[a, 2]
+            bx, by, bz = vertices[b, 0], vertices[b, 1], vertices[b, 2]
+            cx, cy, cz = vertices[c, 0], vertices[c, 1], vertices[c, 2]
+            nx = (by - ay) * (cz - az) - (bz - az) * (cy - ay)
+            ny = (bz - az) * (cx - ax) - (bx - ax) * (cz - az)
+            nz = (bx - ax) * (cy - ay) - (by - ay) * (cx - ax)
+            length = np.sqrt(nx * nx + ny * ny + nz * nz)
+            mx, my, mz = (ax + bx + cx) / 3.0, (ay + by + cy) / 3.0, (az + bz + cz) / 3.0
+            radius = np.sqrt(max((ax - mx) ** 2 + (ay - my) ** 2 + (az - mz) ** 2,
+                                 (bx - mx) ** 2 + (by - my) ** 2 + (bz - mz) ** 2,
+                                 (cx - mx) ** 2 + (cy - my) ** 2 + (cz - mz) ** 2))
+            i0 = int(np.floor((min(ax, bx, cx) - reach - origin[0]) / cell))
+            i1 = int(np.floor((max(ax, bx, cx) + reach - origin[0]) / cell))
+            j0 = int(np.floor((min(ay, by, cy) - reach - origin[1]) / cell))
+            j1 = int(np.floor((max(ay, by, cy) + reach - origin[1]) / cell))
+            k0 = int(np.floor((min(az, bz, cz) - reach - origin[2]) / cell))
+            k1 = int(np.floor((max(az, bz, cz) + reach - origin[2]) / cell))
+            n = 0
+            for i in range(i0, i1 + 1):
+                x = origin[0] + (i + 0.5) * cell
+                for j in range(j0, j1 + 1):
+                    y = origin[1] + (j + 0.5) * cell
+                    for k in range(k0, k1 + 1):
+                        z = origin[2] + (k + 0.5) * cell
+                        if length > 0.0 and abs((x - ax) * nx + (y - ay) * ny + (z - az) * nz) > loose * length:
+                            continue  # farther than the limit from the face's plane
+                        if np.sqrt((x - mx) ** 2 + (y - my) ** 2 + (z - mz) ** 2) - radius > loose:
+                            continue  # and from its bounding sphere
+                        u, v, w, _ = _closest_one(x, y, z, ax, ay, az, bx, by, bz, cx, cy, cz)
+                        qx, qy, qz = u * ax + v * bx + w * cx, u * ay + v * by + w * cy, u * az + v * bz + w * cz
+                        d = np.sqrt((x - qx) ** 2 + (y - qy) ** 2 + (z - qz) ** 2)  # (numpy's arithmetic)
+                        if d <= limit:
+                            if len(key):
+                                key[offsets[f] + n] = (i * dims[1] + j) * dims[2] + k
+                                face[offsets[f] + n] = f
+                                gap[offsets[f] + n] = d
+                            n += 1
+            counts[f] = n
+
+    @numba.njit(cache=True, nogil=True)
+    def _grouped(key, face, gap, size):  # pragma: no cover
+        """The pairs ``(key, face, gap)`` ordered by key, then gap, then face (as ``np.lexsort``):
+        a counting sort over ``size`` cells, then each cell's few faces by insertion."""
+        start = np.zeros(size + 1, np.int64)
+        for e in range(len(key)):
+            start[key[e] + 1] += 1
+        for c in range(size):
+            start[c + 1] += start[c]
+        at = start[:-1].copy()
+        out_key, out_face, out_gap = np.empty_like(key), np.empty_like(face), np.empty_like(gap)
+        for e in range(len(key)):
+            slot = at[key[e]]
+            out_key[slot], out_face[slot], out_gap[slot] = key[e], face[e], gap[e]
+            at[key[e]] = slot + 1
+        for c in range(size):
+            for e in range(start[c] + 1, start[c + 1]):
+                g, f = out_gap[e], out_face[e]
+                m = e - 1
+                while m >= start[c] and (out_gap[m] > g or (out_gap[m] == g and out_face[m] > f)):
+                    out_gap[m + 1], out_face[m + 1] = out_gap[m], out_face[m]
+                    m -= 1
+                out_gap[m + 1], out_face[m + 1] = g, f
+        return out_key, out_face, out_gap
