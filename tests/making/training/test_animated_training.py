@@ -263,17 +263,20 @@ def test_a_deformed_rest_pose_learns_the_pulsing_sphere_and_its_velocity(sphere,
     assert np.concatenate(velocity_errors).mean() < 0.1 * np.concatenate(speeds).mean()
 
 
+@pytest.mark.parametrize("near_points", [None, 0], ids=["through the network", "by the time's cells"])
 def test_a_deformed_run_keeps_its_frames_and_answers_near_the_surface_on_their_patches(sphere, deformed_runs,
-                                                                                      tmp_path):
+                                                                                      tmp_path, near_points):
     """A deformed network keeps its source's frames in its file (float32) and answers points near
     the surface at random times as the exact animated mesh kind does (distance, normal, velocity):
-    on the patches of the interpolated frames around its rest field's closest point. Without them
-    (``patches = None``) the network alone answers, as far off as 400 steps leave it."""
+    on the patches of the interpolated frames around its rest field's closest point (a small
+    query), or by the cells of those frames (a query of NEAR_POINTS or more; here every query).
+    Without them (``patches = None``) the network alone answers, as far off as 400 steps leave it."""
     from collider_server.engine.modelfile import save_collider
     from collider_server.making.bake import bake_animated_collider
 
     animation, _ = sphere
     collider = load_collider(save_collider(deformed_runs("cpu").collider, tmp_path / "pulse.safetensors"))
+    collider.near_points = near_points
     assert collider.surface_frames.dtype == np.float32
     np.testing.assert_allclose(collider.surface_frames, animation.frames, atol=1e-7)
     exact = bake_animated_collider(animation, "mesh", "pulse")
@@ -291,6 +294,7 @@ def test_a_deformed_run_keeps_its_frames_and_answers_near_the_surface_on_their_p
         alone = collider.query(points, ["distance"], time=float(t)).distance
         assert np.abs(alone - truth.distance).mean() > 20 * np.abs(got.distance - truth.distance).mean()
         collider.keep_surface(collider.surface_frames, collider.surface_faces)
+        collider.near_points = near_points
 
 
 @pytest.mark.parametrize("spare", [-1, 0])

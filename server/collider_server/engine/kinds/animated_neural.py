@@ -16,7 +16,9 @@ tangential part); for a deformed rest pose the velocity of the material point, s
 A deformed rest pose trained from a mesh's frames keeps them (``surface.frames``, float32, and
 ``surface.faces``): near the surface its points are answered on the exact patches
 (:mod:`.patches`), the frames' faces, interpolated at the time, around the rest field's closest
-point, as the articulated network answers a skin.
+point, as the articulated network answers a skin; a query of :data:`~.patches.NEAR_POINTS` or more
+points first by the cells of the frames at the time (:func:`~.patches.pose_cells`), as the
+articulated network's.
 """
 
 from __future__ import annotations
@@ -35,7 +37,18 @@ from .animated_voxel import normal_velocity
 from .neural import NeuralCollider
 from .neural_deformed import DeformedGridArchitecture
 from .neural_keyframes import KeyframeGridArchitecture
-from .patches import PATCH_BAND, PATCH_CELL, PATCH_REACH, answer_on_patches, patch_cells, posed_surface
+from .patches import (
+    NEAR_CELL,
+    NEAR_POINTS,
+    PATCH_BAND,
+    PATCH_CELL,
+    PATCH_REACH,
+    answer_near_first,
+    answer_on_patches,
+    patch_cells,
+    pose_cells,
+    posed_surface,
+)
 
 #: The model file's names of the frames a deformed network keeps for its exact patches.
 SURFACE_FRAMES, SURFACE_FACES = "surface.frames", "surface.faces"
@@ -64,7 +77,10 @@ class AnimatedNeuralCollider(NeuralCollider):
         self.surface_faces: np.ndarray | None = None
         self.patches = None
         self.patch_band = 0.0
-        self._posed: tuple | None = None  # (segment, fraction, rate, posed surface) of the last time
+        #: The fewest points of a query answered near the surface by the cells of the frames at
+        #: its time (:data:`~.patches.NEAR_POINTS` with the frames kept), or None: never.
+        self.near_points: int | None = None
+        self._posed: tuple | None = None  # (segment, fraction, rate, posed surface, its cells) of the last time
         self._lock = threading.Lock()
 
     def keep_surface(self, frames: np.ndarray, faces: np.ndarray) -> None:
@@ -82,32 +98,54 @@ class AnimatedNeuralCollider(NeuralCollider):
         self.patches = patch_cells(frames[0].astype(np.float64), self.surface_faces, PATCH_REACH * finest,
                                    PATCH_CELL * finest)
         self.patch_band = PATCH_BAND * finest
+        self._near_cell = NEAR_CELL * finest
+        self.near_points = NEAR_POINTS
         self._edges = edge_index(self.surface_faces)
         self._posed = None
 
-    def _surface_at(self, k: int, s: float, rate: float):
+    def _surface_at(self, k: int, s: float, rate: float, cells: bool = False):
         """The frames' surface at segment ``k``, fraction ``s``, ``rate`` frames per second (kept
         for the last time asked): vertices interpolated as the exact animated kind's, their
-        velocities its segment's."""
+        velocities its segment's; with ``cells``, ``(surface, its pose_cells)``."""
         with self._lock:
             kept = self._posed
-        if kept is not None and kept[:3] == (k, s, rate):
-            return kept[3]
-        low, high = (self.surface_frames[k].astype(np.float64), self.surface_frames[k + 1].astype(np.float64))
-        surface = posed_surface(interpolate(low, high, s), self.surface_faces, self._edges, (high - low) * rate)
+        if kept is None or kept[:3] != (k, s, rate):
+            low, high = (self.surface_frames[k].astype(np.float64), self.surface_frames[k + 1].astype(np.float64))
+            surface = posed_surface(interpolate(low, high, s), self.surface_faces, self._edges, (high - low) * rate)
+            kept = (k, s, rate, surface, None)
+        if cells and kept[4] is None:
+            kept = kept[:4] + (pose_cells(kept[3], self.surface_faces, self._edges, self.patch_band,
+                                          self._near_cell),)
         with self._lock:
-            self._posed = (k, s, rate, surface)
-        return surface
+            self._posed = kept
+        return (kept[3], kept[4]) if cells else kept[3]
 
     @property
     def keyframes(self) -> int:
         return self.timeline.frames
+
+    @property
+    def gradient_in_one_pass(self) -> bool:  # type: ignore[override]
+        """With the exact patches the gradient costs little beside the distance (the patches take
+        the rest field's anyway), and one pass answers a point's distance and normal by one rule."""
+        return self.patches is not None
 
     def evaluate(self, local, want_gradient):
         distance, gradient, _ = self.evaluate_at(local, want_gradient, 0.0)
         return distance, gradient
 
     def evaluate_at(self, local, want_gradient, time):
+        """A query of :attr:`near_points` or more points: those near the frames at the time in
+        their clean cells by the frames themselves, the others through the network
+        (:meth:`_through_network`); a smaller query all through the network."""
+        if self.patches is None or self.near_points is None or len(local) < self.near_points:
+            return self._through_network(local, want_gradient, time)
+        surface, near = self._surface_at(*self.timeline.locate(0.0 if time is None else time), cells=True)
+        return answer_near_first(local, near, surface, self.surface_faces, want_gradient, True,
+                                 lambda rows, gradient: self._through_network(rows, gradient, time))
+
+    def _through_network(self, local, want_gradient, time):
+        """:meth:`evaluate_at` through the network (and its exact patches)."""
         torch = self._torch
         k, s, rate = self.timeline.locate(0.0 if time is None else time)
         x = torch.as_tensor(local, dtype=torch.float32, device=self._device)
@@ -127,7 +165,7 @@ class AnimatedNeuralCollider(NeuralCollider):
         if not want_gradient:
             return distance, None, None
         gradient = self.across_plateaus(local, g.double().cpu().numpy(),
-                                        lambda p: self.evaluate_at(p, False, time)[0])
+                                        lambda p: self._through_network(p, False, time)[0])
         moving = moving.double().cpu().numpy()  # the velocity (deformed) or df/dt (keyframes)
         velocity = moving if self._material_velocity else normal_velocity(gradient, moving)
         if exact is not None:

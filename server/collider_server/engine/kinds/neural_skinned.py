@@ -60,9 +60,8 @@ import numpy as np
 
 from ..collider import Collider, ColliderInfo
 from ..devices import resolve_device
-from ..meshes import ExactSDF, Mesh, edge_index
+from ..meshes import edge_index
 from ..skinning import Skeleton, Skin, skin_velocities, skin_vertices
-from ..union import faces_kept_whole
 from . import grid_kernels
 from .grid_architecture import require_integers
 from .neural import across_plateaus
@@ -76,10 +75,10 @@ from .patches import (
     NearCells,
     PatchCells,
     PosedSurface,
-    answer_near_skin,
+    answer_near_first,
     answer_on_patches,
-    near_cells,
     patch_cells,
+    pose_cells,
     posed_surface,
 )
 from .skinned import pose_key, resolve_pose, skin_from_tensors, skin_tensors
@@ -2201,10 +2200,8 @@ class ArticulatedNeuralCollider(Collider):
             if near is not None:
                 self._near.move_to_end(key)
                 return near
-        surface = self.pose(time, skeleton).surface
-        exact = ExactSDF(Mesh(surface.vertices, self.skin.faces, "posed"), self._edges)
-        kept = faces_kept_whole(surface.vertices, exact.mesh.faces, exact.winding_number, self._edges)
-        near = near_cells(surface, self.skin.faces, self.patch_band, self._near_cell, kept)
+        near = pose_cells(self.pose(time, skeleton).surface, self.skin.faces, self._edges, self.patch_band,
+                          self._near_cell)
         with self._lock:
             self._near[key] = near
             while len(self._near) > self.keep:
@@ -2254,19 +2251,9 @@ class ArticulatedNeuralCollider(Collider):
         prepared = self.pose(time, skeleton)
         if self.patches is None or self.near_points is None or len(local) < self.near_points:
             return self._through_network(local, want_gradient, prepared)
-        distance, normal, velocity, face = answer_near_skin(local, self.near_cells(time, skeleton), prepared.surface,
-                                                            self.skin.faces)
-        left = np.flatnonzero(face < 0)  # in no clean cell, or beyond the band
-        if len(left):
-            d, g, v = self._through_network(local[left], want_gradient, prepared)
-            distance[left] = d
-            if want_gradient:
-                normal[left] = g
-            if v is not None:
-                velocity[left] = v
-        if not want_gradient:
-            return distance, None, None
-        return distance, normal, None if prepared.moving is None else velocity
+        return answer_near_first(local, self.near_cells(time, skeleton), prepared.surface, self.skin.faces,
+                                 want_gradient, prepared.moving is not None,
+                                 lambda rows, gradient: self._through_network(rows, gradient, prepared))
 
     def _through_network(self, local: np.ndarray, want_gradient: bool, prepared: PreparedPose):
         """:meth:`evaluate_at` of points ``local`` through the network at a prepared pose: each
