@@ -286,3 +286,31 @@ def test_where_the_walker_passes_through_itself_the_clean_cells_answer_as_the_un
         everything = patches.near_cells(surface, skin.faces, near.cells.reach, near.cells.cell)
         wrong += (np.abs(patches.answer_near_skin(points, everything, surface, skin.faces)[0] - truth) > 1e-4).sum()
     assert crossing >= 2 and wrong > 100
+
+
+@pytest.mark.skipif(not WALKER.exists(), reason="the shipped walker model is not in this checkout")
+def test_a_collide_only_query_answers_distance_and_normal_in_one_pass():
+    """With its patches the articulated collider answers a collide-only query's distance and normal
+    in one pass (``gradient_in_one_pass``), so that a large query's distances and the normals of its
+    few colliding points come from one path (not the pose's cells' distance and the network's
+    normal); the network alone keeps the distance pass, then the normals of the colliding points."""
+    from collider_server.engine.modelfile import load_collider
+
+    collider = load_collider(WALKER)
+    calls = []
+    evaluate_at = collider.evaluate_at
+
+    def recording(local, want_gradient, time, skeleton=None):
+        calls.append(bool(want_gradient))
+        return evaluate_at(local, want_gradient, time, skeleton)
+
+    collider.evaluate_at = recording
+    transforms = random_poses(collider.skin, 1, 77, perturbed_share=0.0).transforms[0]
+    points = surface_band_points(Mesh(skin_vertices(collider.skin, transforms), collider.skin.faces, "posed"), 2000,
+                                 5e-3, 19)
+    for patches_on, expected in ((True, [True]), (False, [False, True])):
+        if not patches_on:
+            collider.patches = None
+        calls.clear()
+        answer = collider.query(points, ("distance", "normal"), only_colliding=True, joint_transforms=transforms)
+        assert calls == expected and 0 < (answer.distance < 1e-3).sum() < len(points)
