@@ -314,3 +314,37 @@ def test_a_collide_only_query_answers_distance_and_normal_in_one_pass():
         calls.clear()
         answer = collider.query(points, ("distance", "normal"), only_colliding=True, joint_transforms=transforms)
         assert calls == expected and 0 < (answer.distance < 1e-3).sum() < len(points)
+
+
+@pytest.mark.skipif(not WALKER.exists(), reason="the shipped walker model is not in this checkout")
+def test_only_a_query_of_near_points_or_more_uses_the_pose_s_cells():
+    """A query smaller than ``near_points`` goes through the network without building the pose's
+    cells (a cloth's query cannot repay them); one of ``near_points`` or more asks for them in every
+    chunk; ``near_points = None`` never. The kinds' own ``near_points`` are at most half a chunk,
+    so that every chunk of such a query (chunks alike in size) is as large: one path per query."""
+    from collider_server.engine.kinds.animated_neural import AnimatedNeuralCollider
+    from collider_server.engine.modelfile import load_collider
+
+    collider = load_collider(WALKER)
+    assert collider.near_points == patches.NEAR_POINTS == 65_536
+    for chunk in (collider.chunk_points, AnimatedNeuralCollider.chunk_points, 400):
+        least = patches.near_points(chunk)
+        assert least <= patches.NEAR_POINTS and 2 * least <= chunk
+        for n in (least, chunk - 1, chunk + 1, 2 * chunk + 3, 7 * chunk - 1):
+            pieces = -(-n // chunk)
+            assert min(n * (k + 1) // pieces - n * k // pieces for k in range(pieces)) >= least
+    asked = []
+    near_cells = collider.near_cells
+
+    def recording(time, skeleton):
+        asked.append(time)
+        return near_cells(time, skeleton)
+
+    collider.near_cells = recording
+    points = surface_band_points(Mesh(collider.skin.vertices, collider.skin.faces, "rest"), 1000, 5e-3, 3)
+    collider.chunk_points = 400  # 1,000 points: three chunks of 333 or 334
+    for n, least, expected in ((1000, 1001, 0), (1000, 200, 3), (1000, None, 0), (150, 200, 0), (150, 150, 1)):
+        collider.near_points = least
+        asked.clear()
+        answer = collider.query(points[:n], ("distance", "normal"), time=0.25)
+        assert len(asked) == expected and np.isfinite(answer.distance).all(), (n, least)

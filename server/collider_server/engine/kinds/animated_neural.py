@@ -16,8 +16,8 @@ tangential part); for a deformed rest pose the velocity of the material point, s
 A deformed rest pose trained from a mesh's frames keeps them (``surface.frames``, float32, and
 ``surface.faces``): near the surface its points are answered on the exact patches
 (:mod:`.patches`), the frames' faces, interpolated at the time, around the rest field's closest
-point, as the articulated network answers a skin; a query of :data:`~.patches.NEAR_POINTS` or more
-points first by the cells of the frames at the time (:func:`~.patches.pose_cells`), as the
+point, as the articulated network answers a skin; a query of
+:func:`~.patches.near_points` or more points first by the cells of the frames at the time (:func:`~.patches.pose_cells`), as the
 articulated network's.
 """
 
@@ -39,12 +39,12 @@ from .neural_deformed import DeformedGridArchitecture
 from .neural_keyframes import KeyframeGridArchitecture
 from .patches import (
     NEAR_CELL,
-    NEAR_POINTS,
     PATCH_BAND,
     PATCH_CELL,
     PATCH_REACH,
     answer_near_first,
     answer_on_patches,
+    near_points,
     patch_cells,
     pose_cells,
     posed_surface,
@@ -78,7 +78,7 @@ class AnimatedNeuralCollider(NeuralCollider):
         self.patches = None
         self.patch_band = 0.0
         #: The fewest points of a query answered near the surface by the cells of the frames at
-        #: its time (:data:`~.patches.NEAR_POINTS` with the frames kept), or None: never.
+        #: its time (:func:`~.patches.near_points`, with the frames kept), or None: never.
         self.near_points: int | None = None
         self._posed: tuple | None = None  # (segment, fraction, rate, posed surface, its cells) of the last time
         self._lock = threading.Lock()
@@ -99,7 +99,7 @@ class AnimatedNeuralCollider(NeuralCollider):
                                    PATCH_CELL * finest)
         self.patch_band = PATCH_BAND * finest
         self._near_cell = NEAR_CELL * finest
-        self.near_points = NEAR_POINTS
+        self.near_points = near_points(self.chunk_points)
         self._edges = edge_index(self.surface_faces)
         self._posed = None
 

@@ -68,7 +68,6 @@ from .neural import across_plateaus
 from .neural_grid import GridArchitecture, build_grid_network, pack_table, unpack_table
 from .patches import (
     NEAR_CELL,
-    NEAR_POINTS,
     PATCH_BAND,
     PATCH_CELL,
     PATCH_REACH,
@@ -77,6 +76,7 @@ from .patches import (
     PosedSurface,
     answer_near_first,
     answer_on_patches,
+    near_points,
     patch_cells,
     pose_cells,
     posed_surface,
@@ -2126,9 +2126,9 @@ class ArticulatedNeuralCollider(Collider):
         self.patches: PatchCells | None = None
         self.patch_band = 0.0
         #: The fewest points of a query answered within the band of the posed skin by its pose's
-        #: cells (:meth:`near_cells`; :data:`~.patches.NEAR_POINTS`), or None: every query through
+        #: cells (:meth:`near_cells`; :func:`~.patches.near_points`), or None: every query through
         #: the network and its patches.
-        self.near_points: int | None = NEAR_POINTS if patches else None
+        self.near_points: int | None = near_points(self.chunk_points) if patches else None
         self._near_cell = 0.0
         if patches:
             finest = 2.0 * self.radius / self.arch.max_resolution

@@ -41,7 +41,8 @@ PATCH_CELL = 2.0
 NEAR_CELL = 2.0
 #: A query of at least this many points is answered near the skin by its pose's cells
 #: (:func:`answer_near_skin`); a pose's cells cost 30-45 ms (the walker's), the points they answer
-#: save about 1 us each against the network's path, so smaller queries take that path.
+#: save about 1 us each against the network's path, so smaller queries take that path
+#: (:func:`near_points`).
 NEAR_POINTS = 65_536
 #: A cell is kept where the rest surface passes within this fraction of a cell of it: the
 #: network's closest points lie on the rest surface to its error (a tenth of a millimetre), far
@@ -348,9 +349,17 @@ def pose_cells(surface: PosedSurface, faces: np.ndarray, edges: np.ndarray, band
     return near_cells(surface, faces, band, cell, kept)
 
 
+def near_points(chunk_points: int) -> int:
+    """The fewest points of a query a kind answering in chunks of ``chunk_points`` answers by the
+    pose's cells: :data:`NEAR_POINTS`, or half a chunk where that is less. A collider sees a query
+    a chunk at a time, and a query's chunks are cut alike in size (``Collider.query_local``), so a
+    query of this many points or more has every chunk as large: the whole query takes one path."""
+    return min(NEAR_POINTS, chunk_points // 2)
+
+
 def answer_near_first(points: np.ndarray, near: NearCells, surface: PosedSurface, faces: np.ndarray,
                       want_gradient: bool, moving: bool, through_network):
-    """A large query's answers (:data:`NEAR_POINTS` or more ``points`` (n, 3)): those the pose's
+    """A large query's answers (:func:`near_points` or more ``points`` (n, 3)): those the pose's
     cells answer (:func:`answer_near_skin`), the others by ``through_network(points (m, 3),
     want_gradient) -> (distance, gradient or None, velocity or None)``. Returns the collider's
     ``(distance (n,), normal (n, 3) or None, velocity (n, 3) or None)`` (a normal where
