@@ -348,3 +348,28 @@ def test_only_a_query_of_near_points_or_more_uses_the_pose_s_cells():
         asked.clear()
         answer = collider.query(points[:n], ("distance", "normal"), time=0.25)
         assert len(asked) == expected and np.isfinite(answer.distance).all(), (n, least)
+
+
+@pytest.mark.skipif(not WALKER.exists(), reason="the shipped walker model is not in this checkout")
+def test_a_large_query_is_answered_near_the_skin_by_the_pose_s_cells_without_the_network():
+    """The pose's cells need no network near the skin: with the walker's network scrambled, a query
+    of ``near_points`` or more points at a clip time still gets the exact kind's distances in the
+    band (its skin crosses nothing there); a smaller one, through the scrambled network, does not."""
+    import torch
+
+    from collider_server.engine.modelfile import load_collider
+    from collider_server.making.skinned import skinned_collider
+
+    collider = load_collider(WALKER)
+    with torch.no_grad():
+        collider.network.grid.table.copy_(torch.randn_like(collider.network.grid.table))
+    skin = collider.skin
+    transforms, _ = pose_at(skin, skin.clips[0].name, 0.37)
+    points = surface_band_points(Mesh(skin_vertices(skin, transforms), skin.faces, "posed"), 2000, 1e-3, 23)
+    truth = skinned_collider(skin, "walker", loop=True).query(points, ("distance",), joint_transforms=transforms)
+    collider.near_points = 2000
+    answer = collider.query(points, ("distance",), joint_transforms=transforms).distance
+    np.testing.assert_allclose(answer, truth.distance, atol=1e-9)
+    collider.near_points = 2001
+    answer = collider.query(points, ("distance",), joint_transforms=transforms).distance
+    assert np.abs(answer - truth.distance).mean() > 1e-4

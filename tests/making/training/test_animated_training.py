@@ -297,6 +297,32 @@ def test_a_deformed_run_keeps_its_frames_and_answers_near_the_surface_on_their_p
         collider.near_points = near_points
 
 
+def test_a_large_query_is_answered_near_the_surface_by_the_frames_cells_without_the_network(sphere, deformed_runs,
+                                                                                          tmp_path):
+    """A query of ``near_points`` or more points is answered near the surface by the cells of the
+    frames at its time, which need no network there: with the network's weights scrambled it still
+    gets the exact animated mesh kind's distances; a smaller query, through the scrambled network
+    and its patches, does not."""
+    import torch
+
+    from collider_server.engine.modelfile import save_collider
+    from collider_server.making.bake import bake_animated_collider
+
+    animation, _ = sphere
+    collider = load_collider(save_collider(deformed_runs("cpu").collider, tmp_path / "pulse.safetensors"))
+    with torch.no_grad():
+        for parameter in collider.network.parameters():
+            parameter.copy_(torch.randn_like(parameter))
+    rng = np.random.default_rng(9)
+    mesh = animation.mesh_at(0.4)
+    points = mesh.vertices[rng.integers(0, len(mesh.vertices), 600)] + rng.normal(size=(600, 3)) * 1e-3
+    truth = bake_animated_collider(animation, "mesh", "pulse").query(points, ["distance"], time=0.4).distance
+    collider.near_points = 600
+    np.testing.assert_allclose(collider.query(points, ["distance"], time=0.4).distance, truth, atol=1e-6)
+    collider.near_points = 601
+    assert np.abs(collider.query(points, ["distance"], time=0.4).distance - truth).max() > 1e-3
+
+
 @pytest.mark.parametrize("spare", [-1, 0])
 def test_frames_over_the_cap_are_not_kept(sphere, monkeypatch, capsys, spare):
     """A deformed run whose frames would take more than ``SURFACE_MAX_BYTES`` answers by its network
