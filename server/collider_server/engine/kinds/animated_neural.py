@@ -16,8 +16,8 @@ tangential part); for a deformed rest pose the velocity of the material point, s
 A deformed rest pose trained from a mesh's frames keeps them (``surface.frames``, float32, and
 ``surface.faces``): near the surface its points are answered on the exact patches
 (:mod:`.patches`), the frames' faces, interpolated at the time, around the rest field's closest
-point, as the articulated network answers a skin; a query of
-:func:`~.patches.near_points` or more points first by the cells of the frames at the time (:func:`~.patches.pose_cells`), as the
+point, as the articulated network answers a skin; a query of :func:`~.patches.near_points` or more
+points first by the cells of the frames at the time (:func:`~.patches.pose_cells`), as the
 articulated network's.
 """
 

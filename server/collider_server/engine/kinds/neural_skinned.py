@@ -2191,9 +2191,8 @@ class ArticulatedNeuralCollider(Collider):
         """The :class:`~.patches.NearCells` of a pose (``time`` / ``skeleton`` as
         :meth:`evaluate_at`'s): the posed skin's cells within :attr:`patch_band` of it, clean where
         every face listed lies wholly on the exact kind's surface (its union's boundary, by the exact
-        kind's own rule: the skin may pass through itself). Built on first use and kept for the
-        last ``keep`` poses (the walker's: 30-45 ms, most of it the self-intersection test and the
-        cells)."""
+        kind's own rule: the skin may pass through itself). Built on first use
+        (:func:`~.patches.pose_cells`) and kept for the last ``keep`` poses."""
         key = pose_key(time, skeleton)
         with self._lock:
             near = self._near.get(key)

@@ -20,6 +20,14 @@ the faces a rest point in it may need (every face within ``reach`` of any point 
 :func:`posed_surface` prepares a pose (vertices, pseudo-normals, vertex velocities);
 :func:`answer_on_patches` answers the network's rows, in one numba pass (a numpy reference beside
 it, tested equal).
+
+A large query (:func:`near_points` or more points) needs no network to find the faces: the pose's
+cells (:func:`pose_cells`, the same build over the posed mesh) list every face within the band of
+each of their points, and where none of them crosses another or lies buried (the exact kind's own
+rule, :func:`~collider_server.engine.union.faces_kept_whole`) a point within the band is answered
+by its nearest listed face (:func:`answer_near_skin`), the exact kind's answer; the other points
+go through the network (:func:`answer_near_first`). Building them costs a pose 30-45 ms (the
+walker's), which a small query cannot repay.
 """
 
 from __future__ import annotations
