@@ -11,7 +11,6 @@ and frame are its own (the collider frame once placed).
 from __future__ import annotations
 
 import threading
-from collections import OrderedDict
 from dataclasses import dataclass
 
 import numpy as np
@@ -19,6 +18,7 @@ import numpy as np
 from collider_contract import Timeline
 from collider_contract.animation import segment_at
 
+from .kept import Kept
 from .meshes import ExactSDF, Mesh, edge_index
 
 
@@ -120,10 +120,9 @@ class ExactAtTimes:
 
     def __init__(self, animation: AnimatedMesh, keep: int = 4):
         self.animation = animation
-        self.keep = keep
         self._edges = edge_index(np.asarray(animation.faces, dtype=np.int64))  # the same every frame
-        self._cache: OrderedDict = OrderedDict()
-        self._lock = threading.Lock()
+        self._cache: Kept[ExactSDF] = Kept(keep)
+        self._lock = threading.Lock()  # the build counts
         self.builds = 0
         self.build_s = 0.0
 
@@ -132,22 +131,17 @@ class ExactAtTimes:
         import time
 
         k, u, rate = self.animation.timeline.locate(t)
-        key = (k, u)
-        with self._lock:
-            exact = self._cache.get(key)
-            if exact is not None:
-                self._cache.move_to_end(key)
-                return exact, k, rate
-        started = time.perf_counter()
-        frames = self.animation.frames
-        exact = ExactSDF(Mesh(interpolate(frames[k], frames[k + 1], u), self.animation.faces,
-                              self.animation.name), self._edges)
-        exact.union  # noqa: B018 -- its tree (and, where the mesh crosses itself then, its union), built now
-        spent = time.perf_counter() - started
-        with self._lock:
-            self.builds += 1
-            self.build_s += spent
-            self._cache[key] = exact
-            while len(self._cache) > self.keep:
-                self._cache.popitem(last=False)
-        return exact, k, rate
+
+        def build() -> ExactSDF:
+            started = time.perf_counter()
+            frames = self.animation.frames
+            exact = ExactSDF(Mesh(interpolate(frames[k], frames[k + 1], u), self.animation.faces,
+                                  self.animation.name), self._edges)
+            exact.union  # noqa: B018 -- its tree (and, where the mesh crosses itself then, its union), built now
+            spent = time.perf_counter() - started
+            with self._lock:
+                self.builds += 1
+                self.build_s += spent
+            return exact
+
+        return self._cache.get((k, u), build), k, rate

@@ -52,7 +52,6 @@ from __future__ import annotations
 
 import math
 import threading
-from collections import OrderedDict
 from dataclasses import asdict, dataclass
 from typing import ClassVar, NamedTuple
 
@@ -60,6 +59,7 @@ import numpy as np
 
 from ..collider import Collider, ColliderInfo
 from ..devices import resolve_device
+from ..kept import Kept
 from ..meshes import edge_index
 from ..skinning import Skeleton, Skin, skin_velocities, skin_vertices
 from . import grid_kernels
@@ -2136,9 +2136,8 @@ class ArticulatedNeuralCollider(Collider):
             self.patch_band = PATCH_BAND * finest
             self._near_cell = NEAR_CELL * finest
             self._edges = edge_index(np.asarray(skin.faces, np.int64))  # the posed surfaces' pseudo-normals
-        self.keep = keep
-        self._cache: OrderedDict = OrderedDict()
-        self._near: OrderedDict = OrderedDict()  # the last poses' near cells (by pose key)
+        self._cache: Kept[PreparedPose] = Kept(keep)
+        self._near: Kept[NearCells] = Kept(keep)  # the last poses' cells
         self._table: tuple | None = None  # (prepared pose, with the motion, its pose_table)
         self._lock = threading.Lock()
 
@@ -2153,11 +2152,9 @@ class ArticulatedNeuralCollider(Collider):
     def pose(self, time, skeleton) -> PreparedPose:
         """The query's pose prepared once (cached by pose: :class:`PreparedPose`)."""
         key = pose_key(time, skeleton)
-        with self._lock:
-            prepared = self._cache.get(key)
-            if prepared is not None:
-                self._cache.move_to_end(key)
-                return prepared
+        return self._cache.get(key, lambda: self._prepare(key, skeleton))
+
+    def _prepare(self, key: tuple, skeleton) -> PreparedPose:
         transforms, velocities = resolve_pose(self.skin, self.loop, key, skeleton)
         to_rest, posed = rest_maps(self.skin.skeleton, transforms)
         moving = None
@@ -2180,12 +2177,7 @@ class ArticulatedNeuralCollider(Collider):
         if self.patches is not None:
             surface = posed_surface(skin_vertices(self.skin, transforms), self.skin.faces, self._edges,
                                     None if velocities is None else skin_velocities(self.skin, transforms, velocities))
-        prepared = PreparedPose(to_rest, posed, moving, bias.float().cpu().numpy(), offsets, moving_offsets, surface)
-        with self._lock:
-            self._cache[key] = prepared
-            while len(self._cache) > self.keep:
-                self._cache.popitem(last=False)
-        return prepared
+        return PreparedPose(to_rest, posed, moving, bias.float().cpu().numpy(), offsets, moving_offsets, surface)
 
     def near_cells(self, time, skeleton) -> NearCells:
         """The :class:`~.patches.NearCells` of a pose (``time`` / ``skeleton`` as
@@ -2193,19 +2185,8 @@ class ArticulatedNeuralCollider(Collider):
         every face listed lies wholly on the exact kind's surface (its union's boundary, by the exact
         kind's own rule: the skin may pass through itself). Built on first use
         (:func:`~.patches.pose_cells`) and kept for the last ``keep`` poses."""
-        key = pose_key(time, skeleton)
-        with self._lock:
-            near = self._near.get(key)
-            if near is not None:
-                self._near.move_to_end(key)
-                return near
-        near = pose_cells(self.pose(time, skeleton).surface, self.skin.faces, self._edges, self.patch_band,
-                          self._near_cell)
-        with self._lock:
-            self._near[key] = near
-            while len(self._near) > self.keep:
-                self._near.popitem(last=False)
-        return near
+        return self._near.get(pose_key(time, skeleton), lambda: pose_cells(
+            self.pose(time, skeleton).surface, self.skin.faces, self._edges, self.patch_band, self._near_cell))
 
     @property
     def gradient_in_one_pass(self) -> bool:  # type: ignore[override]

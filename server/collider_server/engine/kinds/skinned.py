@@ -17,13 +17,13 @@ from __future__ import annotations
 
 import threading
 import time as clock
-from collections import OrderedDict
 
 import numpy as np
 
 from collider_contract import SkeletonPose
 
 from ..collider import Collider, ColliderInfo
+from ..kept import Kept
 from ..meshes import ExactSDF, Mesh, barycentric, edge_index
 from ..skinning import Channel, Clip, Skeleton, Skin, pose_at, skin_velocities, skin_vertices
 
@@ -86,10 +86,9 @@ class SkinnedCollider(Collider):
         super().__init__(info)
         self.skin = skin
         self.loop = bool(info.skeleton.get("loop", True))
-        self.keep = keep
         self._edges = edge_index(skin.faces)  # the same at every pose
-        self._cache: OrderedDict = OrderedDict()
-        self._lock = threading.Lock()
+        self._cache: Kept[PosedSkin] = Kept(keep)
+        self._lock = threading.Lock()  # the build counts
         #: trees built, and the seconds they took (skinning included; measured)
         self.builds = 0
         self.build_s = 0.0
@@ -104,23 +103,19 @@ class SkinnedCollider(Collider):
         """The skin at the pose of a query: ``skeleton``'s joint transforms, or its clip (None:
         the first) at ``time`` seconds; with neither, the rest pose. Cached by pose."""
         key = pose_key(time, skeleton)
-        with self._lock:
-            posed = self._cache.get(key)
-            if posed is not None:
-                self._cache.move_to_end(key)
-                return posed
-        started = clock.perf_counter()
-        transforms, velocities = resolve_pose(self.skin, self.loop, key, skeleton)
-        mesh = Mesh(skin_vertices(self.skin, transforms), self.skin.faces, self.info.name)
-        posed = PosedSkin(self.skin, ExactSDF(mesh, self._edges), transforms, velocities)
-        spent = clock.perf_counter() - started
-        with self._lock:
-            self.builds += 1
-            self.build_s += spent
-            self._cache[key] = posed
-            while len(self._cache) > self.keep:
-                self._cache.popitem(last=False)
-        return posed
+
+        def build() -> PosedSkin:
+            started = clock.perf_counter()
+            transforms, velocities = resolve_pose(self.skin, self.loop, key, skeleton)
+            mesh = Mesh(skin_vertices(self.skin, transforms), self.skin.faces, self.info.name)
+            posed = PosedSkin(self.skin, ExactSDF(mesh, self._edges), transforms, velocities)
+            spent = clock.perf_counter() - started
+            with self._lock:
+                self.builds += 1
+                self.build_s += spent
+            return posed
+
+        return self._cache.get(key, build)
 
     # -- the kind's interface ---------------------------------------------------------------
 
