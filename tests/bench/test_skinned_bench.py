@@ -50,9 +50,8 @@ def test_bench_of_a_character_measures_both_kinds_at_clip_times_and_random_poses
     for part in ("clip_times", "random_poses"):
         for band in ("band_1mm", "band_10mm"):
             assert rows["skinned"]["accuracy"][part][band]["distance_max_mm"] < 1e-4  # float32 answers
-        # (The network of 20 steps answers the band from its posed skin's clean cells: exact there,
-        # its own error only where the skin passes through itself.)
-        assert np.isfinite(rows["neural-cylinder-neural"]["accuracy"][part]["band_1mm"]["distance_max_mm"])
+        neural = rows["neural-cylinder-neural"]["accuracy"][part]["band_1mm"]["distance_max_mm"]
+        assert np.isfinite(neural) and neural > 1e-3  # 20 steps: not exact
     timed = report["skinned"]["timed_at"]
     assert not timed["clip_times"]["perturbed"] and timed["random_poses"]["perturbed"]
     markdown = (tmp_path / "out" / "bench.md").read_text()
