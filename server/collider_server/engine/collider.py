@@ -14,7 +14,8 @@ coalesces). Only the fields asked for are computed: no gradient work is done for
 eps over the pose's scale raised by a relative 1e-9) each chunk's distances are evaluated first,
 then the gradient and velocity of only the points whose distance is below the threshold, in a
 second pass; a kind whose gradient costs little beside its distance (``gradient_in_one_pass``:
-the exact mesh kinds) evaluates both for the whole chunk in one pass and keeps the rows below it.
+the exact mesh kinds, and the neural kinds that answer near the surface on their exact patches)
+evaluates both for the whole chunk in one pass and keeps the rows below it.
 """
 
 from __future__ import annotations
@@ -112,8 +113,9 @@ class Collider(abc.ABC):
     clamps_to_domain: ClassVar[bool] = True
     #: Whether a collide-only query evaluates distance and gradient in one pass over all points
     #: (a kind whose gradient costs little beside its distance: the exact mesh kinds, whose
-    #: distance builds a fast winding number tree per call) instead of a distance pass, then a
-    #: gradient pass over the colliding points.
+    #: distance builds a fast winding number tree per call; the neural kinds with exact patches,
+    #: whose distance takes the gradient anyway) instead of a distance pass, then a gradient pass
+    #: over the colliding points.
     gradient_in_one_pass: ClassVar[bool] = False
 
     def __init__(self, info: ColliderInfo):

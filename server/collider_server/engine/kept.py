@@ -31,6 +31,7 @@ class Kept(Generic[T]):
         value = build()
         with self._lock:
             self._values[key] = value
+            self._values.move_to_end(key)  # (another thread may have kept one meanwhile)
             while len(self._values) > self.keep:
                 self._values.popitem(last=False)
         return value

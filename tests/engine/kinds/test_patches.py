@@ -373,3 +373,24 @@ def test_a_large_query_is_answered_near_the_skin_by_the_pose_s_cells_without_the
     collider.near_points = 2001
     answer = collider.query(points, ("distance",), joint_transforms=transforms).distance
     assert np.abs(answer - truth.distance).mean() > 1e-4
+
+
+def test_by_a_hole_s_rim_the_pose_s_cells_leave_the_points_to_the_network(posed):
+    """A face taken out of the posed figure leaves a hole whose rim's faces meet one face at an
+    edge: there the exact kind's sign (the winding number's) is not the pseudo-normal's, so every
+    cell listing a rim face is unclean (its points go to the network); the closed figure's cells
+    are nearly all clean."""
+    from collider_server.engine.meshes import edge_index
+
+    skin, _, surface, _, _, _, _, (_, face) = posed
+    faces = np.asarray(skin.faces, np.int64)
+    near = patches.pose_cells(surface, faces, edge_index(faces), BAND, CELL)
+    assert near.clean.mean() > 0.9
+    holed = np.delete(faces, face[0], axis=0)
+    rim = np.flatnonzero([len(set(f) & set(faces[face[0]])) == 2 for f in holed])
+    assert len(rim) == 3
+    near = patches.pose_cells(patches.posed_surface(surface.vertices, holed), holed, edge_index(holed), BAND, CELL)
+    cells = near.cells
+    listing = np.array([np.isin(rim, cells.faces[cells.start[c]:cells.start[c + 1]]).any()
+                        for c in range(len(cells.keys))])
+    assert listing.sum() > 0 and not near.clean[listing].any() and near.clean[~listing].mean() > 0.9

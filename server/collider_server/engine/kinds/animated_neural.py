@@ -23,7 +23,6 @@ articulated network's.
 
 from __future__ import annotations
 
-import threading
 from types import SimpleNamespace
 
 import numpy as np
@@ -32,6 +31,7 @@ from collider_contract import Timeline
 
 from ..animated_meshes import interpolate
 from ..collider import ColliderInfo
+from ..kept import Kept
 from ..meshes import edge_index
 from .animated_voxel import normal_velocity
 from .neural import NeuralCollider
@@ -42,6 +42,8 @@ from .patches import (
     PATCH_BAND,
     PATCH_CELL,
     PATCH_REACH,
+    NearCells,
+    PosedSurface,
     answer_near_first,
     answer_on_patches,
     near_points,
@@ -50,6 +52,8 @@ from .patches import (
     posed_surface,
 )
 
+#: Times whose surface and cells a deformed network keeps (a batch's requests at a few times).
+KEEP_TIMES = 4
 #: The model file's names of the frames a deformed network keeps for its exact patches.
 SURFACE_FRAMES, SURFACE_FACES = "surface.frames", "surface.faces"
 
@@ -80,8 +84,9 @@ class AnimatedNeuralCollider(NeuralCollider):
         #: The fewest points of a query answered near the surface by the cells of the frames at
         #: its time (:func:`~.patches.near_points`, with the frames kept), or None: never.
         self.near_points: int | None = None
-        self._posed: tuple | None = None  # (segment, fraction, rate, posed surface, its cells) of the last time
-        self._lock = threading.Lock()
+        #: The surfaces and cells of the last times asked, by (segment, fraction, rate).
+        self._surfaces: Kept[PosedSurface] = Kept(KEEP_TIMES)
+        self._cells: Kept[NearCells] = Kept(KEEP_TIMES)
 
     def keep_surface(self, frames: np.ndarray, faces: np.ndarray) -> None:
         """Answer near the surface on the exact patches of this animation's ``frames`` (F, v, 3)
@@ -101,24 +106,23 @@ class AnimatedNeuralCollider(NeuralCollider):
         self._near_cell = NEAR_CELL * finest
         self.near_points = near_points(self.chunk_points)
         self._edges = edge_index(self.surface_faces)
-        self._posed = None
+        self._surfaces.clear()
+        self._cells.clear()
 
-    def _surface_at(self, k: int, s: float, rate: float, cells: bool = False):
+    def _surface_at(self, k: int, s: float, rate: float) -> PosedSurface:
         """The frames' surface at segment ``k``, fraction ``s``, ``rate`` frames per second (kept
-        for the last time asked): vertices interpolated as the exact animated kind's, their
-        velocities its segment's; with ``cells``, ``(surface, its pose_cells)``."""
-        with self._lock:
-            kept = self._posed
-        if kept is None or kept[:3] != (k, s, rate):
+        for the last few times asked): vertices interpolated as the exact animated kind's, their
+        velocities its segment's."""
+        def build() -> PosedSurface:
             low, high = (self.surface_frames[k].astype(np.float64), self.surface_frames[k + 1].astype(np.float64))
-            surface = posed_surface(interpolate(low, high, s), self.surface_faces, self._edges, (high - low) * rate)
-            kept = (k, s, rate, surface, None)
-        if cells and kept[4] is None:
-            kept = kept[:4] + (pose_cells(kept[3], self.surface_faces, self._edges, self.patch_band,
-                                          self._near_cell),)
-        with self._lock:
-            self._posed = kept
-        return (kept[3], kept[4]) if cells else kept[3]
+            return posed_surface(interpolate(low, high, s), self.surface_faces, self._edges, (high - low) * rate)
+
+        return self._surfaces.get((k, s, rate), build)
+
+    def _cells_at(self, k: int, s: float, rate: float) -> NearCells:
+        """The :func:`~.patches.pose_cells` of :meth:`_surface_at`'s surface (kept alike)."""
+        return self._cells.get((k, s, rate), lambda: pose_cells(self._surface_at(k, s, rate), self.surface_faces,
+                                                                self._edges, self.patch_band, self._near_cell))
 
     @property
     def keyframes(self) -> int:
@@ -140,8 +144,9 @@ class AnimatedNeuralCollider(NeuralCollider):
         (:meth:`_through_network`); a smaller query all through the network."""
         if self.patches is None or self.near_points is None or len(local) < self.near_points:
             return self._through_network(local, want_gradient, time)
-        surface, near = self._surface_at(*self.timeline.locate(0.0 if time is None else time), cells=True)
-        return answer_near_first(local, near, surface, self.surface_faces, want_gradient, True,
+        segment = self.timeline.locate(0.0 if time is None else time)
+        return answer_near_first(local, self._cells_at(*segment), self._surface_at(*segment), self.surface_faces,
+                                 want_gradient,
                                  lambda rows, gradient: self._through_network(rows, gradient, time))
 
     def _through_network(self, local, want_gradient, time):

@@ -2232,8 +2232,7 @@ class ArticulatedNeuralCollider(Collider):
         if self.patches is None or self.near_points is None or len(local) < self.near_points:
             return self._through_network(local, want_gradient, prepared)
         return answer_near_first(local, self.near_cells(time, skeleton), prepared.surface, self.skin.faces,
-                                 want_gradient, prepared.moving is not None,
-                                 lambda rows, gradient: self._through_network(rows, gradient, prepared))
+                                 want_gradient, lambda rows, gradient: self._through_network(rows, gradient, prepared))
 
     def _through_network(self, local: np.ndarray, want_gradient: bool, prepared: PreparedPose):
         """:meth:`evaluate_at` of points ``local`` through the network at a prepared pose: each

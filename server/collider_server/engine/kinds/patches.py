@@ -57,7 +57,7 @@ NEAR_POINTS = 65_536
 SURFACE_MARGIN = 0.25
 #: Faces per piece of :func:`patch_cells`' numpy build (its cell pairs in bounded memory).
 BUILD_FACES = 4096
-#: Grids of at most this many cells are grouped by a counting sort over all of them (8 bytes a
+#: Grids of at most this many cells are grouped by a counting sort over all of them (16 bytes a
 #: cell while it runs); larger ones by a sort of the listed pairs.
 DENSE_CELLS = 1 << 25
 
@@ -143,9 +143,10 @@ def patch_cells(vertices: np.ndarray, faces: np.ndarray, reach: float, cell: flo
     (``margin`` None: a posed mesh's cells, which any point within ``reach`` of the surface falls
     in). A face's box grown by ``reach`` names its cells; a cell lists the face where it lies
     within ``reach`` plus half the cell's diagonal of the cell's centre (so that no face within
-    ``reach`` of a point of the cell is missed), nearest that centre first. One numba pass
-    (:func:`_cell_kernel`: the walker's rest cells in 16 ms, 0.23 s in numpy) when numba is there
-    and ``fused``, else numpy in pieces of :data:`BUILD_FACES` faces (the same cells)."""
+    ``reach`` of a point of the cell is missed), nearest that centre first. In numba
+    (:func:`_cell_kernel` counts each face's cells, then lists them; :func:`_grouped` sorts them
+    by cell: the walker's rest cells in 16 ms, 0.23 s in numpy) when numba is there and ``fused``,
+    else numpy in pieces of :data:`BUILD_FACES` faces (the same cells)."""
     if not (reach > 0 and cell > 0):
         raise ValueError(f"reach and cell must be > 0, got {reach} and {cell}")
     vertices = np.ascontiguousarray(vertices, np.float64)
@@ -165,6 +166,9 @@ def patch_cells(vertices: np.ndarray, faces: np.ndarray, reach: float, cell: flo
                      gap, counts)
     else:
         key, face, gap = _cell_pairs_numpy(vertices, faces, origin, cell, dims, reach, half_diagonal)
+    if not len(key):  # no faces (or none of finite size): no cells
+        return PatchCells(origin, float(cell), dims, np.zeros(0, np.int64), np.zeros(1, np.int64),
+                          np.zeros(0, np.int32), float(reach))
     if fused and _cell_kernel is not None and size <= DENSE_CELLS:
         key, face, gap = _grouped(key, face, gap, size)  # a counting sort by cell (the same order)
     else:
@@ -346,14 +350,17 @@ def pose_cells(surface: PosedSurface, faces: np.ndarray, edges: np.ndarray, band
     """:func:`near_cells` of a posed ``surface`` (``faces`` (F, 3), ``edges`` their
     :func:`~collider_server.engine.meshes.edge_index`), clean where the exact kind's own rule keeps
     every listed face whole (:func:`~collider_server.engine.union.faces_kept_whole` by the posed
-    mesh's winding number: a skin may pass through itself). The walker's 7,920 faces: 30-45 ms,
-    most of it the self-intersection test and the cells."""
+    mesh's winding number: a skin may pass through itself) and each of them meets two faces at
+    every edge (at a hole's rim the exact kind's sign, the winding number's, is not the
+    pseudo-normal's). The walker's 7,920 faces: 30-45 ms, most of it the self-intersection test and
+    the cells."""
     from ..meshes import ExactSDF, Mesh
     from ..union import faces_kept_whole
 
     exact = ExactSDF(Mesh(surface.vertices, faces, "posed"), edges)
     kept = faces_kept_whole(surface.vertices, exact.mesh.faces, exact.winding_number, edges)
-    return near_cells(surface, faces, band, cell, kept)
+    closed = (np.bincount(edges.ravel())[edges] == 2).all(axis=1) if len(edges) else np.zeros(0, bool)
+    return near_cells(surface, faces, band, cell, kept & closed)
 
 
 def near_points(chunk_points: int) -> int:
@@ -365,12 +372,12 @@ def near_points(chunk_points: int) -> int:
 
 
 def answer_near_first(points: np.ndarray, near: NearCells, surface: PosedSurface, faces: np.ndarray,
-                      want_gradient: bool, moving: bool, through_network):
+                      want_gradient: bool, through_network):
     """A large query's answers (:func:`near_points` or more ``points`` (n, 3)): those the pose's
     cells answer (:func:`answer_near_skin`), the others by ``through_network(points (m, 3),
     want_gradient) -> (distance, gradient or None, velocity or None)``. Returns the collider's
     ``(distance (n,), normal (n, 3) or None, velocity (n, 3) or None)`` (a normal where
-    ``want_gradient``, a velocity where also ``moving``), collider frame and units."""
+    ``want_gradient``, a velocity where also the surface moves), collider frame and units."""
     distance, normal, velocity, face = answer_near_skin(points, near, surface, faces)
     left = np.flatnonzero(face < 0)  # in no clean cell, or beyond the band
     if len(left):
@@ -378,11 +385,11 @@ def answer_near_first(points: np.ndarray, near: NearCells, surface: PosedSurface
         distance[left] = d
         if want_gradient:
             normal[left] = g
-        if v is not None:
+        if velocity is not None and v is not None:
             velocity[left] = v
     if not want_gradient:
         return distance, None, None
-    return distance, normal, velocity if moving else None
+    return distance, normal, velocity
 
 
 def answer_near_skin(points: np.ndarray, near: NearCells, surface: PosedSurface, faces: np.ndarray,
@@ -412,7 +419,8 @@ def answer_near_skin(points: np.ndarray, near: NearCells, surface: PosedSurface,
         return distance, normal, velocity if moving else None, face
     distance, normal, face, bary = _nearest_numpy(points, points, cells, surface, faces, tiny)
     slot = cells_of(points, cells)
-    left = (face < 0) | ~(np.abs(distance) <= cells.reach) | ~near.clean[np.maximum(slot, 0)]
+    clean = near.clean[np.maximum(slot, 0)] if len(near.clean) else np.zeros(n, bool)
+    left = (face < 0) | ~(np.abs(distance) <= cells.reach) | ~clean
     distance[left], normal[left], face[left] = np.nan, 0.0, -1
     if moving:
         answered = ~left
@@ -568,8 +576,8 @@ else:
             if s < 0 or not clean[s]:
                 continue
             best, f, feature, u, v, w, qx, qy, qz = _nearest_listed(px, py, pz, start[s], start[s + 1], cell_faces,
-                                                                    spheres, vertices, faces, band)
-            if f >= 0:
+                                                                    spheres, vertices, faces, band * (1.0 + 1e-9))
+            if f >= 0 and np.sqrt(best) <= band:  # (the numpy rule's test: the same number)
                 _put_answer(p, px, py, pz, best, f, feature, u, v, w, qx, qy, qz, faces, face_normals, edge_normals,
                             vertex_normals, velocities, tiny, distance, normal, velocity, face)
 
